@@ -1,0 +1,228 @@
+"""The one sample stream every source produces, and the interfaces of sources and sinks.
+
+Time convention: integer nanoseconds (``t_ns``, int64, UNIX epoch or record start)
+at the ingest boundary, float seconds (``t_s``) only inside models.  Signal values
+are float64 in SI units (m, V, Pa, N, K).
+
+A :class:`Samples` block is columnar: ``t_ns`` has shape ``(n,)`` and every signal
+in ``signals`` has shape ``(n,)`` too (time first).  Sources yield blocks for
+offline work (``source.chunks()``) or single :class:`Sample` for live work
+(``iter(source)``), and keep a :class:`ReadReport` of everything they skipped.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from collections import Counter
+from typing import Iterator, Mapping
+
+import numpy as np
+
+# --- the signal vocabulary ------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class SignalSpec:
+    """One rig signal: SI unit, plausible physical range in that unit, meaning."""
+
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    meaning: str
+
+
+#: The rig signals every source maps onto (names of the fit issue), SI units.
+SIGNALS: dict[str, SignalSpec] = {
+    s.name: s
+    for s in (
+        SignalSpec("x_ref", "m", -0.5, 0.5, "demanded rod displacement"),
+        SignalSpec("u", "V", -15.0, 15.0, "controller output (servo-valve voltage)"),
+        SignalSpec("x", "m", -0.5, 0.5, "measured rod displacement (LVDT)"),
+        SignalSpec("pA", "Pa", -1.0e6, 60.0e6, "pressure in chamber A"),
+        SignalSpec("pB", "Pa", -1.0e6, 60.0e6, "pressure in chamber B"),
+        SignalSpec("F", "N", -1.0e6, 1.0e6, "rod force (load cell)"),
+        SignalSpec("T_oil", "K", 233.15, 423.15, "oil temperature"),
+        SignalSpec("pP", "Pa", -1.0e6, 60.0e6, "supply pressure"),
+        # the oscillator's signals (the paper's basic demonstration)
+        SignalSpec("y", "m", -10.0, 10.0, "oscillator displacement"),
+    )
+}
+
+#: The signals a rig record normally carries (any may be missing).
+RIG_SIGNALS: tuple[str, ...] = ("x_ref", "u", "x", "pA", "pB")
+
+
+# --- samples ---------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Sample:
+    """One time instant of the stream (live path)."""
+
+    t_ns: int
+    values: Mapping[str, float]
+
+
+@dataclasses.dataclass
+class Samples:
+    """A block of samples, columnar and time first."""
+
+    t_ns: np.ndarray
+    signals: dict[str, np.ndarray]
+
+    def __post_init__(self) -> None:
+        self.t_ns = np.asarray(self.t_ns, dtype=np.int64)
+        n = self.t_ns.shape[0]
+        for k, v in list(self.signals.items()):
+            v = np.asarray(v, dtype=np.float64)
+            if v.shape != (n,):
+                raise ValueError(f"signal {k!r} has shape {v.shape}, expected ({n},) like t_ns")
+            self.signals[k] = v
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.signals[name]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.signals)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Seconds from the first sample of this block."""
+        if len(self) == 0:
+            return np.zeros(0)
+        return (self.t_ns - self.t_ns[0]).astype(np.float64) * 1e-9
+
+    def rows(self) -> Iterator[Sample]:
+        names = self.names
+        cols = [self.signals[k] for k in names]
+        for i in range(len(self)):
+            yield Sample(int(self.t_ns[i]), {k: float(c[i]) for k, c in zip(names, cols)})
+
+    def slice(self, start: int, stop: int) -> "Samples":
+        return Samples(self.t_ns[start:stop].copy(), {k: v[start:stop].copy() for k, v in self.signals.items()})
+
+    @staticmethod
+    def concat(blocks: list["Samples"]) -> "Samples":
+        blocks = [b for b in blocks if len(b)]
+        if not blocks:
+            return Samples(np.zeros(0, np.int64), {})
+        names = blocks[0].names
+        return Samples(
+            np.concatenate([b.t_ns for b in blocks]),
+            {k: np.concatenate([b.signals[k] for b in blocks]) for k in names},
+        )
+
+
+# --- what a read skipped -----------------------------------------------------------------
+
+@dataclasses.dataclass
+class Problem:
+    """One thing a read could not use, said so that an operator can find it."""
+
+    file: str
+    where: str  # record, line, frame or channel
+    what: str   # what was wrong and what was expected
+
+    def __str__(self) -> str:
+        return f"{self.file}: {self.where}: {self.what}"
+
+
+@dataclasses.dataclass
+class ReadReport:
+    """Summary of a read: counts of what was kept and skipped, gaps, and the first problems."""
+
+    file: str
+    records_read: int = 0
+    samples_out: int = 0
+    skipped: Counter = dataclasses.field(default_factory=Counter)
+    gaps: list[tuple[int, int]] = dataclasses.field(default_factory=list)  # (t_ns start, t_ns end)
+    problems: list[Problem] = dataclasses.field(default_factory=list)
+    truncated: bool = False
+    max_problems: int = 50
+
+    def skip(self, reason: str, where: str, what: str) -> None:
+        """Count a skipped record under ``reason`` and keep its message (the first few)."""
+        self.skipped[reason] += 1
+        if len(self.problems) < self.max_problems:
+            self.problems.append(Problem(self.file, where, what))
+
+    def summary(self) -> str:
+        parts = [f"{self.file}: {self.records_read} records read, {self.samples_out} samples out"]
+        if self.skipped:
+            parts.append("skipped: " + ", ".join(f"{k}={v}" for k, v in sorted(self.skipped.items())))
+        if self.gaps:
+            parts.append(f"{len(self.gaps)} gap(s)")
+        if self.truncated:
+            parts.append("file truncated or corrupt: readable prefix kept")
+        return "; ".join(parts)
+
+    def to_dict(self) -> dict:
+        return {
+            "file": self.file,
+            "records_read": self.records_read,
+            "samples_out": self.samples_out,
+            "skipped": dict(self.skipped),
+            "gaps_ns": [list(g) for g in self.gaps],
+            "truncated": self.truncated,
+            "problems": [str(p) for p in self.problems],
+        }
+
+
+# --- sources and sinks -------------------------------------------------------------------
+
+class Source(abc.ABC):
+    """A stream of rig samples. Use as a context manager.
+
+    ``chunks(n)`` yields :class:`Samples` blocks of at most ``n`` samples (offline);
+    iterating the source yields :class:`Sample` one by one (live).  ``report`` tells
+    what was skipped so far.
+    """
+
+    path: str
+    report: ReadReport
+
+    def __enter__(self) -> "Source":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release files, buses and sessions."""
+
+    @property
+    @abc.abstractmethod
+    def signals(self) -> tuple[str, ...]:
+        """Names of the signals this source delivers."""
+
+    @abc.abstractmethod
+    def chunks(self, size: int = 65536) -> Iterator[Samples]:
+        """Blocks of samples in time order."""
+
+    def __iter__(self) -> Iterator[Sample]:
+        for block in self.chunks():
+            yield from block.rows()
+
+    def read_all(self) -> Samples:
+        return Samples.concat(list(self.chunks()))
+
+
+class Sink(abc.ABC):
+    """Where samples are written. Use as a context manager."""
+
+    def __enter__(self) -> "Sink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @abc.abstractmethod
+    def write(self, samples: Samples) -> None:
+        """Append a block of samples."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Flush and release."""

@@ -1,0 +1,183 @@
+"""Models: parameter validation, the compiled integrator against solve_ivp, batch consistency."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import integrate, signal
+
+from twin.errors import DataError, ParameterError
+from twin.models import get_model
+from twin.models import msp25 as M
+from twin.models import oscillator as O
+from twin.simulate import excite, measure
+
+
+# --- parameter validation: one test per kind of error -------------------------------------
+def test_out_of_bounds_names_parameter_value_unit_and_range():
+    with pytest.raises(ParameterError, match=r"Ffric \(=-3 N\) must be in \[0 \.\.\. 100000\] N"):
+        M.MODEL.params(Ffric=-3.0)
+
+
+def test_non_finite_value_rejected():
+    with pytest.raises(ParameterError, match=r"Cd \(=nan\) must be finite"):
+        M.MODEL.params(Cd=float("nan"))
+
+
+def test_non_numeric_value_rejected():
+    with pytest.raises(ParameterError, match=r"zeta \(='high'\) must be a number"):
+        M.MODEL.params(zeta="high")
+
+
+def test_unknown_parameter_rejected():
+    with pytest.raises(ParameterError, match=r"no parameter 'friction'"):
+        M.MODEL.params(friction=1.0)
+
+
+def test_unknown_effect_rejected():
+    with pytest.raises(ParameterError, match=r"unknown effect of model msp25 'gremlins'"):
+        M.MODEL.params(effects=["gremlins"])
+
+
+def test_unknown_model_rejected():
+    with pytest.raises(ParameterError, match="unknown model"):
+        get_model("msp26")
+
+
+def test_effect_parameter_only_when_effect_is_on():
+    with pytest.raises(ParameterError):
+        M.MODEL.params(c_visc=10.0)
+    ps = M.MODEL.params(effects=["viscous_friction"], c_visc=10.0)
+    assert ps["c_visc"] == 10.0
+    assert M.MODEL.vector(ps)[M.I_CVISC] == 10.0
+    assert M.MODEL.vector(M.MODEL.params())[M.I_CVISC] == 0.0
+
+
+def test_metadata_complete_and_display_units():
+    ps = M.MODEL.params()
+    for s in M.MODEL.kernel_specs:
+        assert s.unit and s.meaning and s.category
+    assert ps.spec("wn").show(ps["wn"]) == "43 Hz"
+    assert ps.by_category("phenomenological") == ("Ffric", "CdAleak", "Cd", "zeta", "wn")
+
+
+# --- the integrator against solve_ivp ------------------------------------------------------
+def _reference_msp25(ps, u_samples, dt):
+    """solve_ivp (Radau, tight tolerances) of the same right-hand side, input held per sample."""
+    p = M.MODEL.vector(ps)
+
+    def f(t, s):
+        k = min(int(t / dt + 1e-9), len(u_samples) - 1)
+        return np.array(M.deriv(*s, u_samples[k], p))
+
+    s = M.MODEL.initial_state(p[None])[0]
+    out = [s]
+    for k in range(len(u_samples) - 1):
+        sol = integrate.solve_ivp(f, (k * dt, (k + 1) * dt), s, method="Radau", rtol=1e-10,
+                                  atol=[1e-12, 1e-10, 1e-2, 1e-2, 1e-12, 1e-10])
+        s = sol.y[:, -1]
+        out.append(s)
+    return np.array(out)
+
+
+def test_rk4_matches_solve_ivp_on_the_rig():
+    ps = M.MODEL.params()
+    dt = 1e-3
+    name, xr = excite(M.MODEL, 0.3, dt, amplitude=0.005, f_lo=2.0, f_hi=10.0)
+    closed = M.MODEL.simulate(ps, name, xr, dt)
+    u = closed.inputs["u"]
+    ref = _reference_msp25(ps, u, dt)
+    ours = M.MODEL.simulate(ps, "u", u, dt, substeps=3).states
+    np.testing.assert_allclose(ours[:, 4], ref[:, 4], atol=2e-7 * 0.005 / 1e-3 + 1e-9)
+    rel_x = np.max(np.abs(ours[:, 4] - ref[:, 4])) / np.max(np.abs(ref[:, 4]))
+    assert rel_x < 1e-4
+    dp_err = np.max(np.abs((ours[:, 2] - ours[:, 3]) - (ref[:, 2] - ref[:, 3])))
+    assert dp_err < 0.02 * np.max(np.abs(ref[:, 2] - ref[:, 3]))
+
+
+def test_rk4_matches_solve_ivp_on_the_oscillator():
+    ps = O.MODEL.params()
+    dt = 1e-3
+    u = np.random.default_rng(3).normal(0, 50, 400)
+    ours = O.MODEL.simulate(ps, "u", u, dt).outputs["y"]
+    p = O.MODEL.vector(ps)
+    A, B, C, D = O.MODEL.state_space(ps)
+    sysd = signal.cont2discrete((A, B, C, D), dt, method="zoh")
+    ref = signal.dlsim(sysd[:4] + (dt,), u)[1][:, 0]
+    assert np.max(np.abs(ours - ref)) < 1e-6 * np.max(np.abs(ref))
+    assert p.shape == (O.NP,)
+
+
+def test_oscillator_transfer_function_matches_state_space():
+    ps = O.MODEL.params()
+    A, B, C, D = O.MODEL.state_space(ps)
+    num, den = O.MODEL.transfer_function(ps)
+    w = np.logspace(0, 3, 50)
+    _, h_tf = signal.freqs(num, den, worN=w)
+    h_ss = np.array([(C @ np.linalg.solve(1j * wi * np.eye(2) - A, B) + D)[0, 0] for wi in w])
+    np.testing.assert_allclose(h_tf, h_ss, rtol=1e-12)
+    # resonance at 10 Hz, as the paper says
+    assert abs(np.sqrt(ps["k"] / ps["m"]) / (2 * np.pi) - 10.0) < 1e-3
+
+
+def test_batch_rows_equal_single_simulations():
+    ps = M.MODEL.params()
+    name, xr = excite(M.MODEL, 1.0, 1e-3, seed=4)
+    P = np.stack([M.MODEL.vector(ps.replace(Ffric=f)) for f in (20.0, 50.0, 120.0)])
+    batch = M.MODEL.simulate_batch(P, name, xr, 1e-3)
+    for k, f in enumerate((20.0, 50.0, 120.0)):
+        single = M.MODEL.simulate(ps.replace(Ffric=f), name, xr, 1e-3)
+        np.testing.assert_array_equal(batch.outputs["x"][k], single.outputs["x"])
+    assert not np.allclose(batch.outputs["x"][0], batch.outputs["x"][2])
+
+
+def test_closed_loop_log_replays_open_loop_exactly():
+    ps = M.MODEL.params()
+    name, xr = excite(M.MODEL, 2.0, 1e-3)
+    closed = M.MODEL.simulate(ps, name, xr, 1e-3)
+    opened = M.MODEL.simulate(ps, "u", closed.inputs["u"], 1e-3)
+    np.testing.assert_array_equal(closed.states, opened.states)
+
+
+def test_rest_is_an_equilibrium_and_tracking_works():
+    ps = M.MODEL.params()
+    rest = M.MODEL.simulate(ps, "x_ref", np.zeros(500), 1e-3)
+    assert np.max(np.abs(rest.states[:, 4])) < 1e-12
+    name, xr = excite(M.MODEL, 5.0, 1e-3)
+    run = M.MODEL.simulate(ps, name, xr, 1e-3)
+    err = run.outputs["x"] - xr
+    assert np.sqrt(np.mean(err**2)) < 0.2 * np.sqrt(np.mean(xr**2))
+
+
+def test_every_effect_changes_the_response_and_neutral_is_nominal():
+    name, xr = excite(M.MODEL, 2.0, 1e-3, seed=2)
+    nominal = M.MODEL.simulate(M.MODEL.params(), name, xr, 1e-3)
+    for effect in M.EFFECTS:
+        neutral = dict(zip(M.EFFECTS[effect].names, M.EFFECTS[effect].neutral))
+        off = M.MODEL.simulate(M.MODEL.params(effects=[effect], **neutral), name, xr, 1e-3)
+        np.testing.assert_array_equal(off.outputs["x"], nominal.outputs["x"], err_msg=effect)
+        on = M.MODEL.simulate(M.MODEL.params(effects=[effect]), name, xr, 1e-3)
+        dx = np.max(np.abs(on.outputs["x"] - nominal.outputs["x"]))
+        dp = np.max(np.abs(on.outputs["pA"] - nominal.outputs["pA"]))
+        assert dx > 5e-6 or dp > 5e4, f"{effect} at its typical size is below the sensor noise (dx={dx}, dp={dp})"
+
+
+def test_bad_drive_is_rejected_with_a_clear_message():
+    ps = M.MODEL.params()
+    bad = np.zeros(100)
+    bad[40] = np.nan
+    with pytest.raises(DataError, match="non-finite value at sample 40"):
+        M.MODEL.simulate(ps, "x_ref", bad, 1e-3)
+    with pytest.raises(DataError, match="positive number of seconds"):
+        M.MODEL.simulate(ps, "x_ref", np.zeros(10), 0.0)
+
+
+def test_measure_adds_seeded_noise():
+    name, xr = excite(M.MODEL, 1.0, 1e-3)
+    a = measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3, noise={"x": 2e-6}, seed=5)
+    b = measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3, noise={"x": 2e-6}, seed=5)
+    c = measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3)
+    np.testing.assert_array_equal(a["x"], b["x"])
+    assert 1.5e-6 < np.std(a["x"] - c["x"]) < 2.5e-6
+    q = measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3, quantisation={"pA": 1e3})
+    assert np.allclose(q["pA"] / 1e3, np.round(q["pA"] / 1e3))

@@ -1,0 +1,380 @@
+"""The Hydropuls MSP25 servo-hydraulic test rig (paper section 2, ``shared/model-spec.md``).
+
+States (SI): ``xs`` spool position [m], ``vs`` spool velocity [m/s], ``pA``, ``pB``
+chamber pressures [Pa], ``x`` rod position [m], ``v`` rod velocity [m/s].
+
+Two ways to drive it:
+
+* closed loop from the demanded displacement ``x_ref`` (the paper's setup): the
+  IST8000 is a digital controller, so the PID runs at the sample instants on the
+  measured displacement and its output ``u`` is held between samples (zero-order
+  hold, as a DAC does).  The logged ``u`` of a closed-loop simulation therefore
+  reproduces the same trajectory when fed back open loop.
+* open loop from the logged controller output ``u`` [V] (what a filter uses).
+
+Orifice square roots are regularised in a laminar band of ``dp_lam`` (1 bar by
+default): ``sqrt(|dp|) sgn(dp)`` is replaced by ``dp / (dp^2 + dp_lam^2)^(1/4)``,
+which is exact to 0.01 % for ``|dp| > 70 dp_lam`` (the valve's normal operating
+drops of several MPa), linear (laminar) near zero and smooth everywhere, so RK4
+and finite-difference Jacobians behave at zero pressure drop.
+
+The catalogue of effects (switched on by name, neutral when off) is compiled
+into the one right-hand side; see :data:`EFFECTS`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import numba as nb
+import numpy as np
+
+from twin.errors import DataError
+from twin.models.base import Model, SimResult, check_drive
+from twin.params import Effect, ParamSpec
+
+TWO_PI = 2.0 * math.pi
+
+# --- parameters --------------------------------------------------------------------
+G, PH, PN, EX = "geometric", "physical", "phenomenological", "extension"
+
+BASE = (
+    ParamSpec("KP", "V/m", 0.0, 1e5, PH, "PID proportional gain"),
+    ParamSpec("KI", "V/(m s)", 0.0, 1e7, PH, "PID integral gain"),
+    ParamSpec("KD", "V s/m", 0.0, 1e3, PH, "PID derivative gain"),
+    ParamSpec("rho", "kg/m^3", 700.0, 1100.0, PH, "oil density"),
+    ParamSpec("V0", "m^3", 1e-6, 1e-1, G, "chamber volume at mid stroke (each side)", "cm^3", 1e6),
+    ParamSpec("A", "m^2", 1e-6, 1e-1, G, "piston area (each side)", "mm^2", 1e6),
+    ParamSpec("m", "kg", 0.1, 1e5, PH, "moving mass"),
+    ParamSpec("Bulk", "Pa", 1e7, 1e11, PH, "oil bulk modulus", "MPa", 1e-6),
+    ParamSpec("vref", "m/s", 1e-7, 1.0, PH, "friction smoothing velocity", "mm/s", 1e3),
+    ParamSpec("Ke", "A/V", 1e-6, 1e3, PH, "current amplifier gain"),
+    ParamSpec("Ksp", "m/A", 1e-7, 1.0, PH, "current-to-spool gain"),
+    ParamSpec("b", "m", 1e-5, 1.0, G, "valve port width", "mm", 1e3),
+    ParamSpec("pP", "Pa", 1e5, 1e8, PH, "supply pressure", "MPa", 1e-6),
+    ParamSpec("pT", "Pa", 0.0, 1e7, PH, "tank pressure", "MPa", 1e-6),
+    ParamSpec("dp_lam", "Pa", 1.0, 1e6, PH, "laminar band of the orifice square roots", "bar", 1e-5),
+    ParamSpec("Fext", "N", -1e6, 1e6, PH, "constant external force on the rod"),
+    ParamSpec("stroke", "m", 1e-3, 10.0, G, "full stroke (+/- half about mid stroke)", "mm", 1e3),
+    ParamSpec("Ffric", "N", 0.0, 1e5, PN, "maximal dry friction force", typical=50.0),
+    ParamSpec("CdAleak", "m^2", 1e-14, 1e-5, PN, "discharge coefficient times bypass area", "mm^2", 1e6,
+              typical=3.2863e-9),
+    ParamSpec("Cd", "1", 1e-3, 1.0, PN, "valve discharge coefficient", typical=0.2191),
+    ParamSpec("zeta", "1", 1e-3, 10.0, PN, "valve damping ratio", typical=0.3701),
+    ParamSpec("wn", "rad/s", TWO_PI * 1.0, TWO_PI * 1000.0, PN, "valve natural frequency", "Hz",
+              1.0 / TWO_PI, typical=TWO_PI * 43.0),
+)
+
+NOMINAL = {
+    "KP": 400.0, "KI": 0.0, "KD": 0.0, "rho": 960.0, "V0": 480e-6, "A": 1920e-6, "m": 45.0,
+    "Bulk": 1.5e9, "vref": 1e-3, "Ke": 1.0, "Ksp": 0.0024, "b": 5e-3, "pP": 28e6, "pT": 0.0,
+    "dp_lam": 1e5, "Fext": 0.0, "stroke": 0.25,
+    # paper Table 9 (the reference set)
+    "Ffric": 50.0, "CdAleak": 3.2863e-9, "Cd": 0.2191, "zeta": 0.3701, "wn": TWO_PI * 43.0,
+}
+PHENOMENOLOGICAL = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
+
+
+def _fx(name, unit, lo, hi, meaning, display_unit=None, scale=1.0):
+    return ParamSpec(name, unit, lo, hi, EX, meaning, display_unit, scale)
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("viscous_friction", "friction force proportional to rod velocity",
+           (_fx("c_visc", "N s/m", 0.0, 1e6, "viscous friction coefficient"),), (0.0,),
+           "residual force linear in velocity; phase lead at high speed", (2000.0,)),
+    Effect("stribeck_friction", "friction falling from a breakaway level with speed",
+           (_fx("F_brk", "N", 0.0, 1e5, "breakaway force above the dry (Coulomb) level"),
+            _fx("v_str", "m/s", 1e-5, 1.0, "Stribeck velocity", "mm/s", 1e3)), (0.0, 0.01),
+           "residual force peaked at low speed after each reversal", (150.0, 0.01)),
+    Effect("laminar_leakage", "cross-piston flow proportional to the pressure difference",
+           (_fx("K_lam", "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage conductance"),), (0.0,),
+           "pressure difference decays under load; velocity error grows with pA-pB", (2e-11,)),
+    Effect("spool_deadband", "spool overlap: no flow for small openings",
+           (_fx("xs_db", "m", 0.0, 1e-3, "spool overlap (dead band half width)", "um", 1e6),), (0.0,),
+           "flat spots and lag at small errors and direction reversals", (2e-5,)),
+    Effect("valve_null_bias", "spool offset at zero command",
+           (_fx("xs_bias", "m", -1e-3, 1e-3, "spool null offset", "um", 1e6),), (0.0,),
+           "constant position error / drift; asymmetric pressures at rest", (1e-5,)),
+    Effect("supply_pressure_droop", "supply pressure falling with the flow drawn",
+           (_fx("R_sup", "Pa s/m^3", 0.0, 1e13, "supply line resistance (pressure drop per flow)"),), (0.0,),
+           "velocity saturates at high flow; pressures sag at high speed", (1.5e10,)),
+    Effect("specimen_stiffness", "an external spring load on the rod",
+           (_fx("k_spec", "N/m", 0.0, 1e9, "specimen stiffness", "kN/mm", 1e-6),), (0.0,),
+           "pressure difference proportional to position", (2e6,)),
+    Effect("sensor_delay", "displacement measured late",
+           (_fx("tau_x", "s", 0.0, 0.05, "displacement sensor delay", "ms", 1e3),), (0.0,),
+           "residual proportional to velocity; cross-correlation peak at a positive lag", (1.5e-3,)),
+    Effect("entrained_air", "effective bulk modulus falling at low pressure",
+           (_fx("eps_air", "1", 0.0, 0.2, "free air volume fraction at atmospheric pressure"),), (0.0,),
+           "softer oil column when a chamber pressure is low", (0.08,)),
+    Effect("spool_saturation", "spool stroke limit",
+           (_fx("xs_max", "m", 1e-5, 1.0, "spool stroke limit", "mm", 1e3),), (1.0,),
+           "velocity clipped at large errors", (0.5e-3,)),
+)}
+
+KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
+IDX = {n: i for i, n in enumerate(KERNEL_NAMES)}
+NP = len(KERNEL_NAMES)
+(I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_FEXT,
+ I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
+ I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX) = range(NP)
+assert NP == 33 and KERNEL_NAMES[I_XSMAX] == "xs_max"
+
+STATES = ("xs", "vs", "pA", "pB", "x", "v")
+NS = 6
+P_ATM = 1.0e5
+KAPPA_AIR = 1.4
+
+
+# --- the compiled core ----------------------------------------------------------------
+@nb.njit(cache=True, inline="always")
+def _sqrt_reg(dp, dpl):
+    """sgn(dp) sqrt(|dp|) regularised in a laminar band dpl."""
+    return dp / math.sqrt(math.sqrt(dp * dp + dpl * dpl))
+
+
+@nb.njit(cache=True, inline="always")
+def _bulk(p, B, eps):
+    if eps <= 0.0:
+        return B
+    pe = max(p, P_ATM)
+    air = eps * (P_ATM / pe) ** (1.0 / KAPPA_AIR)
+    return 1.0 / (1.0 / B + air / (KAPPA_AIR * pe))
+
+
+@nb.njit(cache=True)
+def deriv(xs, vs, pA, pB, x, v, u, p):
+    """Right-hand side of one state (scalars in, tuple of six derivatives out)."""
+    rho = p[I_RHO]
+    A = p[I_A]
+    V0 = p[I_V0]
+    dpl = p[I_DPL]
+    pT = p[I_PT]
+    wn = p[I_WN]
+    # servo-valve, second order (eq. 4)
+    dxs = vs
+    dvs = wn * wn * (p[I_KE] * p[I_KSP] * u - xs) - 2.0 * p[I_ZETA] * wn * vs
+    # spool opening: null bias, stroke limit, overlap
+    o = xs + p[I_XSBIAS]
+    xm = p[I_XSMAX]
+    if o > xm:
+        o = xm
+    elif o < -xm:
+        o = -xm
+    db = p[I_XSDB]
+    if db > 0.0:
+        if o > db:
+            o = o - db
+        elif o < -db:
+            o = o + db
+        else:
+            o = 0.0
+    g = p[I_CD] * p[I_B] * math.sqrt(2.0 / rho)
+    pP = p[I_PP]
+    qPA = 0.0
+    qBT = 0.0
+    qAT = 0.0
+    qPB = 0.0
+    if o >= 0.0:
+        qPA = g * o * _sqrt_reg(pP - pA, dpl)
+        qBT = g * o * _sqrt_reg(pB - pT, dpl)
+    else:
+        qAT = -g * o * _sqrt_reg(pA - pT, dpl)
+        qPB = -g * o * _sqrt_reg(pP - pB, dpl)
+    R = p[I_RSUP]
+    if R > 0.0:  # supply droop: one fixed-point pass of pP_eff = pP - R q_supply
+        qs = qPA + qPB
+        if qs > 0.0:
+            pPe = max(pP - R * qs, pT)
+            if o >= 0.0:
+                qPA = g * o * _sqrt_reg(pPe - pA, dpl)
+            else:
+                qPB = -g * o * _sqrt_reg(pPe - pB, dpl)
+    dpAB = pA - pB
+    qAB = p[I_CDALEAK] * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, dpl) + p[I_KLAM] * dpAB
+    qA = qPA - qAT - qAB
+    qB = qPB - qBT + qAB
+    VA = max(V0 + A * x, 1e-3 * V0)
+    VB = max(V0 - A * x, 1e-3 * V0)
+    eps = p[I_EPS]
+    dpA = _bulk(pA, p[I_BULK], eps) * (qA - A * v) / VA
+    dpB = _bulk(pB, p[I_BULK], eps) * (qB + A * v) / VB
+    # rod (eq. 11-12) with the friction extensions
+    ff = p[I_FFRIC]
+    fb = p[I_FBRK]
+    if fb > 0.0:
+        r = v / p[I_VSTR]
+        ff = ff + fb * math.exp(-r * r)
+    Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
+    dv = (dpAB * A - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
+    return dxs, dvs, dpA, dpB, v, dv
+
+
+@nb.njit(cache=True)
+def step(s, u, p, dt, nsub, out):
+    """Advance state ``s[6]`` by ``dt`` with ``nsub`` RK4 substeps, input ``u`` held; write ``out``."""
+    h = dt / nsub
+    a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
+    for _ in range(nsub):
+        k1 = deriv(a0, a1, a2, a3, a4, a5, u, p)
+        k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
+                   a3 + 0.5 * h * k1[3], a4 + 0.5 * h * k1[4], a5 + 0.5 * h * k1[5], u, p)
+        k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
+                   a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u, p)
+        k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
+                   a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p)
+        c = h / 6.0
+        a0 += c * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
+        a1 += c * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
+        a2 += c * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
+        a3 += c * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
+        a4 += c * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
+        a5 += c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5])
+    out[0] = a0
+    out[1] = a1
+    out[2] = a2
+    out[3] = a3
+    out[4] = a4
+    out[5] = a5
+
+
+@nb.njit(cache=True)
+def rhs_batch(S, U, P):
+    """Derivatives of a batch: ``S [K, 6]``, ``U [K]``, ``P [K, NP]`` -> ``[K, 6]``."""
+    K = S.shape[0]
+    out = np.empty((K, NS))
+    for k in range(K):
+        d = deriv(S[k, 0], S[k, 1], S[k, 2], S[k, 3], S[k, 4], S[k, 5], U[k], P[k])
+        for j in range(NS):
+            out[k, j] = d[j]
+    return out
+
+
+@nb.njit(cache=True)
+def step_batch(S, U, P, dt, nsub):
+    """One sample step of a batch: ``S [K, 6]``, ``U [K]``, ``P [K, NP]`` -> ``[K, 6]``."""
+    K = S.shape[0]
+    out = np.empty((K, NS))
+    for k in range(K):
+        step(S[k], U[k], P[k], dt, nsub, out[k])
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _delayed(hist, k, tau, dt):
+    """Linear interpolation of the sampled history ``hist[:k+1]`` at ``t_k - tau``."""
+    if tau <= 0.0:
+        return hist[k]
+    d = tau / dt
+    j = int(d)
+    f = d - j
+    i0 = k - j
+    if i0 <= 0:
+        return hist[0]
+    return (1.0 - f) * hist[i0] + f * hist[i0 - 1]
+
+
+@nb.njit(cache=True)
+def _simulate_one(s0, p, drive, closed, dt, nsub, S, U, XM):
+    T = drive.shape[0]
+    s = s0.copy()
+    nxt = np.empty(NS)
+    xhist = np.empty(T)
+    integ = 0.0
+    e_prev = 0.0
+    tau = p[I_TAUX]
+    for k in range(T):
+        for j in range(NS):
+            S[k, j] = s[j]
+        xhist[k] = s[4]
+        xm = _delayed(xhist, k, tau, dt)
+        XM[k] = xm
+        if closed:
+            e = drive[k] - xm
+            integ += e * dt
+            de = (e - e_prev) / dt if k > 0 else 0.0
+            e_prev = e
+            u = p[I_KP] * e + p[I_KI] * integ + p[I_KD] * de
+        else:
+            u = drive[k]
+        U[k] = u
+        if k + 1 < T:
+            step(s, u, p, dt, nsub, nxt)
+            for j in range(NS):
+                s[j] = nxt[j]
+
+
+@nb.njit(cache=True, parallel=True)
+def simulate_kernel(S0, P, drive, closed, dt, nsub):
+    """Simulate ``K`` parameter vectors in parallel.
+
+    Returns states ``[K, T, 6]``, controller output ``[K, T]`` and measured
+    displacement ``[K, T]`` (the rod position seen through the sensor).
+    """
+    K = P.shape[0]
+    T = drive.shape[0]
+    S = np.empty((K, T, NS))
+    U = np.empty((K, T))
+    XM = np.empty((K, T))
+    for k in nb.prange(K):
+        _simulate_one(S0[k], P[k], drive, closed, dt, nsub, S[k], U[k], XM[k])
+    return S, U, XM
+
+
+# --- the model object ---------------------------------------------------------------------
+class MSP25(Model):
+    """The MSP25 rig; see the module docstring."""
+
+    name = "msp25"
+    STATES = STATES
+    INPUTS = ("x_ref", "u")
+    OUTPUTS = ("x", "pA", "pB")
+    BASE = BASE
+    NOMINAL = NOMINAL
+    EFFECTS = EFFECTS
+    PHENOMENOLOGICAL = PHENOMENOLOGICAL
+    substeps = 3
+    #: initial-state quantities a fit may estimate per record
+    INIT = ("x0", "dp0")
+
+    def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
+        """Rest: spool centred, rod at ``x0`` (default 0), pA = pP/2 + dp0/2, pB = pP/2 - dp0/2."""
+        P = np.atleast_2d(P)
+        init = dict(init or {})
+        x0 = float(init.pop("x0", 0.0))
+        dp0 = float(init.pop("dp0", 0.0))
+        if init:
+            raise DataError(f"unknown initial-state quantities {sorted(init)}; known: x0 [m], dp0 [Pa]")
+        S0 = np.zeros((P.shape[0], NS))
+        pm = 0.5 * (P[:, I_PP] + P[:, I_PT])
+        S0[:, 2] = pm + 0.5 * dp0
+        S0[:, 3] = pm - 0.5 * dp0
+        S0[:, 4] = x0
+        return S0
+
+    def drive_signal(self, signals, drive="auto"):
+        if drive == "auto":
+            drive = "x_ref" if "x_ref" in signals else "u"
+        if drive not in ("x_ref", "u"):
+            raise DataError(f"msp25 is driven by 'x_ref' (closed loop) or 'u' (open loop), not {drive!r}")
+        if drive not in signals:
+            raise DataError(f"msp25 driven by {drive!r} but the record has only {', '.join(signals)}")
+        return drive, np.asarray(signals[drive], dtype=np.float64)
+
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None) -> SimResult:
+        P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
+        if P.shape[1] != NP:
+            raise DataError(f"msp25 kernel vectors have {NP} entries, got {P.shape[1]}")
+        drive = check_drive(drive_name, drive, dt)
+        S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
+        closed = drive_name == "x_ref"
+        S, U, XM = simulate_kernel(S0, P, drive, closed, float(dt), int(substeps or self.substeps))
+        t = np.arange(drive.shape[0]) * dt
+        outputs = {"x": XM, "pA": S[:, :, 2], "pB": S[:, :, 3]}
+        inputs = {"u": U, drive_name: drive} if closed else {"u": drive}
+        return SimResult(t, outputs, S, inputs)
+
+
+MODEL = MSP25()

@@ -1,0 +1,166 @@
+"""Parameters with their metadata, and the named model extensions ("effects").
+
+A :class:`ParamSpec` carries everything a fit, a filter or a report needs to
+know about one parameter: SI unit, bounds, category (geometric, physical,
+phenomenological, or the extension it belongs to), a one-line meaning and the
+unit people read it in (``wn`` lives in rad/s and is shown in Hz).
+
+A :class:`ParameterSet` is an immutable, validated assignment of values to the
+specs of one model with a set of switched-on effects.  It is converted to the
+flat ``float64`` vector the compiled right-hand side reads by
+:meth:`ParameterSet.vector`; effects that are off take their neutral values
+there, so the nominal model is exactly the extended model with every effect off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from twin.errors import ParameterError
+
+CATEGORIES = ("geometric", "physical", "phenomenological", "extension", "initial")
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """Metadata of one parameter (SI unit inside)."""
+
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    category: str
+    meaning: str
+    display_unit: str | None = None
+    display_scale: float = 1.0  # value_in_display_unit = value * display_scale
+    typical: float | None = None  # a physically sensible magnitude (starts, screening)
+
+    def __post_init__(self) -> None:
+        if self.category not in CATEGORIES:
+            raise ValueError(f"{self.name}: category {self.category!r} not in {CATEGORIES}")
+        if not self.lo <= self.hi:
+            raise ValueError(f"{self.name}: bounds [{self.lo}, {self.hi}] are empty")
+
+    @property
+    def log_scaled(self) -> bool:
+        """Whether a fit should move this parameter in log coordinates (wide positive range)."""
+        return self.lo > 0.0 and self.hi / self.lo > 100.0
+
+    def check(self, value: float) -> float:
+        """Return ``value`` as float or raise a :class:`ParameterError` naming the parameter."""
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ParameterError(f"{self.name} (={value!r}) must be a number in {self.unit}") from None
+        if not math.isfinite(v):
+            raise ParameterError(f"{self.name} (={v}) must be finite, in [{self.lo:g} ... {self.hi:g}] {self.unit}")
+        if not (self.lo <= v <= self.hi):
+            raise ParameterError(
+                f"{self.name} (={v:g} {self.unit}) must be in [{self.lo:g} ... {self.hi:g}] {self.unit}"
+                f" ({self.meaning})"
+            )
+        return v
+
+    def show(self, value: float) -> str:
+        """``value`` in the unit people read, e.g. ``43 Hz`` for ``wn``."""
+        unit = self.display_unit or self.unit
+        return f"{value * self.display_scale:.6g} {unit}"
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class Effect:
+    """A named physical effect that extends a model without editing its core.
+
+    ``params`` are the effect's own parameters; ``neutral`` their values that make
+    the effect vanish (the nominal model); ``signature`` says how a residual
+    looks when the effect is present but not modelled (used by the diagnosis).
+    """
+
+    name: str
+    description: str
+    params: tuple[ParamSpec, ...]
+    neutral: tuple[float, ...]
+    signature: str
+    typical: tuple[float, ...]  # a plausible magnitude when present (starts and tests)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterSet:
+    """Validated values of a model's parameters with a set of switched-on effects.
+
+    Construct through :meth:`twin.models.base.Model.params`; ``values`` holds one
+    value per spec of ``specs`` (base parameters first, then each active effect's).
+    """
+
+    model: str
+    specs: tuple[ParamSpec, ...]
+    values: tuple[float, ...]
+    effects: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if len(self.specs) != len(self.values):
+            raise ParameterError(f"{self.model}: {len(self.values)} values for {len(self.specs)} parameters")
+        checked = tuple(s.check(v) for s, v in zip(self.specs, self.values))
+        object.__setattr__(self, "values", checked)
+
+    # --- access ------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.specs)
+
+    def spec(self, name: str) -> ParamSpec:
+        for s in self.specs:
+            if s.name == name:
+                return s
+        raise ParameterError(f"{self.model} has no parameter {name!r}; known: {', '.join(self.names)}")
+
+    def __getitem__(self, name: str) -> float:
+        return self.values[self.names.index(self.spec(name).name)]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.names
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, self.values))
+
+    def replace(self, **values: float) -> "ParameterSet":
+        """A copy with some values changed (validated)."""
+        return self.update(values)
+
+    def update(self, values: Mapping[str, float]) -> "ParameterSet":
+        for k in values:
+            self.spec(k)  # raises for unknown names
+        new = tuple(values.get(s.name, v) for s, v in zip(self.specs, self.values))
+        return dataclasses.replace(self, values=new)
+
+    def by_category(self, *categories: str) -> tuple[str, ...]:
+        return tuple(s.name for s in self.specs if s.category in categories)
+
+    def table(self) -> str:
+        rows = [f"{'parameter':<12} {'value':>16}  {'category':<16} meaning"]
+        for s, v in zip(self.specs, self.values):
+            rows.append(f"{s.name:<12} {s.show(v):>16}  {s.category:<16} {s.meaning}")
+        return "\n".join(rows)
+
+
+def check_names(known: Iterable[str], asked: Iterable[str], what: str) -> None:
+    """Raise :class:`ParameterError` if any of ``asked`` is not in ``known``."""
+    known = tuple(known)
+    bad = [a for a in asked if a not in known]
+    if bad:
+        raise ParameterError(f"unknown {what} {', '.join(map(repr, bad))}; known: {', '.join(known)}")
+
+
+def as_vector(values: Iterable[float]) -> np.ndarray:
+    return np.ascontiguousarray(np.fromiter(values, dtype=np.float64))

@@ -1,0 +1,113 @@
+"""A measured record on a uniform time grid: what fits and diagnoses work on.
+
+Sources deliver :class:`replay.base.Samples` with integer-nanosecond times;
+:func:`records_from_samples` checks the grid and splits it at gaps (a fit never
+bridges a gap: each piece becomes a record and parameters are shared across
+them).  Inside a record time is float seconds from its first sample.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numpy as np
+
+from twin.errors import DataError
+
+
+@dataclasses.dataclass
+class Record:
+    """Uniformly sampled signals (SI units), time first; ``dt`` in seconds."""
+
+    dt: float
+    signals: dict[str, np.ndarray]
+    name: str = "record"
+    t0_ns: int = 0
+
+    def __post_init__(self) -> None:
+        if not (self.dt > 0 and np.isfinite(self.dt)):
+            raise DataError(f"{self.name}: sample time dt (={self.dt}) must be a positive number of seconds")
+        n = None
+        for k, v in list(self.signals.items()):
+            v = np.ascontiguousarray(v, dtype=np.float64)
+            if v.ndim != 1:
+                raise DataError(f"{self.name}: signal {k!r} must be 1-D, has shape {v.shape}")
+            if n is None:
+                n = v.shape[0]
+            elif v.shape[0] != n:
+                raise DataError(f"{self.name}: signal {k!r} has {v.shape[0]} samples, others have {n}")
+            bad = ~np.isfinite(v)
+            if bad.any():
+                raise DataError(f"{self.name}: signal {k!r} has {int(bad.sum())} non-finite values "
+                                f"(first at sample {int(np.flatnonzero(bad)[0])}); clean the record first")
+            self.signals[k] = v
+
+    def __len__(self) -> int:
+        return 0 if not self.signals else next(iter(self.signals.values())).shape[0]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.signals[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.signals
+
+    @property
+    def t_s(self) -> np.ndarray:
+        return np.arange(len(self)) * self.dt
+
+    @property
+    def duration_s(self) -> float:
+        return len(self) * self.dt
+
+    def require(self, names, what: str) -> None:
+        missing = [n for n in names if n not in self.signals]
+        if missing:
+            raise DataError(f"{self.name}: {what} needs signal(s) {', '.join(missing)}; "
+                            f"the record has {', '.join(self.signals) or 'none'}")
+
+    def slice(self, start: int, stop: int) -> "Record":
+        return Record(self.dt, {k: v[start:stop].copy() for k, v in self.signals.items()},
+                      f"{self.name}[{start}:{stop}]", self.t0_ns + int(round(start * self.dt * 1e9)))
+
+    def to_samples(self):
+        from replay.base import Samples
+
+        t_ns = self.t0_ns + np.round(np.arange(len(self)) * self.dt * 1e9).astype(np.int64)
+        return Samples(t_ns, {k: v.copy() for k, v in self.signals.items()})
+
+
+def records_from_samples(samples, name: str = "record", min_samples: int = 50,
+                         rel_tol: float = 0.05) -> list[Record]:
+    """Cut ``samples`` into uniformly sampled records, splitting at gaps.
+
+    The sample time is the median step; a step off by more than ``rel_tol`` of it
+    starts a new record.  Pieces shorter than ``min_samples`` are dropped.
+    """
+    t = np.asarray(samples.t_ns, dtype=np.int64)
+    if t.size < 2:
+        raise DataError(f"{name}: {t.size} samples; a record needs at least 2")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        i = int(np.flatnonzero(d <= 0)[0])
+        raise DataError(f"{name}: time does not increase at sample {i + 1} "
+                        f"({t[i]} ns then {t[i + 1]} ns); read it through replay, which drops such samples")
+    dt_ns = float(np.median(d))
+    cuts = np.flatnonzero(np.abs(d - dt_ns) > rel_tol * dt_ns) + 1
+    bounds = [0, *cuts.tolist(), t.size]
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < min_samples:
+            continue
+        sig = {k: np.asarray(v[a:b], dtype=np.float64) for k, v in samples.signals.items()}
+        out.append(Record(dt_ns * 1e-9, sig, f"{name}[{a}:{b}]" if len(bounds) > 2 else name, int(t[a])))
+    if not out:
+        raise DataError(f"{name}: no piece of at least {min_samples} uniformly sampled samples")
+    return out
+
+
+def load_records(path: str, name: str | None = None, **options) -> list[Record]:
+    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records."""
+    from replay.factory import open_source
+
+    with open_source(path, **options) as src:
+        samples = src.read_all()
+    return records_from_samples(samples, name or str(path))
