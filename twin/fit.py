@@ -190,8 +190,14 @@ class _Problem:
         return out
 
 
-def _linear_scale(spec: ParamSpec, value: float) -> float:
-    for c in (spec.typical, value, spec.hi - spec.lo):
+def _linear_scale(model: Model, spec: ParamSpec, value: float) -> float:
+    """Order of magnitude of a linearly scaled coordinate: typical size, start value, or range."""
+    typical = spec.typical
+    effect = model.effect_of(spec.name)
+    if typical is None and effect is not None:
+        e = model.EFFECTS[effect]
+        typical = e.typical[e.names.index(spec.name)]
+    for c in (typical, value, spec.hi - spec.lo):
         if c is not None and c != 0 and math.isfinite(c):
             return abs(c)
     return 1.0
@@ -227,7 +233,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
             raise DataError(f"noise level of output {o!r} must be > 0 to weight residuals, got {s}")
     specs = tuple(base.spec(n) for n in free)
     kidx = np.array([model.kernel_index(n) for n in free])
-    scale = np.array([0.0 if s.log_scaled else _linear_scale(s, base[s.name]) for s in specs])
+    scale = np.array([0.0 if s.log_scaled else _linear_scale(model, s, base[s.name]) for s in specs])
     init_fixed = [dict(i) for i in (init or [{}] * len(records))]
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
                     init_fixed, substeps, kidx, scale, model.vector(base))
@@ -251,7 +257,11 @@ def _starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int, sprea
             Z[1:, j] = z0[j] + np.log(f[:, j])
         else:
             Z[1:, j] = z0[j] * f[:, j] if z0[j] != 0 else (2 * u[:, j] - 1) * spread
-    return np.clip(Z, lo + 1e-9 * (np.abs(lo) + 1), hi - 1e-9 * (np.abs(hi) + 1))
+    fin = np.isfinite(lo)  # initial-state coordinates are unbounded
+    lo_in = np.where(fin, lo + 1e-9 * (np.abs(np.where(fin, lo, 0.0)) + 1), -np.inf)
+    fin = np.isfinite(hi)
+    hi_in = np.where(fin, hi - 1e-9 * (np.abs(np.where(fin, hi, 0.0)) + 1), np.inf)
+    return np.clip(Z, lo_in, hi_in)
 
 
 def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str],

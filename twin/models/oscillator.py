@@ -32,7 +32,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            (0.5, 1e-3)),
     Effect("cubic_stiffness", "hardening spring k3 x^3",
            (ParamSpec("k3", "N/m^3", -1e12, 1e12, "extension", "cubic stiffness"),), (0.0,),
-           "resonance shifts with amplitude; residual odd in displacement", (4e6,)),
+           "resonance shifts with amplitude; residual odd in displacement", (2e5,)),
     Effect("input_delay", "the force acts late",
            (ParamSpec("tau_u", "s", 0.0, 0.1, "extension", "input delay", "ms", 1e3),), (0.0,),
            "phase error growing with frequency; input cross-correlation peak at a lag", (2e-3,)),

@@ -1,0 +1,154 @@
+"""Batch grey-box fitting: known answers with seeded noise, several records, malformed input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from twin import cli
+from twin.errors import DataError, ParameterError
+from twin.fit import fit, likelihood_ratio
+from twin.models import get_model
+from twin.paper import CASES, run_all
+from twin.record import Record
+from twin.simulate import default_noise, excite, measure
+
+RIG = get_model("msp25")
+OSC = get_model("oscillator")
+
+
+def _rig_record(seed, duration=6.0, noisy=True, **params):
+    name, xr = excite(RIG, duration, 1e-3, seed=seed)
+    return measure(RIG, RIG.params(**params), name, xr, 1e-3,
+                   noise=default_noise(RIG) if noisy else None, seed=seed)
+
+
+def test_paper_cases_noise_free_beat_the_paper():
+    rows, _ = run_all(noisy=False)
+    assert {r["case"] for r in rows} == {c.case for c in CASES}
+    for r in rows:
+        assert r["error_pct"] <= 0.01, r
+        assert round(r["error_pct"], 4) <= r["paper_error_pct"], r
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_paper_cases_with_noise_hold_the_truth_within_three_std(seed):
+    rows, _ = run_all(noisy=True, seed=seed)
+    for r in rows:
+        assert r["converged"], r
+        assert r["z"] < 3.0, r
+
+
+def test_all_five_rig_parameters_from_x_and_pressures():
+    rec = _rig_record(3)
+    truth = RIG.params()
+    start = {k: truth[k] * f for k, f in zip(RIG.PHENOMENOLOGICAL, (1.3, 0.6, 1.2, 1.4, 0.8))}
+    res = fit(RIG, rec, RIG.PHENOMENOLOGICAL, start=start, outputs=("x", "pA", "pB"))
+    assert res.success
+    for k in RIG.PHENOMENOLOGICAL:
+        assert abs(res.estimate[k] - truth[k]) < 3 * res.std[k], (k, res.estimate[k], res.std[k])
+    assert res.corr.shape == (5, 5)
+    np.testing.assert_allclose(np.diag(res.corr), 1.0)
+    assert abs(res.corr[3, 4]) > 0.5  # zeta and wn are correlated (model-spec: ~0.94)
+    assert res.fit_pct["x"] > 99.0
+    # what is left is the sensor noise: 2 um on x, 20 kPa on the pressures
+    assert np.sqrt(res.mse["x"]) == pytest.approx(2e-6, rel=0.1)
+    assert np.sqrt(res.mse["pA"]) == pytest.approx(2e4, rel=0.1)
+    assert res.aicc > res.aic and np.isfinite(res.bic) and res.fpe > 0
+
+
+def test_several_records_share_parameters_and_initial_state_is_estimated():
+    a = _rig_record(4, 4.0)
+    name, xr = excite(RIG, 4.0, 1e-3, seed=5)
+    b = measure(RIG, RIG.params(), name, xr + 0.003, 1e-3, noise=default_noise(RIG), seed=5,
+                init={"x0": 0.002})
+    res = fit(RIG, [a, b], ("Ffric", "zeta"), start={"Ffric": 80.0, "zeta": 0.5}, outputs=("x",),
+              estimate_init=("x0",))
+    assert abs(res.init[1]["x0"] - 0.002) < 2e-5
+    assert abs(res.init[0]["x0"]) < 2e-5
+    assert abs(res.estimate["Ffric"] - 50.0) < 3 * res.std["Ffric"]
+    assert res.n_par == 4
+
+
+def test_oscillator_known_answer_and_fit_statistics():
+    name, u = excite(OSC, 5.0, 1e-3, seed=2)
+    rec = measure(OSC, OSC.params(), name, u, 1e-3, noise={"y": 1e-6}, seed=2)
+    res = fit(OSC, rec, ("d", "k"), start={"d": 0.3, "k": 2500.0})
+    assert abs(res.estimate["d"] - 0.1) < 3 * res.std["d"]
+    assert abs(res.estimate["k"] - 3947.8) < 3 * res.std["k"]
+    assert res.fit_pct["y"] > 99.0
+    assert res.history and res.history[-1]["cost"] <= res.history[0]["cost"]
+
+
+def test_likelihood_ratio_prefers_the_true_extension():
+    ps = OSC.params(effects=["cubic_stiffness"], k3=2e5)
+    name, u = excite(OSC, 5.0, 1e-3, seed=3)
+    rec = measure(OSC, ps, name, u, 1e-3, noise={"y": 1e-6}, seed=3)
+    nominal = fit(OSC, rec, ("d", "k"))
+    # the extension starts where the nominal fit ended, the effect at its neutral value
+    base = OSC.params(effects=["cubic_stiffness"], k3=0.0).update(nominal.estimate)
+    extended = fit(OSC, rec, ("d", "k", "k3"), base=base)
+    lr, p, df = likelihood_ratio(nominal, extended)
+    assert df == 1 and lr > 100 and p < 1e-6
+    assert abs(extended.estimate["k3"] - 2e5) < 3 * extended.std["k3"]
+    assert extended.aicc < nominal.aicc
+
+
+def test_non_convergence_is_reported_not_raised():
+    rec = _rig_record(6, 2.0)
+    res = fit(RIG, rec, ("zeta", "wn"), start={"zeta": 1.5, "wn": 100.0}, max_nfev=2, n_starts=1, n_refine=1)
+    assert res.success is False
+    assert "max" in res.message.lower() or "function evaluations" in res.message
+
+
+def test_malformed_input_raises_clear_errors():
+    rec = _rig_record(7, 1.0, noisy=False)
+    with pytest.raises(ParameterError, match="unknown free parameter"):
+        fit(RIG, rec, ("friction",))
+    with pytest.raises(ParameterError, match="at least one free parameter"):
+        fit(RIG, rec, ())
+    with pytest.raises(ParameterError, match=r"Ffric \(=-5 N\) must be in"):
+        fit(RIG, rec, ("Ffric",), start={"Ffric": -5.0})
+    no_p = Record(rec.dt, {"x_ref": rec["x_ref"], "x": rec["x"]}, "no-pressures")
+    with pytest.raises(DataError, match="no-pressures: fitting outputs x, pA needs signal\\(s\\) pA"):
+        fit(RIG, no_p, ("Ffric",), outputs=("x", "pA"))
+    with pytest.raises(DataError, match="driven by 'x_ref' or 'u'|the record has only"):
+        fit(RIG, Record(rec.dt, {"x": rec["x"]}, "no-drive"), ("Ffric",))
+    with pytest.raises(DataError, match="non-finite"):
+        Record(1e-3, {"x": np.array([0.0, np.nan, 1.0])}, "nan")
+    with pytest.raises(DataError, match="must be > 0"):
+        fit(RIG, rec, ("Ffric",), noise={"x": 0.0})
+
+
+def test_fit_uses_what_is_there_when_pressures_are_missing():
+    rec = _rig_record(8, 3.0)
+    only_x = Record(rec.dt, {"x_ref": rec["x_ref"], "u": rec["u"], "x": rec["x"]}, "x-only")
+    res = fit(RIG, only_x, ("Ffric",), start={"Ffric": 70.0})
+    assert res.outputs == ("x",)
+
+
+def test_cli_fit_json_contract(tmp_path, capsys):
+    rec = _rig_record(9, 3.0)
+    path = tmp_path / "rig.csv"
+    from replay.factory import open_sink
+
+    with open_sink(str(path)) as sink:
+        sink.write(rec.to_samples())
+    rc = cli.main(["fit", str(path), "--free", "Ffric,zeta", "--outputs", "x", "--json",
+                   "--plot", str(tmp_path / "plots")])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["params"]) == {"Ffric", "zeta"}
+    for k in ("Ffric", "zeta"):
+        assert set(out["params"][k]) >= {"value", "std"}
+    assert abs(out["params"]["Ffric"]["value"] - 50.0) < 3 * out["params"]["Ffric"]["std"]
+    assert (tmp_path / "plots" / "fit_parameter_trends.png").stat().st_size > 1000
+
+
+def test_cli_paper_json_contract(capsys):
+    assert cli.main(["paper", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert {"case", "parameter", "true", "estimate", "error_pct", "paper_error_pct"} <= set(rows[0])
+    assert len(rows) == sum(len(c.free) for c in CASES)
