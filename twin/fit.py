@@ -332,6 +332,8 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         starts_info[i]["final_cost"] = float(res.cost)
         if best is None or res.cost < best.cost:
             best = res
+        if best.cost <= 0.75 * R0.shape[1]:  # residuals at the noise floor: other starts cannot do better
+            break
     if best is None:  # every refinement failed numerically: report the best screened start
         z = Z0[order[0]]
         r = prob.residuals(z[None, :])[0]
