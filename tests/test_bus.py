@@ -1,0 +1,402 @@
+"""The Zenoh layer on real sessions: loopback, explicit endpoints, multicast scouting off.
+
+One session listens on ``tcp/127.0.0.1:<free port>``, the others connect to it.
+Every wait is on a queue or an event with a timeout; nothing sleeps a fixed time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import queue
+import socket
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import zenoh
+from zenoh import ext as zext
+
+from twin.bus import (
+    AlarmSubscriber,
+    RigKeys,
+    TwinPublisher,
+    add_alarms_arguments,
+    fetch_latest,
+    format_alarm,
+    live_twins,
+    parse_since,
+    run_alarms_cli,
+    zenoh_config,
+)
+from twin.errors import ConfigError, DataError
+from twin.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
+from twin.journal import AlarmJournal
+
+T0_NS = 1_740_000_000_000_000_000
+WAIT_S = 10.0  # upper bound of every wait; the happy path takes milliseconds
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
+    return AlarmEvent(
+        rig=rig,
+        parameter="Kleak",
+        level="alarm" if i % 2 else "warning",
+        kind="raised",
+        t_ns=T0_NS + i * 1_000_000_000,
+        t_s=float(i),
+        estimate=3e-12,
+        std=2e-13,
+        baseline=1e-12,
+        band_lo=5e-13,
+        band_hi=2e-12,
+        statistic=10.0 + i,
+        message=f"alarm {i}",
+        seq=seq,
+    )
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def hub(endpoint: str) -> Iterator[zenoh.Session]:
+    """The listening session (stands in for the site router)."""
+    with zenoh.open(zenoh_config(listen=[endpoint])) as session:
+        yield session
+
+
+@contextmanager
+def connected(endpoint: str) -> Iterator[zenoh.Session]:
+    with zenoh.open(zenoh_config(connect=[endpoint])) as session:
+        yield session
+
+
+@pytest.fixture
+def journal(tmp_path: Path) -> Iterator[AlarmJournal]:
+    with AlarmJournal(tmp_path / "alarms.jsonl") as j:
+        yield j
+
+
+def receive(sub: AlarmSubscriber, n: int) -> list[AlarmEvent]:
+    return [sub.recv(timeout=WAIT_S) for _ in range(n)]
+
+
+def wait_matching(publisher: zenoh.Publisher) -> None:
+    matched = threading.Event()
+    listener = publisher.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None
+    )
+    try:
+        assert publisher.matching_status.matching or matched.wait(WAIT_S), "no subscriber matched"
+    finally:
+        listener.undeclare()
+
+
+# --------------------------------------------------------------------------- config and keys
+
+
+def test_zenoh_config_has_explicit_endpoints() -> None:
+    config = zenoh_config(listen=["tcp/127.0.0.1:7447"], connect=["tcp/10.0.0.1:7447"])
+    assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447"]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("mode")) == "peer"
+    with pytest.raises(ConfigError, match="a client cannot listen"):
+        zenoh_config(mode="client", listen=["tcp/127.0.0.1:7447"])
+    with pytest.raises(ConfigError, match="mode: 'server'"):
+        zenoh_config(mode="server")
+    with pytest.raises(ConfigError, match="invalid Zenoh configuration"):
+        zenoh_config(connect=["nonsense"])
+
+
+def test_key_space() -> None:
+    keys = RigKeys("msp25")
+    assert (keys.estimate, keys.status, keys.alarm, keys.history, keys.twin) == (
+        "fpdd/msp25/estimate",
+        "fpdd/msp25/status",
+        "fpdd/msp25/alarm",
+        "fpdd/msp25/alarm/history",
+        "fpdd/msp25/twin",
+    )
+    assert RigKeys("*").alarm == "fpdd/*/alarm"
+    assert RigKeys.rig_of("fpdd/msp25/alarm/history") == "msp25"
+    with pytest.raises(ConfigError, match="rig: 'a/b' is not a valid rig id"):
+        RigKeys("a/b")
+    with pytest.raises(DataError):
+        RigKeys.rig_of("other/msp25")
+
+
+# --------------------------------------------------------------------------- alarms
+
+
+def test_alarms_received_live(hub: zenoh.Session, endpoint: str, journal: AlarmJournal) -> None:
+    with connected(endpoint) as sub_session, AlarmSubscriber(sub_session, "r1", history=False) as sub:
+        with TwinPublisher(hub, "r1", journal) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            sent = [twin.publish_alarm(alarm("r1", i)) for i in range(1, 4)]
+            got = receive(sub, 3)
+    assert got == sent
+    assert [e.seq for e in got] == [1, 2, 3]
+    assert sub.missed == []
+
+
+def test_alarm_is_journaled_before_it_is_published(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    on_disk: queue.Queue[bool] = queue.Queue()
+
+    def check(sample: zenoh.Sample) -> None:
+        seq = json.loads(sample.payload.to_string())["seq"]
+        lines = journal.path.read_text(encoding="utf-8").splitlines()
+        on_disk.put(any(json.loads(line)["seq"] == seq for line in lines))
+
+    with connected(endpoint) as sub_session:
+        raw = sub_session.declare_subscriber("fpdd/r1/alarm", check)
+        with TwinPublisher(hub, "r1", journal) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            twin.publish_alarm(alarm("r1", 1))
+            assert on_disk.get(timeout=WAIT_S) is True
+        raw.undeclare()
+
+
+def test_late_subscriber_gets_every_missed_alarm(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    with TwinPublisher(hub, "r1", journal) as twin:
+        sent = [twin.publish_alarm(alarm("r1", i)) for i in range(1, 6)]
+        with connected(endpoint) as sub_session, AlarmSubscriber(sub_session, "*") as sub:
+            history = receive(sub, 5)
+            assert history == sent
+            assert [e.seq for e in history] == [1, 2, 3, 4, 5]
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            live = twin.publish_alarm(alarm("r1", 6))
+            assert sub.recv(timeout=WAIT_S) == live
+            with pytest.raises(TimeoutError):
+                sub.recv(timeout=0.2)  # no duplicates of anything
+            assert sub.missed == []
+
+
+def test_history_since_seq_and_since_t_ns(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    with TwinPublisher(hub, "r1", journal) as twin:
+        for i in range(1, 6):
+            twin.publish_alarm(alarm("r1", i))
+        with connected(endpoint) as s:
+            with AlarmSubscriber(s, "r1", since_seq=3) as sub:
+                assert [e.seq for e in receive(sub, 3)] == [3, 4, 5]
+            with AlarmSubscriber(s, "r1", since_t_ns=T0_NS + 4_000_000_000) as sub:
+                assert [e.seq for e in receive(sub, 2)] == [4, 5]
+            replies = list(
+                s.get("fpdd/r1/alarm/history?since_seq=abc", consolidation=zenoh.ConsolidationMode.NONE)
+            )
+            assert len(replies) == 1 and replies[0].err is not None
+            assert "since_seq: 'abc' must be an integer" in replies[0].err.payload.to_string()
+
+
+def test_gap_is_detected_and_filled_from_history(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    with connected(endpoint) as sub_session, AlarmSubscriber(sub_session, "r1") as sub:
+        with TwinPublisher(hub, "r1", journal) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            first = twin.publish_alarm(alarm("r1", 1))
+            assert sub.recv(timeout=WAIT_S) == first
+            queries = sub.history_queries
+            lost = [journal.append(alarm("r1", i)) for i in (2, 3)]  # journaled, lost in transit
+            fourth = twin.publish_alarm(alarm("r1", 4))
+            assert receive(sub, 3) == [*lost, fourth]
+            assert sub.history_queries > queries
+            assert sub.missed == []
+
+
+def test_lost_last_alarm_is_caught_by_the_status_counter(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    with connected(endpoint) as sub_session, AlarmSubscriber(sub_session, "r1") as sub:
+        with TwinPublisher(hub, "r1", journal) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            first = twin.publish_alarm(alarm("r1", 1))
+            assert sub.recv(timeout=WAIT_S) == first
+            lost = journal.append(alarm("r1", 2))  # the last alarm, lost in transit
+            status = twin.publish_status(StatusEvent(rig="r1", t_ns=T0_NS, state="running"))
+            assert status.counters["alarm_seq"] == 2
+            assert sub.recv(timeout=WAIT_S) == lost
+
+
+def test_gap_the_history_cannot_fill_is_reported(hub: zenoh.Session, endpoint: str) -> None:
+    with connected(endpoint) as sub_session, AlarmSubscriber(sub_session, "ghost") as sub:
+        raw = hub.declare_publisher("fpdd/ghost/alarm")  # no twin, no history behind it
+        wait_matching(raw)
+        raw.put(event_to_json(alarm("ghost", 1, seq=1)))
+        raw.put(event_to_json(alarm("ghost", 3, seq=3)))
+        raw.put(event_to_json(alarm("ghost", 3, seq=3)))  # a duplicate
+        raw.put(b"{not json")
+        got = receive(sub, 2)
+        raw.put(event_to_json(alarm("ghost", 4, seq=4)))
+        got.append(sub.recv(timeout=WAIT_S))
+        raw.undeclare()
+    assert [e.seq for e in got] == [1, 3, 4]
+    assert sub.missed == [("ghost", 2, 2)]
+    assert sub.rejected == 1
+
+
+def test_twin_coming_up_later_delivers_its_journal(
+    hub: zenoh.Session, endpoint: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "offline.jsonl"
+    with AlarmJournal(path) as offline:  # alarms journaled while the bus was unreachable
+        for i in range(1, 4):
+            offline.append(alarm("late", i))
+    with AlarmSubscriber(hub, "late") as sub:
+        assert sub.history_queries == 1
+        with connected(endpoint) as twin_session, AlarmJournal(path) as j, TwinPublisher(
+            twin_session, "late", j
+        ):
+            assert [e.seq for e in receive(sub, 3)] == [1, 2, 3]
+
+
+def test_journal_survives_a_restart_of_the_service(
+    hub: zenoh.Session, endpoint: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "alarms.jsonl"
+    for run in range(2):  # two lives of the service on the same journal
+        with connected(endpoint) as s, AlarmJournal(path) as j, TwinPublisher(s, "r1", j) as twin:
+            twin.publish_alarm(alarm("r1", 2 * run + 1))
+            twin.publish_alarm(alarm("r1", 2 * run + 2))
+    with path.open("ab") as f:
+        f.write(b'{"rig":"r1","se')  # the second life crashed mid-write
+    with connected(endpoint) as s, AlarmJournal(path) as j, TwinPublisher(s, "r1", j) as twin:
+        assert j.torn_bytes > 0
+        assert twin.publish_alarm(alarm("r1", 5)).seq == 5
+        with AlarmSubscriber(hub, "r1") as sub:
+            assert [e.seq for e in receive(sub, 5)] == [1, 2, 3, 4, 5]
+
+
+def _child_publisher(endpoint: str, journal_path: str, n: int, done: object) -> None:
+    """Runs in a spawned process: a twin connecting to the test's session."""
+    with zenoh.open(zenoh_config(connect=[endpoint])) as session, AlarmJournal(
+        journal_path
+    ) as journal, TwinPublisher(session, "child", journal) as twin:
+        twin.wait_for_alarm_subscribers(WAIT_S)
+        for i in range(1, n + 1):
+            twin.publish_alarm(alarm("child", i))
+        done.wait(WAIT_S)  # type: ignore[attr-defined]  # keep the history up until read
+
+
+def test_second_process_publishes_to_this_one(
+    hub: zenoh.Session, endpoint: str, tmp_path: Path
+) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    done = ctx.Event()
+    child = ctx.Process(
+        target=_child_publisher, args=(endpoint, str(tmp_path / "child.jsonl"), 4, done)
+    )
+    with AlarmSubscriber(hub, "child") as sub:
+        child.start()
+        try:
+            got = receive(sub, 4)
+        finally:
+            done.set()
+            child.join(WAIT_S)
+    assert child.exitcode == 0
+    assert [(e.rig, e.seq, e.message) for e in got] == [("child", i, f"alarm {i}") for i in range(1, 5)]
+
+
+# --------------------------------------------------------------------------- estimates, status
+
+
+def test_late_subscribers_get_latest_estimate_and_status(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    with TwinPublisher(hub, "r1", journal) as twin:
+        twin.publish_alarm(alarm("r1", 1))
+        old = EstimateEvent("r1", T0_NS, 0.0, {"Fc": {"value": 40.0, "std": 9.0, "unit": "N"}}, None, "ok")
+        new = EstimateEvent("r1", T0_NS + 10**6, 0.001, {"Fc": {"value": 50.0, "std": 2.0, "unit": "N"}}, 1.1, "ok")
+        twin.publish_estimate(old)
+        twin.publish_estimate(new)
+        status = twin.publish_status(
+            StatusEvent("r1", T0_NS, "running", {"Fc": "ok"}, {"samples": 2}, "tracking")
+        )
+        with connected(endpoint) as s:
+            assert live_twins(s) == ["r1"]
+            # a plain get on the key, answered by the latest-value queryable
+            assert fetch_latest(s, "estimate") == [new]
+            assert fetch_latest(s, "status", "r1") == [status]
+            assert status.counters == {"samples": 2, "alarm_seq": 1}
+            # an advanced subscriber, answered by the advanced publisher's cache
+            got: queue.Queue[str] = queue.Queue()
+            adv = zext.declare_advanced_subscriber(
+                s,
+                "fpdd/*/estimate",
+                lambda sample: got.put(sample.payload.to_string()),
+                history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+            )
+            try:
+                assert EstimateEvent.from_dict(json.loads(got.get(timeout=WAIT_S))) == new
+            finally:
+                adv.undeclare()
+    with TwinPublisher(hub, "r1", journal) as twin:
+        with pytest.raises(DataError, match="published through the twin of rig 'r1'"):
+            twin.publish_alarm(alarm("r2", 1))
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_alarms_cli_json_count(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
+    args = parser.parse_args(
+        ["--rig", "r1", "--connect", endpoint, "--json", "--count", "3", "--timeout", str(WAIT_S)]
+    )
+    with TwinPublisher(hub, "r1", journal) as twin:
+        sent = [twin.publish_alarm(alarm("r1", i)) for i in (1, 2)]
+        result: list[int] = []
+        cli = threading.Thread(target=lambda: result.append(run_alarms_cli(args)))
+        cli.start()
+        sent.append(twin.publish_alarm(alarm("r1", 3)))  # live or history: printed once either way
+        cli.join(WAIT_S + 5)
+    assert result == [0]
+    lines = capsys.readouterr().out.splitlines()
+    assert [AlarmEvent.from_dict(json.loads(line)) for line in lines] == sent
+
+
+def test_alarms_cli_times_out_without_enough_alarms(
+    hub: zenoh.Session, endpoint: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
+    args = parser.parse_args(["--connect", endpoint, "--count", "1", "--timeout", "0.3"])
+    assert run_alarms_cli(args) == 1
+    assert capsys.readouterr().out == ""
+
+
+def test_cli_argument_parsing_and_human_format() -> None:
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms", exit_on_error=False))
+    now = T0_NS
+    assert parse_since("90s", now_ns=now) == now - 90 * 10**9
+    assert parse_since("2h", now_ns=now) == now - 7200 * 10**9
+    assert parse_since("2025-02-19T21:20:00Z") == 1_740_000_000 * 10**9
+    assert parse_since(str(T0_NS)) == T0_NS
+    with pytest.raises(ValueError, match="is not an ISO 8601 time"):
+        parse_since("yesterday")
+    with pytest.raises(argparse.ArgumentError):
+        parser.parse_args(["--count", "0"])
+    args = parser.parse_args(["--since", "15m", "--since-seq", "4", "--rig", "msp25"])
+    assert args.since_seq == 4 and args.rig == "msp25" and args.since > 0
+    line = format_alarm(alarm("msp25", 3, seq=7))
+    assert line.startswith("2025-02-19T21:20:03.000Z msp25 #7 t=3.000 s ALARM")
+    assert "Kleak = 3e-12 ± 2e-13" in line and line.endswith("alarm 3")

@@ -1,0 +1,885 @@
+"""The Zenoh layer: publishing the twin's events and subscribing to its alarms.
+
+Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
+:data:`twin.events.RIG_PATTERN`)::
+
+    fpdd/<rig>/estimate        put    EstimateEvent JSON, every published tracker step
+                               get    latest EstimateEvent (latest-value queryable)
+    fpdd/<rig>/status          put    StatusEvent JSON, on change and periodically
+                               get    latest StatusEvent (latest-value queryable)
+    fpdd/<rig>/alarm           put    AlarmEvent JSON, live alarms (reliable, blocking, high priority)
+    fpdd/<rig>/alarm/history   get    every journaled AlarmEvent of the rig, one reply per alarm,
+                                      in seq order; selector parameters (``;``-separated):
+                                      ``since_seq=N`` (seq >= N), ``since_t_ns=T`` (t_ns >= T)
+    fpdd/<rig>/twin            liveliness token, present while the twin serves the rig
+
+Payloads are UTF-8 JSON (encoding ``application/json``) following the schemas in
+:mod:`twin.events` (``AlarmEvent.SCHEMA``, ``EstimateEvent.SCHEMA``,
+``StatusEvent.SCHEMA``). Every alarm carries ``seq``, a per-rig number 1, 2,
+3, ... without gaps, assigned by the durable journal (:mod:`twin.journal`).
+
+Delivery guarantees and how they are obtained:
+
+* An alarm is appended to the journal and ``fsync``-ed *before* it is put
+  (:meth:`TwinPublisher.publish_alarm`), so whatever reached a subscriber is on
+  disk, and whatever is on disk is served by ``fpdd/<rig>/alarm/history``.
+* Alarms are put reliably, with ``CongestionControl.BLOCK`` (never dropped
+  by a full queue) and ``Priority.INTERACTIVE_HIGH``, ``express``.
+* Zenoh still loses what is published while a link or router is down, and a
+  plain subscriber receives nothing published before it joined. The
+  :class:`AlarmSubscriber` therefore (1) subscribes first, then fetches the
+  history, (2) de-duplicates by ``(rig, seq)``, (3) fills a gap in ``seq``
+  from the history, (4) re-syncs from the history when a twin's liveliness
+  token (re)appears (a twin or a router came back), and (5) catches a lost
+  *last* alarm through the ``alarm_seq`` counter that every status carries.
+* Estimates and statuses go through ``zenoh.ext`` advanced publishers with a
+  one-sample cache (late ``zenoh.ext.AdvancedSubscriber`` with a
+  ``HistoryConfig`` gets the current value), and the latest value is also
+  served by a plain queryable on the same key, so a plain ``get`` (any Zenoh
+  client, ``z_get``) works too. Measured with eclipse-zenoh 1.10.2: the
+  advanced publisher's cache answers only advanced subscribers (a plain ``get``
+  on the key returns nothing), and an advanced publisher with a cache needs
+  either ``sample_miss_detection`` or ``timestamping`` enabled in the config
+  (otherwise ``ZError: ... Sequencing::Timestamp``); we enable miss detection.
+  History replies of many alarms on one key need ``ConsolidationMode.NONE``:
+  the default consolidation keeps only the last reply per key.
+
+Resources: every declaration is undeclared by ``close()``/``__exit__``; the
+session itself belongs to the caller and must be closed too (a session with
+callback subscribers or queryables left open hangs the interpreter at exit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import queue
+import re
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from datetime import datetime, timezone
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+import zenoh
+from zenoh import ext as zext
+
+from twin.errors import ConfigError, DataError, SourceError
+from twin.events import (
+    RIG_PATTERN,
+    AlarmEvent,
+    EstimateEvent,
+    StatusEvent,
+    event_to_json,
+)
+from twin.journal import AlarmJournal
+
+__all__ = [
+    "KEY_PREFIX",
+    "AlarmSubscriber",
+    "RigKeys",
+    "TwinPublisher",
+    "add_alarms_arguments",
+    "fetch_latest",
+    "format_alarm",
+    "live_twins",
+    "parse_since",
+    "run_alarms_cli",
+    "zenoh_config",
+]
+
+log = logging.getLogger(__name__)
+
+KEY_PREFIX = "fpdd"
+"""First chunk of every key of the service."""
+
+_JSON = zenoh.Encoding.APPLICATION_JSON
+_RIG_RE = re.compile(RIG_PATTERN)
+
+
+def _check_rig(rig: str, *, wildcard: bool) -> str:
+    if wildcard and rig == "*":
+        return rig
+    if not isinstance(rig, str) or _RIG_RE.match(rig) is None:
+        allowed = f"'*' or {RIG_PATTERN}" if wildcard else RIG_PATTERN
+        raise ConfigError(f"rig: {rig!r} is not a valid rig id (must match {allowed})")
+    return rig
+
+
+class RigKeys:
+    """The key expressions of one rig (or of all rigs with ``rig="*"``).
+
+    :ivar estimate: ``fpdd/<rig>/estimate``
+    :ivar status: ``fpdd/<rig>/status``
+    :ivar alarm: ``fpdd/<rig>/alarm``
+    :ivar history: ``fpdd/<rig>/alarm/history``
+    :ivar twin: ``fpdd/<rig>/twin`` (liveliness)
+    """
+
+    __slots__ = ("rig", "estimate", "status", "alarm", "history", "twin")
+
+    def __init__(self, rig: str) -> None:
+        self.rig = _check_rig(rig, wildcard=True)
+        base = f"{KEY_PREFIX}/{rig}"
+        self.estimate = f"{base}/estimate"
+        self.status = f"{base}/status"
+        self.alarm = f"{base}/alarm"
+        self.history = f"{base}/alarm/history"
+        self.twin = f"{base}/twin"
+
+    @staticmethod
+    def rig_of(key_expr: str | zenoh.KeyExpr) -> str:
+        """The rig chunk of a concrete key ``fpdd/<rig>/...``.
+
+        :raises DataError: the key is not in the service's key space.
+        """
+        parts = str(key_expr).split("/")
+        if len(parts) < 3 or parts[0] != KEY_PREFIX:
+            raise DataError(f"key {str(key_expr)!r} is not of the form {KEY_PREFIX}/<rig>/...")
+        return parts[1]
+
+
+# --------------------------------------------------------------------------- config
+
+
+def zenoh_config(
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast_scouting: bool = False,
+    *,
+    config_file: str | Path | None = None,
+) -> zenoh.Config:
+    """A Zenoh configuration with explicit endpoints.
+
+    :param mode: ``"peer"``, ``"client"`` or ``"router"``.
+    :param listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``
+        (not allowed for a client).
+    :param connect: endpoints to connect to, e.g. ``["tls/router.site:7447"]``.
+    :param multicast_scouting: enable discovery by UDP multicast (off by
+        default: sites and tests name their endpoints).
+    :param config_file: a JSON5 Zenoh configuration to start from (TLS,
+        access control, ...); the arguments above override its values when given
+        (``listen``/``connect`` only when non-empty).
+    :raises ConfigError: an unknown mode, a client asked to listen, or a file
+        or endpoint Zenoh rejects.
+    """
+    if mode not in ("peer", "client", "router"):
+        raise ConfigError(f"mode: {mode!r} is not one of ['peer', 'client', 'router']")
+    if mode == "client" and listen:
+        raise ConfigError(f"listen: a client cannot listen (got {list(listen)!r}); use mode 'peer'")
+    try:
+        config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
+        config.insert_json5("mode", json.dumps(mode))
+        if listen or not config_file:
+            config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect or not config_file:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    except zenoh.ZError as exc:
+        where = f"{config_file}: " if config_file else ""
+        raise ConfigError(f"{where}invalid Zenoh configuration: {exc}") from exc
+    return config
+
+
+def _open_error(exc: zenoh.ZError, what: str) -> SourceError:
+    return SourceError(f"{what}: {exc}")
+
+
+# --------------------------------------------------------------------------- publisher
+
+
+class TwinPublisher:
+    """Everything one rig's twin declares on the bus.
+
+    Declares, for ``rig``: the alarm publisher (reliable,
+    ``CongestionControl.BLOCK``, ``Priority.INTERACTIVE_HIGH``, express), the
+    estimate publisher (``CongestionControl.DROP``: at high rate a newer estimate
+    replaces a dropped one) and the status publisher (``BLOCK``), both
+    ``zenoh.ext`` advanced publishers with a one-sample cache; latest-value
+    queryables on the estimate and status keys; the alarm-history queryable
+    answering from ``journal``; and the liveliness token ``fpdd/<rig>/twin``.
+
+    Use as a context manager (or call :meth:`close`); the session stays open.
+    Several publishers (one per rig) may share one session and one journal.
+
+    :param session: an open Zenoh session.
+    :param rig: the rig id.
+    :param journal: the durable journal alarms are written to before publishing.
+    :param heartbeat_s: period of the advanced publishers' sporadic heartbeat [s]
+        (lets advanced subscribers notice a missed last estimate/status).
+    :raises ConfigError: ``rig`` is not a valid rig id.
+    :raises SourceError: a declaration failed (session closed, access denied).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str,
+        journal: AlarmJournal,
+        *,
+        heartbeat_s: float = 1.0,
+    ) -> None:
+        self.rig = _check_rig(rig, wildcard=False)
+        self.keys = RigKeys(rig)
+        self._session = session
+        self._journal = journal
+        self._latest: dict[str, str] = {}
+        self._latest_lock = threading.Lock()
+        self._declared: list[Any] = []
+        try:
+            self._alarm_pub = self._keep(
+                session.declare_publisher(
+                    self.keys.alarm,
+                    encoding=_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.INTERACTIVE_HIGH,
+                    express=True,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+            )
+            miss = zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat_s)
+            self._estimate_pub = self._keep(
+                zext.declare_advanced_publisher(
+                    session,
+                    self.keys.estimate,
+                    encoding=_JSON,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    priority=zenoh.Priority.DATA,
+                    cache=zext.CacheConfig(1),
+                    sample_miss_detection=miss,
+                    publisher_detection=True,
+                )
+            )
+            self._status_pub = self._keep(
+                zext.declare_advanced_publisher(
+                    session,
+                    self.keys.status,
+                    encoding=_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.DATA_HIGH,
+                    cache=zext.CacheConfig(1),
+                    sample_miss_detection=miss,
+                    publisher_detection=True,
+                )
+            )
+            self._keep(session.declare_queryable(self.keys.history, self._on_history))
+            self._keep(
+                session.declare_queryable(self.keys.estimate, lambda q: self._on_latest(q, "estimate"))
+            )
+            self._keep(
+                session.declare_queryable(self.keys.status, lambda q: self._on_latest(q, "status"))
+            )
+            # The token last: a subscriber seeing the twin alive can query its history at once.
+            self._keep(session.liveliness().declare_token(self.keys.twin))
+        except zenoh.ZError as exc:
+            self.close()
+            raise _open_error(exc, f"rig {rig!r}: cannot declare the twin on the bus") from exc
+
+    def _keep(self, entity: Any) -> Any:
+        self._declared.append(entity)
+        return entity
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything, liveliness token first (idempotent)."""
+        while self._declared:
+            entity = self._declared.pop()
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                # Undeclaring on a session already closed is harmless; say so and go on.
+                log.debug("rig %s: undeclare %r: %s", self.rig, entity, exc)
+
+    def wait_for_alarm_subscribers(self, timeout: float) -> bool:
+        """Wait until at least one subscriber matches ``fpdd/<rig>/alarm``.
+
+        Not needed for correctness (late subscribers read the history); useful
+        for a demo or a test that wants to see alarms arrive live.
+
+        :returns: ``True`` if a subscriber matched within ``timeout`` seconds.
+        """
+        matched = threading.Event()
+        listener = self._alarm_pub.declare_matching_listener(
+            lambda status: matched.set() if status.matching else None
+        )
+        try:
+            # In eclipse-zenoh 1.10.2 the property is a MatchingStatus (always
+            # truthy), not the bool its stub announces: read .matching.
+            return self._alarm_pub.matching_status.matching or matched.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    # ------------------------------------------------------------------ publishing
+
+    def _check_event_rig(self, event: AlarmEvent | EstimateEvent | StatusEvent) -> None:
+        if event.rig != self.rig:
+            raise DataError(
+                f"{type(event).__name__}.rig: {event.rig!r} published through the twin of rig {self.rig!r}"
+            )
+
+    def publish_alarm(self, event: AlarmEvent) -> AlarmEvent:
+        """Journal the alarm durably (``fsync``), then put it on ``fpdd/<rig>/alarm``.
+
+        :param event: the alarm; ``seq=0`` lets the journal number it.
+        :returns: the journaled event with its ``seq``.
+        :raises DataError: wrong rig or wrong ``seq``.
+        :raises SourceError: the journal write failed (nothing was published),
+            or the put failed (the alarm is journaled and subscribers get it
+            from the history).
+        """
+        self._check_event_rig(event)
+        event = self._journal.append(event)
+        try:
+            self._alarm_pub.put(event_to_json(event))
+        except zenoh.ZError as exc:
+            raise SourceError(
+                f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({exc}); "
+                f"subscribers will get it from {self.keys.history}"
+            ) from exc
+        return event
+
+    def publish_estimate(self, event: EstimateEvent) -> None:
+        """Put an estimate on ``fpdd/<rig>/estimate`` (may be dropped under congestion)."""
+        self._check_event_rig(event)
+        payload = event_to_json(event)
+        with self._latest_lock:
+            self._latest["estimate"] = payload
+        try:
+            self._estimate_pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish estimate: {exc}") from exc
+
+    def publish_status(self, event: StatusEvent) -> StatusEvent:
+        """Put a status on ``fpdd/<rig>/status`` with ``counters["alarm_seq"]`` filled in.
+
+        ``alarm_seq`` is the last journaled alarm of the rig; a subscriber that
+        sees it ahead of what it received fetches the missing alarms.
+
+        :returns: the event as published.
+        """
+        self._check_event_rig(event)
+        counters = dict(event.counters)
+        counters["alarm_seq"] = self._journal.last_seq(self.rig)
+        event = replace(event, counters=counters)
+        payload = event_to_json(event)
+        with self._latest_lock:
+            self._latest["status"] = payload
+        try:
+            self._status_pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish status: {exc}") from exc
+        return event
+
+    # ------------------------------------------------------------------ queryables
+
+    def _on_latest(self, query: zenoh.Query, what: str) -> None:
+        with query:
+            with self._latest_lock:
+                payload = self._latest.get(what)
+            if payload is not None:
+                key = self.keys.estimate if what == "estimate" else self.keys.status
+                query.reply(key, payload, encoding=_JSON)
+
+    def _on_history(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                since_seq = _int_parameter(query.parameters, "since_seq")
+                since_t_ns = _int_parameter(query.parameters, "since_t_ns")
+            except DataError as exc:
+                query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
+                return
+            for event in self._journal.read(since_seq=since_seq, since_t_ns=since_t_ns, rig=self.rig):
+                query.reply(self.keys.history, event_to_json(event), encoding=_JSON)
+
+
+def _int_parameter(parameters: zenoh.Parameters, name: str) -> int | None:
+    text = parameters.get(name)
+    if text is None or text == "":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise DataError(f"selector parameter {name}: {text!r} must be an integer") from None
+    if value < 0:
+        raise DataError(f"selector parameter {name}: {value} must be >= 0")
+    return value
+
+
+# --------------------------------------------------------------------------- queries
+
+
+def fetch_latest(
+    session: zenoh.Session,
+    what: str,
+    rig: str = "*",
+    *,
+    timeout: float = 5.0,
+) -> list[EstimateEvent] | list[StatusEvent]:
+    """The latest estimate or status of each matching running twin (a plain ``get``).
+
+    :param what: ``"estimate"`` or ``"status"``.
+    :param rig: a rig id or ``"*"``.
+    :param timeout: how long to wait for replies [s].
+    :returns: one event per twin that has published one, sorted by rig.
+    """
+    keys = RigKeys(rig)
+    if what == "estimate":
+        key, parse = keys.estimate, EstimateEvent.from_dict
+    elif what == "status":
+        key, parse = keys.status, StatusEvent.from_dict
+    else:
+        raise ConfigError(f"what: {what!r} is not one of ['estimate', 'status']")
+    events = []
+    for reply in session.get(key, target=zenoh.QueryTarget.ALL, timeout=timeout):
+        if reply.ok is not None:
+            events.append(parse(json.loads(reply.ok.payload.to_string())))
+    return sorted(events, key=lambda e: e.rig)
+
+
+def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[str]:
+    """The rigs whose twin is currently alive (liveliness tokens ``fpdd/<rig>/twin``), sorted."""
+    rigs = set()
+    for reply in session.liveliness().get(RigKeys(rig).twin, timeout=timeout):
+        if reply.ok is not None:
+            rigs.add(RigKeys.rig_of(reply.ok.key_expr))
+    return sorted(rigs)
+
+
+# --------------------------------------------------------------------------- subscriber
+
+
+class AlarmSubscriber:
+    """Every alarm of one rig (or all rigs), history first, then live, without gaps.
+
+    On construction it subscribes to ``fpdd/<rig>/alarm``, to the status key
+    (for ``alarm_seq``) and to the twins' liveliness, and only then fetches
+    the history, so nothing published in between is lost. Events are handed
+    out in ``seq`` order per rig, each ``(rig, seq)`` once:
+
+    * a live alarm whose ``seq`` jumps ahead of the last one received triggers
+      a history query for the missing numbers before it is delivered;
+    * a twin's liveliness token appearing (twin restarted, router came back)
+      and a status whose ``alarm_seq`` is ahead both trigger the same query;
+    * numbers the history cannot supply (journal lost, no twin reachable)
+      are recorded in :attr:`missed` as ``(rig, first, last)`` and logged.
+
+    :param session: an open Zenoh session (stays open after :meth:`close`).
+    :param rig: a rig id or ``"*"`` for all rigs.
+    :param since_seq: deliver only ``seq >= since_seq`` (per rig).
+    :param since_t_ns: deliver only alarms with ``t_ns >= since_t_ns`` from the history.
+    :param history: fetch the history first (default). With ``False`` only live
+        alarms are delivered; gaps between them are still filled.
+    :param query_timeout: timeout of each history query [s].
+    :raises ConfigError: ``rig`` is not a rig id or ``"*"``.
+    :raises SourceError: the subscription failed (session closed, access denied).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str = "*",
+        since_seq: int | None = None,
+        since_t_ns: int | None = None,
+        *,
+        history: bool = True,
+        query_timeout: float = 5.0,
+    ) -> None:
+        self.keys = RigKeys(rig)
+        self.rig = rig
+        self.since_seq = since_seq
+        self.since_t_ns = since_t_ns
+        self._session = session
+        self._history = history
+        self._query_timeout = query_timeout
+        self._inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._ready: deque[AlarmEvent] = deque()
+        self._last: dict[str, int] = {}
+        self._status_seq: dict[str, int] = {}
+        self._declared: list[Any] = []
+        self.missed: list[tuple[str, int, int]] = []
+        """Alarm numbers that could not be recovered: ``(rig, first_seq, last_seq)``."""
+        self.rejected = 0
+        """Payloads on the alarm key that did not validate (logged and skipped)."""
+        self.history_queries = 0
+        """History queries sent (initial fetch, gap fills, re-syncs)."""
+        try:
+            # Declarations reach a remote twin in this order: once a live alarm
+            # arrives, the status and liveliness subscriptions are in place too.
+            self._declared.append(session.declare_subscriber(self.keys.status, self._on_status))
+            self._declared.append(
+                session.liveliness().declare_subscriber(self.keys.twin, self._on_twin, history=True)
+            )
+            self._declared.append(session.declare_subscriber(self.keys.alarm, self._on_alarm))
+        except zenoh.ZError as exc:
+            self.close()
+            raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
+        if history:
+            for event in sorted(self._query(rig, since_seq, since_t_ns), key=lambda e: (e.rig, e.seq)):
+                self._accept(event)
+
+    # ------------------------------------------------------------------ life cycle
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare the subscriptions (idempotent); received events stay readable."""
+        while self._declared:
+            entity = self._declared.pop()
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclare %r: %s", entity, exc)
+
+    def last_seq(self, rig: str) -> int | None:
+        """The last ``seq`` handed over (or queued) for ``rig``, ``None`` if none yet."""
+        return self._last.get(rig)
+
+    # ------------------------------------------------------------------ zenoh callbacks
+    # They run on Zenoh threads: parse, then hand over to the consumer's thread.
+
+    def _on_alarm(self, sample: zenoh.Sample) -> None:
+        try:
+            event = AlarmEvent.from_dict(json.loads(sample.payload.to_string()))
+        except (DataError, ValueError) as exc:
+            self.rejected += 1
+            log.warning("%s: rejected alarm payload: %s", sample.key_expr, exc)
+            return
+        self._inbox.put(("alarm", event))
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            status = StatusEvent.from_dict(json.loads(sample.payload.to_string()))
+        except (DataError, ValueError) as exc:
+            log.warning("%s: rejected status payload: %s", sample.key_expr, exc)
+            return
+        if "alarm_seq" in status.counters:
+            self._inbox.put(("status", (status.rig, status.counters["alarm_seq"])))
+
+    def _on_twin(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            try:
+                self._inbox.put(("twin", RigKeys.rig_of(sample.key_expr)))
+            except DataError as exc:
+                log.warning("liveliness: %s", exc)
+
+    # ------------------------------------------------------------------ ordering logic
+
+    def _expected(self, rig: str) -> int | None:
+        """The next ``seq`` owed for ``rig``, ``None`` when any number is acceptable."""
+        if rig in self._last:
+            return self._last[rig] + 1
+        if not self._history:
+            return None
+        if self.since_seq is not None:
+            return self.since_seq
+        return 1 if self.since_t_ns is None else None
+
+    def _accept(self, event: AlarmEvent) -> bool:
+        last = self._last.get(event.rig)
+        if last is not None and event.seq <= last:
+            return False
+        if self.since_seq is not None and event.seq < self.since_seq:
+            return False
+        self._last[event.rig] = event.seq
+        self._ready.append(event)
+        return True
+
+    def _query(self, rig: str, since_seq: int | None, since_t_ns: int | None) -> list[AlarmEvent]:
+        parameters = {}
+        if since_seq is not None:
+            parameters["since_seq"] = str(since_seq)
+        if since_t_ns is not None:
+            parameters["since_t_ns"] = str(since_t_ns)
+        selector = zenoh.Selector(RigKeys(rig).history, parameters)
+        self.history_queries += 1
+        events = []
+        try:
+            replies = self._session.get(
+                selector,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=self._query_timeout,
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
+                    continue
+                try:
+                    events.append(AlarmEvent.from_dict(json.loads(reply.ok.payload.to_string())))
+                except (DataError, ValueError) as exc:
+                    self.rejected += 1
+                    log.warning("%s: rejected history reply: %s", selector, exc)
+        except zenoh.ZError as exc:
+            log.warning("%s: history query failed: %s", selector, exc)
+        return events
+
+    def _fill(self, rig: str) -> None:
+        """Fetch what the history holds for ``rig`` beyond the last number received."""
+        if rig in self._last:
+            since_seq, since_t_ns = self._last[rig] + 1, None
+        else:
+            since_seq, since_t_ns = self.since_seq, self.since_t_ns
+        found = [e for e in self._query(rig, since_seq, since_t_ns) if e.rig == rig]
+        for event in sorted(found, key=lambda e: e.seq):
+            self._accept(event)
+
+    def _record_missed(self, rig: str, first: int, last: int) -> None:
+        self.missed.append((rig, first, last))
+        log.warning(
+            "rig %s: alarms seq %d..%d were lost in transit and are not in the twin's history",
+            rig, first, last,
+        )
+
+    def _on_live(self, event: AlarmEvent) -> None:
+        last = self._last.get(event.rig)
+        if last is not None and event.seq <= last:
+            return
+        expected = self._expected(event.rig)
+        if (expected is not None and event.seq > expected) or (last is None and self._history):
+            self._fill(event.rig)
+            last = self._last.get(event.rig)
+            if last is not None and event.seq <= last:
+                return
+            expected = self._expected(event.rig)
+            if expected is not None and event.seq > expected:
+                self._record_missed(event.rig, expected, event.seq - 1)
+        self._accept(event)
+
+    def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
+        if self._status_seq.get(rig) == alarm_seq:
+            return
+        self._status_seq[rig] = alarm_seq
+        last = self._last.get(rig)
+        if last is not None and alarm_seq <= last:
+            return
+        if last is None and not self._history:
+            return
+        expected = self._expected(rig)
+        if expected is not None and alarm_seq < expected:
+            return
+        self._fill(rig)
+        expected = self._expected(rig)
+        if expected is not None and alarm_seq >= expected:
+            self._record_missed(rig, expected, alarm_seq)
+            self._last[rig] = alarm_seq
+
+    def _process(self, kind: str, value: Any) -> None:
+        if kind == "alarm":
+            self._on_live(value)
+        elif kind == "status":
+            self._on_alarm_seq(*value)
+        elif kind == "twin" and (self._history or value in self._last):
+            self._fill(value)
+
+    # ------------------------------------------------------------------ consuming
+
+    def recv(self, timeout: float | None = None) -> AlarmEvent:
+        """The next alarm, blocking up to ``timeout`` seconds (``None``: forever).
+
+        :raises TimeoutError: no alarm within ``timeout``.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._ready:
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s")
+            try:
+                kind, value = self._inbox.get(timeout=remaining)
+            except queue.Empty:
+                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s") from None
+            self._process(kind, value)
+        return self._ready.popleft()
+
+    def events(self, timeout: float | None = None) -> Iterator[AlarmEvent]:
+        """Iterate over alarms; stops when none arrives within ``timeout`` seconds."""
+        while True:
+            try:
+                yield self.recv(timeout)
+            except TimeoutError:
+                return
+
+    def __iter__(self) -> Iterator[AlarmEvent]:
+        return self.events(None)
+
+
+# --------------------------------------------------------------------------- CLI
+
+_DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")
+_UNIT_S = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+def parse_since(text: str, *, now_ns: int | None = None) -> int:
+    """Parse ``--since``: an ISO 8601 time, a duration back from now, or integer ns.
+
+    ``"2025-03-01T08:00:00+01:00"`` (naive times are local), ``"90s"``,
+    ``"15m"``, ``"2h"``, ``"1d"``, ``"500ms"``, or ``"1740812400000000000"``
+    (``t_ns`` as in the events). Durations count back from the wall clock, so
+    they are meaningful for live rigs, not for replays of old logs.
+
+    :returns: ``t_ns`` [ns].
+    :raises ValueError: none of these forms.
+    """
+    text = text.strip()
+    if text.isdigit():
+        return int(text)
+    match = _DURATION_RE.match(text)
+    if match:
+        now = time.time_ns() if now_ns is None else now_ns
+        return max(0, now - int(float(match.group(1)) * _UNIT_S[match.group(2)] * 1e9))
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(
+            f"--since: {text!r} is not an ISO 8601 time, a duration like 15m/2h/1d, or integer ns"
+        ) from None
+    if moment.tzinfo is None:
+        moment = moment.astimezone()
+    return int(round(moment.timestamp() * 1e9))
+
+
+def _since_argument(text: str) -> int:
+    try:
+        return parse_since(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{value} must be a positive number of seconds")
+    return value
+
+
+def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the options of ``twin alarms`` to ``parser`` (a sub-command parser)."""
+    parser.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
+    parser.add_argument(
+        "--since", type=_since_argument, metavar="T",
+        help="history from time T: ISO 8601, a duration back from now (15m, 2h, 1d), or t_ns",
+    )
+    parser.add_argument(
+        "--since-seq", type=_positive_int, metavar="N", help="history from sequence number N (per rig)"
+    )
+    parser.add_argument(
+        "--no-history", action="store_true", help="live alarms only, do not fetch the history first"
+    )
+    parser.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable); "
+        "without --connect or --zenoh-config, peers are discovered by multicast scouting",
+    )
+    parser.add_argument(
+        "--mode", choices=("peer", "client"), default="peer", help="Zenoh session mode (default peer)"
+    )
+    parser.add_argument(
+        "--zenoh-config", type=Path, metavar="FILE",
+        help="Zenoh JSON5 configuration (TLS, credentials), e.g. deploy/twin-peer.json5",
+    )
+    parser.add_argument("--json", action="store_true", help="print one AlarmEvent JSON object per line")
+    parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N alarms")
+    parser.add_argument(
+        "--timeout", type=_positive_float, metavar="S", help="exit after S seconds (default: run until stopped)"
+    )
+    return parser
+
+
+def format_alarm(event: AlarmEvent) -> str:
+    """One human-readable line for an alarm."""
+    when = ""
+    if event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: show the wall-clock time
+        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=timezone.utc)
+        when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
+    text = (
+        f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} "
+        f"{event.kind:9s} {event.parameter} = {event.estimate:.4g} ± {event.std:.2g} "
+        f"(baseline {event.baseline:.4g}, band [{event.band_lo:.4g}, {event.band_hi:.4g}], "
+        f"statistic {event.statistic:.3g})"
+    )
+    return f"{text} {event.message}" if event.message else text
+
+
+def run_alarms_cli(args: argparse.Namespace) -> int:
+    """``twin alarms``: print alarms as they come, the history first.
+
+    :param args: parsed by a parser set up with :func:`add_alarms_arguments`.
+    :returns: exit status: 0, or 1 when ``--count`` alarms did not arrive within ``--timeout``.
+    :raises ConfigError, SourceError: bad Zenoh configuration or session failure.
+    """
+    scouting = not args.connect and args.zenoh_config is None
+    config = zenoh_config(
+        mode=args.mode,
+        connect=args.connect,
+        multicast_scouting=scouting,
+        config_file=args.zenoh_config,
+    )
+    deadline = None if args.timeout is None else time.monotonic() + args.timeout
+    printed = 0
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise _open_error(exc, "cannot open a Zenoh session") from exc
+    with session, AlarmSubscriber(
+        session,
+        rig=args.rig,
+        since_seq=args.since_seq,
+        since_t_ns=args.since,
+        history=not args.no_history,
+    ) as subscriber:
+        reported = 0
+        while args.count is None or printed < args.count:
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                break
+            try:
+                event = subscriber.recv(timeout=remaining)
+            except TimeoutError:
+                break
+            for rig, first, last in subscriber.missed[reported:]:
+                print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
+            reported = len(subscriber.missed)
+            line = event_to_json(event) if args.json else format_alarm(event)
+            print(line, flush=True)
+            printed += 1
+    return 1 if args.count is not None and printed < args.count else 0
+
