@@ -1,0 +1,196 @@
+"""Real-time replay of a recorded stream: ``replay play LOG --to can|zenoh [--speed 1.0]``.
+
+Pacing follows python-can's :class:`can.MessageSync`: every sample is due at
+``wall_start + (t_ns - t_first) / speed`` on the monotonic clock, fixed when the
+replay starts, so a late write never shifts the samples after it (no drift
+accumulates).  At each wake-up every sample already due is written as one block,
+then the player sleeps until the next one is due.  Lateness (write start minus due
+time) is measured for every sample and returned in :class:`PlayStats`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from replay.base import Sink, Source
+
+#: Seconds between two progress reports.
+PROGRESS_EVERY_S = 0.5
+
+
+@dataclasses.dataclass
+class PlayStats:
+    """What a replay did and how well it kept time (all times in s)."""
+
+    samples: int = 0
+    writes: int = 0
+    log_span_s: float = 0.0
+    wall_s: float = 0.0
+    speed: float = 1.0
+    late_max_s: float = 0.0
+    late_mean_s: float = 0.0
+    late_p99_s: float = 0.0
+    early_max_s: float = 0.0  # a write before its due time would be a bug: kept to prove it is 0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class _Lateness:
+    def __init__(self) -> None:
+        self.parts: list[np.ndarray] = []
+
+    def add(self, late: np.ndarray) -> None:
+        self.parts.append(late)
+
+    def all(self) -> np.ndarray:
+        return np.concatenate(self.parts) if self.parts else np.zeros(0)
+
+
+def play(source: Source, sink: Sink, speed: float = 1.0, *, chunk: int = 4096,
+         progress: Callable[[PlayStats, float], None] | None = None,
+         clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+         should_stop: Callable[[], bool] | None = None) -> PlayStats:
+    """Write ``source``'s samples to ``sink`` paced by their timestamps.
+
+    :param speed: replay speed factor (2.0 = twice as fast); ``inf`` = as fast as possible.
+    :param progress: called about every 0.5 s with the running stats and the log time
+        played so far (s).
+    :param should_stop: polled between writes; True ends the replay early.
+    :returns: :class:`PlayStats` with lateness statistics.
+    """
+    if not speed > 0:
+        raise ValueError(f"speed (={speed}) must be > 0")
+    stats = PlayStats(speed=speed)
+    lat = _Lateness()
+    t_first: int | None = None
+    wall0 = 0.0
+    last_progress = clock()
+    played_s = 0.0
+    for block in source.chunks(chunk):
+        n = len(block)
+        if n == 0:
+            continue
+        if t_first is None:
+            t_first = int(block.t_ns[0])
+            wall0 = clock()
+        rel = (block.t_ns - t_first).astype(np.float64) * 1e-9
+        due = wall0 + rel / speed if np.isfinite(speed) else np.full(n, -np.inf)
+        i = 0
+        while i < n:
+            if should_stop is not None and should_stop():
+                return _finish(stats, lat, clock() - wall0)
+            now = clock()
+            j = int(np.searchsorted(due, now, side="right"))
+            if j <= i:
+                sleep(max(due[i] - now, 0.0))
+                continue
+            start = clock()
+            sink.write(block.slice(i, j))
+            lat.add(start - due[i:j] if np.isfinite(speed) else np.zeros(j - i))
+            stats.writes += 1
+            stats.samples += j - i
+            played_s = float(rel[j - 1])
+            i = j
+            if progress is not None and start - last_progress >= PROGRESS_EVERY_S:
+                last_progress = start
+                progress(_finish(dataclasses.replace(stats), lat, start - wall0), played_s)
+        stats.log_span_s = played_s
+    return _finish(stats, lat, clock() - wall0 if t_first is not None else 0.0)
+
+
+def _finish(stats: PlayStats, lat: _Lateness, wall_s: float) -> PlayStats:
+    late = lat.all()
+    stats.wall_s = float(wall_s)
+    if late.size:
+        stats.late_max_s = float(max(late.max(), 0.0))
+        stats.late_mean_s = float(late.mean())
+        stats.late_p99_s = float(np.percentile(late, 99))
+        stats.early_max_s = float(max(-late.min(), 0.0))
+    return stats
+
+
+# --- command line --------------------------------------------------------------------------
+
+def _open_source(path: str, dbc: str | None) -> Source:
+    from replay.canio import FORMATS, CanLogSource
+
+    if Path(path).suffix.lower() in FORMATS:
+        return CanLogSource(path, dbc=dbc)
+    from replay import factory
+
+    return factory.open_source(path)
+
+
+def _open_sink(args: argparse.Namespace) -> Sink:
+    if args.to == "can":
+        from replay.live import CanBusSink
+
+        return CanBusSink(args.channel, dbc=args.dbc)
+    from replay.live import ZenohCanSink, ZenohSampleSink, zenoh_config
+
+    conf = zenoh_config(listen=args.zenoh_listen or (), connect=args.zenoh_connect or (),
+                        multicast_scouting=not (args.zenoh_listen or args.zenoh_connect),
+                        config_file=args.zenoh_config)
+    if args.payload == "can":
+        return ZenohCanSink(args.key, dbc=args.dbc, config=conf)
+    return ZenohSampleSink(args.key, config=conf)
+
+
+def _print_progress(total_s: float) -> Callable[[PlayStats, float], None]:
+    def show(st: PlayStats, played_s: float) -> None:
+        pct = f" ({100 * played_s / total_s:5.1f} %)" if total_s > 0 else ""
+        sys.stderr.write(f"\rplayed {played_s:9.3f} s{pct}, {st.samples} samples, x{st.speed:g}, "
+                         f"late max {st.late_max_s * 1e3:.2f} ms   ")
+        sys.stderr.flush()
+    return show
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    """``replay play``: open LOG and the target, replay, print the pacing statistics."""
+    with _open_source(args.log, args.dbc) as src, _open_sink(args) as sink:
+        if args.to == "zenoh" and args.wait_s > 0:
+            sink.wait_for_subscriber(args.wait_s)
+        stats = play(src, sink, args.speed, progress=None if args.quiet else _print_progress(0.0))
+        if not args.quiet:
+            sys.stderr.write("\n")
+    if args.json:
+        print(json.dumps({"stats": stats.to_dict(), "report": src.report.to_dict()}))
+    else:
+        print(f"played {stats.samples} samples ({stats.log_span_s:.3f} s of log) in {stats.wall_s:.3f} s "
+              f"at x{stats.speed:g}; lateness max {stats.late_max_s * 1e3:.3f} ms, "
+              f"p99 {stats.late_p99_s * 1e3:.3f} ms, mean {stats.late_mean_s * 1e3:.3f} ms")
+        print(src.report.summary())
+    return 0
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add ``play`` to the ``replay`` command's subparsers."""
+    p = subparsers.add_parser("play", help="replay a log in real time to a CAN bus or Zenoh",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("log", help="log to replay (CAN log, MCAP, CSV)")
+    p.add_argument("--to", choices=("can", "zenoh"), required=True, help="where to send the samples")
+    p.add_argument("--speed", type=float, default=1.0, help="speed factor (default 1.0 = real time)")
+    p.add_argument("--channel", default="can://virtual/rig1",
+                   help="CAN bus as can://INTERFACE/CHANNEL (default can://virtual/rig1)")
+    p.add_argument("--key", default="fpdd/msp25/samples", help="Zenoh key expression (default fpdd/msp25/samples)")
+    p.add_argument("--payload", choices=("samples", "can"), default="samples",
+                   help="Zenoh payload: JSON sample blocks or raw CAN frames (see replay.live)")
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-config", help="Zenoh json5 config file")
+    p.add_argument("--wait-s", type=float, default=2.0,
+                   help="Zenoh: wait up to this long for a subscriber before starting (default 2)")
+    p.add_argument("--dbc", help="DBC for CAN encoding/decoding (default: the MSP25 DBC)")
+    p.add_argument("--json", action="store_true", help="print the statistics and read report as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress display on stderr")
+    p.set_defaults(func=cmd_play)
+    return p

@@ -1,0 +1,97 @@
+"""The ``replay`` command: info, convert, help, errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from replay import cli
+from replay.factory import open_source
+from roundtrip_base import DATA
+
+
+def run(capsys: pytest.CaptureFixture, *argv: str) -> tuple[int, str, str]:
+    code = cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("name", ["reference.mcap", "reference.csv"])
+def test_info_json(capsys: pytest.CaptureFixture, name: str) -> None:
+    code, out, _ = run(capsys, "info", str(DATA / name), "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert d["signals"] == ["x_ref", "u", "x", "pA", "pB"]
+    assert d["samples"] == 200
+    assert d["duration_s"] == pytest.approx(0.199, abs=1e-6)
+    assert d["rate_hz"] == pytest.approx(1000.0, rel=1e-4)
+    assert d["median_step_s"] == pytest.approx(1e-3, rel=1e-4)
+    assert d["report"]["skipped"] == {} and d["report"]["gaps_ns"] == []
+    if name.endswith(".mcap"):
+        topics = {t["topic"]: t["messages"] for t in d["format"]["topics"]}
+        assert topics == {"/rig/signals_block": 1, "/rig/signals": 200}
+
+
+def test_info_text_reports_gaps_and_bad_rows(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    path = tmp_path / "gappy.csv"
+    rows = [f"{i * 1e-3!r},{0.001 * i!r}" for i in range(40)] + ["0.041,oops"]
+    rows += [f"{0.5 + i * 1e-3!r},0.0" for i in range(40)]
+    path.write_text("t,x\n" + "\n".join(rows) + "\n")
+    code, out, _ = run(capsys, "info", str(path))
+    assert code == 0
+    assert "samples: 80" in out and "gaps: 1" in out and "bad_row=1" in out
+    assert "line 42: field 'x' = 'oops' is not a number" in out
+
+
+def test_convert_csv_to_mcap_and_back(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    mcap = tmp_path / "ref.mcap"
+    csv = tmp_path / "back.csv"
+    assert run(capsys, "convert", str(DATA / "reference.csv"), str(mcap))[0] == 0
+    code, out, _ = run(capsys, "convert", str(mcap), str(csv), "--json")
+    assert code == 0 and json.loads(out)["input"]["samples_out"] == 200
+    with open_source(DATA / "reference.csv") as a, open_source(csv) as b:
+        x, y = a.read_all(), b.read_all()
+    assert np.array_equal(x.t_ns, y.t_ns) and all(np.array_equal(x[k], y[k]) for k in x.names)
+
+
+def test_convert_with_mapping(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    src = tmp_path / "foreign.csv"
+    src.write_text("t,pos_mm,p_a_bar\n0.0,1.0,100\n0.001,2.0,110\n")
+    out = tmp_path / "si.csv"
+    code, _, err = run(capsys, "convert", str(src), str(out), "--map", "pos_mm=x:mm", "--map", "p_a_bar=pA:bar")
+    assert code == 0, err
+    with open_source(out) as s:
+        got = s.read_all()
+    assert got.names == ("x", "pA")
+    np.testing.assert_allclose(got["pA"], [1e7, 1.1e7])
+
+
+def test_errors_name_the_file_and_exit_1(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    code, _, err = run(capsys, "info", str(tmp_path / "log.xyz"))
+    assert code == 1 and "log.xyz: unknown format" in err
+    code, _, err = run(capsys, "info", str(tmp_path / "absent.mcap"))
+    assert code == 1 and "absent.mcap: cannot read log file" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["info", str(DATA / "reference.csv"), "--map", "nonsense"], "expected COLUMN=SIGNAL"),
+    (["info", str(DATA / "reference.mcap"), "--map", "a=x"], "--map applies to CSV input"),
+    (["info", str(DATA / "reference.csv"), "--topic", "/rig/signals"], "--topic applies to MCAP input"),
+    (["convert", str(DATA / "reference.mcap"), "out.csv", "--dbc", "rig.dbc"], "--dbc applies to CAN logs"),
+])
+def test_misplaced_options_are_usage_errors(capsys: pytest.CaptureFixture, argv: list[str], message: str) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [[], ["info"], ["convert"], ["play"]])
+def test_every_command_has_help(capsys: pytest.CaptureFixture, argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*argv, "--help"])
+    assert exc.value.code == 0
+    assert "usage: replay" in capsys.readouterr().out
