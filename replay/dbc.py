@@ -53,30 +53,15 @@ import cantools.database
 import numpy as np
 
 from replay.base import SIGNALS
+from replay.quality import UNITS
 from twin.errors import LogFormatError, SourceError
 
 #: The DBC shipped for the MSP25 rig.
 DEFAULT_DBC: Path = Path(__file__).with_name("data") / "msp25.dbc"
 
 #: DBC unit -> (factor, offset) so that ``si = value * factor + offset``, and the SI unit.
-UNIT_TO_SI: dict[str, tuple[float, float, str]] = {
-    "m": (1.0, 0.0, "m"),
-    "mm": (1e-3, 0.0, "m"),
-    "um": (1e-6, 0.0, "m"),
-    "µm": (1e-6, 0.0, "m"),
-    "V": (1.0, 0.0, "V"),
-    "mV": (1e-3, 0.0, "V"),
-    "Pa": (1.0, 0.0, "Pa"),
-    "kPa": (1e3, 0.0, "Pa"),
-    "MPa": (1e6, 0.0, "Pa"),
-    "bar": (1e5, 0.0, "Pa"),
-    "mbar": (1e2, 0.0, "Pa"),
-    "N": (1.0, 0.0, "N"),
-    "kN": (1e3, 0.0, "N"),
-    "K": (1.0, 0.0, "K"),
-    "degC": (1.0, 273.15, "K"),
-    "°C": (1.0, 273.15, "K"),
-}
+#: DBC units and their conversion to SI: the one unit table of :mod:`replay.quality`.
+UNIT_TO_SI = UNITS
 
 #: SocketCAN's flag for 29-bit identifiers; frame keys are ``id | EFF_FLAG`` when extended.
 EFF_FLAG = 0x8000_0000
