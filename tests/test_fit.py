@@ -152,3 +152,31 @@ def test_cli_paper_json_contract(capsys):
     rows = json.loads(capsys.readouterr().out)
     assert {"case", "parameter", "true", "estimate", "error_pct", "paper_error_pct"} <= set(rows[0])
     assert len(rows) == sum(len(c.free) for c in CASES)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".mcap"])
+def test_cli_simulate_writes_a_record_that_fits_back(tmp_path, capsys, suffix):
+    path = tmp_path / f"sim{suffix}"
+    rc = cli.main(["simulate", "-o", str(path), "--duration", "3", "--set", "Ffric=80", "--seed", "3", "--json"])
+    assert rc == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["samples"] == 3000 and info["signals"] == ["x_ref", "u", "x", "pA", "pB"]
+    rc = cli.main(["fit", str(path), "--free", "Ffric", "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert abs(out["params"]["Ffric"]["value"] - 80.0) < 3 * out["params"]["Ffric"]["std"]
+
+
+def test_cli_params_lists_metadata_and_effects(capsys):
+    assert cli.main(["params", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    wn = next(p for p in out["params"] if p["name"] == "wn")
+    assert wn["unit"] == "rad/s" and wn["display_unit"] == "Hz" and wn["category"] == "phenomenological"
+    assert len(out["effects"]) == 10
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    rc = cli.main(["fit", str(tmp_path / "missing.csv")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "missing.csv" in err and "Traceback" not in err
