@@ -196,7 +196,38 @@ def _open_error(exc: zenoh.ZError, what: str) -> SourceError:
 # --------------------------------------------------------------------------- publisher
 
 
-class TwinPublisher:
+class _Declarations:
+    """Zenoh entities declared by one object, undeclared in reverse order on close (idempotent)."""
+
+    _declared: list[Any]
+
+    def _keep(self, entity: Any) -> Any:
+        self._declared.append(entity)
+        return entity
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything, the last declared (the liveliness token) first."""
+        while self._declared:
+            entity = self._declared.pop()
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                # Undeclaring on a session already closed is harmless; say so and go on.
+                log.debug("%s: undeclare %r: %s", type(self).__name__, entity, exc)
+
+
+class TwinPublisher(_Declarations):
     """Everything one rig's twin declares on the bus.
 
     Declares, for ``rig``: the alarm publisher (reliable,
@@ -282,31 +313,6 @@ class TwinPublisher:
         except zenoh.ZError as exc:
             self.close()
             raise _open_error(exc, f"rig {rig!r}: cannot declare the twin on the bus") from exc
-
-    def _keep(self, entity: Any) -> Any:
-        self._declared.append(entity)
-        return entity
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Undeclare everything, liveliness token first (idempotent)."""
-        while self._declared:
-            entity = self._declared.pop()
-            try:
-                entity.undeclare()
-            except zenoh.ZError as exc:
-                # Undeclaring on a session already closed is harmless; say so and go on.
-                log.debug("rig %s: undeclare %r: %s", self.rig, entity, exc)
 
     def wait_for_alarm_subscribers(self, timeout: float) -> bool:
         """Wait until at least one subscriber matches ``fpdd/<rig>/alarm``.
@@ -466,7 +472,7 @@ def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) 
 # --------------------------------------------------------------------------- subscriber
 
 
-class AlarmSubscriber:
+class AlarmSubscriber(_Declarations):
     """Every alarm of one rig (or all rigs), history first, then live, without gaps.
 
     On construction it subscribes to ``fpdd/<rig>/alarm``, to the status key
@@ -523,11 +529,9 @@ class AlarmSubscriber:
         try:
             # Declarations reach a remote twin in this order: once a live alarm
             # arrives, the status and liveliness subscriptions are in place too.
-            self._declared.append(session.declare_subscriber(self.keys.status, self._on_status))
-            self._declared.append(
-                session.liveliness().declare_subscriber(self.keys.twin, self._on_twin, history=True)
-            )
-            self._declared.append(session.declare_subscriber(self.keys.alarm, self._on_alarm))
+            self._keep(session.declare_subscriber(self.keys.status, self._on_status))
+            self._keep(session.liveliness().declare_subscriber(self.keys.twin, self._on_twin, history=True))
+            self._keep(session.declare_subscriber(self.keys.alarm, self._on_alarm))
         except zenoh.ZError as exc:
             self.close()
             raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
@@ -537,25 +541,9 @@ class AlarmSubscriber:
 
     # ------------------------------------------------------------------ life cycle
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
     def close(self) -> None:
         """Undeclare the subscriptions (idempotent); received events stay readable."""
-        while self._declared:
-            entity = self._declared.pop()
-            try:
-                entity.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare %r: %s", entity, exc)
+        super().close()
 
     def last_seq(self, rig: str) -> int | None:
         """The last ``seq`` handed over (or queued) for ``rig``, ``None`` if none yet."""
