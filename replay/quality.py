@@ -152,6 +152,8 @@ class QualityOptions:
     samples.  ``range_tolerance``: fraction of samples (at least 1 per 1000 checked)
     that may be out of range before the read is refused as a wrong unit.
     ``check_range``: turn the range and unit check off (e.g. for raw diagnostics).
+    ``specs``: signal specifications that replace :data:`~replay.base.SIGNALS` for this
+    read (e.g. the oscillator's ``u`` is a force in N, not a valve voltage).
     """
 
     required: tuple[str, ...] = ()
@@ -159,6 +161,7 @@ class QualityOptions:
     gap_factor: float = 5.0
     check_range: bool = True
     range_tolerance: float = 1e-3
+    specs: Mapping[str, SignalSpec] | None = None
 
     def __post_init__(self) -> None:
         if self.max_gap_s is not None and not self.max_gap_s > 0:
@@ -185,7 +188,7 @@ class QualityGate:
                  specs: Mapping[str, SignalSpec] = SIGNALS) -> None:
         self.report = report
         self.options = options or QualityOptions()
-        self.specs = specs
+        self.specs = self.options.specs if self.options.specs is not None else specs
         self._last_t_ns: int | None = None
         self._max_gap_ns: int | None = (
             None if self.options.max_gap_s is None else int(round(self.options.max_gap_s * 1e9))

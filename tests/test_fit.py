@@ -180,3 +180,28 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err
     assert "missing.csv" in err and "Traceback" not in err
+
+
+def test_parameter_stuck_at_a_bound_has_no_standard_error():
+    rec = _rig_record(10, 2.0, noisy=False, Ffric=0.0)
+    res = fit(RIG, rec, ("Ffric",), start={"Ffric": 30.0}, n_starts=1)
+    assert res.estimate["Ffric"] == pytest.approx(0.0, abs=1e-3)
+    assert np.isnan(res.std["Ffric"]) and "at a bound" in res.message
+
+
+def test_oscillator_csv_round_trip_through_fit_and_saved_params(tmp_path, capsys):
+    path = tmp_path / "osc.csv"
+    assert cli.main(["simulate", "--model", "oscillator", "-o", str(path), "--duration", "3",
+                     "--effects", "cubic_stiffness", "--set", "d=0.2,k3=1e5"]) == 0
+    saved = tmp_path / "osc.json"
+    assert cli.main(["fit", str(path), "--model", "oscillator", "--free", "d,k,k3", "--effects",
+                     "cubic_stiffness", "--set", "k3=5e4", "--save", str(saved), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert abs(out["params"]["k3"]["value"] - 1e5) < 3 * out["params"]["k3"]["std"]
+    assert abs(out["params"]["d"]["value"] - 0.2) < 3 * out["params"]["d"]["std"]
+    # the saved set (with its effect switched on) is the base of the next fit
+    assert cli.main(["fit", str(path), "--model", "oscillator", "--params", str(saved), "--free", "d",
+                     "--json"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["effects"] == ["cubic_stiffness"]
+    assert abs(again["params"]["d"]["value"] - 0.2) < 3 * again["params"]["d"]["std"]

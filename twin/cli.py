@@ -11,47 +11,12 @@ import json
 import sys
 from typing import Sequence
 
-import numpy as np
-
+from twin.cliutil import dump as _dump
+from twin.cliutil import kv as _kv
+from twin.cliutil import load_params_file
+from twin.cliutil import names as _names
+from twin.cliutil import progress as _progress
 from twin.errors import TwinError
-
-
-def _kv(text: str | None) -> dict[str, float]:
-    """``"a=1,b=2e-3"`` -> {"a": 1.0, "b": 0.002}."""
-    out: dict[str, float] = {}
-    for part in (text or "").split(","):
-        if not part.strip():
-            continue
-        if "=" not in part:
-            raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {part!r}")
-        k, v = part.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{k.strip()}: {v!r} is not a number") from None
-    return out
-
-
-def _names(text: str | None) -> tuple[str, ...]:
-    return tuple(p.strip() for p in (text or "").split(",") if p.strip())
-
-
-def _progress(args):
-    if getattr(args, "quiet", False):
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    raise TypeError(type(o).__name__)
-
-
-def _dump(obj) -> None:
-    print(json.dumps(obj, indent=2, default=_json_default, allow_nan=True))
 
 
 # --- params -------------------------------------------------------------------------------
@@ -106,8 +71,8 @@ def cmd_fit(args) -> int:
     model = get_model(args.model)
     records = []
     for path in args.data:
-        records.extend(load_records(path))
-    base = model.params(effects=_names(args.effects), **_kv(args.set))
+        records.extend(load_records(path, model=model.name))
+    base = load_params_file(model, args.params, _kv(args.set), _names(args.effects))
     free = _names(args.free) or model.PHENOMENOLOGICAL
     outputs = _names(args.outputs) or None
     res = fit(model, records, free, base=base, start=_kv(args.start), outputs=outputs,
@@ -203,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
     p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
+    p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,...")
     p.add_argument("--start", help="start values of free parameters NAME=VALUE,...")
     p.add_argument("--effects", help="effects to switch on by name")

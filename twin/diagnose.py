@@ -64,6 +64,10 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from scipy import stats
 
+from twin.cliutil import dump
+from twin.cliutil import json_default as _json_default
+from twin.cliutil import kv as _kv
+from twin.cliutil import names as _names
 from twin.errors import DataError, ParameterError
 from twin.fit import FitResult, fit, likelihood_ratio
 from twin.models import Model, get_model
@@ -843,31 +847,13 @@ def add_diagnose_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
 
 
-def _kv(text: str | None) -> dict[str, float]:
-    from twin.cli import _kv as kv
-
-    return kv(text)
-
-
-def _names(text: str | None) -> tuple[str, ...]:
-    return tuple(p.strip() for p in (text or "").split(",") if p.strip())
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    raise TypeError(type(o).__name__)
-
-
 def run_diagnose(args) -> int:
     from twin.record import load_records
 
     model = get_model(args.model)
     records: list[Record] = []
     for path in args.data:
-        records.extend(load_records(path))
+        records.extend(load_records(path, model=model.name))
     base = model.params(effects=_names(args.effects), **_kv(args.set))
     quiet = getattr(args, "quiet", False)
     progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
@@ -885,7 +871,7 @@ def run_diagnose(args) -> int:
         with open(args.save, "w") as f:
             json.dump(diag.extended_params(), f, indent=2, default=_json_default)
     if args.json:
-        print(json.dumps(diag.to_dict(), indent=2, default=_json_default))
+        dump(diag.to_dict())
     else:
         print(diag.text())
     return 0

@@ -359,6 +359,11 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     cov = cov_z * np.outer(g, g)
     ct = cov[: prob.n_theta, : prob.n_theta]
     std = np.sqrt(np.clip(np.diag(ct), 0, None))
+    # a parameter held at a bound has no meaningful standard error: say so
+    lo, hi = prob.bounds_z()
+    zt = z[: prob.n_theta]
+    at_bound = [n for n, zi, l, h in zip(prob.free, zt, lo, hi) if min(zi - l, h - zi) < 1e-6]  # z is order one
+    std = np.where([n in at_bound for n in prob.free], np.nan, std)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = ct / np.outer(std, std)
     ps = prob.base.update(dict(zip(prob.free, theta.tolist())))
@@ -387,7 +392,8 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         model=prob.model.name, params=ps, free=prob.free, estimate=dict(zip(prob.free, theta.tolist())),
         std=dict(zip(prob.free, std.tolist())), corr=corr, outputs=prob.outputs, fit_pct=fit_pct, mse=mse,
         nrmse=nrmse, loglik=loglik, aic=aic, aicc=aicc, bic=bic, fpe=fpe, n_obs=n_obs, n_par=p,
-        cost=float(res.cost), success=bool(res.status > 0), status=int(res.status), message=str(res.message),
+        cost=float(res.cost), success=bool(res.status > 0), status=int(res.status),
+        message=str(res.message) + (f"; at a bound (no standard error): {', '.join(at_bound)}" if at_bound else ""),
         nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed, predicted=pred)
 
 

@@ -104,10 +104,23 @@ def records_from_samples(samples, name: str = "record", min_samples: int = 50,
     return out
 
 
-def load_records(path: str, name: str | None = None, **options) -> list[Record]:
-    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records."""
-    from replay.factory import open_source
+def signal_specs(model: str):
+    """The signal vocabulary of ``model``'s records: the rig's, except that the
+    oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage."""
+    from replay.base import SIGNALS, SignalSpec
 
+    if model == "oscillator":
+        return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input force")}
+    return SIGNALS
+
+
+def load_records(path: str, name: str | None = None, model: str = "msp25", **options) -> list[Record]:
+    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``."""
+    from replay.factory import open_source
+    from replay.quality import QualityOptions
+
+    if str(path).lower().endswith((".csv", ".mcap")) and "quality" not in options:
+        options["quality"] = QualityOptions(specs=signal_specs(model))
     with open_source(path, **options) as src:
         samples = src.read_all()
     return records_from_samples(samples, name or str(path))

@@ -1,0 +1,87 @@
+"""Small helpers shared by the command-line entry points (argument parsing, JSON output)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+
+from twin.errors import ParameterError
+
+
+def kv(text: str | None) -> dict[str, float]:
+    """``"a=1,b=2e-3"`` -> {"a": 1.0, "b": 0.002}."""
+    out: dict[str, float] = {}
+    for part in (text or "").split(","):
+        if not part.strip():
+            continue
+        if "=" not in part:
+            raise ParameterError(f"expected NAME=VALUE, got {part!r}")
+        k, v = part.split("=", 1)
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise ParameterError(f"{k.strip()}: {v!r} is not a number") from None
+    return out
+
+
+def names(text: str | None) -> tuple[str, ...]:
+    return tuple(p.strip() for p in (text or "").split(",") if p.strip())
+
+
+def progress(args):
+    if getattr(args, "quiet", False):
+        return None
+    return lambda msg: print(msg, file=sys.stderr, flush=True)
+
+
+def json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+def finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (strict JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_or_none(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def dump(obj) -> None:
+    """Print ``obj`` as strict JSON (NaN and infinities become null)."""
+    print(json.dumps(finite_or_none(obj), indent=2, default=json_default, allow_nan=False))
+
+
+def load_params_file(model, path: str | None, overrides: dict[str, float] | None = None,
+                     effects: tuple[str, ...] = ()):
+    """A parameter set from a JSON file written by ``twin fit --save`` or ``twin diagnose --save``
+    (``{"model", "effects", "params"}``), with ``effects`` added and ``overrides`` applied."""
+    from twin.errors import ConfigError
+
+    doc: dict = {"effects": [], "params": {}}
+    if path:
+        try:
+            with open(path) as f:
+                doc = json.load(f)
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read the parameter file ({exc.strerror})") from None
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{path}: not JSON ({exc})") from None
+        if doc.get("model", model.name) != model.name:
+            raise ConfigError(f"{path}: parameters of model {doc.get('model')!r}, expected {model.name!r}")
+        if not isinstance(doc.get("params", {}), dict) or not isinstance(doc.get("effects", []), list):
+            raise ConfigError(f"{path}: expected 'params' (an object) and 'effects' (a list)")
+    ps = model.params(effects=tuple(doc.get("effects", [])) + tuple(effects))
+    known = {k: v for k, v in doc.get("params", {}).items() if k in ps.names}
+    return ps.update({**known, **(overrides or {})})
