@@ -184,7 +184,7 @@ def report(out_dir, rec, P, twin, drift, baseline) -> dict:
 def add_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="fpdd-demo", help="report directory (default fpdd-demo)")
     p.add_argument("--duration", type=float, default=60.0, help="simulated seconds (default 60)")
-    p.add_argument("--speed", type=float, default=20.0, help="replay speed, x real time (default 20; 0 = max)")
+    p.add_argument("--speed", type=float, default=20.0, help="replay speed, x real time (default 20; 0 = as fast as possible)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 

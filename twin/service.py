@@ -55,7 +55,7 @@ class RigTwin(Sink):
     def __init__(self, rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50,
                  on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None):
         from twin.drift import DriftMonitor
-        from twin.track import OnlineTracker
+        from twin.tracker import OnlineTracker
 
         self.rig = rig
         self.publisher = publisher
@@ -83,11 +83,9 @@ class RigTwin(Sink):
             self._t0_ns = int(samples.t_ns[0])
         out = self.tracker.process(samples)
         t_s = (out.t_ns - self._t0_ns) * 1e-9
-        for i in range(len(out.t_ns)):
-            events = self.drift.update(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], out.stds[i],
-                                       out.param_status[i])
-            for ev in events:
-                self._alarm(ev)
+        for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
+                                          out.frozen):
+            self._alarm(ev)
         self._since_estimate += len(out.t_ns)
         if self._since_estimate >= self.estimate_every and len(out.t_ns):
             self._since_estimate = 0
@@ -150,8 +148,7 @@ class RigTwin(Sink):
         self._last_status_wall = now
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self._t0_ns or 0)
         counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
-                    "repaired_covariance": int(self.tracker.counters.get("repaired_covariance", 0)),
-                    "gated": int(self.tracker.counters.get("gated", 0))}
+                    **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"}}
         ev = StatusEvent(rig=self.rig.name, t_ns=t_ns, state=state, parameters=per_param, counters=counters,
                          message="")
         if self.publisher is not None:
