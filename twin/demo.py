@@ -24,14 +24,10 @@ import sys
 import threading
 import time
 
-import numpy as np
-
-
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
 
 def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float):
     from twin.models import msp25 as M
@@ -43,7 +39,6 @@ def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_e
     noise = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
     rec, P = simulate_wear(M.MODEL.params(), xr, 1e-3, [drift], noise=noise, seed=seed, name="demo-rig")
     return rec, P, drift
-
 
 def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.0, seed: int = 0,
         factor: float = 30.0, t_start: float = 15.0, t_end: float = 45.0, rig_name: str = "msp25-demo",
@@ -128,43 +123,12 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     }
     return summary
 
-
 def report(out_dir, rec, P, twin, drift, baseline) -> dict:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from twin import report as html_report
-    from twin.models import msp25 as M
+    from twin.plots import parameter_trends
 
-    hist = twin.history_arrays()
-    names = twin.tracker.tracked
-    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.0 * len(names) + 0.8), sharex=True, squeeze=False)
-    t = rec.t_s
-    for ax, j, name in zip(axes[:, 0], range(len(names)), names):
-        spec = M.MODEL.params().spec(name)
-        sc = spec.display_scale
-        b = baseline[name]
-        ax.axhspan(b.lo * sc, b.hi * sc, color="C2", alpha=0.12, label="healthy band")
-        ax.plot(t, P[:, M.MODEL.kernel_index(name)] * sc, color="0.3", lw=1.0, ls="--", label="truth")
-        if hist["t_s"].size:
-            v, s = hist["values"][:, j] * sc, hist["stds"][:, j] * sc
-            ax.plot(hist["t_s"], v, color="C0", lw=1.2, label="estimate")
-            ax.fill_between(hist["t_s"], v - 2 * s, v + 2 * s, color="C0", alpha=0.2, lw=0, label="±2σ")
-        for a in twin.alarms:
-            if a.parameter == name:
-                ax.axvline(a.t_s, color={"alarm": "C3", "warning": "C1"}.get(a.level, "C2"), lw=1.0)
-        if name == "CdAleak":
-            ax.set_yscale("log")
-        ax.set_ylabel(f"{name}\n[{spec.display_unit or spec.unit}]")
-    axes[0, 0].legend(fontsize=7, ncol=4, loc="upper left")
-    axes[-1, 0].set_xlabel("t [s]  (vertical lines: alarm events, red = alarm, orange = warning, green = returned)")
-    axes[0, 0].set_title("Tracked parameters of the wearing rig (cf. paper Fig. 4)")
-    fig.tight_layout()
-    png = os.path.join(out_dir, "parameter_trends.png")
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    png = parameter_trends(twin, baseline, os.path.join(out_dir, "parameter_trends.png"), rec.t_s, P,
+                           title="Tracked parameters of the wearing rig (cf. paper Fig. 4)")
     rows = [{"seq": a.seq, "t [s]": round(a.t_s, 3), "parameter": a.parameter, "level": a.level, "kind": a.kind,
              "estimate": a.estimate, "std": a.std, "band": f"{a.band_lo:.4g} .. {a.band_hi:.4g}"}
             for a in twin.alarms]
@@ -180,14 +144,12 @@ def report(out_dir, rec, P, twin, drift, baseline) -> dict:
     return {"html": html, "trends_png": png, "rig_mcap": os.path.join(out_dir, "rig.mcap"),
             "twin_mcap": os.path.join(out_dir, f"{twin.rig.name}.twin.mcap")}
 
-
 def add_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="fpdd-demo", help="report directory (default fpdd-demo)")
     p.add_argument("--duration", type=float, default=60.0, help="simulated seconds (default 60)")
     p.add_argument("--speed", type=float, default=20.0, help="replay speed, x real time (default 20; 0 = as fast as possible)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-
 
 def run_demo(args) -> int:
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print

@@ -97,3 +97,50 @@ def paper_table(rows: list[dict], out_dir: str) -> str:
     fig.savefig(p, dpi=110)
     plt.close(fig)
     return p
+
+
+def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
+                     title: str = "Tracked parameters (cf. paper Fig. 4)") -> str:
+    """Estimates with +-2 sigma (log-normal), the healthy band, alarm events and optionally the truth
+    (kernel vectors ``truth [T, NP]`` at ``t_truth``) of a :class:`twin.service.RigTwin`."""
+    plt = _plt()
+    from twin.models import msp25 as M
+
+    hist = twin.history_arrays()
+    names = twin.tracker.tracked
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.0 * len(names) + 0.8), sharex=True, squeeze=False)
+    for ax, j, name in zip(axes[:, 0], range(len(names)), names):
+        spec = M.MODEL.params().spec(name)
+        sc = spec.display_scale
+        b = baseline[name]
+        ax.axhspan(b.lo * sc, b.hi * sc, color="C2", alpha=0.12, label="healthy band")
+        if truth is not None:
+            ax.plot(t_truth, truth[:, M.MODEL.kernel_index(name)] * sc, color="0.3", lw=1.0, ls="--", label="truth")
+        if hist["t_s"].size:
+            v = hist["values"][:, j] * sc
+            rel = hist["stds"][:, j] / np.maximum(hist["values"][:, j], 1e-300)  # std of log(theta)
+            ax.plot(hist["t_s"], v, color="C0", lw=1.2, label="estimate")
+            ax.fill_between(hist["t_s"], v * np.exp(-2 * rel), v * np.exp(2 * rel), color="C0", alpha=0.2, lw=0,
+                            label="±2σ")
+            settled = hist["t_s"] > 2.0
+            if settled.any():  # scale to the settled estimates, the band and the truth, not the start
+                true_max = np.max(truth[:, M.MODEL.kernel_index(name)]) * sc if truth is not None else 0.0
+                top = max(np.max(v[settled]), b.hi * sc, true_max)
+                bot = min(np.min(v[settled]), b.lo * sc)
+                if name == "CdAleak":
+                    ax.set_ylim(bot / 1.5, top * 1.5)
+                else:
+                    ax.set_ylim(bot - 0.2 * (top - bot), top + 0.2 * (top - bot))
+        for a in twin.alarms:
+            if a.parameter == name:
+                ax.axvline(a.t_s, color={"alarm": "C3", "warning": "C1"}.get(a.level, "C2"), lw=1.0)
+        if name == "CdAleak":
+            ax.set_yscale("log")
+        ax.set_ylabel(f"{name}\n[{spec.display_unit or spec.unit}]")
+    axes[0, 0].legend(fontsize=7, ncol=4, loc="upper left")
+    axes[-1, 0].set_xlabel("t [s]  (vertical lines: alarm events, red = alarm, orange = warning, green = returned)")
+    axes[0, 0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
