@@ -97,13 +97,16 @@ def _repair(P, floor):
 @nb.njit(cache=True)
 def fx_one(s, u, pvec, idx, ref, scale, dt, nsub, out):
     """Propagate one augmented (scaled) state over ``dt`` with input ``u`` held."""
-    p = pvec.copy()
+    fx_into(s, u, pvec.copy(), idx, ref, scale, dt, nsub, out, np.empty(6), np.empty(6))
+
+
+@nb.njit(cache=True)
+def fx_into(s, u, p, idx, ref, scale, dt, nsub, out, si, so):
+    """:func:`fx_one` with caller-owned work arrays (``p`` is overwritten at ``idx``): no allocation."""
     for j in range(idx.shape[0]):
         p[idx[j]] = ref[j] * math.exp(s[6 + j])
-    si = np.empty(6)
     for j in range(6):
         si[j] = s[j] * scale[j]
-    so = np.empty(6)
     M.step(si, u, p, dt, nsub, so)
     for j in range(6):
         out[j] = so[j] / scale[j]
@@ -112,16 +115,20 @@ def fx_one(s, u, pvec, idx, ref, scale, dt, nsub, out):
 
 
 @nb.njit(cache=True)
-def _predict(x, P, u, pvec, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L, sig, sf):
+def _predict(x, P, u, pw, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L, A, sig, sf, si, so):
     """filterpy's predict; returns the status (ok or repaired_covariance) or -1 if unrepairable."""
     n = x.shape[0]
     status = ST_OK
-    A = (lam + n) * P
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = (lam + n) * P[i, j]
     if not _chol_lower(A, L):
         if not _repair(P, floor):
             return -1
         status = ST_REPAIRED
-        A = (lam + n) * P
+        for i in range(n):
+            for j in range(n):
+                A[i, j] = (lam + n) * P[i, j]
         if not _chol_lower(A, L):
             return -1
     for i in range(n):
@@ -131,7 +138,7 @@ def _predict(x, P, u, pvec, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L,
             sig[k + 1, i] = x[i] + L[i, k]
             sig[n + k + 1, i] = x[i] - L[i, k]
     for k in range(2 * n + 1):
-        fx_one(sig[k], u, pvec, idx, ref, scale, dt, nsub, sf[k])
+        fx_into(sig[k], u, pw, idx, ref, scale, dt, nsub, sf[k], si, so)
     for i in range(n):
         acc = 0.0
         for k in range(2 * n + 1):
@@ -178,19 +185,44 @@ def _update(x, P, z, meas_idx, R, freeze, gate, innov, Sdiag):
         S[a, a] += R[use[a]]
         for i in range(n):
             PHt[i, a] = P[i, ia]
-    SI = np.linalg.inv(S)
+    # S^-1 and log det S from S's Cholesky factor (m <= 3: cheaper than LAPACK's call overhead)
+    Ls = np.zeros((m, m))
+    if not _chol_lower(S, Ls):
+        return ST_GATED, np.inf, -np.inf, m
+    Li = np.zeros((m, m))
+    logdet = 0.0
+    for i in range(m):
+        logdet += 2.0 * math.log(Ls[i, i])
+        Li[i, i] = 1.0 / Ls[i, i]
+        for j in range(i):
+            acc = 0.0
+            for k in range(j, i):
+                acc -= Ls[i, k] * Li[k, j]
+            Li[i, j] = acc / Ls[i, i]
+    SI = np.zeros((m, m))
+    for a in range(m):
+        for b in range(m):
+            acc = 0.0
+            for k in range(max(a, b), m):
+                acc += Li[k, a] * Li[k, b]
+            SI[a, b] = acc
     nis = 0.0
     for a in range(m):
         for b in range(m):
             nis += y[a] * SI[a, b] * y[b]
-    sign, logdet = np.linalg.slogdet(S)
     loglik = -0.5 * (nis + logdet + m * math.log(2.0 * math.pi))
     for a in range(m):
         innov[use[a]] = y[a]
         Sdiag[use[a]] = S[a, a]
     if nis > gate:
         return ST_GATED, nis, loglik, m
-    K = PHt @ SI
+    K = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHt[i, a] * SI[a, b]
+            K[i, b] = acc
     any_frozen = False
     for i in range(n):
         if freeze[i]:
@@ -202,13 +234,12 @@ def _update(x, P, z, meas_idx, R, freeze, gate, innov, Sdiag):
         for a in range(m):
             acc += K[i, a] * y[a]
         x[i] += acc
-    if not any_frozen:
-        KS = K @ S
+    if not any_frozen:  # P -= K S K' = K (P H')': K S = P H'
         for i in range(n):
             for j in range(n):
                 acc = 0.0
                 for a in range(m):
-                    acc += KS[i, a] * K[j, a]
+                    acc += K[i, a] * PHt[j, a]
                 P[i, j] -= acc
     else:  # Joseph form: P = (I - K H) P (I - K H)' + K R K'
         IKH = np.eye(n)
@@ -246,6 +277,10 @@ def run_kernel(x, P, exc, U, XREF, Z, pvec, idx, ref, scale, dt, nsub, Q, R, mea
     n = x.shape[0]
     T = U.shape[0]
     L = np.zeros((n, n))
+    A = np.empty((n, n))
+    pw = pvec.copy()
+    si = np.empty(6)
+    so = np.empty(6)
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
     freeze = np.zeros(n, dtype=np.bool_)
@@ -267,7 +302,7 @@ def run_kernel(x, P, exc, U, XREF, Z, pvec, idx, ref, scale, dt, nsub, Q, R, mea
         # predict from the previous sample with the input held since then (none before the first)
         ps = ST_OK
         if math.isfinite(u_prev):
-            ps = _predict(x, P, u_prev, pvec, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L, sig, sf)
+            ps = _predict(x, P, u_prev, pw, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L, A, sig, sf, si, so)
             if ps < 0:
                 return u_prev, gated_run, k
         # update
