@@ -65,3 +65,11 @@ def test_unreadable_and_invalid_toml(tmp_path):
         load_config(str(p))
     with pytest.raises(ConfigError, match="at least one"):
         parse_config({"rig": []})
+
+
+def test_the_shipped_example_configuration_validates():
+    import os
+
+    cfg = load_config(os.path.join(os.path.dirname(__file__), "..", "deploy", "rigs.example.toml"))
+    assert [r.name for r in cfg.rigs] == ["msp25-hall1-a", "msp25-hall1-b"]
+    assert cfg.zenoh_mode == "client" and cfg.journal_dir == "/var/lib/fpdd/journal"

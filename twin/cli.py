@@ -201,12 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("demo", "twin.demo", "add_demo_arguments", "run_demo",
          "end-to-end demo: simulate a wearing rig, track it, alarm over Zenoh"),
     ):
-        try:
-            add, run = _lazy(module, add_name, run_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
-            continue
+        add, run = _lazy(module, add_name, run_name)
         p = sub.add_parser(name, help=help_)
         add(p)
         p.set_defaults(func=run)

@@ -262,7 +262,7 @@ def _update(x, P, z, meas_idx, R, freeze, gate, innov, Sdiag):
     return ST_FROZEN if any_frozen else ST_OK, nis, loglik, m
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_kernel(x, P, exc, U, XREF, Z, pvec, idx, ref, scale, dt, nsub, Q, R, meas_idx, Wm, Wc, lam,
                floor, gate, max_gated, chan, thresh, alpha_exc, u_prev, gated_run, x_col,
                X_out, Pd_out, nis_out, ll_out, st_out, innov_out, S_out, frozen_out):
