@@ -23,6 +23,18 @@ has decayed to zero and its estimate has stayed inside the band for
 ``hold_s``.  A parameter whose standard deviation exceeds ``resolve`` times the
 half-width of its band is ``unresolved``: its statistic is frozen and nothing is
 raised on a guess; a parameter the filter froze (no excitation) is ``frozen``.
+
+Thresholds (defaults): ``kappa = 1`` sigma of allowance, ``h_warn = 4``,
+``h_alarm = 10`` (sums of standardised excursions at 20 Hz): an estimate 3
+sigma beyond the band warns after 0.1 s and alarms after 0.25 s; one hovering
+at the band's edge within its own uncertainty accumulates nothing.  The
+statistic is capped at ``3 h_alarm`` so a parameter that comes back is
+declared returned within a bounded time.
+
+Baselines come from the rig configuration (:func:`twin.config.default_baseline`:
+the paper's Table 9 for the MSP25, with the bands of
+``twin.config.DEFAULT_REL_BAND``) or from a commissioning fit
+(:func:`baseline_from_fit`).
 """
 
 from __future__ import annotations
@@ -33,10 +45,40 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from twin.config import Baseline
+from twin.config import DEFAULT_REL_BAND, Baseline
+from twin.errors import ParameterError
 from twin.events import AlarmEvent
 
 LEVELS = ("ok", "warning", "alarm")
+
+
+def baseline_from_fit(fit, names: Sequence[str] | None = None, rel_band: Mapping[str, float] | None = None,
+                      k_sigma: float = 3.0) -> dict[str, Baseline]:
+    """Healthy bands centred on a commissioning fit (:class:`twin.fit.FitResult`).
+
+    Each band is ``[v / (1 + r), v (1 + r)]`` around the fitted value ``v`` with
+    ``r`` the configured relative band (``rel_band``, default
+    ``twin.config.DEFAULT_REL_BAND``), widened to ``k_sigma`` standard errors of
+    the fit when the fit itself is less certain than that.  ``names``: the
+    parameters to take (default: all free parameters of the fit).
+    """
+    names = tuple(names or fit.free)
+    missing = [n for n in names if n not in fit.estimate]
+    if missing:
+        raise ParameterError(f"the commissioning fit did not estimate {', '.join(missing)}; "
+                             f"it estimated {', '.join(fit.free)}")
+    bands = {**DEFAULT_REL_BAND, **dict(rel_band or {})}
+    out = {}
+    for n in names:
+        v = float(fit.estimate[n])
+        if not (v > 0 and math.isfinite(v)):
+            raise ParameterError(f"the commissioning fit's {n} (={v}) is not a positive number; no band around it")
+        sd = float(fit.std.get(n, math.nan))
+        r = float(bands.get(n, 0.3))
+        if math.isfinite(sd):
+            r = max(r, k_sigma * sd / v)
+        out[n] = Baseline(v, v / (1.0 + r), v * (1.0 + r))
+    return out
 
 
 @dataclasses.dataclass

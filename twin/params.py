@@ -68,7 +68,7 @@ class ParamSpec:
     def show(self, value: float) -> str:
         """``value`` in the unit people read, e.g. ``43 Hz`` for ``wn``."""
         unit = self.display_unit or self.unit
-        return f"{value * self.display_scale:.6g} {unit}"
+        return f"{value * self.display_scale:.6g}" + ("" if unit == "1" else f" {unit}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -6,22 +6,77 @@ Foxglove plots (``/twin/estimate``, ``/twin/alarm``, ``/twin/status``), the
 parameter trends with the healthy band to a PNG (like the paper's Fig. 4).
 The healthy baseline is the rig configuration's values (the paper's Table 9
 for the MSP25) unless ``--config`` or ``--baseline`` says otherwise.
+
+Offline there is no journal, so :class:`SequenceNumbers` stands in for the
+service's publisher and numbers the alarm events 1, 2, 3, ... as the journal
+would: the ``/twin/alarm`` messages carry the same ``seq`` field as on the bus
+(``seq = 0`` means "never journaled" and is not a valid payload).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
+from collections.abc import Iterable
 
 from twin.cliutil import dump, kv, load_params_file, names
 
 
-def track(path: str, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
-          out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None):
-    """Run a log through a :class:`RigTwin`; returns the twin (alarms, history, stats)."""
+class SequenceNumbers:
+    """The publisher interface of :class:`twin.service.RigTwin` without a bus: numbers alarms 1, 2, 3, ..."""
+
+    def __init__(self) -> None:
+        self.seq = 0
+
+    def publish_alarm(self, ev):
+        self.seq += 1
+        return ev.with_seq(self.seq)
+
+    def publish_estimate(self, ev):
+        return ev
+
+    def publish_status(self, ev):
+        return ev
+
+
+def _blocks(source, chunk: int, dbc: str | None):
+    """Blocks of :class:`replay.base.Samples` from a path, a Record, Samples or an iterable of them."""
+    from replay.base import Samples
     from replay.factory import open_source
+    from twin.record import Record
+
+    if isinstance(source, (str, os.PathLike)):
+        opts = {"dbc": dbc} if dbc else {}
+        with open_source(os.fspath(source), **opts) as src:
+            yield from src.chunks(chunk)
+        return
+    items = [source] if isinstance(source, (Record, Samples)) else source
+    if not isinstance(items, Iterable):
+        from twin.errors import DataError
+
+        raise DataError(f"track reads a log path, a Record, Samples or an iterable of them, not {type(source).__name__}")
+    for item in items:
+        s = item.to_samples() if isinstance(item, Record) else item
+        for i in range(0, len(s), chunk):
+            yield s.slice(i, i + chunk)
+
+
+def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
+          out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None):
+    """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
+
+    ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
+    :class:`twin.record.Record`, :class:`replay.base.Samples`, or an iterable of
+    them in time order (a stream of blocks).  ``params``: known parameters that
+    differ from the nominal MSP25; ``tracked``: parameter names (default all five
+    phenomenological ones); ``baseline``: ``{name: twin.config.Baseline}``
+    overriding the default bands.  With ``out_dir`` the estimates, alarms and
+    statuses go to ``OUT_DIR/RIG.twin.mcap``.  The twin holds the results:
+    ``alarms`` (events with ``t_s`` from the start of the record),
+    ``final_estimates()``, ``history_arrays()``, ``drift.statuses()``,
+    ``tracker.counters``.
+    """
     from replay.mcapio import McapSink
     from twin.config import RigConfig, default_baseline
     from twin.models import msp25 as M
@@ -30,19 +85,18 @@ def track(path: str, rig_name: str = "rig", params: dict | None = None, tracked=
     tracked = tuple(tracked or M.PHENOMENOLOGICAL)
     base = default_baseline("msp25", params, tracked)
     base.update(baseline or {})
-    rig = RigConfig(rig_name, "msp25", path, dbc, 0.0, tracked, dict(params or {}), base)
+    where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else f"<{type(source).__name__}>"
+    rig = RigConfig(rig_name, "msp25", where, dbc, 0.0, tracked, dict(params or {}), base)
     rec = None
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)
         rec = McapSink(os.path.join(out_dir, f"{rig_name}.twin.mcap"))
-    twin = RigTwin(rig, None, rec, estimate_every=50)
-    opts = {"dbc": dbc} if dbc else {}
+    twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=50)
     try:
-        with open_source(path, **opts) as src:
-            for block in src.chunks(chunk):
-                twin.write(block)
-                if progress:
-                    progress(f"{twin.stats.samples} samples, {twin.stats.alarms} alarm event(s)")
+        for block in _blocks(source, chunk, dbc):
+            twin.write(block)
+            if progress:
+                progress(f"{twin.stats.samples} samples, {twin.stats.alarms} alarm event(s)")
         twin.close()
     finally:
         if rec is not None:

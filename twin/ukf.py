@@ -29,6 +29,16 @@ log-likelihood and a status code (:data:`STATUS`):
 * ``frozen``: some parameters were not excited and got no update (Schmidt
   "consider" update with the Joseph form, so the covariance stays honest).
 
+The random walk of a parameter stops adding variance once its standard
+deviation has reached :data:`PARAM_STD_CAP` (log units).  A frozen parameter
+gets no information, so without the cap its variance grows without bound while
+the rig rests (0.3 log units per sqrt(s) for friction: a std of 18 after an
+hour) and the first sigma points after the rest carry friction and valve
+parameters to ``exp(+-18)`` times their values, where the model is no longer
+finite.  The cap is the default prior (a factor 2 at one sigma), from which
+the filter is tested to converge; it never binds while a parameter is
+observed, so the filterpy equivalence is untouched.
+
 Excitation (what lets each parameter be seen) is measured on the data with
 exponential moving averages over ``tau_excite`` seconds: friction needs the rod
 moving, the valve parameters need the command changing, leakage needs a
@@ -51,6 +61,8 @@ MEAS_INDEX = {"x": 4, "pA": 2, "pB": 3}
 TRACKABLE = M.PHENOMENOLOGICAL
 #: which excitation channel each parameter needs: 0 rod motion, 1 valve command, 2 pressure difference
 EXCITE_CHANNEL = {"Ffric": 0, "CdAleak": 2, "Cd": 1, "zeta": 1, "wn": 1}
+#: largest standard deviation (log units) the parameter random walk grows a parameter's uncertainty to
+PARAM_STD_CAP = 0.7
 STATUS = ("ok", "gated", "repaired_covariance", "stale_input", "frozen")
 ST_OK, ST_GATED, ST_REPAIRED, ST_STALE, ST_FROZEN = range(5)
 
@@ -149,7 +161,10 @@ def _predict(x, P, u, pw, idx, ref, scale, dt, nsub, Q, Wm, Wc, lam, floor, L, A
             acc = 0.0
             for k in range(2 * n + 1):
                 acc += Wc[k] * (sf[k, i] - x[i]) * (sf[k, j] - x[j])
-            P[i, j] = acc + Q[i, j]
+            q = Q[i, j]
+            if i == j and i >= 6 and acc + q > PARAM_STD_CAP * PARAM_STD_CAP:
+                q = max(0.0, PARAM_STD_CAP * PARAM_STD_CAP - acc)  # the random walk stops at the cap
+            P[i, j] = acc + q
             P[j, i] = P[i, j]
     for i in range(n):
         if not math.isfinite(x[i]):
