@@ -35,9 +35,10 @@ gets no information, so without the cap its variance grows without bound while
 the rig rests (0.3 log units per sqrt(s) for friction: a std of 18 after an
 hour) and the first sigma points after the rest carry friction and valve
 parameters to ``exp(+-18)`` times their values, where the model is no longer
-finite.  The cap is the default prior (a factor 2 at one sigma), from which
-the filter is tested to converge; it never binds while a parameter is
-observed, so the filterpy equivalence is untouched.
+finite.  The cap (a factor e at one sigma) lies above the default prior
+(0.7, +-50 % inside one sigma) and is measured to be safe for the first
+sigma points after a rest (1.5 is not); it never binds while a parameter is
+observed or at the default prior, so the filterpy equivalence is untouched.
 
 Excitation (what lets each parameter be seen) is measured on the data with
 exponential moving averages over ``tau_excite`` seconds: friction needs the rod
@@ -62,7 +63,7 @@ TRACKABLE = M.PHENOMENOLOGICAL
 #: which excitation channel each parameter needs: 0 rod motion, 1 valve command, 2 pressure difference
 EXCITE_CHANNEL = {"Ffric": 0, "CdAleak": 2, "Cd": 1, "zeta": 1, "wn": 1}
 #: largest standard deviation (log units) the parameter random walk grows a parameter's uncertainty to
-PARAM_STD_CAP = 0.7
+PARAM_STD_CAP = 1.0
 STATUS = ("ok", "gated", "repaired_covariance", "stale_input", "frozen")
 ST_OK, ST_GATED, ST_REPAIRED, ST_STALE, ST_FROZEN = range(5)
 
