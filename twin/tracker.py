@@ -25,7 +25,7 @@ from twin.models import get_model
 from twin.models import msp25 as M
 
 #: random-walk intensity of each parameter, in log units per sqrt(second)
-DEFAULT_Q_RATE = {"Ffric": 0.3, "CdAleak": 0.15, "Cd": 0.02, "zeta": 0.05, "wn": 0.05}
+DEFAULT_Q_RATE = {"Ffric": 0.3, "CdAleak": 0.15, "Cd": 0.02, "zeta": 0.02, "wn": 0.02}
 #: per-step process noise of the scaled model states (filter units, variance per sample at 1 kHz)
 DEFAULT_Q_STATE = np.array([1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7])
 #: prior standard deviation of the parameters (log units): +-50 % starting errors are inside 1 sigma
