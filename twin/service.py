@@ -86,10 +86,12 @@ class RigTwin(Sink):
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
                                           out.frozen):
             self._alarm(ev)
-        self._since_estimate += len(out.t_ns)
-        if self._since_estimate >= self.estimate_every and len(out.t_ns):
-            self._since_estimate = 0
-            self._estimate(out, t_s)
+        # an estimate every estimate_every samples, wherever the block boundaries fall
+        n = len(out.t_ns)
+        first = self.estimate_every - 1 - self._since_estimate
+        for i in range(first, n, self.estimate_every):
+            self._estimate(out, t_s, i)
+        self._since_estimate = (self._since_estimate + n) % self.estimate_every
         self._status(out)
         self.stats.samples += len(samples)
         self.stats.blocks += 1
@@ -122,8 +124,7 @@ class RigTwin(Sink):
         if self.on_alarm is not None:
             self.on_alarm(ev)
 
-    def _estimate(self, out, t_s) -> None:
-        i = len(out.t_ns) - 1
+    def _estimate(self, out, t_s, i: int) -> None:
         params = {n: {"value": float(out.estimates[i][j]), "std": float(out.stds[i][j]),
                       "unit": self.tracker.units[j]} for j, n in enumerate(self.tracker.tracked)}
         ev = EstimateEvent(rig=self.rig.name, t_ns=int(out.t_ns[i]), t_s=float(t_s[i]), params=params,

@@ -55,7 +55,8 @@ def _blocks(source, chunk: int, dbc: str | None):
     if not isinstance(items, Iterable):
         from twin.errors import DataError
 
-        raise DataError(f"track reads a log path, a Record, Samples or an iterable of them, not {type(source).__name__}")
+        raise DataError(f"track reads a log path, a Record, Samples or an iterable of them, "
+                        f"not {type(source).__name__}")
     for item in items:
         s = item.to_samples() if isinstance(item, Record) else item
         for i in range(0, len(s), chunk):
@@ -63,7 +64,8 @@ def _blocks(source, chunk: int, dbc: str | None):
 
 
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
-          out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None):
+          out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
+          estimate_every: int = 50):
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -72,7 +74,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     differ from the nominal MSP25; ``tracked``: parameter names (default all five
     phenomenological ones); ``baseline``: ``{name: twin.config.Baseline}``
     overriding the default bands.  With ``out_dir`` the estimates, alarms and
-    statuses go to ``OUT_DIR/RIG.twin.mcap``.  The twin holds the results:
+    statuses go to ``OUT_DIR/RIG.twin.mcap``, an estimate every ``estimate_every``
+    samples.  The twin holds the results:
     ``alarms`` (events with ``t_s`` from the start of the record),
     ``final_estimates()``, ``history_arrays()``, ``drift.statuses()``,
     ``tracker.counters``.
@@ -91,7 +94,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)
         rec = McapSink(os.path.join(out_dir, f"{rig_name}.twin.mcap"))
-    twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=50)
+    every = max(1, int(estimate_every))
+    twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
     try:
         for block in _blocks(source, chunk, dbc):
             twin.write(block)

@@ -1,0 +1,87 @@
+"""``twin track``: in-memory records and streams, a CSV log through the CLI, MCAP topics that validate
+against the event schemas, alarm sequence numbers, times from the start of the record."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+from mcap.reader import make_reader
+
+from replay.csvio import CsvSink
+from twin import cli
+from twin.errors import DataError
+from twin.events import AlarmEvent, EstimateEvent, StatusEvent
+from twin.models import msp25 as M
+from twin.scenario import Drift, simulate_wear
+from twin.simulate import DEFAULT_NOISE, excite
+from twin.track import track
+
+NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+STEP = Drift("Ffric", 3.0, 5.0, shape="step")  # 50 -> 150 N at 5 s
+
+
+@pytest.fixture(scope="module")
+def friction_step():
+    _, xr = excite(M.MODEL, 12.0, 1e-3, seed=31)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [STEP], noise=NOISE, seed=31)
+    return rec
+
+
+def test_track_a_record_in_memory(friction_step):
+    twin = track(friction_step, rig_name="bench-3")
+    alarms = [a for a in twin.alarms if a.level == "alarm"]
+    assert alarms and {a.parameter for a in twin.alarms} == {"Ffric"}
+    assert 5.0 <= alarms[0].t_s <= 7.0  # the band's top (75 N) is crossed at the step
+    assert [a.seq for a in twin.alarms] == list(range(1, len(twin.alarms) + 1))
+    assert all(a.rig == "bench-3" for a in twin.alarms)
+    final = twin.final_estimates()
+    assert set(final) == set(M.PHENOMENOLOGICAL)
+    assert abs(final["Ffric"]["value"] - 150.0) < 3 * final["Ffric"]["std"] + 5.0
+    hist = twin.history_arrays()
+    assert hist["values"].shape == (len(hist["t_s"]), 5) and hist["t_s"][-1] == pytest.approx(12.0, abs=0.06)
+
+
+def test_a_stream_of_blocks_gives_the_same_alarms(friction_step):
+    s = friction_step.to_samples()
+    blocks = (s.slice(i, i + 777) for i in range(0, len(s), 777))
+    a = track(friction_step, tracked=("Ffric", "Cd"))
+    b = track(blocks, tracked=("Ffric", "Cd"))
+    assert [(e.parameter, e.level, e.kind, e.t_ns) for e in a.alarms] == \
+           [(e.parameter, e.level, e.kind, e.t_ns) for e in b.alarms]
+    assert set(a.final_estimates()) == {"Ffric", "Cd"}
+
+
+def test_track_rejects_what_it_cannot_read():
+    with pytest.raises(DataError, match="not int"):
+        track(42)
+
+
+def test_cli_on_a_csv_log_writes_mcap_png_and_json(friction_step, tmp_path, capsys):
+    log = tmp_path / "rig.csv"
+    with CsvSink(log) as sink:
+        sink.write(friction_step.to_samples())
+    out_dir = tmp_path / "out"
+    rc = cli.main(["track", str(log), "--track", "Ffric,Cd,wn", "--rig", "bench-3", "--out", str(out_dir),
+                   "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc["final"]) == {"Ffric", "Cd", "wn"}
+    assert all({"value", "std"} <= set(v) and v["std"] > 0 for v in doc["final"].values())
+    alarms = [a for a in doc["alarms"] if a["level"] == "alarm"]
+    assert alarms and {a["parameter"] for a in doc["alarms"]} == {"Ffric"}
+    assert all({"parameter", "level", "t", "seq", "estimate", "std"} <= set(a) for a in doc["alarms"])
+    assert 5.0 <= alarms[0]["t"] <= 7.0  # seconds from the start of the record (the CSV starts at t = 0)
+    assert doc["status"]["Ffric"] == "alarm"
+    assert os.path.getsize(doc["files"]["trends_png"]) > 1000
+    with open(doc["files"]["mcap"], "rb") as f:
+        msgs = [(ch.topic, json.loads(m.data)) for _, ch, m in make_reader(f, validate_crcs=True).iter_messages()]
+    kinds = {"/twin/alarm": AlarmEvent, "/twin/estimate": EstimateEvent, "/twin/status": StatusEvent}
+    for topic, payload in msgs:  # every message validates against its event schema (alarms need seq >= 1)
+        kinds[topic].from_dict(payload)
+    mcap_alarms = [p for t, p in msgs if t == "/twin/alarm"]
+    assert [a["seq"] for a in mcap_alarms] == [a["seq"] for a in doc["alarms"]]
+    estimates = [p for t, p in msgs if t == "/twin/estimate"]
+    assert len(estimates) >= 200 and set(estimates[-1]["params"]) == {"Ffric", "Cd", "wn"}
+    assert {t for t, _ in msgs} == set(kinds)

@@ -1,0 +1,192 @@
+"""The compiled UKF kernel (twin.ukf): filterpy's filter as the reference on the paths test_tracker.py
+does not cover (missing measurements, drive from x_ref), a linear Kalman oracle for the update, the
+bounded parameter random walk across a long rest, unrepairable covariances and stale inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+from replay.base import Samples
+from twin import ukf
+from twin.errors import FilterError
+from twin.models import msp25 as M
+from twin.scenario import simulate_wear
+from twin.simulate import DEFAULT_NOISE, excite
+from twin.tracker import OnlineTracker
+
+NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+WRONG = {"Ffric": 75.0, "CdAleak": 3.2863e-9 * 0.5, "Cd": 0.2191 * 1.5, "zeta": 0.3701 * 0.5,
+         "wn": M.NOMINAL["wn"] * 1.5}
+NAMES = ("x", "pA", "pB")
+
+
+def _samples(duration, seed, xr=None):
+    if xr is None:
+        _, xr = excite(M.MODEL, duration, 1e-3, seed=seed)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise=NOISE, seed=seed)
+    return rec.to_samples()
+
+
+def _filterpy_reference(tr: OnlineTracker, s: Samples, drive_u: np.ndarray) -> np.ndarray:
+    """filterpy's UnscentedKalmanFilter with the same fx (the numba step per sigma point), a per-sample hx
+    and R over the measurements present in that sample (none: no update), as in the tracker."""
+    n = tr.n
+    pts = MerweScaledSigmaPoints(n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
+
+    def fx(x, dt, u):
+        out = np.empty(n)
+        ukf.fx_one(x, u, tr.pvec, tr.idx, tr.ref, tr.scale, dt, tr.substeps, out)
+        return out
+
+    f = UnscentedKalmanFilter(dim_x=n, dim_z=3, dt=1e-3, hx=lambda x: x[tr.meas_idx], fx=fx, points=pts)
+    f.x = tr.x.copy()
+    f.P = tr.P.copy()
+    f.Q = tr._q(1e-3)
+    Z = np.stack([s[o] / tr.scale[ukf.MEAS_INDEX[o]] for o in NAMES], axis=1)
+    X = np.empty((len(s), n))
+    for k in range(len(s)):
+        if k > 0:
+            f.predict(u=drive_u[k - 1])
+        else:  # the first sample is measured at the prior
+            f.sigmas_f = pts.sigma_points(f.x, f.P)
+        use = np.flatnonzero(np.isfinite(Z[k]))
+        if use.size:
+            idx = tr.meas_idx[use]
+            f.update(Z[k, use], R=np.diag(tr.R[use]), hx=lambda x, idx=idx: x[idx])
+        X[k] = f.x
+    return X
+
+
+def _ours(out, tr):
+    return np.concatenate([out.states / tr.scale, np.log(out.estimates / tr.ref)], axis=1)
+
+
+def test_same_as_filterpy_with_missing_measurements_per_sample():
+    s = _samples(0.3, 21)
+    T = len(s)
+    rng = np.random.default_rng(21)
+    sig = {k: v.copy() for k, v in s.signals.items()}
+    for name, frac in (("x", 0.1), ("pA", 0.2), ("pB", 0.2)):
+        sig[name][rng.random(T) < frac] = np.nan
+    sig["x"][100:103] = sig["pA"][100:103] = sig["pB"][100:103] = np.nan  # nothing measured: prediction only
+    holes = Samples(s.t_ns, sig)
+    tr = OnlineTracker(start=WRONG, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
+    expected = _filterpy_reference(tr, holes, holes["u"])
+    out = tr.process(holes)
+    assert list(out.status[100:103]) == ["stale_input"] * 3
+    np.testing.assert_allclose(_ours(out, tr), expected, rtol=1e-7, atol=1e-9)
+
+
+def test_same_as_filterpy_when_driven_from_x_ref():
+    s = _samples(0.3, 22)
+    no_u = Samples(s.t_ns, {k: v for k, v in s.signals.items() if k != "u"})
+    tr = OnlineTracker(start=WRONG, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
+    u = tr.pvec[M.I_KP] * (no_u["x_ref"] - no_u["x"])  # the digital P controller on the measured x
+    expected = _filterpy_reference(tr, no_u, u)
+    out = tr.process(no_u)
+    np.testing.assert_allclose(_ours(out, tr), expected, rtol=1e-7, atol=1e-9)
+    assert np.max(np.abs(expected[-1, 6:] - expected[0, 6:])) > 0.05
+
+
+def _random_pd(n, rng):
+    A = rng.normal(size=(n, n))
+    return A @ A.T / n + 0.1 * np.eye(n)
+
+
+def test_update_is_the_linear_kalman_update():
+    rng = np.random.default_rng(5)
+    n = 11
+    meas_idx = np.array([4, 2, 3], dtype=np.int64)
+    H = np.zeros((3, n))
+    H[np.arange(3), meas_idx] = 1.0
+    R = np.array([0.04, 0.09, 0.01])
+    x0 = rng.normal(size=n)
+    P0 = _random_pd(n, rng)
+    z = H @ x0 + rng.normal(size=3)
+    kf = KalmanFilter(dim_x=n, dim_z=3)
+    kf.x, kf.P, kf.H, kf.R = x0.copy(), P0.copy(), H, np.diag(R)
+    kf.update(z)
+    x, P = x0.copy(), P0.copy()
+    innov, Sd = np.empty(3), np.empty(3)
+    st, nis, ll, m = ukf._update(x, P, z, meas_idx, R, np.zeros(n, dtype=np.bool_), np.inf, innov, Sd)
+    assert (ukf.STATUS[st], m) == ("ok", 3)
+    np.testing.assert_allclose(x, kf.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(P, kf.P, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(innov, kf.y, rtol=1e-12)
+    np.testing.assert_allclose(Sd, np.diag(kf.S), rtol=1e-12)
+    assert nis == pytest.approx(float(kf.y @ np.linalg.solve(kf.S, kf.y)), rel=1e-10)
+    assert ll == pytest.approx(kf.log_likelihood, rel=1e-10)
+
+
+def test_frozen_rows_get_no_gain_and_an_honest_covariance():
+    rng = np.random.default_rng(6)
+    n = 11
+    meas_idx = np.array([4, 2, 3], dtype=np.int64)
+    H = np.zeros((3, n))
+    H[np.arange(3), meas_idx] = 1.0
+    R = np.array([0.04, 0.09, 0.01])
+    x0 = rng.normal(size=n)
+    P0 = _random_pd(n, rng)
+    z = H @ x0 + rng.normal(size=3)
+    freeze = np.zeros(n, dtype=np.bool_)
+    freeze[[6, 8]] = True
+    x, P = x0.copy(), P0.copy()
+    st, _, _, _ = ukf._update(x, P, z, meas_idx, R, freeze, np.inf, np.empty(3), np.empty(3))
+    assert ukf.STATUS[st] == "frozen"
+    assert x[6] == x0[6] and x[8] == x0[8]
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + np.diag(R))
+    K[freeze] = 0.0
+    IKH = np.eye(n) - K @ H
+    np.testing.assert_allclose(P, IKH @ P0 @ IKH.T + K @ np.diag(R) @ K.T, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(x, x0 + K @ (z - H @ x0), rtol=1e-12, atol=1e-12)
+    assert P[6, 6] == pytest.approx(P0[6, 6], rel=1e-12)  # no information on a frozen parameter
+    assert np.all(np.linalg.eigvalsh(P) > 0)
+
+
+def test_a_long_rest_does_not_blow_up_the_parameters():
+    """At rest the parameters are frozen and only their random walk acts; it stops at PARAM_STD_CAP, so
+    the first sigma points after the rest stay where the model is finite. A fast walk (20 log units per
+    sqrt(s)) stands in for a night at the default rates: without the cap the std would reach 35."""
+    _, xr = excite(M.MODEL, 8.0, 1e-3, seed=23)
+    s = _samples(0.0, 23, xr=np.concatenate([np.zeros(3000), xr]))
+    tr = OnlineTracker(q_rate={n: 20.0 for n in M.PHENOMENOLOGICAL})
+    rest = tr.process(s.slice(0, 3000))
+    assert rest.frozen[-1].all() and set(rest.status[1000:]) == {"frozen"}
+    np.testing.assert_allclose(rest.log_std[-1], ukf.PARAM_STD_CAP, rtol=1e-9)
+    tr.q_rate[:] = [0.3, 0.15, 0.02, 0.05, 0.05]
+    tr._Q = None
+    out = tr.process(s.slice(3000, len(s)))
+    assert np.all(np.isfinite(out.estimates))
+    j = tr.tracked.index("Cd")
+    assert abs(out.estimates[-1, j] / 0.2191 - 1) < 3 * out.log_std[-1, j] + 1e-3
+    assert out.log_std[-1, j] < 0.01
+
+
+def test_unrepairable_covariance_raises_filter_error_naming_the_sample():
+    s = _samples(1.0, 24)
+    tr = OnlineTracker()
+    tr.process(s.slice(0, 500))
+    tr.P[7, 7] = np.nan
+    with pytest.raises(FilterError, match=r"at sample 500 \(t_ns=500000000\)"):
+        tr.process(s.slice(500, 1000))
+
+
+def test_missing_input_is_held_and_reported_stale():
+    s = _samples(1.0, 25)
+    sig = {k: v.copy() for k, v in s.signals.items()}
+    sig["u"][400:410] = np.nan
+    sig["x_ref"][400:410] = np.nan
+    out = OnlineTracker().process(Samples(s.t_ns, sig))
+    assert set(out.status[400:410]) == {"stale_input"}
+    assert "stale_input" not in set(out.status[411:])
+    assert np.all(np.isfinite(out.estimates))
+
+
+def test_sigma_point_weights_are_filterpys_with_a_small_alpha():
+    tr = OnlineTracker()
+    pts = MerweScaledSigmaPoints(tr.n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
+    np.testing.assert_allclose(tr.Wm, pts.Wm, rtol=1e-14)
+    np.testing.assert_allclose(tr.Wc, pts.Wc, rtol=1e-14)
+    assert tr.alpha <= 0.5  # wide sigma points through the tanh friction fling the parameters (model-spec)
