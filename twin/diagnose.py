@@ -69,7 +69,7 @@ from twin.cliutil import json_default as _json_default
 from twin.cliutil import kv as _kv
 from twin.cliutil import names as _names
 from twin.errors import DataError, ParameterError
-from twin.fit import FitResult, fit, likelihood_ratio
+from twin.fit import FitResult, fit, likelihood_ratio, resolve_outputs
 from twin.models import Model, get_model
 from twin.params import ParameterSet, check_names
 from twin.record import Record
@@ -614,12 +614,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     if not 0.0 < holdout < 0.9:
         raise ParameterError(f"holdout (={holdout}) must be a fraction in (0 ... 0.9) of each record")
     base = base or model.params()
-    if outputs is None:
-        outputs = tuple(o for o in model.OUTPUTS if all(o in r for r in records))
-        if not outputs:
-            raise DataError(f"no record has any of the outputs {', '.join(model.OUTPUTS)} of {model.name}")
-    outputs = tuple(outputs)
-    check_names(model.OUTPUTS, outputs, f"output of {model.name}")
+    outputs = resolve_outputs(model, records, outputs)
     for r in records:
         r.require(outputs, "diagnose")
         if len(r) < 200:

@@ -192,8 +192,25 @@ _ALARM_SCHEMA: dict[str, Any] = {
 }
 
 
+class _FromJson:
+    """``from_dict`` shared by the event classes: validate against ``SCHEMA``, then build."""
+
+    __slots__ = ()
+    SCHEMA: dict[str, Any]
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Self:
+        """Build and validate an event from a decoded JSON payload.
+
+        :raises DataError: naming the field that does not validate.
+        """
+        data = _as_mapping(data, cls.__name__)
+        _check(cls.__name__, cls.SCHEMA, data)
+        return cls(**{name: data[name] for name in cls.SCHEMA["required"]})
+
+
 @dataclass(frozen=True, slots=True)
-class AlarmEvent:
+class AlarmEvent(_FromJson):
     """A change of alarm level of one parameter of one rig.
 
     :ivar rig: rig id (one Zenoh key chunk, see :data:`RIG_PATTERN`).
@@ -261,16 +278,6 @@ class AlarmEvent:
             "message": self.message,
         }
 
-    @classmethod
-    def from_dict(cls, data: Any) -> Self:
-        """Build and validate an alarm from a decoded JSON payload.
-
-        :raises DataError: naming the field that does not validate.
-        """
-        data = _as_mapping(data, "AlarmEvent")
-        _check("AlarmEvent", cls.SCHEMA, data)
-        return cls(**{name: data[name] for name in cls.SCHEMA["required"]})
-
     def with_seq(self, seq: int) -> Self:
         """A copy carrying sequence number ``seq``."""
         return replace(self, seq=seq)
@@ -328,7 +335,7 @@ class ParamEstimate:
 
 
 @dataclass(frozen=True, slots=True)
-class EstimateEvent:
+class EstimateEvent(_FromJson):
     """The parameter estimates of one rig at one instant.
 
     :ivar rig: rig id.
@@ -375,16 +382,6 @@ class EstimateEvent:
             "status": self.status,
         }
 
-    @classmethod
-    def from_dict(cls, data: Any) -> Self:
-        """Build and validate an estimate from a decoded JSON payload.
-
-        :raises DataError: naming the field that does not validate.
-        """
-        data = _as_mapping(data, "EstimateEvent")
-        _check("EstimateEvent", cls.SCHEMA, data)
-        return cls(**{name: data[name] for name in cls.SCHEMA["required"]})
-
 
 # --------------------------------------------------------------------------- status
 
@@ -417,7 +414,7 @@ _STATUS_SCHEMA: dict[str, Any] = {
 
 
 @dataclass(frozen=True, slots=True)
-class StatusEvent:
+class StatusEvent(_FromJson):
     """Health of the twin serving one rig.
 
     :ivar rig: rig id.
@@ -460,12 +457,3 @@ class StatusEvent:
             "message": self.message,
         }
 
-    @classmethod
-    def from_dict(cls, data: Any) -> Self:
-        """Build and validate a status from a decoded JSON payload.
-
-        :raises DataError: naming the field that does not validate.
-        """
-        data = _as_mapping(data, "StatusEvent")
-        _check("StatusEvent", cls.SCHEMA, data)
-        return cls(**{name: data[name] for name in cls.SCHEMA["required"]})

@@ -203,6 +203,17 @@ def _linear_scale(model: Model, spec: ParamSpec, value: float) -> float:
     return 1.0
 
 
+def resolve_outputs(model: Model, records: Sequence[Record], outputs: Sequence[str] | None) -> tuple[str, ...]:
+    """The outputs to fit: those asked for (checked), or every model output all records have."""
+    if outputs is None:
+        outputs = tuple(o for o in model.OUTPUTS if all(o in r for r in records))
+        if not outputs:
+            raise DataError(f"no record has any of the outputs {', '.join(model.OUTPUTS)} of {model.name}")
+    outputs = tuple(outputs)
+    check_names(model.OUTPUTS, outputs, f"output of {model.name}")
+    return outputs
+
+
 def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[str],
                  base: ParameterSet | None = None, outputs: Sequence[str] | None = None,
                  noise: Mapping[str, float] | None = None, drive: str = "auto",
@@ -216,12 +227,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     if not free:
         raise ParameterError("fit needs at least one free parameter")
     check_names(base.names, free, f"free parameter of {model.name} (with effects {list(base.effects)})")
-    if outputs is None:
-        outputs = tuple(o for o in model.OUTPUTS if all(o in r for r in records))
-        if not outputs:
-            raise DataError(f"no record has any of the outputs {', '.join(model.OUTPUTS)} of {model.name}")
-    outputs = tuple(outputs)
-    check_names(model.OUTPUTS, outputs, f"output of {model.name}")
+    outputs = resolve_outputs(model, records, outputs)
     drives = []
     for r in records:
         r.require(outputs, f"fitting outputs {', '.join(outputs)}")
