@@ -109,3 +109,32 @@ def test_serve_reports_a_bad_configuration_without_a_traceback(tmp_path, capsys)
     assert cli.main(["serve", "--config", str(p)]) == 2
     err = capsys.readouterr().err
     assert "rigs.toml" in err and "mass" in err and "Traceback" not in err
+
+
+def test_serve_tracks_a_live_zenoh_input(tmp_path):
+    from replay.live import ZenohSampleSink
+
+    port = free_port()
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "service": {"journal_dir": str(tmp_path / "journal")},
+        "rig": [{"name": "rig-z", "source": "zenoh://fpdd/rig-z/samples"}],
+    }, "<live>")
+    _, xr = excite(M.MODEL, 12.0, 1e-3, seed=4)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 4.0, shape="step")],
+                           noise=NOISE, seed=4)
+    result: dict = {}
+    th = threading.Thread(target=lambda: result.update(serve(cfg)))
+    th.start()
+    try:
+        with zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"])) as rig_session:
+            with ZenohSampleSink("fpdd/rig-z/samples", session=rig_session) as sink:
+                assert sink.wait_for_subscriber(10.0), "the service did not subscribe to its input"
+                sink.write(rec.to_samples())
+    finally:
+        th.join(timeout=60.0)
+    assert not th.is_alive()
+    assert result["rig-z"].samples == len(rec)
+    with open(tmp_path / "journal" / "rig-z.alarms.jsonl") as f:
+        alarms = [json.loads(line) for line in f]
+    assert alarms and {a["parameter"] for a in alarms} == {"Ffric"}

@@ -159,10 +159,13 @@ class RigTwin(Sink):
         self.stats.statuses += 1
 
 
-def open_rig_source(rig: RigConfig):
+def open_rig_source(rig: RigConfig, session=None):
+    """The rig's source; a ``zenoh://`` input rides on the service's own Zenoh session."""
     from replay.factory import open_source
 
     opts = {"dbc": rig.dbc} if rig.dbc else {}
+    if rig.source.startswith("zenoh://") and session is not None:
+        opts["session"] = session
     return open_source(rig.source, **opts)
 
 
@@ -170,11 +173,11 @@ def is_live(uri: str) -> bool:
     return uri.startswith(("can://", "zenoh://"))
 
 
-def run_rig(rig: RigConfig, twin: RigTwin, stop: threading.Event, chunk: int = 100) -> None:
+def run_rig(rig: RigConfig, twin: RigTwin, stop: threading.Event, chunk: int = 100, session=None) -> None:
     """Feed ``twin`` from the rig's source until it ends or ``stop`` is set."""
     from replay.play import play
 
-    with open_rig_source(rig) as src:
+    with open_rig_source(rig, session) as src:
         if is_live(rig.source):
             for block in src.chunks(chunk):
                 if stop.is_set():
@@ -220,7 +223,7 @@ def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
                 if twins is not None:
                     twins[rig.name] = twin
                 try:
-                    run_rig(rig, twin, stop)
+                    run_rig(rig, twin, stop, session=session)
                 finally:
                     twin.close()
                     if rec is not None:
