@@ -193,3 +193,29 @@ def test_bad_tracker_input_is_rejected_clearly():
     xr = Samples(np.arange(10) * 1_000_000, {"x_ref": np.zeros(10), "x": np.zeros(10)})
     with pytest.raises(DataError, match="KI=5, KD=0; log the controller output u"):
         OnlineTracker(params={"KI": 5.0}).process(xr)
+
+
+def test_julier_sigma_points_are_injectable_and_match_filterpy():
+    from filterpy.kalman import JulierSigmaPoints
+
+    rec, _ = _record(0.2, 12)
+    tr = OnlineTracker(points=JulierSigmaPoints(11, kappa=-8.0), excite=(0.0, 0.0, 0.0), gate_p=1e-300)
+    pts = tr.points
+
+    def fx(x, dt, u):
+        out = np.empty(tr.n)
+        ukf.fx_one(x, u, tr.pvec, tr.idx, tr.ref, tr.scale, dt, tr.substeps, out)
+        return out
+
+    ref = UnscentedKalmanFilter(dim_x=tr.n, dim_z=3, dt=1e-3, hx=lambda x: x[tr.meas_idx], fx=fx, points=pts)
+    ref.x, ref.P, ref.Q, ref.R = tr.x.copy(), tr.P.copy(), tr._q(1e-3), np.diag(tr.R)
+    ref.sigmas_f = pts.sigma_points(ref.x, ref.P)
+    Z = np.stack([rec["x"] / 1e-3, rec["pA"] / 1e6, rec["pB"] / 1e6], axis=1)
+    out = tr.process(rec.to_samples())
+    for k in range(len(rec)):
+        if k > 0:
+            ref.predict(u=rec["u"][k - 1])
+        ref.update(Z[k])
+    np.testing.assert_allclose(np.log(out.estimates[-1] / tr.ref), ref.x[6:], rtol=1e-7, atol=1e-10)
+    with pytest.raises(ParameterError, match="sigma points for n=5"):
+        OnlineTracker(points=JulierSigmaPoints(5))

@@ -16,6 +16,7 @@ import math
 from typing import Mapping, Sequence
 
 import numpy as np
+from filterpy.kalman import JulierSigmaPoints, MerweScaledSigmaPoints
 from scipy import stats
 
 from replay.base import Samples
@@ -58,7 +59,9 @@ class OnlineTracker:
 
     ``params``: known parameter overrides (the rig configuration); ``start``:
     starting values of the tracked parameters (default: the configuration's);
-    ``outputs``: which of x, pA, pB to use when present.
+    ``outputs``: which of x, pA, pB to use when present.  ``points``: a filterpy
+    sigma-point object (``MerweScaledSigmaPoints`` from ``alpha, beta, kappa`` by
+    default, or ``JulierSigmaPoints``) whose weights and spread the filter uses.
     """
 
     def __init__(self, model: str = "msp25", params: Mapping[str, float] | None = None,
@@ -66,7 +69,7 @@ class OnlineTracker:
                  start: Mapping[str, float] | None = None, outputs: Sequence[str] = ("x", "pA", "pB"),
                  q_rate: Mapping[str, float] | None = None, q_state: np.ndarray | None = None,
                  prior_std: float = DEFAULT_PRIOR_STD, alpha: float = 0.3, beta: float = 2.0,
-                 kappa: float = 0.0, substeps: int = 2, excite: Sequence[float] = DEFAULT_EXCITE,
+                 kappa: float = 0.0, points=None, substeps: int = 2, excite: Sequence[float] = DEFAULT_EXCITE,
                  tau_excite: float = 0.5, gate_p: float = 1e-9, max_gated: int = 5):
         if model != "msp25":
             raise ParameterError(f"the tracker follows the msp25 rig model, not {model!r}")
@@ -93,12 +96,20 @@ class OnlineTracker:
         p = len(self.tracked)
         self.n = n = 6 + p
         self.alpha, self.beta, self.kappa = alpha, beta, kappa
-        self.lam = alpha**2 * (n + kappa) - n
-        c = 0.5 / (n + self.lam)
-        self.Wm = np.full(2 * n + 1, c)
-        self.Wc = np.full(2 * n + 1, c)
-        self.Wm[0] = self.lam / (n + self.lam)
-        self.Wc[0] = self.lam / (n + self.lam) + (1 - alpha**2 + beta)
+        # filterpy's sigma points: their weights, and their spread (sigmas = x +- rows of sqrt(c P))
+        self.points = points if points is not None else MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+        if isinstance(self.points, MerweScaledSigmaPoints):
+            spread = self.points.alpha**2 * (n + self.points.kappa)
+        elif isinstance(self.points, JulierSigmaPoints):
+            spread = n + self.points.kappa
+        else:
+            raise ParameterError(f"sigma points {type(self.points).__name__}: the compiled filter takes "
+                                 "filterpy's MerweScaledSigmaPoints or JulierSigmaPoints")
+        if self.points.n != n:
+            raise ParameterError(f"sigma points for n={self.points.n}, the filter has n={n} states")
+        self.lam = spread - n
+        self.Wm = np.ascontiguousarray(self.points.Wm, dtype=float)
+        self.Wc = np.ascontiguousarray(self.points.Wc, dtype=float)
         self.q_rate = np.array([{**DEFAULT_Q_RATE, **dict(q_rate or {})}[t] for t in self.tracked])
         self.q_state = np.array(DEFAULT_Q_STATE if q_state is None else q_state, dtype=float)
         self.meas_idx = np.array([ukf.MEAS_INDEX[o] for o in self.outputs], dtype=np.int64)
