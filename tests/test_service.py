@@ -138,3 +138,20 @@ def test_serve_tracks_a_live_zenoh_input(tmp_path):
     with open(tmp_path / "journal" / "rig-z.alarms.jsonl") as f:
         alarms = [json.loads(line) for line in f]
     assert alarms and {a["parameter"] for a in alarms} == {"Ffric"}
+
+
+def test_one_process_serves_several_rigs_each_with_its_own_journal(tmp_path):
+    logs = {"rig-f": [Drift("Ffric", 3.0, 3.0, shape="step")], "rig-w": [Drift("wn", 0.7, 2.0, 8.0, "ramp")]}
+    for name, drifts in logs.items():
+        _log(tmp_path / f"{name}.mcap", 10.0, drifts, seed=6)
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        "service": {"journal_dir": str(tmp_path / "journal")},
+        "rig": [{"name": n, "source": str(tmp_path / f"{n}.mcap"), "speed": 0.0} for n in logs],
+    }, "<two rigs>")
+    stats = serve(cfg)
+    assert set(stats) == set(logs) and all(s.samples == 10000 for s in stats.values())
+    for name, drifts in logs.items():
+        with open(tmp_path / "journal" / f"{name}.alarms.jsonl") as f:
+            params = {json.loads(line)["parameter"] for line in f}
+        assert params == {drifts[0].parameter}, (name, params)
