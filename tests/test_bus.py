@@ -10,7 +10,6 @@ import argparse
 import json
 import multiprocessing
 import queue
-import socket
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -35,34 +34,15 @@ from twin.bus import (
 from twin.errors import ConfigError, DataError
 from twin.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.journal import AlarmJournal
+from twin.demo import free_port
+from event_helpers import T0_NS
+from event_helpers import alarm as make_alarm
 
-T0_NS = 1_740_000_000_000_000_000
 WAIT_S = 10.0  # upper bound of every wait; the happy path takes milliseconds
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
-    return AlarmEvent(
-        rig=rig,
-        parameter="Kleak",
-        level="alarm" if i % 2 else "warning",
-        kind="raised",
-        t_ns=T0_NS + i * 1_000_000_000,
-        t_s=float(i),
-        estimate=3e-12,
-        std=2e-13,
-        baseline=1e-12,
-        band_lo=5e-13,
-        band_hi=2e-12,
-        statistic=10.0 + i,
-        message=f"alarm {i}",
-        seq=seq,
-    )
+    return make_alarm(rig, i, seq, level="alarm" if i % 2 else "warning")
 
 
 @pytest.fixture

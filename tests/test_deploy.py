@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import re
-import socket
 import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -22,6 +21,7 @@ import zenoh
 from twin.bus import AlarmSubscriber, TwinPublisher, live_twins
 from twin.events import AlarmEvent, event_to_json
 from twin.journal import AlarmJournal
+from twin.demo import free_port
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 ROUTER = DEPLOY / "zenoh-router.json5"
@@ -119,12 +119,6 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
         cwd=directory, check=True, capture_output=True, timeout=60,
     )
     return directory
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextmanager

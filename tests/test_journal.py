@@ -10,29 +10,13 @@ from pathlib import Path
 import pytest
 
 from twin.errors import DataError, LogFormatError, SourceError
+from event_helpers import T0_NS
+from event_helpers import alarm
 from twin.events import AlarmEvent
 from twin.journal import AlarmJournal
 
-T0_NS = 1_740_000_000_000_000_000
 
 
-def alarm(rig: str = "msp25", i: int = 1, seq: int = 0) -> AlarmEvent:
-    return AlarmEvent(
-        rig=rig,
-        parameter="Kleak",
-        level="alarm",
-        kind="raised",
-        t_ns=T0_NS + i * 1_000_000_000,
-        t_s=float(i),
-        estimate=3e-12,
-        std=2e-13,
-        baseline=1e-12,
-        band_lo=5e-13,
-        band_hi=2e-12,
-        statistic=10.0 + i,
-        message=f"alarm {i}",
-        seq=seq,
-    )
 
 
 @pytest.fixture
