@@ -95,8 +95,9 @@ def _random_pd(n, rng):
     return A @ A.T / n + 0.1 * np.eye(n)
 
 
-def test_update_is_the_linear_kalman_update():
-    rng = np.random.default_rng(5)
+def _update_problem(seed: int):
+    """A random 11-state prior measured at x, pA, pB: (n, meas_idx, H, R, x0, P0, z)."""
+    rng = np.random.default_rng(seed)
     n = 11
     meas_idx = np.array([4, 2, 3], dtype=np.int64)
     H = np.zeros((3, n))
@@ -104,7 +105,11 @@ def test_update_is_the_linear_kalman_update():
     R = np.array([0.04, 0.09, 0.01])
     x0 = rng.normal(size=n)
     P0 = _random_pd(n, rng)
-    z = H @ x0 + rng.normal(size=3)
+    return n, meas_idx, H, R, x0, P0, H @ x0 + rng.normal(size=3)
+
+
+def test_update_is_the_linear_kalman_update():
+    n, meas_idx, H, R, x0, P0, z = _update_problem(5)
     kf = KalmanFilter(dim_x=n, dim_z=3)
     kf.x, kf.P, kf.H, kf.R = x0.copy(), P0.copy(), H, np.diag(R)
     kf.update(z)
@@ -121,15 +126,7 @@ def test_update_is_the_linear_kalman_update():
 
 
 def test_frozen_rows_get_no_gain_and_an_honest_covariance():
-    rng = np.random.default_rng(6)
-    n = 11
-    meas_idx = np.array([4, 2, 3], dtype=np.int64)
-    H = np.zeros((3, n))
-    H[np.arange(3), meas_idx] = 1.0
-    R = np.array([0.04, 0.09, 0.01])
-    x0 = rng.normal(size=n)
-    P0 = _random_pd(n, rng)
-    z = H @ x0 + rng.normal(size=3)
+    n, meas_idx, H, R, x0, P0, z = _update_problem(6)
     freeze = np.zeros(n, dtype=np.bool_)
     freeze[[6, 8]] = True
     x, P = x0.copy(), P0.copy()
