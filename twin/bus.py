@@ -277,30 +277,17 @@ class TwinPublisher(_Declarations):
                 )
             )
             miss = zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat_s)
-            self._estimate_pub = self._keep(
-                zext.declare_advanced_publisher(
-                    session,
-                    self.keys.estimate,
-                    encoding=_JSON,
-                    congestion_control=zenoh.CongestionControl.DROP,
-                    priority=zenoh.Priority.DATA,
-                    cache=zext.CacheConfig(1),
-                    sample_miss_detection=miss,
-                    publisher_detection=True,
-                )
-            )
-            self._status_pub = self._keep(
-                zext.declare_advanced_publisher(
-                    session,
-                    self.keys.status,
-                    encoding=_JSON,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    priority=zenoh.Priority.DATA_HIGH,
-                    cache=zext.CacheConfig(1),
-                    sample_miss_detection=miss,
-                    publisher_detection=True,
-                )
-            )
+
+            def latest_value_publisher(key: str, congestion: zenoh.CongestionControl, priority: zenoh.Priority):
+                """An advanced publisher whose one-sample cache serves late advanced subscribers."""
+                return self._keep(zext.declare_advanced_publisher(
+                    session, key, encoding=_JSON, congestion_control=congestion, priority=priority,
+                    cache=zext.CacheConfig(1), sample_miss_detection=miss, publisher_detection=True))
+
+            self._estimate_pub = latest_value_publisher(
+                self.keys.estimate, zenoh.CongestionControl.DROP, zenoh.Priority.DATA)
+            self._status_pub = latest_value_publisher(
+                self.keys.status, zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_HIGH)
             self._keep(session.declare_queryable(self.keys.history, self._on_history))
             self._keep(
                 session.declare_queryable(self.keys.estimate, lambda q: self._on_latest(q, "estimate"))
