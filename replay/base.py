@@ -106,6 +106,11 @@ class Samples:
         return Samples(self.t_ns[start:stop].copy(), {k: v[start:stop].copy() for k, v in self.signals.items()})
 
     @staticmethod
+    def empty(names: "tuple[str, ...] | list[str]" = ()) -> "Samples":
+        """A block of no samples carrying the given signal names."""
+        return Samples(np.zeros(0, np.int64), {k: np.zeros(0) for k in names})
+
+    @staticmethod
     def concat(blocks: list["Samples"]) -> "Samples":
         blocks = [b for b in blocks if len(b)]
         if not blocks:
@@ -131,6 +136,12 @@ class Problem:
         return f"{self.file}: {self.where}: {self.what}"
 
 
+#: Skip reasons that are informational, not a loss (see :meth:`ReadReport.losses`).
+INFO_REASONS = frozenset({"warmup", "asc_date", "ignored_line", "counter_gap"})
+INFO_PREFIXES = ("unknown_id", "stale ")
+_NOT_LOSS_WHERE = ("footer and summary",)
+
+
 @dataclasses.dataclass
 class ReadReport:
     """Summary of a read: counts of what was kept and skipped, gaps, and the first problems."""
@@ -142,6 +153,7 @@ class ReadReport:
     gaps: list[tuple[int, int]] = dataclasses.field(default_factory=list)  # (t_ns start, t_ns end)
     problems: list[Problem] = dataclasses.field(default_factory=list)
     truncated: bool = False
+    samples_lost: int = 0  # samples known (or estimated) to be lost to damage, beside those skipped
     max_problems: int = 50
 
     def skip(self, reason: str, where: str, what: str) -> None:
@@ -150,14 +162,45 @@ class ReadReport:
         if len(self.problems) < self.max_problems:
             self.problems.append(Problem(self.file, where, what))
 
+    def losses(self) -> dict[str, int]:
+        """The skip counts that mean input was damaged or dropped (not merely informational).
+
+        Informational, not a loss: ``warmup`` (grid instants before every signal had a
+        value), ``asc_date``, ``ignored_line`` (a log line that is no CAN frame, e.g. an
+        event), ``unknown_id ...`` (traffic of other ECUs), ``stale ...`` (a held value
+        too old: kept as NaN), ``counter_gap`` (frames lost before the log was written).
+        """
+        return {k: v for k, v in self.skipped.items()
+                if v and k not in INFO_REASONS and not k.startswith(INFO_PREFIXES)}
+
+    @property
+    def lossy(self) -> bool:
+        """True when the read lost anything: damaged or dropped records, or a truncated file."""
+        return bool(self.truncated or self.samples_lost or self.losses())
+
+    def loss_line(self) -> str:
+        """One line saying what was lost, for a command's stderr ("" when nothing was)."""
+        if not self.lossy:
+            return ""
+        parts = [f"{k}={v}" for k, v in sorted(self.losses().items())]
+        if self.samples_lost:
+            parts.append(f"about {self.samples_lost} sample(s) lost to damage")
+        if self.truncated:
+            parts.append("truncated or corrupt")
+        first = next((str(p) for p in self.problems if p.where not in _NOT_LOSS_WHERE), "")
+        return (f"{self.file}: input lost ({', '.join(parts)}); {self.samples_out} samples kept"
+                + (f"; first: {first.split(': ', 1)[-1]}" if first else ""))
+
     def summary(self) -> str:
         parts = [f"{self.file}: {self.records_read} records read, {self.samples_out} samples out"]
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k}={v}" for k, v in sorted(self.skipped.items())))
+        if self.samples_lost:
+            parts.append(f"about {self.samples_lost} sample(s) lost to damage")
         if self.gaps:
             parts.append(f"{len(self.gaps)} gap(s)")
         if self.truncated:
-            parts.append("file truncated or corrupt: readable prefix kept")
+            parts.append("file truncated or corrupt: readable part kept")
         return "; ".join(parts)
 
     def to_dict(self) -> dict:
@@ -168,6 +211,8 @@ class ReadReport:
             "skipped": dict(self.skipped),
             "gaps_ns": [list(g) for g in self.gaps],
             "truncated": self.truncated,
+            "samples_lost": self.samples_lost,
+            "lossy": self.lossy,
             "problems": [str(p) for p in self.problems],
         }
 

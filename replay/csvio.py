@@ -35,13 +35,58 @@ from typing import IO, Iterator, Mapping, Sequence
 import numpy as np
 
 from replay.base import SIGNALS, ReadReport, Samples, Sink, Source
-from replay.quality import QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
+from replay.quality import UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
 from twin.errors import DataError, LogFormatError, SourceError
 
 #: Name of the time column (seconds).
 TIME_COLUMN = "t"
 
 ColumnMap = Mapping[str, "str | tuple[str, str]"]
+
+#: Sample rates a rig record plausibly has (Hz); a time column outside is taken as a wrong unit.
+PLAUSIBLE_RATE_HZ = (10.0, 200.0e3)
+_TIME_UNITS = ("ms", "us", "ns")
+_SNIFF_BYTES = 1 << 16
+MAP_SYNTAX = "--map NAME=COLUMN[:UNIT]"
+
+
+def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str, str | tuple[str, str]]:
+    """Parse command-line column mappings ``NAME=COLUMN[:UNIT]`` into a CSV ``mapping``.
+
+    ``["x=pos_mm:mm", "pA=p_a", "t=time:ms"]`` -> ``{"pos_mm": ("x", "mm"), "p_a": "pA",
+    "time": ("t", "ms")}`` (foreign column -> signal name or (signal, unit), the form
+    :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`replay.base.SIGNALS`, ``t``
+    for the time column, or an extra signal's name; ``UNIT`` is the unit the column is in
+    (:data:`replay.quality.UNITS`).  Every command that reads a record calls this for its
+    ``--map`` option.  Raises :class:`~twin.errors.DataError` naming the item and the
+    expected syntax (a swapped ``COLUMN=NAME`` is recognised and the right order suggested).
+    """
+    from replay.quality import UNITS
+
+    out: dict[str, str | tuple[str, str]] = {}
+    names: dict[str, str] = {}
+    for item in items or ():
+        name, sep, target = str(item).partition("=")
+        name, target = name.strip(), target.strip()
+        column, colon, unit = target.rpartition(":") if ":" in target else (target, "", "")
+        column, unit = column.strip(), unit.strip()
+        if not sep or not name or not column or (colon and not unit):
+            raise DataError(f"{option} {item!r}: expected {option} NAME=COLUMN[:UNIT], e.g. "
+                            f"{option} x=pos_mm:mm (signal x is the column pos_mm, in mm)")
+        known_name = name == TIME_COLUMN or name in SIGNALS
+        if not known_name and (column == TIME_COLUMN or column in SIGNALS):
+            swapped = f"{column}={name}" + (f":{unit}" if unit else "")
+            raise DataError(f"{option} {item!r}: {name!r} is not a signal name but {column!r} is; the syntax is "
+                            f"NAME=COLUMN[:UNIT]: did you mean {option} {swapped}?")
+        if unit and unit not in UNITS:
+            raise DataError(f"{option} {item!r}: unknown unit {unit!r}; known units: {', '.join(UNITS)}")
+        if name in names:
+            raise DataError(f"{option} {item!r}: signal {name!r} is already mapped to column {names[name]!r}")
+        if column in out:
+            raise DataError(f"{option} {item!r}: column {column!r} is already mapped")
+        names[name] = column
+        out[column] = (name, unit) if unit else name
+    return out
 
 
 def _parse_mapping(file: str, mapping: ColumnMap | None) -> dict[str, tuple[str, str | None]]:
@@ -65,6 +110,44 @@ def _parse_mapping(file: str, mapping: ColumnMap | None) -> dict[str, tuple[str,
     return out
 
 
+def _expected_columns() -> str:
+    return ", ".join(f"{k} ({v.unit})" for k, v in SIGNALS.items())
+
+
+def sniff_text(path: str, head: bytes, what: str = "CSV") -> str:
+    """The encoding to read ``path`` with, from its first bytes; LogFormatError for what is not text.
+
+    UTF-8 (with or without BOM) and ASCII are read; UTF-16/32, binary data (NUL bytes)
+    and bytes that are not UTF-8 in the header line are refused with the byte offset.
+    """
+    for bom, name in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
+                      (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16")):
+        if head.startswith(bom):
+            raise LogFormatError(f"{path}: {name} encoded text (byte order mark {bom.hex(' ')}); expected a UTF-8 "
+                                 f"or ASCII {what} file: convert it, e.g. iconv -f {name} -t UTF-8 IN > OUT")
+    nul = head.find(b"\x00")
+    if nul >= 0:
+        even = head[0:64:2].count(0) + head[1:64:2].count(0)
+        kind = ("UTF-16 encoded text without byte order mark" if even >= 8 and len(set(head[1:64:2])) <= 2
+                else "binary data")
+        raise LogFormatError(f"{path}: {kind} (NUL byte at offset {nul}); expected a UTF-8 or ASCII {what} file")
+    if head.startswith(b"\xef\xbb\xbf"):
+        return "utf-8-sig"
+    first_line = head.split(b"\n", 1)[0]
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        # a cut multi-byte character at the end of the sniffed bytes is fine
+        bad_at = exc.start
+        cut = bad_at >= len(head) - 4 and exc.reason == "unexpected end of data"
+        n_bad = sum(1 for b in head if b >= 0x80) if not cut else 0
+        if not cut and (bad_at <= len(first_line) or n_bad > max(16, len(head) // 100)):
+            line = head[:bad_at].count(b"\n") + 1
+            raise LogFormatError(f"{path}: not UTF-8 text: byte 0x{head[bad_at]:02x} at offset {bad_at} (line {line}) "
+                                 f"cannot be decoded; expected a UTF-8 or ASCII {what} file") from None
+    return "utf-8"
+
+
 class CsvSource(Source):
     """Read rig samples from a CSV file (see the module docstring for the layout).
 
@@ -86,42 +169,66 @@ class CsvSource(Source):
             options = dataclasses.replace(options, required=tuple(required))
         self._options = options
         try:
-            self._file: IO[str] = open(self.path, encoding="utf-8", newline="")
+            with open(self.path, "rb") as raw:
+                head = raw.read(_SNIFF_BYTES)
+        except IsADirectoryError:
+            raise SourceError(f"{self.path}: cannot open CSV file: is a directory, expected a file") from None
+        except OSError as exc:
+            raise SourceError(f"{self.path}: cannot open CSV file: {exc.strerror or exc}") from exc
+        if not head:
+            raise LogFormatError(f"{self.path}: empty file (0 bytes), expected a header row naming the columns "
+                                 "(e.g. 't,x_ref,u,x,pA,pB') and one row per sample")
+        encoding = sniff_text(self.path, head)
+        try:
+            self._file: IO[str] = open(self.path, encoding=encoding, errors="replace", newline="")
         except OSError as exc:
             raise SourceError(f"{self.path}: cannot open CSV file: {exc.strerror or exc}") from exc
         try:
-            self._columns, self._header_line = self._read_header()
+            self._setup(mapped)
         except Exception:
             self._file.close()
             raise
+        self._gate = QualityGate(self.report, options)
+        self._line = self._header_line  # last line consumed
+        self._done = False
+        self._time_checked = self._units[self._t_col] is not None  # an explicit unit is trusted
+
+    def _setup(self, mapped: dict[str, tuple[str, str | None]]) -> None:
+        self._columns, self._header_line = self._read_header()
         names: list[str] = []
         units: list[str | None] = []
         for col in self._columns:
             name, unit = mapped.get(col, (col, None))
             names.append(name)
             units.append(unit)
+        unused = [c for c in mapped if c not in self._columns]
+        if unused:
+            raise DataError(f"{self.path}: line {self._header_line}: mapped column(s) "
+                            f"{', '.join(repr(c) for c in unused)} not in the header; the file has "
+                            f"{', '.join(repr(c) for c in self._columns)}")
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            self._file.close()
             raise LogFormatError(f"{self.path}: line {self._header_line}: column(s) {', '.join(dup)} "
                                  f"appear more than once (after mapping) in header {self._columns}")
-        if TIME_COLUMN not in names:
-            self._file.close()
-            raise DataError(f"{self.path}: line {self._header_line}: no time column {TIME_COLUMN!r} "
-                            f"(seconds); the file has {', '.join(repr(c) for c in self._columns)}; "
-                            f"map a foreign time column with mapping={{'name': ('t', 's')}}")
+        specs = self._options.specs if self._options.specs is not None else SIGNALS
+        has_time = TIME_COLUMN in names
+        has_signal = any(n in specs or n in SIGNALS for n in names if n != TIME_COLUMN)
+        if not (has_time and has_signal):
+            found = ", ".join(repr(c) for c in self._columns)
+            lacks = " and ".join(w for w, ok in ((f"no time column {TIME_COLUMN!r} (s)", has_time),
+                                                 ("no column that is a known signal", has_signal)) if not ok)
+            foreign = [c for c in self._columns if c not in (TIME_COLUMN, *SIGNALS)]
+            ex_t = f"--map t={foreign.pop(0)}:s" if not has_time and foreign else ""
+            ex_x = f"--map x={foreign[0]}:mm" if not has_signal and foreign else ""
+            example = " ".join(e for e in (ex_t, ex_x) if e) or f"{MAP_SYNTAX}"
+            raise DataError(f"{self.path}: line {self._header_line}: {lacks}; found columns {found}; needed: the "
+                            f"time {TIME_COLUMN!r} (s) and any of {_expected_columns()}; map foreign columns with "
+                            f"{MAP_SYNTAX}, e.g. {example}")
         self._names = names
         self._units = units
         self._t_col = names.index(TIME_COLUMN)
         self._signals = tuple(n for n in names if n != TIME_COLUMN)
-        try:
-            require_signals(self.path, self._signals, options.required)
-        except DataError:
-            self._file.close()
-            raise
-        self._gate = QualityGate(self.report, options)
-        self._line = self._header_line  # last line consumed
-        self._done = False
+        require_signals(self.path, self._signals, self._options.required)
 
     # -- header ------------------------------------------------------------------------------
 
@@ -132,16 +239,50 @@ class CsvSource(Source):
             text = line.strip()
             if not text or text.startswith("#"):
                 continue
+            if "\ufffd" in text:
+                raise LogFormatError(f"{self.path}: line {line_no}: header is not UTF-8 text ({text[:60]!r}); "
+                                     "expected a header row naming the columns (e.g. 't,x_ref,u,x,pA,pB')")
             cols = [c.strip().strip('"').strip() for c in text.split(self._delimiter)]
             if any(not c for c in cols):
-                raise LogFormatError(f"{self.path}: line {line_no}: header {text!r} has an empty column name")
+                raise LogFormatError(f"{self.path}: line {line_no}: header {text[:80]!r} has an empty column name; "
+                                     "expected a header row naming the columns (e.g. 't,x_ref,u,x,pA,pB')")
             try:
                 [float(c) for c in cols]
             except ValueError:
                 return cols, line_no
             raise LogFormatError(f"{self.path}: line {line_no}: expected a header row naming the "
-                                 f"columns (e.g. 't,x_ref,u,x,pA,pB'), found numbers {text!r}")
-        raise LogFormatError(f"{self.path}: empty file, expected a header row naming the columns")
+                                 f"columns (e.g. 't,x_ref,u,x,pA,pB'), found numbers {text[:80]!r}")
+        raise LogFormatError(f"{self.path}: empty file (only blank or comment lines), expected a header row "
+                             "naming the columns (e.g. 't,x_ref,u,x,pA,pB')")
+
+    def _check_time_unit(self, t_raw: np.ndarray) -> None:
+        """Refuse a time column whose steps give an implausible rig sample rate (a wrong unit)."""
+        t = t_raw[np.isfinite(t_raw)][:2000]
+        if t.size < 4:
+            return
+        self._time_checked = True
+        steps = np.diff(t)
+        steps = steps[steps > 0]
+        if steps.size < 3:
+            return
+        step = float(np.median(steps))
+        lo, hi = PLAUSIBLE_RATE_HZ
+        rate = 1.0 / step
+        big = float(np.max(np.abs(t))) >= 9.2e9  # beyond what int64 ns holds as seconds
+        if lo <= rate <= hi and not big:
+            return
+        col = self._columns[self._t_col]
+        fits = []
+        for unit in _TIME_UNITS:
+            f = UNITS[unit][0]
+            if lo <= 1.0 / (step * f) <= hi and float(np.max(np.abs(t))) * f < 9.2e9:
+                fits.append(f"{unit} ({1.0 / (step * f):.6g} Hz)")
+        hint = (f"; the times look like {' or '.join(fits)}: give the unit with --map t={col}:{fits[0].split()[0]}"
+                if fits else "")
+        raise DataError(f"{self.path}: column {col!r}: median time step {step:.6g} s ({rate:.6g} Hz"
+                        + (f", times up to {float(np.max(np.abs(t))):.6g} s" if big else "")
+                        + f") is implausible for a rig record (expected {lo:g} Hz to {hi:g} Hz in seconds)"
+                        + hint + (f"; if seconds are right, say so with --map t={col}:s" if not big else ""))
 
     # -- Source --------------------------------------------------------------------------------
 
@@ -194,6 +335,8 @@ class CsvSource(Source):
         if table.shape[0] == 0:
             return None
         t_s = table[:, self._t_col]
+        if not self._time_checked:
+            self._check_time_unit(t_s)
         if self._units[self._t_col] is not None:
             t_s = to_si(t_s, self._units[self._t_col], what=f"{self.path}: column {self._columns[self._t_col]!r}")
         good_t = np.isfinite(t_s) & (np.abs(t_s) < 9.2e9)
@@ -299,4 +442,4 @@ class CsvSink(Sink):
             self._file.close()
 
 
-__all__ = ["CsvSource", "CsvSink", "TIME_COLUMN", "format_t_s"]
+__all__ = ["CsvSource", "CsvSink", "TIME_COLUMN", "format_t_s", "parse_map", "sniff_text", "MAP_SYNTAX"]

@@ -11,10 +11,12 @@ path or URI                 source / sink
 ``zenoh://KEYEXPR``         ``replay.live.ZenohSource(uri, **options)``
 ==========================  ==============================================================
 
-The CAN and live modules are imported only when asked for.  Options are passed on as
-keyword arguments to the class.  An unknown format raises
-:class:`~twin.errors.LogFormatError` naming the path and the formats known; a file that
-cannot be read raises :class:`~twin.errors.SourceError`.
+The suffixes and classes come from the one registry :mod:`replay.formats`; modules
+are imported only when asked for.  Options are passed on as keyword arguments to the
+class.  An unknown format raises :class:`~twin.errors.LogFormatError` naming the path
+and the formats known; a file that cannot be read (missing, a directory, no
+permission, empty) raises :class:`~twin.errors.SourceError` /
+:class:`~twin.errors.LogFormatError` naming it.
 """
 
 from __future__ import annotations
@@ -23,17 +25,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+from replay import formats
 from replay.base import Sink, Source
+from replay.formats import CAN_LOG_SUFFIXES, FILE_SUFFIXES, URI_SCHEMES
 from twin.errors import LogFormatError, SourceError
-
-#: Log-file suffixes of python-can formats, read through ``replay.canio``.
-CAN_LOG_SUFFIXES: tuple[str, ...] = (".asc", ".blf", ".log", ".trc")
-FILE_SUFFIXES: tuple[str, ...] = (".csv", ".mcap", *CAN_LOG_SUFFIXES)
-URI_SCHEMES: tuple[str, ...] = ("can", "zenoh")
-
-
-def _known() -> str:
-    return f"files {', '.join(FILE_SUFFIXES)} and URIs can://INTERFACE/CHANNEL, zenoh://KEYEXPR"
 
 
 def _scheme(path_or_uri: str) -> str | None:
@@ -42,6 +37,26 @@ def _scheme(path_or_uri: str) -> str | None:
         return None
     scheme = path_or_uri.split("://", 1)[0].lower()
     return scheme if len(scheme) > 1 else None
+
+
+def check_readable(text: str) -> Path:
+    """``text`` as a Path that is a readable, non-empty regular file; SourceError/LogFormatError otherwise."""
+    path = Path(text)
+    if not path.exists():
+        raise SourceError(f"{text}: cannot read log file: does not exist")
+    if path.is_dir():
+        raise SourceError(f"{text}: cannot read log file: is a directory, expected a file")
+    if not path.is_file():
+        raise SourceError(f"{text}: cannot read log file: not a regular file")
+    if not os.access(path, os.R_OK):
+        raise SourceError(f"{text}: cannot read log file: permission denied")
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise SourceError(f"{text}: cannot read log file: {exc.strerror or exc}") from exc
+    if size == 0:
+        raise LogFormatError(f"{text}: empty file (0 bytes), expected a {formats.lookup(text).description}")
+    return path
 
 
 def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
@@ -53,60 +68,29 @@ def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
     """
     text = os.fspath(path_or_uri)
     scheme = _scheme(text)
-    if scheme == "can":
-        from replay.live import CanBusSource
-
-        return CanBusSource(text, **options)
-    if scheme == "zenoh":
-        from replay.live import ZenohSource
-
-        return ZenohSource(text, **options)
+    if scheme in URI_SCHEMES:
+        return formats.load(URI_SCHEMES[scheme])(text, **options)
     if scheme is not None:
-        raise LogFormatError(f"{text}: unknown URI scheme {scheme!r}; known: {_known()}")
-    path = Path(text)
-    suffix = path.suffix.lower()
-    if suffix not in FILE_SUFFIXES:
-        raise LogFormatError(f"{text}: unknown format (suffix {suffix or 'none'!r}); known: {_known()}")
-    if not path.is_file():
-        what = "is a directory" if path.is_dir() else "does not exist"
-        raise SourceError(f"{text}: cannot read log file: {what}")
-    if not os.access(path, os.R_OK):
-        raise SourceError(f"{text}: cannot read log file: permission denied")
-    if suffix == ".csv":
-        from replay.csvio import CsvSource
-
-        return CsvSource(path, **options)
-    if suffix == ".mcap":
-        from replay.mcapio import McapSource
-
-        return McapSource(path, **options)
-    from replay.canio import CanLogSource
-
-    dbc = options.pop("dbc", None)
-    return CanLogSource(path, dbc=dbc, **options)
+        raise LogFormatError(f"{text}: unknown URI scheme {scheme!r}; known: {formats.known()}")
+    fmt = formats.lookup(text)
+    path = check_readable(text)
+    cls = formats.load(fmt.source)
+    if fmt.kind == "can":
+        dbc = options.pop("dbc", None)
+        return cls(path, dbc=dbc, **options)
+    return cls(path, **options)
 
 
 def open_sink(path: str | os.PathLike, **options: Any) -> Sink:
     """Open a sink for ``.csv``, ``.mcap`` or a CAN log suffix; ``options`` go to its constructor."""
     text = os.fspath(path)
+    fmt = formats.lookup(text, what="output")
     p = Path(text)
-    suffix = p.suffix.lower()
-    if suffix not in FILE_SUFFIXES:
-        raise LogFormatError(f"{text}: unknown output format (suffix {suffix or 'none'!r}); "
-                             f"known: {', '.join(FILE_SUFFIXES)}")
+    if p.is_dir():
+        raise SourceError(f"{text}: cannot create output file: is a directory")
     if p.parent and not p.parent.is_dir():
         raise SourceError(f"{text}: cannot create output file: directory {str(p.parent)!r} does not exist")
-    if suffix == ".csv":
-        from replay.csvio import CsvSink
-
-        return CsvSink(p, **options)
-    if suffix == ".mcap":
-        from replay.mcapio import McapSink
-
-        return McapSink(p, **options)
-    from replay.canio import CanLogSink
-
-    return CanLogSink(p, **options)
+    return formats.load(fmt.sink)(p, **options)
 
 
-__all__ = ["open_source", "open_sink", "CAN_LOG_SUFFIXES", "FILE_SUFFIXES", "URI_SCHEMES"]
+__all__ = ["open_source", "open_sink", "check_readable", "CAN_LOG_SUFFIXES", "FILE_SUFFIXES", "URI_SCHEMES"]

@@ -141,7 +141,7 @@ def test_csv_without_time_column_names_what_the_file_has(tmp_path: Path) -> None
 def test_csv_header_problems(tmp_path: Path) -> None:
     empty = tmp_path / "empty.csv"
     empty.write_text("\n# nothing\n")
-    with pytest.raises(LogFormatError, match="empty file, expected a header row"):
+    with pytest.raises(LogFormatError, match="empty file .only blank or comment lines., expected a header row"):
         CsvSource(empty)
     numbers = tmp_path / "numbers.csv"
     numbers.write_text("0,1,2\n")
