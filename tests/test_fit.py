@@ -25,12 +25,13 @@ def _rig_record(seed, duration=6.0, noisy=True, **params):
                    noise=default_noise(RIG) if noisy else None, seed=seed)
 
 
-def test_paper_cases_noise_free_beat_the_paper():
+def test_paper_cases_on_the_products_own_simulator_recover_the_truth():
+    """The algebra check (data from the product's own simulator); the accuracy claim is measured on the
+    independent reference in test_reference_fit.py."""
     rows, _ = run_all(noisy=False)
     assert {r["case"] for r in rows} == {c.case for c in CASES}
     for r in rows:
         assert r["error_pct"] <= 0.01, r
-        assert round(r["error_pct"], 4) <= r["paper_error_pct"], r
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -172,7 +173,7 @@ def test_cli_params_lists_metadata_and_effects(capsys):
     out = json.loads(capsys.readouterr().out)
     wn = next(p for p in out["params"] if p["name"] == "wn")
     assert wn["unit"] == "rad/s" and wn["display_unit"] == "Hz" and wn["category"] == "phenomenological"
-    assert len(out["effects"]) == 10
+    assert len(out["effects"]) == 12  # ten physical effects and two sensor errors
 
 
 def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):

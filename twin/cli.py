@@ -9,13 +9,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
+import numpy as np
 from typing import Sequence
 
 from twin.cliutil import dump as _dump
+from twin.cliutil import finite_or_none
 from twin.cliutil import kv as _kv
 from twin.cliutil import load_params_file
 from twin.cliutil import names as _names
 from twin.cliutil import progress as _progress
+from twin.cliutil import add_timing_arguments, timing_of
 from twin.errors import TwinError
 
 
@@ -49,12 +53,14 @@ def cmd_simulate(args) -> int:
                          args.f_lo, args.f_hi)
     noise = {} if args.noise == "none" else default_noise(model)
     noise.update(_kv(args.noise_levels))
+    timing = timing_of(args)
     rec = measure(model, ps, name, drive, args.dt, noise=noise, quantisation=_kv(args.quantisation),
-                  seed=args.seed, name=args.output)
+                  seed=args.seed, name=args.output, timing=timing)
     with open_sink(args.output) as sink:
         sink.write(rec.to_samples())
     info = {"output": args.output, "model": model.name, "samples": len(rec), "dt": args.dt,
-            "signals": list(rec.signals), "params": ps.as_dict(), "effects": list(ps.effects), "noise": noise}
+            "signals": list(rec.signals), "params": ps.as_dict(), "effects": list(ps.effects), "noise": noise,
+            "timing": timing.to_dict()}
     if args.json:
         _dump(info)
     else:
@@ -72,12 +78,15 @@ def cmd_fit(args) -> int:
     records = []
     for path in args.data:
         records.extend(load_records(path, model=model.name))
-    base = load_params_file(model, args.params, _kv(args.set), _names(args.effects))
+    base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
+                                          with_timing=True)
+    timing = timing_of(args, saved_timing)
     free = _names(args.free) or model.PHENOMENOLOGICAL
     outputs = _names(args.outputs) or None
     res = fit(model, records, free, base=base, start=_kv(args.start), outputs=outputs,
               noise=_kv(args.noise_levels), drive=args.drive, estimate_init=_names(args.estimate_init),
-              n_starts=args.starts, seed=args.seed, progress=None if args.json else _progress(args))
+              n_starts=args.starts, seed=args.seed, progress=None if args.json else _progress(args),
+              timing=timing)
     plots = []
     if args.plot:
         from twin.plots import fit_convergence
@@ -85,8 +94,10 @@ def cmd_fit(args) -> int:
         plots = fit_convergence(res, records, model, args.plot)
     if args.save:
         with open(args.save, "w") as f:
-            json.dump({"model": model.name, "effects": list(res.params.effects), "params": res.params.as_dict(),
-                       "std": res.std}, f, indent=2)
+            json.dump(finite_or_none({"model": model.name, "effects": list(res.params.effects),
+                                      "params": res.params.as_dict(), "std": res.std, "timing": res.timing,
+                                      "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs}}),
+                      f, indent=2, allow_nan=False)
     if args.json:
         d = res.to_dict()
         d["plots"] = plots
@@ -103,7 +114,8 @@ def cmd_fit(args) -> int:
 def cmd_paper(args) -> int:
     from twin.paper import format_rows, run_all
 
-    rows, elapsed = run_all(noisy=args.noise, seed=args.seed, progress=None if args.json else _progress(args))
+    rows, elapsed = run_all(noisy=args.noise, seed=args.seed, progress=None if args.json else _progress(args),
+                            timing=timing_of(args))
     if args.plot:
         from twin.plots import paper_table
 
@@ -160,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sensor noise: x 2 um, pressures 20 kPa (default) or none")
     p.add_argument("--noise-levels", help="override noise std per signal, NAME=STD,...")
     p.add_argument("--quantisation", help="LSB per signal, NAME=LSB,...")
+    add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_simulate)
 
@@ -174,12 +187,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effects", help="effects to switch on by name")
     p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"),
                    help="closed loop from x_ref or open loop from u (default: x_ref if logged)")
-    p.add_argument("--estimate-init", help="initial-state quantities to estimate per record (x0,dp0)")
+    p.add_argument("--estimate-init", help="initial-state quantities to estimate per record, e.g. x0,dp0 "
+                   "(the initial state is read off the first samples in any case)")
     p.add_argument("--noise-levels", help="noise std per output used as residual weights, NAME=STD,...")
     p.add_argument("--starts", type=int, default=8, help="multi-start candidates screened (default 8)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--plot", metavar="DIR", help="write convergence plots (PNG) to DIR")
     p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
+    add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_fit)
 
@@ -187,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", action="store_true", help="with realistic sensor noise (x: 2 um, y: 1 um)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--plot", metavar="DIR", help="write the comparison plot (PNG) to DIR")
+    add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_paper)
 

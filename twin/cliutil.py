@@ -64,9 +64,10 @@ def dump(obj) -> None:
 
 
 def load_params_file(model, path: str | None, overrides: dict[str, float] | None = None,
-                     effects: tuple[str, ...] = ()):
+                     effects: tuple[str, ...] = (), with_timing: bool = False):
     """A parameter set from a JSON file written by ``twin fit --save`` or ``twin diagnose --save``
-    (``{"model", "effects", "params"}``), with ``effects`` added and ``overrides`` applied."""
+    (``{"model", "effects", "params"[, "timing"]}``), with ``effects`` added and ``overrides`` applied;
+    with ``with_timing`` also the saved loop timing (or None)."""
     from twin.errors import ConfigError
 
     doc: dict = {"effects": [], "params": {}}
@@ -84,4 +85,37 @@ def load_params_file(model, path: str | None, overrides: dict[str, float] | None
             raise ConfigError(f"{path}: expected 'params' (an object) and 'effects' (a list)")
     ps = model.params(effects=tuple(doc.get("effects", [])) + tuple(effects))
     known = {k: v for k, v in doc.get("params", {}).items() if k in ps.names}
-    return ps.update({**known, **(overrides or {})})
+    ps = ps.update({**known, **(overrides or {})})
+    if not with_timing:
+        return ps
+    timing = None
+    if isinstance(doc.get("timing"), dict):
+        from twin.models.base import Timing
+
+        t = doc["timing"]
+        try:
+            timing = Timing(t.get("controller", "digital"), t.get("rate_hz"), t.get("intersample"))
+        except ParameterError as exc:
+            raise ConfigError(f"{path}: timing: {exc}") from None
+    return ps, timing
+
+
+def add_timing_arguments(p) -> None:
+    """``--controller`` and ``--intersample``: the loop's timing, a property of the rig."""
+    p.add_argument("--controller", default=None, metavar="KIND",
+                   help="the rig's controller: digital (at the log's rate, default), digital:RATE (a digital "
+                        "controller at RATE Hz, faster than the log, e.g. digital:5000) or continuous (analog)")
+    p.add_argument("--intersample", default=None, choices=("zoh", "foh", "cubic"),
+                   help="logged inputs between samples: held (zoh), linear (foh) or smooth (cubic); default zoh "
+                        "for a digital controller at the log's rate, else cubic")
+
+
+def timing_of(args, default=None):
+    """The :class:`~twin.models.base.Timing` the flags ask for (``default`` where neither is given)."""
+    from twin.models.base import Timing
+
+    controller = getattr(args, "controller", None)
+    intersample = getattr(args, "intersample", None)
+    if controller is None and intersample is None and default is not None:
+        return default
+    return Timing.parse(controller, intersample)

@@ -14,6 +14,17 @@
   per-record initial quantities (rod position, pressure difference).
 * Residuals of each output are weighted by its noise level, so x [m] and
   pressures [Pa] can be fitted together.
+* The loop's timing (:class:`~twin.models.base.Timing`: controller rate,
+  intersample behaviour of the logged inputs) is a property of the rig that
+  every simulation of the fit honours.
+* The initial state comes from the data: each record starts where its first
+  samples say (rod position and speed, both chamber pressures, the spool where
+  the first command holds it); ``estimate_init`` refines quantities on top.
+* Standard errors are heteroskedasticity- and autocorrelation-consistent (a
+  Newey-West sandwich with Bartlett weights and Andrews' AR(1) bandwidth, per
+  output and record): output-error residuals of a closed loop fed by a noisy
+  sensor are coloured, and the textbook ``s^2 (J'J)^-1`` then understates the
+  uncertainty many times over.  ``std_white`` keeps the textbook figure.
 
 :func:`fit` returns a :class:`FitResult` and never raises on non-convergence;
 it raises :class:`~twin.errors.DataError` / :class:`~twin.errors.ParameterError`
@@ -32,6 +43,7 @@ from scipy import optimize, stats
 
 from twin.errors import DataError, ParameterError
 from twin.models import Model, get_model
+from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
 from twin.record import Record
 from twin.simulate import DEFAULT_NOISE
@@ -48,7 +60,7 @@ class FitResult:
     params: ParameterSet                 # all parameters, free ones at their estimates
     free: tuple[str, ...]
     estimate: dict[str, float]
-    std: dict[str, float]
+    std: dict[str, float]                # HAC (sandwich) standard errors
     corr: np.ndarray
     outputs: tuple[str, ...]
     fit_pct: dict[str, float]
@@ -71,13 +83,16 @@ class FitResult:
     init: list[dict[str, float]]
     time_s: float
     predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
+    std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
+    timing: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         specs = {s.name: s for s in self.params.specs}
         return {
             "model": self.model,
-            "params": {n: {"value": self.estimate[n], "std": self.std[n], "unit": specs[n].unit,
-                           "shown": specs[n].show(self.estimate[n])} for n in self.free},
+            "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
+                           "unit": specs[n].unit, "shown": specs[n].show(self.estimate[n])} for n in self.free},
+            "timing": self.timing,
             "effects": list(self.params.effects),
             "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
             "outputs": list(self.outputs),
@@ -116,6 +131,7 @@ class _Problem:
     init_names: tuple[str, ...]
     init_fixed: list[dict[str, float]]
     substeps: int | None
+    timing: Timing
     kidx: np.ndarray  # kernel index of each free parameter
     scale: np.ndarray  # linear scale per free coordinate (0 for log coordinates)
     base_vec: np.ndarray
@@ -166,10 +182,14 @@ class _Problem:
             S0 = np.concatenate([self.model.initial_state(P[k:k + 1], self._init_of(init[k, r], r))
                                  for k in range(Z.shape[0])]) if (self.init_names or self.init_fixed[r]) else None
             name, drive = self.drives[r]
-            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps)
+            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps, self.timing)
             for o in self.outputs:
                 parts.append((sim.outputs[o] - rec[o][None, :]) / self.sigma[o])
         return np.concatenate(parts, axis=1)
+
+    def block_sizes(self) -> list[tuple[int, int]]:
+        """``(n_outputs, n_samples)`` per record, in the order :meth:`residuals` concatenates them."""
+        return [(len(self.outputs), len(rec)) for rec in self.records]
 
     def _init_of(self, vals: np.ndarray, r: int) -> dict[str, float]:
         d = dict(self.init_fixed[r])
@@ -184,7 +204,7 @@ class _Problem:
         for r, rec in enumerate(self.records):
             S0 = self.model.initial_state(P, self._init_of(init[0, r], r))
             name, drive = self.drives[r]
-            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps)
+            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps, self.timing)
             out.append({o: sim.outputs[o][0] for o in self.model.OUTPUTS} | {k: np.asarray(v)[0] if np.ndim(v) == 2 else v
                                                                              for k, v in sim.inputs.items()})
         return out
@@ -218,7 +238,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
                  base: ParameterSet | None = None, outputs: Sequence[str] | None = None,
                  noise: Mapping[str, float] | None = None, drive: str = "auto",
                  estimate_init: Sequence[str] = (), init: Sequence[Mapping[str, float]] | None = None,
-                 substeps: int | None = None) -> _Problem:
+                 substeps: int | None = None, timing: Timing | None = None) -> _Problem:
     model = get_model(model) if isinstance(model, str) else model
     base = base or model.params()
     if not records:
@@ -233,6 +253,10 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
         r.require(outputs, f"fitting outputs {', '.join(outputs)}")
         drives.append(model.drive_signal(r.signals, drive))
     check_names(model.INIT, estimate_init, f"initial-state quantity of {model.name}")
+    if init is None:
+        init = [initial_from_data(model, r, base) for r in records]
+        moving = [q for q in model.INIT_IF_MOVING if any(q in i for i in init)]
+        estimate_init = tuple(dict.fromkeys((*estimate_init, *moving)))
     sigma = {o: float((noise or {}).get(o, DEFAULT_NOISE.get(o, 1.0))) for o in outputs}
     for o, s in sigma.items():
         if not s > 0:
@@ -240,9 +264,18 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     specs = tuple(base.spec(n) for n in free)
     kidx = np.array([model.kernel_index(n) for n in free])
     scale = np.array([0.0 if s.log_scaled else _linear_scale(model, s, base[s.name]) for s in specs])
-    init_fixed = [dict(i) for i in (init or [{}] * len(records))]
+    init_fixed = [dict(i) for i in init]
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
-                    init_fixed, substeps, kidx, scale, model.vector(base))
+                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base))
+
+
+def initial_from_data(model: Model, rec: Record, base: ParameterSet) -> dict[str, float]:
+    """Where the record starts: its measured state, and for a loaded rig without logged pressures the
+    pressure difference that carries the load (a fit may refine it with ``estimate_init``)."""
+    init = model.initial_from_data(rec.signals, rec.dt)
+    if model.name == "msp25" and "pA0" not in init and "pB0" not in init and base["Fext"] != 0:
+        init["dp0"] = base["Fext"] / base["A"]
+    return init
 
 
 def _starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int, spread: float) -> np.ndarray:
@@ -276,17 +309,21 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         drive: str = "auto", estimate_init: Sequence[str] = (),
         init: Sequence[Mapping[str, float]] | None = None, n_starts: int = 8, n_refine: int = 2,
         spread: float = 2.0, seed: int = 0, max_nfev: int = 60, tol: float = 1e-12,
-        substeps: int | None = None, progress: Callable[[str], None] | None = None) -> FitResult:
+        substeps: int | None = None, progress: Callable[[str], None] | None = None,
+        timing: Timing | None = None) -> FitResult:
     """Fit ``free`` parameters of ``model`` to ``records`` by output-error least squares.
 
     ``base`` holds the known parameters (and switched-on effects); ``start`` the
     starting values of the free ones (default: ``base``'s values).  ``n_starts``
     candidates are screened in one batch and the best ``n_refine`` refined.
+    ``init``: initial-state quantities per record (default: read off the data);
+    ``timing``: the loop's timing (default: a digital controller at the log's
+    rate, inputs held between samples).
     """
     t_start = time.perf_counter()
     if isinstance(records, Record):
         records = [records]
-    prob = make_problem(model, records, free, base, outputs, noise, drive, estimate_init, init, substeps)
+    prob = make_problem(model, records, free, base, outputs, noise, drive, estimate_init, init, substeps, timing)
     start = {**prob.base.as_dict(), **(start or {})}
     for n in prob.free:
         prob.base.spec(n).check(start[n])
@@ -357,19 +394,22 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     N = r.size
     p = prob.n_z
     s2 = float(r @ r) / max(N - p, 1)
-    try:
-        cov_z = s2 * np.linalg.pinv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov_z = np.full((p, p), np.nan)
     g = np.concatenate([prob.dtheta_dz(theta), np.ones(p - prob.n_theta)])
-    cov = cov_z * np.outer(g, g)
+    try:
+        H_inv = np.linalg.pinv(J.T @ J)
+        cov_white = s2 * H_inv * np.outer(g, g)
+        cov = hac_covariance(J, r, prob.block_sizes(), H_inv) * np.outer(g, g)
+    except np.linalg.LinAlgError:
+        cov_white = cov = np.full((p, p), np.nan)
     ct = cov[: prob.n_theta, : prob.n_theta]
     std = np.sqrt(np.clip(np.diag(ct), 0, None))
+    std_white = np.sqrt(np.clip(np.diag(cov_white)[: prob.n_theta], 0, None))
     # a parameter held at a bound has no meaningful standard error: say so
     lo, hi = prob.bounds_z()
     zt = z[: prob.n_theta]
     at_bound = [n for n, zi, l, h in zip(prob.free, zt, lo, hi) if min(zi - l, h - zi) < 1e-6]  # z is order one
     std = np.where([n in at_bound for n in prob.free], np.nan, std)
+    std_white = np.where([n in at_bound for n in prob.free], np.nan, std_white)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = ct / np.outer(std, std)
     ps = prob.base.update(dict(zip(prob.free, theta.tolist())))
@@ -400,7 +440,52 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         nrmse=nrmse, loglik=loglik, aic=aic, aicc=aicc, bic=bic, fpe=fpe, n_obs=n_obs, n_par=p,
         cost=float(res.cost), success=bool(res.status > 0), status=int(res.status),
         message=str(res.message) + (f"; at a bound (no standard error): {', '.join(at_bound)}" if at_bound else ""),
-        nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed, predicted=pred)
+        nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed, predicted=pred,
+        std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict())
+
+
+def _bartlett_lag(g: np.ndarray) -> int:
+    """Andrews' (1991) AR(1) plug-in bandwidth for Bartlett weights, from the score series ``g [n, p]``."""
+    n = g.shape[0]
+    num = den = 0.0
+    for a in range(g.shape[1]):
+        x = g[:, a]
+        v = float(x @ x)
+        if v <= 0:
+            continue
+        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
+        s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
+        num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
+        den += s4 / (1 - rho) ** 4
+    if den <= 0:
+        return 0
+    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), 0), n // 4))
+
+
+def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
+                   H_inv: np.ndarray) -> np.ndarray:
+    """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
+
+    ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
+    residuals lie output after output; the scores of all outputs at one instant
+    are summed (so cross-correlations between outputs count), and their
+    autocovariances are summed within each record with Bartlett weights up to
+    an automatic lag.
+    """
+    Sm = np.zeros((J.shape[1], J.shape[1]))
+    start = 0
+    for m, n in blocks:
+        G = (J[start:start + m * n] * r[start:start + m * n, None]).reshape(m, n, -1).sum(axis=0)
+        start += m * n
+        Sm += G.T @ G
+        L = _bartlett_lag(G)
+        for lag in range(1, L + 1):
+            w = 1.0 - lag / (L + 1.0)
+            C = G[lag:].T @ G[:-lag]
+            Sm += w * (C + C.T)
+    N, p = J.shape
+    cov = H_inv @ Sm @ H_inv * (N / max(N - p, 1))
+    return cov
 
 
 def likelihood_ratio(nested: FitResult, extended: FitResult) -> tuple[float, float, int]:

@@ -13,6 +13,7 @@ import numpy as np
 from twin import excitation
 from twin.errors import DataError
 from twin.models import Model, get_model
+from twin.models.base import Timing
 from twin.params import ParameterSet
 from twin.record import Record
 
@@ -49,14 +50,15 @@ def excite(model: Model | str, duration_s: float = 10.0, dt: float = 1e-3, kind:
 
 def measure(model: Model, ps: ParameterSet, drive_name: str, drive: np.ndarray, dt: float,
             noise: Mapping[str, float] | None = None, quantisation: Mapping[str, float] | None = None,
-            seed: int = 0, init: Mapping[str, float] | None = None, name: str = "simulated") -> Record:
+            seed: int = 0, init: Mapping[str, float] | None = None, name: str = "simulated",
+            timing: Timing | None = None) -> Record:
     """Simulate ``ps`` and return what the sensors would log (inputs exact, outputs noisy).
 
     ``noise`` maps signal names to standard deviations (SI); ``quantisation`` maps
     signal names to their least significant bit (SI); both applied to the logged
     signals with ``np.random.default_rng(seed)``.
     """
-    res = model.simulate(ps, drive_name, drive, dt, init=init)
+    res = model.simulate(ps, drive_name, drive, dt, init=init, timing=timing)
     sig: dict[str, np.ndarray] = {}
     for k, v in res.inputs.items():
         sig[k] = np.array(v, dtype=np.float64)

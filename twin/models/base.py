@@ -37,6 +37,91 @@ class SimResult:
         raise KeyError(name)
 
 
+#: how a logged input behaves between its samples (MATLAB iddata's InterSample)
+INTERSAMPLE = ("zoh", "foh", "cubic")
+INTERSAMPLE_CODE = {"zoh": 0, "foh": 1, "cubic": 2}
+
+
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    """The loop's timing, a property of the rig.
+
+    ``controller``: ``"digital"`` (runs at ``rate_hz``, default the log's rate,
+    and holds its output between ticks) or ``"continuous"`` (analog: the output
+    follows the measurement at every instant).  ``intersample``: how a logged
+    input (``x_ref``, ``u``, a force) behaves between samples: ``zoh``, ``foh`` or
+    ``cubic`` (a C1 piecewise cubic through the samples).  ``None`` means: ``zoh``
+    when the controller is digital at the log's rate, else ``cubic`` (a demand or
+    a controller output that is not held by a digital controller at the log's
+    rate is smooth between samples).
+    """
+
+    controller: str = "digital"
+    rate_hz: float | None = None
+    intersample: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.controller not in ("digital", "continuous"):
+            raise ParameterError(f"controller {self.controller!r}: expected 'digital', 'digital:RATE' "
+                                 "(a rate in Hz, e.g. digital:5000) or 'continuous'")
+        if self.rate_hz is not None and not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ParameterError(f"controller rate {self.rate_hz} Hz must be a positive number of Hz")
+        if self.rate_hz is not None and self.controller != "digital":
+            raise ParameterError("a controller rate goes with a digital controller only")
+        if self.intersample is not None and self.intersample not in INTERSAMPLE:
+            raise ParameterError(f"intersample {self.intersample!r}: expected one of {', '.join(INTERSAMPLE)}")
+
+    @classmethod
+    def parse(cls, controller: str | None = None, intersample: str | None = None) -> "Timing":
+        """From the command-line / config spelling: ``digital``, ``digital:5000``, ``continuous``."""
+        controller = (controller or "digital").strip().lower()
+        rate = None
+        if controller.startswith("digital:"):
+            text = controller.split(":", 1)[1].strip().lower().removesuffix("hz").strip()
+            try:
+                rate = float(text)
+            except ValueError:
+                raise ParameterError(f"controller {controller!r}: the rate after 'digital:' must be a number "
+                                     "of Hz, e.g. digital:5000") from None
+            controller = "digital"
+        elif controller in ("analog", "analogue"):
+            controller = "continuous"
+        isamp = None if intersample in (None, "", "auto") else intersample.strip().lower()
+        return cls(controller, rate, isamp)
+
+    @property
+    def label(self) -> str:
+        c = "continuous" if self.controller == "continuous" else (
+            f"digital:{self.rate_hz:g}" if self.rate_hz else "digital")
+        return c if self.intersample is None else f"{c}, intersample {self.intersample}"
+
+    def ticks(self, dt: float) -> int:
+        """Controller ticks per log sample: 0 for a continuous controller."""
+        if self.controller == "continuous":
+            return 0
+        if self.rate_hz is None:
+            return 1
+        n = self.rate_hz * dt
+        if n < 0.999 or abs(n - round(n)) > 1e-3 * n:
+            raise ParameterError(f"controller rate {self.rate_hz:g} Hz is not a whole multiple of the log's "
+                                 f"rate {1.0 / dt:g} Hz")
+        return int(round(n))
+
+    def is_default(self, dt: float) -> bool:
+        return self.ticks(dt) == 1 and self.intersample in (None, "zoh")
+
+    def intersample_code(self, dt: float) -> int:
+        if self.intersample is not None:
+            return INTERSAMPLE_CODE[self.intersample]
+        return 0 if self.ticks(dt) == 1 else INTERSAMPLE_CODE["cubic"]
+
+    def to_dict(self) -> dict:
+        return {"controller": self.controller, "rate_hz": self.rate_hz, "intersample": self.intersample}
+
+
+DEFAULT_TIMING = Timing()
+
+
 class Model(abc.ABC):
     """Base class of the first-principle models (one instance per model kind)."""
 
@@ -48,6 +133,8 @@ class Model(abc.ABC):
     NOMINAL: Mapping[str, float]  # reference values of the base parameters
     EFFECTS: Mapping[str, Effect]  # catalogue, kernel order after BASE
     substeps: int = 3             # RK4 substeps per sample
+    INIT: tuple[str, ...] = ()    # initial-state quantities
+    INIT_IF_MOVING: tuple[str, ...] = ()  # estimated by default when a record does not start at rest
 
     # --- parameters -----------------------------------------------------------------
     @property
@@ -120,17 +207,41 @@ class Model(abc.ABC):
         dt: float,
         x0: np.ndarray | None = None,
         substeps: int | None = None,
+        timing: Timing | None = None,
     ) -> SimResult:
         """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``."""
 
+    def initial_from_data(self, signals: Mapping[str, np.ndarray], dt: float) -> dict[str, float]:
+        """Initial-state quantities read off a record's first samples (none by default)."""
+        return {}
+
     def simulate(self, ps: ParameterSet, drive_name: str, drive: np.ndarray, dt: float,
-                 init: Mapping[str, float] | None = None, substeps: int | None = None) -> SimResult:
+                 init: Mapping[str, float] | None = None, substeps: int | None = None,
+                 timing: Timing | None = None) -> SimResult:
         """Simulate one parameter set; outputs are ``[T]`` arrays (batch axis removed)."""
         P = self.vector(ps)[None, :]
         x0 = self.initial_state(P, init)
-        res = self.simulate_batch(P, drive_name, np.asarray(drive, float), dt, x0, substeps)
+        res = self.simulate_batch(P, drive_name, np.asarray(drive, float), dt, x0, substeps, timing)
         return SimResult(res.t_s, {k: v[0] for k, v in res.outputs.items()}, res.states[0],
                          {k: (v[0] if v.ndim == 2 else v) for k, v in res.inputs.items()})
+
+
+def start_of(y: np.ndarray, dt: float, window_s: float = 0.02) -> tuple[float, float, float, float]:
+    """Value and slope of a noisy signal at its first sample, with their standard errors.
+
+    A cubic least-squares fit over the first ``window_s`` (at least 8 samples):
+    noise averages out and a signal already accelerating is not mistaken for a
+    moving one.
+    """
+    y = np.asarray(y, dtype=float)
+    n = int(min(max(8, round(window_s / dt)), y.size))
+    t = np.arange(n) * dt
+    X = np.vander(t, min(4, n - 1), increasing=True)
+    coef, *_ = np.linalg.lstsq(X, y[:n], rcond=None)
+    res = y[:n] - X @ coef
+    s2 = float(res @ res) / max(n - X.shape[1], 1)
+    cov = s2 * np.linalg.pinv(X.T @ X)
+    return float(coef[0]), float(coef[1]), float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
 
 
 def check_drive(name: str, drive: np.ndarray, dt: float) -> np.ndarray:

@@ -12,11 +12,21 @@ Two ways to drive it:
   reproduces the same trajectory when fed back open loop.
 * open loop from the logged controller output ``u`` [V] (what a filter uses).
 
-Orifice square roots are regularised in a laminar band of ``dp_lam`` (1 bar by
-default): ``sqrt(|dp|) sgn(dp)`` is replaced by ``dp / (dp^2 + dp_lam^2)^(1/4)``,
-which is exact to 0.01 % for ``|dp| > 70 dp_lam`` (the valve's normal operating
-drops of several MPa), linear (laminar) near zero and smooth everywhere, so RK4
-and finite-difference Jacobians behave at zero pressure drop.
+Orifice square roots follow the paper's turbulent law wherever the rig operates:
+``sqrt(|dp|) sgn(dp)`` is replaced by ``dp / (dp^2 + dp_lam^2)^(1/4)`` only so that
+the slope stays finite at zero drop.  The band is 1 kPa by default, separately
+for the valve ports (``dp_lam``) and the cross-piston leak (``dp_lam_leak``):
+the leak of an unloaded rig works at drops below about 0.1 MPa, where a 1 bar
+band would turn the turbulent leak into a mostly laminar one and bias
+``CdAleak`` by about +54 %.  Truly laminar flow is the effect
+``laminar_leakage``.
+
+The loop's timing is a property of the rig (:class:`twin.models.base.Timing`):
+a digital controller at the log's rate (default; output held between
+samples), a digital controller ``N`` times faster than the log (``N`` ticks per
+sample, each reading the measured displacement), or a continuous (analog) one;
+logged inputs between samples are held (``zoh``), linear (``foh``) or a C1
+piecewise cubic (``cubic``).
 
 The catalogue of effects (switched on by name, neutral when off) is compiled
 into the one right-hand side; see :data:`EFFECTS`.
@@ -31,7 +41,8 @@ import numba as nb
 import numpy as np
 
 from twin.errors import DataError
-from twin.models.base import Model, SimResult, check_drive
+from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec
 
 TWO_PI = 2.0 * math.pi
@@ -54,7 +65,9 @@ BASE = (
     ParamSpec("b", "m", 1e-5, 1.0, G, "valve port width", "mm", 1e3),
     ParamSpec("pP", "Pa", 1e5, 1e8, PH, "supply pressure", "MPa", 1e-6),
     ParamSpec("pT", "Pa", 0.0, 1e7, PH, "tank pressure", "MPa", 1e-6),
-    ParamSpec("dp_lam", "Pa", 1.0, 1e6, PH, "laminar band of the orifice square roots", "bar", 1e-5),
+    ParamSpec("dp_lam", "Pa", 1.0, 1e6, PH, "laminar band of the valve ports' square roots", "kPa", 1e-3),
+    ParamSpec("dp_lam_leak", "Pa", 1.0, 1e6, PH, "laminar band of the cross-piston leak's square root", "kPa",
+              1e-3),
     ParamSpec("Fext", "N", -1e6, 1e6, PH, "constant external force on the rod"),
     ParamSpec("stroke", "m", 1e-3, 10.0, G, "full stroke (+/- half about mid stroke)", "mm", 1e3),
     ParamSpec("Ffric", "N", 0.0, 1e5, PN, "maximal dry friction force", typical=50.0),
@@ -69,7 +82,7 @@ BASE = (
 NOMINAL = {
     "KP": 400.0, "KI": 0.0, "KD": 0.0, "rho": 960.0, "V0": 480e-6, "A": 1920e-6, "m": 45.0,
     "Bulk": 1.5e9, "vref": 1e-3, "Ke": 1.0, "Ksp": 0.0024, "b": 5e-3, "pP": 28e6, "pT": 0.0,
-    "dp_lam": 1e5, "Fext": 0.0, "stroke": 0.25,
+    "dp_lam": 1e3, "dp_lam_leak": 1e3, "Fext": 0.0, "stroke": 0.25,
     # paper Table 9 (the reference set)
     "Ffric": 50.0, "CdAleak": 3.2863e-9, "Cd": 0.2191, "zeta": 0.3701, "wn": TWO_PI * 43.0,
 }
@@ -112,15 +125,22 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("spool_saturation", "spool stroke limit",
            (_fx("xs_max", "m", 1e-5, 1.0, "spool stroke limit", "mm", 1e3),), (1.0,),
            "velocity clipped at large errors", (0.5e-3,)),
+    Effect("position_sensor_gain", "displacement transducer gain error (the controller reads it too)",
+           (_fx("k_xm", "1", 0.5, 2.0, "measured / true displacement"),), (1.0,),
+           "the rod follows x_ref / gain; flow and pressures scale against the measured displacement",
+           (1.02,)),
+    Effect("pressure_sensor_offset", "chamber pressure transducers read off by a constant",
+           (_fx("pA_off", "Pa", -5e6, 5e6, "offset of the pA transducer", "MPa", 1e-6),
+            _fx("pB_off", "Pa", -5e6, 5e6, "offset of the pB transducer", "MPa", 1e-6)), (0.0, 0.0),
+           "constant pressure residual; force balance pA - pB against friction is off at rest", (3e5, 0.0)),
 )}
 
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
-IDX = {n: i for i, n in enumerate(KERNEL_NAMES)}
 NP = len(KERNEL_NAMES)
-(I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_FEXT,
- I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
- I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX) = range(NP)
-assert NP == 33 and KERNEL_NAMES[I_XSMAX] == "xs_max"
+(I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_DPLL,
+ I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
+ I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF) = range(NP)
+assert NP == 37 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
 
 STATES = ("xs", "vs", "pA", "pB", "x", "v")
 NS = 6
@@ -193,7 +213,7 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
             else:
                 qPB = -g * o * _sqrt_reg(pPe - pB, dpl)
     dpAB = pA - pB
-    qAB = p[I_CDALEAK] * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, dpl) + p[I_KLAM] * dpAB
+    qAB = p[I_CDALEAK] * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, p[I_DPLL]) + p[I_KLAM] * dpAB
     qA = qPA - qAT - qAB
     qB = qPB - qBT + qAB
     VA = max(V0 + A * x, 1e-3 * V0)
@@ -276,38 +296,135 @@ def _delayed(hist, k, tau, dt):
     return (1.0 - f) * hist[i0] + f * hist[i0 - 1]
 
 
+@nb.njit(cache=True, inline="always")
+def _u_stage(a4, a5, k, f, drive, closed, mode, p, integ, dt):
+    """Controller output at a stage of a continuous loop (closed) or an interpolated logged input (open)."""
+    if not closed:
+        return input_at(drive, k, f, mode)
+    g = p[I_KXM]
+    xm = g * (a4 - p[I_TAUX] * a5)  # x(t - tau) to first order
+    e = input_at(drive, k, f, mode) - xm
+    return p[I_KP] * e + p[I_KI] * integ + p[I_KD] * (slope_at(drive, k, f, mode, dt) - g * a5)
+
+
 @nb.njit(cache=True)
-def _simulate_one(s0, p, drive, closed, dt, nsub, S, U, XM):
+def step_varying(s, k, drive, closed, mode, p, dt, nsub, integ, out):
+    """Advance ``s`` from sample ``k`` to ``k+1`` with the input varying inside the interval.
+
+    ``closed``: a continuous controller reads the state at every stage; else the
+    logged input ``drive`` is interpolated by ``mode``.  Returns the controller's
+    integral at the end.
+    """
+    h = dt / nsub
+    fh = 1.0 / nsub
+    a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
+    for j in range(nsub):
+        f0 = j * fh
+        u1 = _u_stage(a4, a5, k, f0, drive, closed, mode, p, integ, dt)
+        k1 = deriv(a0, a1, a2, a3, a4, a5, u1, p)
+        b4 = a4 + 0.5 * h * k1[4]
+        b5 = a5 + 0.5 * h * k1[5]
+        u2 = _u_stage(b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dt)
+        k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
+                   a3 + 0.5 * h * k1[3], b4, b5, u2, p)
+        c4 = a4 + 0.5 * h * k2[4]
+        c5 = a5 + 0.5 * h * k2[5]
+        u3 = _u_stage(c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dt)
+        k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
+                   a3 + 0.5 * h * k2[3], c4, c5, u3, p)
+        d4 = a4 + h * k3[4]
+        d5 = a5 + h * k3[5]
+        u4 = _u_stage(d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dt)
+        k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2], a3 + h * k3[3], d4, d5, u4, p)
+        if closed:
+            e0 = input_at(drive, k, f0, mode) - p[I_KXM] * (a4 - p[I_TAUX] * a5)
+            e1 = input_at(drive, k, f0 + fh, mode) - p[I_KXM] * (d4 - p[I_TAUX] * d5)
+            integ += 0.5 * h * (e0 + e1)
+        c = h / 6.0
+        a0 += c * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
+        a1 += c * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
+        a2 += c * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
+        a3 += c * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
+        a4 += c * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
+        a5 += c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5])
+    out[0] = a0
+    out[1] = a1
+    out[2] = a2
+    out[3] = a3
+    out[4] = a4
+    out[5] = a5
+    return integ
+
+
+@nb.njit(cache=True)
+def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
+    """One log interval from sample ``k`` to ``k+1`` under any loop timing; returns ``u`` at ``t_k``.
+
+    ``ticks``: controller ticks per sample (1: digital at the log's rate, N: a
+    digital controller N times faster, 0: continuous).  ``mode``: intersample of
+    ``drive`` (0 zoh, 1 foh, 2 cubic).  ``xm_k``: the measured displacement at
+    ``t_k``.  ``ctrl``: controller memory ``[integral, previous error, started]``,
+    updated in place.  ``out`` may be ``s``.
+    """
+    if not closed:
+        u = drive[k]
+        if mode == 0:
+            step(s, u, p, dt, nsub, out)
+        else:
+            step_varying(s, k, drive, False, mode, p, dt, nsub, 0.0, out)
+        return u
+    if ticks == 0:
+        e = drive[k] - xm_k
+        u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * (slope_at(drive, k, 0.0, mode, dt) - p[I_KXM] * s[5])
+        ctrl[0] = step_varying(s, k, drive, True, mode, p, dt, nsub, ctrl[0], out)
+        return u
+    h = dt / ticks
+    nsub_t = max(1, (nsub + ticks - 1) // ticks)
+    u0 = 0.0
+    for i in range(ticks):
+        if i == 0:
+            xm = xm_k
+        else:
+            xm = p[I_KXM] * (out[4] - p[I_TAUX] * out[5])
+        e = input_at(drive, k, i / ticks, mode) - xm
+        ctrl[0] += e * h
+        de = (e - ctrl[1]) / h if ctrl[2] > 0.0 else 0.0
+        ctrl[1] = e
+        ctrl[2] = 1.0
+        u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * de
+        if i == 0:
+            u0 = u
+            step(s, u, p, h, nsub_t, out)
+        else:
+            step(out, u, p, h, nsub_t, out)
+    return u0
+
+
+@nb.njit(cache=True)
+def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
     T = drive.shape[0]
     s = s0.copy()
-    nxt = np.empty(NS)
     xhist = np.empty(T)
-    integ = 0.0
-    e_prev = 0.0
+    ctrl = np.zeros(3)
     tau = p[I_TAUX]
+    g = p[I_KXM]
     for k in range(T):
         for j in range(NS):
             S[k, j] = s[j]
         xhist[k] = s[4]
-        xm = _delayed(xhist, k, tau, dt)
+        xm = g * _delayed(xhist, k, tau, dt)
         XM[k] = xm
-        if closed:
-            e = drive[k] - xm
-            integ += e * dt
-            de = (e - e_prev) / dt if k > 0 else 0.0
-            e_prev = e
-            u = p[I_KP] * e + p[I_KI] * integ + p[I_KD] * de
-        else:
-            u = drive[k]
-        U[k] = u
         if k + 1 < T:
-            step(s, u, p, dt, nsub, nxt)
-            for j in range(NS):
-                s[j] = nxt[j]
+            U[k] = advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm, ctrl, s)
+        elif closed:  # the last sample: the controller's output at t_k, no step
+            e = drive[k] - xm
+            U[k] = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * ((e - ctrl[1]) / dt if ticks == 1 else 0.0)
+        else:
+            U[k] = drive[k]
 
 
 @nb.njit(cache=True, parallel=True)
-def simulate_kernel(S0, P, drive, closed, dt, nsub):
+def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub):
     """Simulate ``K`` parameter vectors in parallel.
 
     Returns states ``[K, T, 6]``, controller output ``[K, T]`` and measured
@@ -319,7 +436,7 @@ def simulate_kernel(S0, P, drive, closed, dt, nsub):
     U = np.empty((K, T))
     XM = np.empty((K, T))
     for k in nb.prange(K):
-        _simulate_one(S0[k], P[k], drive, closed, dt, nsub, S[k], U[k], XM[k])
+        _simulate_one(S0[k], P[k], drive, closed, ticks, mode, dt, nsub, S[k], U[k], XM[k])
     return S, U, XM
 
 
@@ -336,23 +453,51 @@ class MSP25(Model):
     EFFECTS = EFFECTS
     PHENOMENOLOGICAL = PHENOMENOLOGICAL
     substeps = 3
-    #: initial-state quantities a fit may estimate per record
-    INIT = ("x0", "dp0")
+    #: initial-state quantities: rod position and velocity, pressure difference or each chamber, spool
+    INIT = ("x0", "dp0", "v0", "pA0", "pB0", "u0")
+    #: the ones a fit may estimate per record
+    INIT_FREE = ("x0", "dp0", "v0")
 
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
-        """Rest: spool centred, rod at ``x0`` (default 0), pA = pP/2 + dp0/2, pB = pP/2 - dp0/2."""
+        """Rod at ``x0`` moving at ``v0``, chambers at ``pA0``/``pB0``, spool where the command ``u0`` holds it.
+
+        With neither ``pA0`` nor ``pB0`` the chambers sit about the mid pressure
+        ``(pP+pT)/2`` with the difference ``dp0``; given pressures are shifted by
+        ``dp0`` split evenly (so ``dp0`` stays a correction a fit can estimate).
+        """
         P = np.atleast_2d(P)
         init = dict(init or {})
         x0 = float(init.pop("x0", 0.0))
         dp0 = float(init.pop("dp0", 0.0))
+        v0 = float(init.pop("v0", 0.0))
+        u0 = float(init.pop("u0", 0.0))
+        pA0 = init.pop("pA0", None)
+        pB0 = init.pop("pB0", None)
         if init:
-            raise DataError(f"unknown initial-state quantities {sorted(init)}; known: x0 [m], dp0 [Pa]")
+            raise DataError(f"unknown initial-state quantities {sorted(init)}; known: x0 [m], dp0 [Pa], v0 [m/s], "
+                            "pA0 [Pa], pB0 [Pa], u0 [V]")
         S0 = np.zeros((P.shape[0], NS))
         pm = 0.5 * (P[:, I_PP] + P[:, I_PT])
-        S0[:, 2] = pm + 0.5 * dp0
-        S0[:, 3] = pm - 0.5 * dp0
+        S0[:, 0] = P[:, I_KE] * P[:, I_KSP] * u0
+        S0[:, 2] = (pm if pA0 is None else float(pA0)) + 0.5 * dp0
+        S0[:, 3] = (pm if pB0 is None else float(pB0)) - 0.5 * dp0
         S0[:, 4] = x0
+        S0[:, 5] = v0
         return S0
+
+    def initial_from_data(self, signals, dt):
+        """The measured state at the first sample: rod position and both chamber pressures.
+
+        Each is read through a cubic over the first 20 ms (noise averages out).
+        Rod speed and spool are left at rest: the position loop forgets them
+        within a few tens of milliseconds, while a wrong pressure (a loaded rig
+        started at equal pressures) bends every parameter of a fit.
+        """
+        out: dict[str, float] = {}
+        for name, key in (("x", "x0"), ("pA", "pA0"), ("pB", "pB0")):
+            if name in signals:
+                out[key] = start_of(signals[name], dt)[0]
+        return out
 
     def drive_signal(self, signals, drive="auto"):
         if drive == "auto":
@@ -363,16 +508,18 @@ class MSP25(Model):
             raise DataError(f"msp25 driven by {drive!r} but the record has only {', '.join(signals)}")
         return drive, np.asarray(signals[drive], dtype=np.float64)
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None) -> SimResult:
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"msp25 kernel vectors have {NP} entries, got {P.shape[1]}")
         drive = check_drive(drive_name, drive, dt)
+        timing = timing or DEFAULT_TIMING
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
         closed = drive_name == "x_ref"
-        S, U, XM = simulate_kernel(S0, P, drive, closed, float(dt), int(substeps or self.substeps))
+        S, U, XM = simulate_kernel(S0, P, drive, closed, timing.ticks(dt), timing.intersample_code(dt), float(dt),
+                                   int(substeps or self.substeps))
         t = np.arange(drive.shape[0]) * dt
-        outputs = {"x": XM, "pA": S[:, :, 2], "pB": S[:, :, 3]}
+        outputs = {"x": XM, "pA": S[:, :, 2] + P[:, I_PAOFF, None], "pB": S[:, :, 3] + P[:, I_PBOFF, None]}
         inputs = {"u": U, drive_name: drive} if closed else {"u": drive}
         return SimResult(t, outputs, S, inputs)
 

@@ -1,7 +1,8 @@
 """The paper's basic demonstration: a damped oscillator ``m x'' + d x' + k x = u``, ``y = x``.
 
-States ``x`` [m], ``v`` [m/s]; input force ``u`` [N] held between samples
-(zero-order hold); output ``y = x`` [m].  Effects of the catalogue:
+States ``x`` [m], ``v`` [m/s]; input force ``u`` [N], held between samples
+(zero-order hold) or, by the rig's :class:`~twin.models.base.Timing`, linear or
+a smooth cubic between them; output ``y = x`` [m].  Effects of the catalogue:
 ``coulomb_friction`` (tanh-smoothed dry friction), ``cubic_stiffness``
 (hardening spring ``k3 x^3``) and ``input_delay`` (the force acts late).
 """
@@ -15,7 +16,8 @@ import numba as nb
 import numpy as np
 
 from twin.errors import DataError
-from twin.models.base import Model, SimResult, check_drive
+from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.intersample import input_at
 from twin.params import Effect, ParamSpec
 
 BASE = (
@@ -53,34 +55,37 @@ def deriv(x, v, u, p):
 
 
 @nb.njit(cache=True)
-def _simulate_one(s0, p, u, dt, nsub, S):
+def _simulate_one(s0, p, u, mode, dt, nsub, S):
     T = u.shape[0]
     x = s0[0]
     v = s0[1]
     h = dt / nsub
+    fh = 1.0 / nsub
     for k in range(T):
         S[k, 0] = x
         S[k, 1] = v
         if k + 1 == T:
             break
-        uk = u[k]
-        for _ in range(nsub):
-            a = deriv(x, v, uk, p)
-            b = deriv(x + 0.5 * h * a[0], v + 0.5 * h * a[1], uk, p)
-            c = deriv(x + 0.5 * h * b[0], v + 0.5 * h * b[1], uk, p)
-            d = deriv(x + h * c[0], v + h * c[1], uk, p)
+        for j in range(nsub):
+            u0 = input_at(u, k, j * fh, mode)
+            um = input_at(u, k, (j + 0.5) * fh, mode)
+            u1 = input_at(u, k, (j + 1.0) * fh, mode)
+            a = deriv(x, v, u0, p)
+            b = deriv(x + 0.5 * h * a[0], v + 0.5 * h * a[1], um, p)
+            c = deriv(x + 0.5 * h * b[0], v + 0.5 * h * b[1], um, p)
+            d = deriv(x + h * c[0], v + h * c[1], u1, p)
             x += h / 6.0 * (a[0] + 2.0 * b[0] + 2.0 * c[0] + d[0])
             v += h / 6.0 * (a[1] + 2.0 * b[1] + 2.0 * c[1] + d[1])
 
 
 @nb.njit(cache=True, parallel=True)
-def simulate_kernel(S0, P, U, dt, nsub):
-    """``K`` parameter vectors, each with its own (delayed) input ``U [K, T]``."""
+def simulate_kernel(S0, P, U, mode, dt, nsub):
+    """``K`` parameter vectors, each with its own (delayed) input ``U [K, T]``, intersample ``mode``."""
     K = P.shape[0]
     T = U.shape[1]
     S = np.empty((K, T, 2))
     for k in nb.prange(K):
-        _simulate_one(S0[k], P[k], U[k], dt, nsub, S[k])
+        _simulate_one(S0[k], P[k], U[k], mode, dt, nsub, S[k])
     return S
 
 
@@ -105,6 +110,8 @@ class Oscillator(Model):
     PHENOMENOLOGICAL = ("d", "k")
     substeps = 2
     INIT = ("x0", "v0")
+    #: a record that does not start at rest: these are estimated, from the values its first samples show
+    INIT_IF_MOVING = ("x0", "v0")
 
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
         P = np.atleast_2d(P)
@@ -125,7 +132,21 @@ class Oscillator(Model):
             raise DataError(f"the oscillator needs the input force 'u'; the record has {', '.join(signals)}")
         return "u", np.asarray(signals["u"], dtype=np.float64)
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None) -> SimResult:
+    def initial_from_data(self, signals, dt):
+        """Displacement and velocity at the first sample where the data show them (five standard errors);
+        a lightly damped oscillator rings for a long time after a wrong start, so noise alone is not taken
+        for one."""
+        if "y" not in signals:
+            return {}
+        x0, v0, se_x, se_v = start_of(signals["y"], dt)
+        scale = float(np.std(signals["y"]))  # below 1 % of the motion (per second for v0): at rest
+        out = {}
+        if abs(x0) > max(5.0 * se_x, 1e-2 * scale) or abs(v0) > max(5.0 * se_v, 1e-2 * scale):
+            out["x0"] = x0
+            out["v0"] = v0
+        return out
+
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"oscillator kernel vectors have {NP} entries, got {P.shape[1]}")
@@ -137,7 +158,8 @@ class Oscillator(Model):
         else:
             U = np.stack([delay_signal(drive, t, dt) for t in taus])
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
-        S = simulate_kernel(S0, P, U, float(dt), int(substeps or self.substeps))
+        mode = (timing or DEFAULT_TIMING).intersample_code(dt)
+        S = simulate_kernel(S0, P, U, mode, float(dt), int(substeps or self.substeps))
         t = np.arange(drive.shape[0]) * dt
         return SimResult(t, {"y": S[:, :, 0]}, S, {"u": drive})
 
