@@ -5,11 +5,12 @@ What the gate does to a block (all vectorised with numpy, in this order):
 1. **NaN or infinite value** in any signal: the sample is dropped and counted under
    ``nan`` (or ``inf`` when it holds no NaN); the first few are named (file, signal,
    record).
-2. **Time going backwards or repeating**: a sample is kept only if its ``t_ns`` is
+2. **Time going backwards or repeating**: a single wild timestamp (a jump forward of
+   more than 10 median steps after which time is back in line) is dropped alone and
+   counted under ``time_jump``.  Then a sample is kept only if its ``t_ns`` is
    strictly greater than every kept time before it (across blocks).  Others are
-   dropped and counted under ``time_backwards`` / ``time_repeated``.  A single wild
-   timestamp far in the future therefore drops what follows it; the gap it opens is
-   reported, which is how an operator finds it.
+   dropped and counted under ``time_backwards`` / ``time_repeated`` (duplicates are
+   never passed on).
 3. **Values outside the physical range** of the signal's SI unit
    (:data:`replay.base.SIGNALS`): an isolated glitch (at most ``range_tolerance`` of
    the samples checked so far, at least one sample per 1000) is dropped and counted
@@ -141,6 +142,21 @@ def add_skips(report: ReadReport, reason: str, count: int, examples: Iterable[tu
         report.problems.append(Problem(report.file, where, what))
 
 
+def time_spikes(t: np.ndarray, min_jump: int) -> np.ndarray:
+    """Mask of single wild timestamps: a jump forward of more than ``min_jump`` after which the
+    next time is back in line (between the previous time and the wild one).
+
+    Dropping such a sample alone keeps what follows it, which the strictly-increasing
+    rule would otherwise drop until time caught up with the wild value.
+    """
+    out = np.zeros(t.size, dtype=bool)
+    if t.size < 3:
+        return out
+    prev, mid, nxt = t[:-2], t[1:-1], t[2:]
+    out[1:-1] = (mid - prev > min_jump) & (nxt < mid) & (nxt >= prev)
+    return out
+
+
 # --- the gate ------------------------------------------------------------------------------
 
 @dataclasses.dataclass(frozen=True)
@@ -250,6 +266,21 @@ class QualityGate:
         if idx.size == 0:
             return
         t = block.t_ns[idx]
+        if t.size >= 3:
+            steps = np.diff(t[:4096])
+            steps = steps[steps > 0]
+            jump = max(int(10 * np.median(steps)) if steps.size else 0, 1000)
+            spikes = time_spikes(t, jump)
+            if spikes.any():
+                pos = np.flatnonzero(spikes)
+                add_skips(self.report, "time_jump", int(pos.size), (
+                    (f"{label} {labels[idx[p]]}",
+                     f"time {int(t[p])} ns jumps {int(t[p] - t[p - 1])} ns ahead of its neighbours "
+                     f"({int(t[p - 1])} and {int(t[p + 1])} ns): a wild timestamp, this sample alone is dropped")
+                    for p in pos[:_N_EXAMPLES]))
+                keep[idx[pos]] = False
+                idx = idx[~spikes]
+                t = t[~spikes]
         first = np.iinfo(np.int64).min if self._last_t_ns is None else self._last_t_ns
         prev_max = np.maximum.accumulate(np.concatenate(([first], t[:-1])))
         backwards = t < prev_max

@@ -389,7 +389,7 @@ def test_truncated_asc_and_blf_keep_prefix(tmp_path):
 def test_unreadable_and_unknown_inputs(tmp_path):
     with pytest.raises(SourceError, match="not found"):
         CanLogSource(tmp_path / "none.log")
-    with pytest.raises(LogFormatError, match="unknown CAN log format '.xyz'"):
+    with pytest.raises(LogFormatError, match="unknown CAN log format .suffix '.xyz'.; known: .asc, .blf, .log, .trc"):
         CanLogSource(_write(tmp_path / "a.xyz", ["x"]))
     bad = tmp_path / "bad.blf"
     bad.write_bytes(b"NOT A BLF FILE AT ALL" * 10)
