@@ -166,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--f-lo", type=float, default=None, help="lowest frequency in Hz")
     p.add_argument("--f-hi", type=float, default=None, help="highest frequency in Hz")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--set", help="parameter values NAME=VALUE,... (SI units)")
+    p.add_argument("--set", help="parameter values NAME=VALUE,..., with a unit or SI (e.g. wn=43Hz,CdAleak=3.3mm^2)")
     p.add_argument("--effects", help="comma-separated effects to switch on")
     p.add_argument("--noise", choices=("default", "none"), default="default",
                    help="sensor noise: x 2 um, pressures 20 kPa (default) or none")
@@ -182,8 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
     p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
     p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")
-    p.add_argument("--set", help="known parameter values NAME=VALUE,...")
-    p.add_argument("--start", help="start values of free parameters NAME=VALUE,...")
+    p.add_argument("--set", help="known parameter values NAME=VALUE,..., with a unit or SI (e.g. Fext=15kN)")
+    p.add_argument("--start", help="start values of free parameters NAME=VALUE,..., with a unit or SI (e.g. wn=40Hz)")
     p.add_argument("--effects", help="effects to switch on by name")
     p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"),
                    help="closed loop from x_ref or open loop from u (default: x_ref if logged)")

@@ -12,7 +12,10 @@ from twin.errors import ParameterError
 
 
 def kv(text: str | None) -> dict[str, float]:
-    """``"a=1,b=2e-3"`` -> {"a": 1.0, "b": 0.002}."""
+    """``"a=1,wn=43Hz,CdAleak=3.3mm^2"`` -> SI floats; a bare number is SI, a unit is converted
+    (:func:`twin.units.to_si`)."""
+    from twin.units import to_si
+
     out: dict[str, float] = {}
     for part in (text or "").split(","):
         if not part.strip():
@@ -20,10 +23,7 @@ def kv(text: str | None) -> dict[str, float]:
         if "=" not in part:
             raise ParameterError(f"expected NAME=VALUE, got {part!r}")
         k, v = part.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise ParameterError(f"{k.strip()}: {v!r} is not a number") from None
+        out[k.strip()] = to_si(k.strip(), v)
     return out
 
 

@@ -1,0 +1,62 @@
+"""Values with units on the way in: pint conversion, Hz for angular frequencies, clear errors."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from twin import cli
+from twin.cliutil import kv
+from twin.errors import ParameterError
+from twin.units import to_si
+
+
+@pytest.mark.parametrize("name,text,si", [
+    ("wn", "43Hz", 2 * math.pi * 43),
+    ("wn", "270.2 rad/s", 270.2),
+    ("wn", "0.043 kHz", 2 * math.pi * 43),
+    ("CdAleak", "3.3mm^2", 3.3e-6),
+    ("CdAleak", "3.3 mm²", 3.3e-6),
+    ("Ffric", "0.05kN", 50.0),
+    ("x", "2um", 2e-6),
+    ("x", "2 µm", 2e-6),
+    ("pA", "2 bar", 2e5),
+    ("Bulk", "1.5 GPa", 1.5e9),
+    ("KP", "0.4 V/mm", 400.0),
+    ("V0", "480 cm^3", 480e-6),
+    ("zeta", "0.37", 0.37),
+    ("Ffric", "50", 50.0),  # a bare number is SI
+])
+def test_values_with_units_convert_to_si(name, text, si):
+    assert to_si(name, text) == pytest.approx(si, rel=1e-12)
+
+
+@pytest.mark.parametrize("text,message", [
+    ("wn=43N", "wn: '43N' is not in a unit of rad/s"),
+    ("Ffric=abc", "Ffric: cannot read 'abc'"),
+    ("Ffric=inf", "Ffric: 'inf' is not a finite number"),
+    ("nosuch=3mm", "'nosuch' has no known unit"),
+    ("Ffric", "expected NAME=VALUE"),
+])
+def test_bad_values_name_the_parameter_and_the_expectation(text, message):
+    with pytest.raises(ParameterError, match=message.replace("(", r"\(")):
+        kv(text)
+
+
+def test_simulate_takes_display_units_the_params_table_shows(tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    assert cli.main(["simulate", "-o", str(out), "--duration", "0.2", "--json",
+                     "--set", "CdAleak=0.01mm^2,wn=40Hz,Ffric=0.08kN"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["params"]["CdAleak"] == pytest.approx(1e-8)
+    assert info["params"]["wn"] == pytest.approx(2 * math.pi * 40)
+    assert info["params"]["Ffric"] == pytest.approx(80.0)
+
+
+def test_a_value_with_the_wrong_unit_is_a_one_line_error(tmp_path, capsys):
+    assert cli.main(["simulate", "-o", str(tmp_path / "r.csv"), "--duration", "0.2",
+                     "--set", "CdAleak=0.01mm"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "CdAleak" in err[0] and "m^2" in err[0]
