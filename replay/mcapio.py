@@ -9,10 +9,12 @@ convention of :mod:`replay.base`).
 
 ``/rig/signals`` -- schema ``fpdd.RigSignals``, one message per sample::
 
-    {"t": 12.345, "x_ref": 0.01, "u": 0.2, "x": 0.0099, "pA": 2.1e6, "pB": 1.9e6}
+    {"t": 12.345, "timestamp": {"sec": 12, "nsec": 345000000},
+     "x_ref": 0.01, "u": 0.2, "x": 0.0099, "pA": 2.1e6, "pB": 1.9e6}
 
   ``t`` is the sample time in seconds (``log_time / 1e9``, for plotting only: readers
-  take the exact time from ``log_time``), every other field a signal in its SI unit
+  take the exact time from ``log_time``), ``timestamp`` the same time exactly as the
+  Foxglove ``time`` type (:data:`TIME_SCHEMA`), every other field a signal in its SI unit
   (:data:`replay.base.SIGNALS`; a non-finite value is written as ``null``).  Foxglove
   plots ``/rig/signals.x`` directly.  The channel metadata ``signals`` and ``units``
   list the fields in order (comma separated).
@@ -21,7 +23,7 @@ convention of :mod:`replay.base`).
 samples (at most one flush period, 1 s by default), the same samples as
 ``/rig/signals`` in compact form for fast reading::
 
-    {"t0": 12.345, "n": 1000,
+    {"t0": 12.345, "timestamp": {"sec": 12, "nsec": 345000000}, "n": 1000,
      "t_ns": "<base64 of n little-endian int64: sample times, ns>",
      "signals": {"x_ref": "<base64 of n little-endian float64, SI unit>", ...}}
 
@@ -36,11 +38,15 @@ the chunk index touches only the small block chunks.
 
 ``/twin/estimate``, ``/twin/alarm``, ``/twin/status`` and any other topic:
 :meth:`McapSink.write_message` -- a JSON object per message, with a schema registered
-on first use (given, or derived from the first payload's fields).
+on first use (given, or derived from the first payload's fields).  Every message gets
+``"timestamp": {"sec": .., "nsec": ..}`` (its ``log_time``; the Foxglove time type,
+exact where a JSON reader holds numbers as doubles: ``t_ns`` above 2**53 is not), and
+every schema declares it.
 
 A metadata record ``fpdd.layout`` holds ``version``, ``signals_topic``,
 ``block_topic`` and ``block_max_span_ns`` (the longest block, which a time-range read
-needs to know).
+needs to know).  It is written with the first samples, so a file of other topics only
+(a twin output) has none: it never names a topic the file does not contain.
 
 Why the block topic (measured with ``python -m replay.bench``, 2 cores, mcap 1.6): the
 naive path -- ``mcap``'s reader plus one ``json.loads`` per message -- reads about
@@ -53,19 +59,30 @@ the hour): formatting JSON floats with ``repr`` is half of it, ``mcap``'s
 Reading
 =======
 
-CRC validation is always on (``validate_crcs=True``): a corrupt chunk is detected,
-not silently skipped.  With a readable summary the reader seeks through the chunk index
-(by topic and time range); a file without one (a killed writer, a truncated copy) is
-read with a non-seeking stream reader.  Either way the read stops at the first bad
-record, keeps everything before it, sets ``report.truncated`` and says how much was
-recovered.  The block topic is read when the file has it, else ``/rig/signals``.
+CRC validation is always on: a corrupt chunk is detected, never silently used.  A
+damaged chunk costs only itself:
+
+* With a readable summary the reader seeks through the chunk index (by topic and time
+  range) and reads every chunk on its own; a chunk that fails (CRC, decompression,
+  framing) is counted under ``damaged_chunk``, named by number, byte range and time
+  span with the count of messages lost (from its message index), and the chunks after
+  it are read.  A lost ``/rig/signals_block`` chunk is filled from the per-sample
+  ``/rig/signals`` messages of the same time span when the file has them (they sit in
+  another chunk); what cannot be recovered is added to ``report.samples_lost``.
+* Without a summary (a killed writer, a truncated copy) the records are walked in
+  file order; after a damaged record the walk resynchronises at the next chunk whose
+  CRC checks.  A file cut short sets ``report.truncated`` and says how much was kept.
+
+The block topic is read when the file has it, else ``/rig/signals``.
 
 Writing
 =======
 
 Samples are buffered and flushed (chunk finished, file flushed) every
 ``flush_period_s`` of sample time (1 s) or ``flush_messages`` messages, whichever
-comes first, so a killed writer loses at most the last second.
+comes first, so a killed writer loses at most the last second; a chunk therefore holds
+about one second of data (messages of :meth:`McapSink.write_message` too: a twin
+output of 600 messages over 12 s has about a dozen chunks, not one per message).
 """
 
 from __future__ import annotations
@@ -73,8 +90,11 @@ from __future__ import annotations
 import base64
 import binascii
 import dataclasses
+import heapq
+import io
 import json
 import math
+import mmap
 import os
 import struct
 from typing import IO, Any, Iterator, Mapping, Sequence
@@ -83,8 +103,10 @@ import numpy as np
 import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+from mcap.stream_reader import breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
@@ -101,6 +123,9 @@ LAYOUT_VERSION = "1"
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
+#: Fields of a JSON message that carry its time, not a signal.
+_TIME_FIELDS = frozenset({"t", "t_ns", "timestamp"})
+
 #: Errors a damaged file raises inside ``mcap`` (CRC mismatch is a ValueError there).
 _DAMAGE = (McapError, ValueError, struct.error, EOFError, zstandard.ZstdError)
 _RECORD_SIZE_LIMIT = 1 << 30  # 1 GiB: a damaged length field must not allocate more
@@ -110,12 +135,14 @@ _RECORD_SIZE_LIMIT = 1 << 30  # 1 GiB: a damaged length field must not allocate 
 
 def signals_schema(signals: Sequence[str]) -> dict:
     """JSON Schema of ``/rig/signals`` for these signals."""
-    props: dict[str, Any] = {"t": {"type": "number", "description": "sample time, s (log_time / 1e9)"}}
+    props: dict[str, Any] = {"t": {"type": "number", "description": "sample time, s (log_time / 1e9)"},
+                             "timestamp": TIME_SCHEMA}
     for name in signals:
         spec = SIGNALS.get(name)
         desc = f"{spec.meaning}, {spec.unit}" if spec else "extra signal, SI unit"
         props[name] = {"type": ["number", "null"], "description": desc}
-    return {"title": SIGNALS_SCHEMA, "type": "object", "properties": props, "required": ["t", *signals]}
+    return {"title": SIGNALS_SCHEMA, "type": "object", "properties": props,
+            "required": ["t", "timestamp", *signals]}
 
 
 def block_schema(signals: Sequence[str]) -> dict:
@@ -127,6 +154,7 @@ def block_schema(signals: Sequence[str]) -> dict:
         "description": "a block of samples: little-endian int64 times (ns) and float64 signals (SI)",
         "properties": {
             "t0": {"type": "number", "description": "time of the first sample, s"},
+            "timestamp": TIME_SCHEMA,
             "n": {"type": "integer", "description": "number of samples"},
             "t_ns": {**arr, "description": "n little-endian int64 sample times, ns"},
             "signals": {"type": "object", "properties": {
@@ -134,8 +162,39 @@ def block_schema(signals: Sequence[str]) -> dict:
                                              f"{SIGNALS[name].unit if name in SIGNALS else 'SI unit'}"}
                 for name in signals}},
         },
-        "required": ["t0", "n", "t_ns", "signals"],
+        "required": ["t0", "timestamp", "n", "t_ns", "signals"],
     }
+
+
+#: The Foxglove ``time`` type: a message's time as whole seconds and nanoseconds (exact in
+#: every JSON reader; an int64 ``t_ns`` above 2**53 is not exact in JavaScript).
+TIME_SCHEMA: dict[str, Any] = {
+    "title": "time", "type": "object", "description": "message time (log_time), Foxglove time type",
+    "properties": {"sec": {"type": "integer", "description": "whole seconds (UNIX epoch or record start)"},
+                   "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999,
+                            "description": "nanoseconds within the second"}},
+    "required": ["sec", "nsec"],
+}
+TIME_FIELD = "timestamp"
+
+
+def foxglove_time(t_ns: int) -> dict[str, int]:
+    """``{"sec": ..., "nsec": ...}`` of integer nanoseconds (``nsec`` in [0, 1e9))."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    return {"sec": sec, "nsec": nsec}
+
+
+def with_time_schema(schema: Mapping[str, Any]) -> dict:
+    """``schema`` with the :data:`TIME_FIELD` property (Foxglove time) added and required."""
+    out = dict(schema)
+    props = dict(out.get("properties", {}))
+    props.setdefault(TIME_FIELD, TIME_SCHEMA)
+    out["properties"] = props
+    req = list(out.get("required", []))
+    if TIME_FIELD not in req:
+        req.append(TIME_FIELD)
+    out["required"] = req
+    return out
 
 
 def _generic_schema(title: str, payload: Mapping[str, Any]) -> dict:
@@ -150,7 +209,7 @@ def _generic_schema(title: str, payload: Mapping[str, Any]) -> dict:
             return "object"
         return "array"
     return {"title": title, "type": "object",
-            "properties": {k: {"type": [kind(v), "null"]} for k, v in payload.items()}}
+            "properties": {k: {"type": [kind(v), "null"]} for k, v in payload.items() if k != TIME_FIELD}}
 
 
 def _json_default(obj: Any) -> Any:
@@ -226,9 +285,6 @@ class McapSink(Sink):
         # chunks end only when this sink flushes: the size limit is a backstop
         self._writer = Writer(self._file, chunk_size=64 << 20, compression=_COMPRESSION[compression])
         self._writer.start(profile="", library="fpdd-twin replay.mcapio")
-        self._writer.add_metadata(LAYOUT_METADATA, {
-            "version": LAYOUT_VERSION, "signals_topic": SIGNALS_TOPIC if per_sample else "",
-            "block_topic": BLOCK_TOPIC if block else "", "block_max_span_ns": str(self._period_ns)})
         if metadata:
             self._writer.add_metadata("fpdd.record", {str(k): str(v) for k, v in metadata.items()})
         self._channels: dict[str, int] = {}
@@ -236,6 +292,8 @@ class McapSink(Sink):
         self._pending_n = 0
         self._block_start_ns = 0  # time of the first buffered sample, ns
         self._last_flush_ns: int | None = None
+        self._latest_ns: int | None = None  # latest message time written
+        self._layout_written = False
         self._unflushed = 0  # messages since the last flush
         self._closed = False
 
@@ -252,6 +310,11 @@ class McapSink(Sink):
 
     def _sample_channels(self) -> tuple[int | None, int | None]:
         assert self._signals is not None
+        if not self._layout_written:  # only when the sample topics exist: it names them
+            self._layout_written = True
+            self._writer.add_metadata(LAYOUT_METADATA, {
+                "version": LAYOUT_VERSION, "signals_topic": SIGNALS_TOPIC if self._per_sample else "",
+                "block_topic": BLOCK_TOPIC if self._block else "", "block_max_span_ns": str(self._period_ns)})
         meta = {"signals": ",".join(self._signals),
                 "units": ",".join(SIGNALS[s].unit if s in SIGNALS else "" for s in self._signals)}
         block = self._channel(BLOCK_TOPIC, block_schema(self._signals), meta) if self._block else None
@@ -313,10 +376,13 @@ class McapSink(Sink):
             raise DataError(f"{self.path}: topic {topic!r} is written by write(), not write_message()")
         if topic not in self._channels:
             title = "fpdd" + topic.replace("/", ".")
-            self._channel(topic, schema or _generic_schema(title, payload))
+            self._channel(topic, with_time_schema(schema or _generic_schema(title, payload)))
         t_ns = int(t_ns)
+        if TIME_FIELD not in payload:
+            payload = {**payload, TIME_FIELD: foxglove_time(t_ns)}
         self._writer.add_message(self._channels[topic], t_ns, encode_json(payload), t_ns)
         self._unflushed += 1
+        self._latest_ns = t_ns if self._latest_ns is None else max(self._latest_ns, t_ns)
         if self._last_flush_ns is None:
             self._last_flush_ns = t_ns
         if self._unflushed >= self._flush_messages or t_ns - self._last_flush_ns >= self._period_ns:
@@ -330,6 +396,8 @@ class McapSink(Sink):
             self._emit(buf)
         self._writer.flush()
         self._unflushed = 0
+        if self._latest_ns is not None:
+            self._last_flush_ns = self._latest_ns
 
     def close(self) -> None:
         if self._closed:
@@ -352,7 +420,7 @@ class McapSink(Sink):
         t_ns = block.t_ns
         t0 = int(t_ns[0])
         if block_ch is not None:
-            msg = {"t0": t0 * 1e-9, "n": len(block),
+            msg = {"t0": t0 * 1e-9, TIME_FIELD: foxglove_time(t0), "n": len(block),
                    "t_ns": base64.b64encode(t_ns.astype("<i8").tobytes()).decode(),
                    "signals": {k: base64.b64encode(block.signals[k].astype("<f8").tobytes()).decode()
                                for k in self._signals}}
@@ -366,12 +434,14 @@ class McapSink(Sink):
                 add(per_ch, t, data, t)
         self._unflushed += len(block)
         self._last_flush_ns = int(t_ns[-1])
+        self._latest_ns = self._last_flush_ns if self._latest_ns is None else max(self._latest_ns, self._last_flush_ns)
 
 
 def _json_rows(t_ns: np.ndarray, cols: list[np.ndarray], names: Sequence[str]) -> list[bytes]:
     """One compact JSON object per sample, floats in shortest round-trip form."""
-    fmt = '{"t":%s' + "".join(f',"{k}":%s' for k in names) + "}"
-    strs = [list(map(repr, (t_ns * 1e-9).tolist()))]
+    fmt = '{"t":%s,"timestamp":{"sec":%d,"nsec":%d}' + "".join(f',"{k}":%s' for k in names) + "}"
+    sec, nsec = np.divmod(t_ns, 1_000_000_000)
+    strs = [list(map(repr, (t_ns * 1e-9).tolist())), sec.tolist(), nsec.tolist()]
     for c in cols:
         s = list(map(repr, c.tolist()))
         bad = np.flatnonzero(~np.isfinite(c))
@@ -392,6 +462,8 @@ class TopicInfo:
     encoding: str
     messages: int | None  # None when the summary is unreadable and the topic was not counted
     signals: tuple[str, ...]
+    t_first_ns: int | None = None  # first and last log time, when the messages were scanned
+    t_last_ns: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -403,6 +475,18 @@ class McapMessage:
     data: Any
 
 
+@dataclasses.dataclass(frozen=True)
+class _Lost:
+    """A chunk (or stretch of records) that could not be read, in the message stream."""
+
+    t_start: int | None  # first log time the chunk index declares, ns (None: unknown)
+    t_end: int | None
+    messages: int | None  # messages of the wanted channels in it (from the message index), None: unknown
+
+
+_OPCODES = frozenset(int(o) for o in Opcode)
+
+
 class McapSource(Source):
     """Read rig samples from an MCAP file (layout in the module docstring).
 
@@ -411,22 +495,27 @@ class McapSource(Source):
     are the signals, its ``log_time`` the sample time).  ``start_ns``/``end_ns``:
     half-open time range ``[start_ns, end_ns)`` in ns.  ``signals``: keep only these.
     ``required``: signals that must be present.  ``quality``: gate options.
+    ``any_topic``: open a file without a samples topic too (e.g. a twin output, for
+    :meth:`topics` and :meth:`messages`); :meth:`chunks` then yields nothing.
     """
 
     def __init__(self, path: str | os.PathLike, *, topic: str | None = None,
                  start_ns: int | None = None, end_ns: int | None = None,
                  signals: Sequence[str] | None = None, required: Sequence[str] = (),
-                 quality: QualityOptions | None = None) -> None:
+                 quality: QualityOptions | None = None, any_topic: bool = False) -> None:
         self.path = str(path)
         self.report = ReadReport(self.path)
         self._start_ns = start_ns
         self._end_ns = end_ns
+        self._any_topic = any_topic
         options = quality or QualityOptions()
         if required:
             options = dataclasses.replace(options, required=tuple(required))
         try:
             self._file: IO[bytes] = open(self.path, "rb")
             self._size = os.fstat(self._file.fileno()).st_size
+        except IsADirectoryError:
+            raise SourceError(f"{self.path}: cannot open MCAP file: is a directory, expected a file") from None
         except OSError as exc:
             raise SourceError(f"{self.path}: cannot open MCAP file: {exc.strerror or exc}") from exc
         try:
@@ -438,6 +527,8 @@ class McapSource(Source):
     def _open(self, topic: str | None, signals: Sequence[str] | None, options: QualityOptions) -> None:
         magic = self._file.read(len(MCAP_MAGIC))
         if magic != MCAP_MAGIC:
+            if not magic:
+                raise LogFormatError(f"{self.path}: empty file (0 bytes), expected an MCAP file")
             raise LogFormatError(f"{self.path}: not an MCAP file: starts with {magic!r}, "
                                  f"expected the MCAP magic {MCAP_MAGIC!r}")
         self._summary: Summary | None = None
@@ -449,18 +540,26 @@ class McapSource(Source):
             self.report.problems.append(Problem(
                 self.path, "footer and summary", f"unreadable ({type(exc).__name__}: "
                 f"{exc or 'file ends early'}): writer killed or file cut; reading the file as a stream"))
+            self._summary = None
         else:
-            if self._summary is not None and self._summary.chunk_indexes:
-                self._reader = reader  # seek by chunk index; otherwise stream (CRC-checked too)
+            self._reader = reader
+        self._seek = self._summary is not None and bool(self._summary.chunk_indexes)
         self._schemas, self._channels_by_id = self._scan_channels()
         self._block_span_ns = self._layout_span()
-        by_topic = {c.topic: c for c in self._channels_by_id.values()}
+        self._by_topic = {c.topic: c for c in self._channels_by_id.values()}
         if topic is None:
-            topic = BLOCK_TOPIC if BLOCK_TOPIC in by_topic else SIGNALS_TOPIC
-        if topic not in by_topic:
+            topic = BLOCK_TOPIC if BLOCK_TOPIC in self._by_topic else SIGNALS_TOPIC
+        self._gate = QualityGate(self.report, options)
+        self._done = False
+        self._channel: Channel | None = None
+        self._is_block = False
+        self._signals: tuple[str, ...] = ()
+        if topic not in self._by_topic:
+            if self._any_topic:
+                return
             raise LogFormatError(f"{self.path}: no topic {topic!r} with rig samples; the file has "
-                                 f"{', '.join(sorted(by_topic)) or 'no channels'}")
-        self._channel = by_topic[topic]
+                                 f"{', '.join(sorted(self._by_topic)) or 'no channels'}")
+        self._channel = self._by_topic[topic]
         schema = self._schemas.get(self._channel.schema_id)
         self._is_block = schema is not None and schema.name == BLOCK_SCHEMA
         if self._channel.message_encoding != "json":
@@ -473,8 +572,6 @@ class McapSource(Source):
             have = tuple(signals)
         require_signals(self.path, have, options.required)
         self._signals = have
-        self._gate = QualityGate(self.report, options)
-        self._done = False
 
     def _rewound(self) -> IO[bytes]:
         self._file.seek(0)
@@ -483,29 +580,24 @@ class McapSource(Source):
     # -- channels --------------------------------------------------------------------------------
 
     def _scan_channels(self) -> tuple[dict[int, Schema], dict[int, Channel]]:
-        """Schemas and channels from the summary, or from the stream up to the first message."""
-        if self._summary is not None:
+        """Schemas and channels from the summary, or from the records (up to the first samples)."""
+        if self._summary is not None and self._summary.channels:
             return dict(self._summary.schemas), dict(self._summary.channels)
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        try:
-            for record in StreamReader(self._rewound(), record_size_limit=_RECORD_SIZE_LIMIT).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message) and channels:
-                    topics = {c.topic for c in channels.values()}
-                    if SIGNALS_TOPIC in topics or BLOCK_TOPIC in topics:
-                        break
-        except _DAMAGE:
-            pass  # reported when the messages are read
+        for record in self._walk(ReadReport(self.path)):
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and {c.topic for c in channels.values()} & {SIGNALS_TOPIC, BLOCK_TOPIC}:
+                break
         return schemas, channels
 
     def _layout_span(self) -> int:
         """Longest block in ns, from the ``fpdd.layout`` metadata (default 60 s)."""
         default = 60_000_000_000
-        if self._reader is None:
+        if self._reader is None or self._summary is None:
             return default
         try:
             for meta in self._reader.iter_metadata():
@@ -524,36 +616,51 @@ class McapSource(Source):
                 props = json.loads(schema.data).get("properties", {})
             except ValueError:
                 props = {}
-            names = tuple(k for k in props if k != "t")
+            names = tuple(k for k in props if k not in _TIME_FIELDS)
             if names:
                 return names
         for msg in self.messages([channel.topic]):
             if isinstance(msg.data, dict):
-                return tuple(k for k in msg.data if k != "t")
+                return tuple(k for k in msg.data if k not in _TIME_FIELDS)
             break
         raise LogFormatError(f"{self.path}: topic {channel.topic!r}: cannot tell its signals "
                              "(no 'signals' channel metadata, no JSON Schema properties, no message)")
 
-    def topics(self) -> list[TopicInfo]:
-        """Every channel of the file with its message count (counted by a scan when the summary is gone)."""
+    def topics(self, scan: bool = False) -> list[TopicInfo]:
+        """Every channel of the file with its message count.
+
+        Counts come from the summary; with ``scan`` (or when the summary is gone) every
+        message is read, which also gives each topic's first and last log time.
+        """
         counts: dict[int, int] = {}
-        if self._summary is not None and self._summary.statistics is not None:
-            counts = dict(self._summary.statistics.channel_message_counts)
-        else:
+        spans: dict[int, list[int]] = {}
+        if scan or self._summary is None or self._summary.statistics is None:
             probe = ReadReport(self.path)
-            for channel, _ in self._messages(None, None, None, probe):
+            for channel, msg in self._messages(None, None, None, probe):
+                if channel is None:
+                    continue
                 counts[channel.id] = counts.get(channel.id, 0) + 1
+                span = spans.setdefault(channel.id, [msg.log_time, msg.log_time])
+                span[0], span[1] = min(span[0], msg.log_time), max(span[1], msg.log_time)
+            for p in probe.problems:
+                if len(self.report.problems) < self.report.max_problems:
+                    self.report.problems.append(p)
+            for k, v in probe.skipped.items():
+                self.report.skipped[k] += v
+        else:
+            counts = dict(self._summary.statistics.channel_message_counts)
         out = []
         for cid, ch in sorted(self._channels_by_id.items()):
             schema = self._schemas.get(ch.schema_id)
             sig = ch.metadata.get("signals", "")
+            span = spans.get(cid, [None, None])
             out.append(TopicInfo(ch.topic, schema.name if schema else "", ch.message_encoding,
-                                 counts.get(cid, 0), tuple(s for s in sig.split(",") if s)))
+                                 counts.get(cid, 0), tuple(s for s in sig.split(",") if s), span[0], span[1]))
         return out
 
     def describe(self) -> dict:
         """Format-specific facts for ``replay info``: topics, schemas, message counts."""
-        return {"format": "mcap", "samples_topic": self._channel.topic,
+        return {"format": "mcap", "samples_topic": self._channel.topic if self._channel else None,
                 "summary": self._summary is not None,
                 "topics": [dataclasses.asdict(t) for t in self.topics()]}
 
@@ -568,7 +675,7 @@ class McapSource(Source):
 
     def chunks(self, size: int = 65536) -> Iterator[Samples]:
         """Blocks of at most ``size`` samples; the samples are read once (a second call yields none)."""
-        if self._done:
+        if self._done or self._channel is None:
             return
         self._done = True
         start, end = self._start_ns, self._end_ns
@@ -605,9 +712,12 @@ class McapSource(Source):
                  end_ns: int | None = None) -> Iterator[McapMessage]:
         """Decoded JSON messages of ``topics`` (all when None) in ``[start_ns, end_ns)``, time order.
 
-        A message that is not valid JSON is skipped and counted under ``bad_message``.
+        A message that is not valid JSON is skipped and counted under ``bad_message``;
+        a damaged chunk under ``damaged_chunk`` (the chunks after it are read).
         """
         for channel, msg in self._messages(topics, start_ns, end_ns, self.report):
+            if channel is None:
+                continue
             try:
                 data = json.loads(msg.data)
             except ValueError as exc:
@@ -619,62 +729,278 @@ class McapSource(Source):
     # -- record iteration with recovery ------------------------------------------------------------
 
     def _messages(self, topics: Sequence[str] | None, start_ns: int | None, end_ns: int | None,
-                  report: ReadReport) -> Iterator[tuple[Channel, Message]]:
-        """(channel, message) pairs; stops at the first damaged record and reports what was kept."""
-        wanted = None if topics is None else set(topics)
+                  report: ReadReport) -> Iterator[tuple[Channel | None, Any]]:
+        """(channel, message) pairs in log-time order; ``(None, _Lost)`` where a chunk is damaged.
+
+        With a chunk index every chunk is read on its own (a damaged one costs only
+        itself); without one the records are walked in file order and the walk
+        resynchronises at the next intact chunk after damage.
+        """
+        wanted = None if topics is None else {cid for cid, c in self._channels_by_id.items() if c.topic in topics}
+        if wanted is not None and not wanted:
+            return
+        if self._seek:
+            yield from self._seek_messages(wanted, start_ns, end_ns, report)
+            return
+        channels: dict[int, Channel] = dict(self._channels_by_id)
+        for record in self._walk(report, wanted=wanted):
+            if isinstance(record, _Lost):
+                yield None, record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    report.skip("bad_message", f"message at {record.log_time} ns",
+                                f"channel id {record.channel_id} was never declared")
+                    continue
+                if wanted is not None and record.channel_id not in wanted:
+                    continue
+                if (start_ns is not None and record.log_time < start_ns) or \
+                        (end_ns is not None and record.log_time >= end_ns):
+                    continue
+                yield channel, record
+
+    def _seek_messages(self, wanted: set[int] | None, start_ns: int | None, end_ns: int | None,
+                       report: ReadReport) -> Iterator[tuple[Channel | None, Any]]:
+        assert self._summary is not None
+        idxs = []
+        for ci in self._summary.chunk_indexes:
+            if start_ns is not None and ci.message_end_time < start_ns:
+                continue
+            if end_ns is not None and ci.message_start_time >= end_ns:
+                continue
+            if wanted is not None and ci.message_index_offsets and not (wanted & ci.message_index_offsets.keys()):
+                continue
+            idxs.append(ci)
+        idxs.sort(key=lambda c: (c.message_start_time, c.chunk_start_offset))
+        order = {id(ci): k for k, ci in enumerate(sorted(self._summary.chunk_indexes,
+                                                          key=lambda c: c.chunk_start_offset))}
+        channels = self._channels_by_id
+        heap: list[tuple[int, int, int, Message]] = []
+        seq = 0
+        for k, ci in enumerate(idxs):
+            while heap and heap[0][0] < ci.message_start_time:
+                item = heapq.heappop(heap)
+                yield channels[item[3].channel_id], item[3]
+            try:
+                records = self._read_chunk(ci)
+            except _DAMAGE as exc:
+                yield None, self._lost_chunk(ci, order[id(ci)], exc, wanted, report)
+                continue
+            msgs = [r for r in records if isinstance(r, Message)
+                    and (wanted is None or r.channel_id in wanted) and r.channel_id in channels
+                    and (start_ns is None or r.log_time >= start_ns) and (end_ns is None or r.log_time < end_ns)]
+            if not msgs:
+                continue
+            msgs.sort(key=lambda m: m.log_time)
+            nxt = idxs[k + 1].message_start_time if k + 1 < len(idxs) else None
+            if not heap and (nxt is None or msgs[-1].log_time <= nxt):
+                for m in msgs:
+                    yield channels[m.channel_id], m
+                continue
+            for m in msgs:
+                heapq.heappush(heap, (m.log_time, ci.chunk_start_offset, seq, m))
+                seq += 1
+        while heap:
+            item = heapq.heappop(heap)
+            yield channels[item[3].channel_id], item[3]
+
+    def _read_chunk(self, ci) -> list:
+        """The records of the chunk ``ci`` points at, CRC-checked; raises one of ``_DAMAGE``."""
+        f = self._file
+        f.seek(ci.chunk_start_offset)
+        head = f.read(9)
+        if len(head) < 9:
+            raise EOFError(f"the file ends before the chunk at byte {ci.chunk_start_offset}")
+        length = int.from_bytes(head[1:], "little")
+        if head[0] != Opcode.CHUNK or length != ci.chunk_length - 9:
+            raise McapError(f"no chunk record at byte {ci.chunk_start_offset} (opcode 0x{head[0]:02x}, "
+                            f"length {length}; the index says a chunk of {ci.chunk_length - 9} bytes)")
+        body = f.read(length)
+        if len(body) < length:
+            raise EOFError(f"the file ends inside the chunk at byte {ci.chunk_start_offset}")
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+        return breakup_chunk(chunk, validate_crc=True)
+
+    def _count_indexed(self, ci, wanted: set[int] | None) -> int | None:
+        """Messages of ``wanted`` channels in chunk ``ci``, from its message index records."""
+        total = 0
+        try:
+            for cid, off in ci.message_index_offsets.items():
+                if wanted is not None and cid not in wanted:
+                    continue
+                self._file.seek(off)
+                head = self._file.read(9)
+                if len(head) < 9 or head[0] != Opcode.MESSAGE_INDEX:
+                    return None
+                body = self._file.read(int.from_bytes(head[1:], "little"))
+                total += len(MessageIndex.read(ReadDataStream(io.BytesIO(body))).records)
+        except _DAMAGE:
+            return None
+        return total if ci.message_index_offsets else None
+
+    def _lost_chunk(self, ci, number: int, exc: BaseException, wanted: set[int] | None,
+                    report: ReadReport) -> _Lost:
+        n = self._count_indexed(ci, wanted)
+        names = sorted({self._channels_by_id[c].topic for c in ci.message_index_offsets
+                        if c in self._channels_by_id and (wanted is None or c in wanted)})
+        report.skip("damaged_chunk", f"chunk {number} at bytes {ci.chunk_start_offset}.."
+                    f"{ci.chunk_start_offset + ci.chunk_length} (t={ci.message_start_time * 1e-9:.6f}.."
+                    f"{ci.message_end_time * 1e-9:.6f} s)",
+                    f"{type(exc).__name__}: {exc or 'damaged'}; "
+                    + (f"its {n} message(s)" if n is not None else "its messages")
+                    + (f" of {', '.join(names)}" if names else "") + " are lost, the chunks after it are read")
+        return _Lost(ci.message_start_time, ci.message_end_time, n)
+
+    def _walk(self, report: ReadReport, wanted: set[int] | None = None) -> Iterator[Any]:
+        """Every record in file order (chunks broken up), without the index.
+
+        A damaged record is reported (``damaged_chunk`` with its byte offset, a ``_Lost``
+        marker in the stream) and the walk resynchronises at the next chunk whose CRC
+        checks; a file cut short sets ``report.truncated`` after what was readable.
+        """
+        f = self._file
+        size = self._size
+        pos = len(MCAP_MAGIC)
         count = 0
         last_t: int | None = None
-        try:
-            if self._reader is not None:
-                for _schema, channel, msg in self._reader.iter_messages(
-                        topics=list(wanted) if wanted is not None else None,
-                        starting_at=start_ns, ending_before=end_ns, log_time_order=True):
-                    count += 1
-                    last_t = msg.log_time
-                    yield channel, msg
+        while pos + 9 <= size:
+            f.seek(pos)
+            head = f.read(9)
+            op, length = head[0], int.from_bytes(head[1:], "little")
+            if op not in _OPCODES or length > _RECORD_SIZE_LIMIT:
+                err: BaseException = McapError(f"no valid record at byte {pos} (opcode 0x{op:02x}, length {length})")
+            elif pos + 9 + length > size:
+                report.truncated = True
+                report.skip("damaged_record", f"record at byte {pos} of {size}",
+                            f"{Opcode(op).name if op in _OPCODES else op} record of {length} bytes is cut by the "
+                            f"end of the file (writer killed or file cut); everything before it is kept: "
+                            f"recovered {count} message(s)"
+                            + (f", up to t = {last_t * 1e-9:.6f} s" if last_t is not None else ""))
+                yield _Lost(None, None, None)
+                return
             else:
-                channels: dict[int, Channel] = {}
-                for record in StreamReader(self._rewound(), validate_crcs=True,
-                                           record_size_limit=_RECORD_SIZE_LIMIT).records:
-                    if isinstance(record, Channel):
-                        channels[record.id] = record
-                    elif isinstance(record, Message):
-                        channel = channels.get(record.channel_id)
-                        if channel is None:
-                            report.skip("bad_message", f"message at {record.log_time} ns",
-                                        f"channel id {record.channel_id} was never declared")
-                            continue
-                        if wanted is not None and channel.topic not in wanted:
-                            continue
-                        if (start_ns is not None and record.log_time < start_ns) or \
-                                (end_ns is not None and record.log_time >= end_ns):
-                            continue
-                        count += 1
-                        last_t = record.log_time
-                        yield channel, record
-        except _DAMAGE as exc:
-            report.truncated = True
-            offset = self._file.tell() if not self._file.closed else -1
-            expected = self._expected_count(wanted)
-            how_much = (f"recovered {count} message(s)"
-                        + (f" of {expected} listed in the summary" if expected else "")
-                        + (f", up to t = {last_t * 1e-9:.6f} s" if last_t is not None else ""))
-            what = str(exc) or "the file ends inside a record"
-            report.skip("damaged_record", f"record ending near byte {offset} of {self._size}",
-                        f"{type(exc).__name__}: {what}; {how_much}; the rest of the file is not read")
+                body = f.read(length)
+                try:
+                    records = self._parse_record(op, length, body)
+                except _DAMAGE as exc:
+                    err = exc
+                else:
+                    if records is None:
+                        return  # data end / footer
+                    for r in records:
+                        if isinstance(r, Message) and (wanted is None or r.channel_id in wanted):
+                            count += 1
+                            last_t = r.log_time
+                        yield r
+                    pos += 9 + length
+                    continue
+            nxt = self._next_chunk(pos + 1)
+            report.skip("damaged_chunk", f"record at byte {pos} of {size}",
+                        f"{type(err).__name__}: {err or 'damaged'}; "
+                        + (f"{nxt - pos} bytes skipped to the next intact chunk at byte {nxt}" if nxt is not None
+                           else "no intact chunk after it: the rest of the file is not read"))
+            yield _Lost(None, None, None)
+            if nxt is None:
+                report.truncated = True
+                return
+            pos = nxt
+        report.truncated = True
+        report.problems.append(Problem(self.path, f"end of file at byte {size}",
+                                       "no data-end and footer records (writer killed or file cut); "
+                                       f"everything before is kept: {count} message(s)"
+                                       + (f", up to t = {last_t * 1e-9:.6f} s" if last_t is not None else "")))
 
-    def _expected_count(self, wanted: set[str] | None) -> int | None:
-        if self._summary is None or self._summary.statistics is None:
+    @staticmethod
+    def _parse_record(op: int, length: int, body: bytes) -> list | None:
+        stream = ReadDataStream(io.BytesIO(body))
+        if op == Opcode.CHUNK:
+            return breakup_chunk(Chunk.read(stream), validate_crc=True)
+        if op == Opcode.MESSAGE:
+            return [Message.read(stream, length)]
+        if op == Opcode.CHANNEL:
+            return [Channel.read(stream)]
+        if op == Opcode.SCHEMA:
+            return [Schema.read(stream)]
+        if op in (Opcode.DATA_END, Opcode.FOOTER):
             return None
-        counts = self._summary.statistics.channel_message_counts
-        return sum(n for cid, n in counts.items()
-                   if cid in self._channels_by_id and (wanted is None or self._channels_by_id[cid].topic in wanted))
+        return []
+
+    def _next_chunk(self, start: int) -> int | None:
+        """Byte offset of the next chunk record at or after ``start`` whose CRC checks, or None."""
+        f = self._file
+        size = self._size
+        f.seek(0)
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+        try:
+            pos = start
+            while True:
+                pos = data.find(b"\x06", pos)
+                if pos < 0 or pos + 9 > size:
+                    return None
+                length = int.from_bytes(data[pos + 1:pos + 9], "little")
+                if 40 <= length <= size - pos - 9:
+                    try:
+                        self._parse_record(Opcode.CHUNK, length, data[pos + 9:pos + 9 + length])
+                        return pos
+                    except _DAMAGE:
+                        pass
+                pos += 1
+        finally:
+            if size:
+                data.close()
 
     # -- decoding ----------------------------------------------------------------------------------
 
-    def _decode_blocks(self, messages: Iterator[tuple[Channel, Message]]) -> Iterator[tuple[Samples, np.ndarray]]:
+    def _lost_samples(self, n_messages: int | None, hole: tuple[int, int | None], step: int | None,
+                      typical_n: int | None) -> int:
+        a, b = hole
+        if b is not None and step:
+            return max(0, int(round((b - a) / step)))
+        if n_messages is not None and typical_n:
+            return n_messages * typical_n
+        return 0
+
+    def _recover(self, a: int, b: int | None) -> Iterator[tuple[Samples, np.ndarray]]:
+        """Samples in ``[a, b)`` from the per-sample topic, for a damaged block chunk."""
+        if SIGNALS_TOPIC not in self._by_topic or self._channel is None or self._channel.topic != BLOCK_TOPIC:
+            return
+        missing = [s for s in self._signals
+                   if s not in self._channel_signals(self._by_topic[SIGNALS_TOPIC], None)]
+        if missing:
+            return
+        yield from self._decode_rows(self._messages([SIGNALS_TOPIC], a, b, self.report), topic=SIGNALS_TOPIC)
+
+    def _decode_blocks(self, messages: Iterator[tuple[Channel | None, Any]]) -> Iterator[tuple[Samples, np.ndarray]]:
         index = 0
+        hole: int | None = None  # start of samples lost with a damaged block chunk
+        hole_msgs: int | None = 0
+        step: int | None = None
+        typical_n: int | None = None
+
+        def fill(until: int | None) -> Iterator[tuple[Samples, np.ndarray]]:
+            got = 0
+            for block, labels in self._recover(hole, until):
+                got += len(block)
+                yield block, labels
+            lost = self._lost_samples(hole_msgs, (hole, until), step, typical_n)
+            self.report.samples_lost += max(0, lost - got)
+            if got and len(self.report.problems) < self.report.max_problems:
+                self.report.problems.append(Problem(
+                    self.path, f"t={hole * 1e-9:.6f} s" + (f"..{until * 1e-9:.6f} s" if until is not None else ".."),
+                    f"{got} sample(s) of the damaged {BLOCK_TOPIC} chunk recovered from {SIGNALS_TOPIC}"))
+
         for channel, msg in messages:
+            if channel is None:
+                if msg.t_start is not None and hole is None:
+                    hole, hole_msgs = msg.t_start, msg.messages
+                elif msg.t_start is not None:
+                    hole_msgs = None if hole_msgs is None or msg.messages is None else hole_msgs + msg.messages
+                continue
+            if hole is not None:
+                yield from fill(msg.log_time)
+                hole = None
             self.report.records_read += 1
             index += 1
             try:
@@ -691,26 +1017,37 @@ class McapSource(Source):
                 self.report.skip("bad_message", f"topic {channel.topic!r} message {index} at {msg.log_time} ns",
                                  f"not a {BLOCK_SCHEMA} block ({type(exc).__name__}: {exc})")
                 continue
+            if n > 1:
+                step = int(np.median(np.diff(t[:64])))
+            typical_n = n
             labels = np.full(n, index, dtype=np.int64)
             yield Samples(t.astype(np.int64), {k: v.astype(np.float64) for k, v in cols.items()}), labels
+        if hole is not None:
+            yield from fill(self._end_ns)
 
-    def _decode_rows(self, messages: Iterator[tuple[Channel, Message]],
-                     batch: int = 16384) -> Iterator[tuple[Samples, np.ndarray]]:
+    def _decode_rows(self, messages: Iterator[tuple[Channel | None, Any]], batch: int = 16384,
+                     topic: str | None = None) -> Iterator[tuple[Samples, np.ndarray]]:
         datas: list[bytes] = []
         times: list[int] = []
         first = 1
-        for _channel, msg in messages:
+        for channel, msg in messages:
+            if channel is None:
+                if msg.messages:
+                    self.report.samples_lost += msg.messages
+                continue
             datas.append(msg.data)
             times.append(msg.log_time)
             if len(datas) >= batch:
-                yield self._rows_to_samples(datas, times, first)
+                yield self._rows_to_samples(datas, times, first, topic)
                 first += len(datas)
                 datas, times = [], []
         if datas:
-            yield self._rows_to_samples(datas, times, first)
+            yield self._rows_to_samples(datas, times, first, topic)
 
-    def _rows_to_samples(self, datas: list[bytes], times: list[int], first: int) -> tuple[Samples, np.ndarray]:
+    def _rows_to_samples(self, datas: list[bytes], times: list[int], first: int,
+                         topic: str | None = None) -> tuple[Samples, np.ndarray]:
         """Decode a batch of per-sample JSON messages in one ``json.loads``."""
+        topic = topic or (self._channel.topic if self._channel else "")
         self.report.records_read += len(datas)
         labels = np.arange(first, first + len(datas))
         try:
@@ -726,7 +1063,7 @@ class McapSource(Source):
                 row = json.loads(data)
                 values.append([math.nan if row.get(k) is None else float(row[k]) for k in self._signals])
             except (ValueError, TypeError, AttributeError) as exc:
-                self.report.skip("bad_message", f"topic {self._channel.topic!r} message {first + i} "
+                self.report.skip("bad_message", f"topic {topic!r} message {first + i} "
                                  f"at {times[i]} ns", f"not a JSON object of numbers ({exc})")
                 continue
             keep.append(i)
@@ -735,6 +1072,21 @@ class McapSource(Source):
         return Samples(t, {k: arr[:, j] for j, k in enumerate(self._signals)}), labels[keep]
 
 
+def inspect(path: str | os.PathLike) -> dict:
+    """What an MCAP file holds, whether or not it has rig samples: every topic with its
+    schema, message count and first/last log time (ns), and the read report (damage)."""
+    with McapSource(path, any_topic=True) as src:
+        topics = src.topics(scan=True)
+        t0 = [t.t_first_ns for t in topics if t.t_first_ns is not None]
+        t1 = [t.t_last_ns for t in topics if t.t_last_ns is not None]
+        return {"format": "mcap", "file": str(path), "samples_topic": src._channel.topic if src._channel else None,
+                "summary": src._summary is not None, "topics": [dataclasses.asdict(t) for t in topics],
+                "messages": sum(t.messages or 0 for t in topics),
+                "t_first_ns": min(t0) if t0 else None, "t_last_ns": max(t1) if t1 else None,
+                "report": src.report.to_dict(), "lossy": src.report.lossy,
+                "loss_line": src.report.loss_line()}
+
+
 __all__ = ["McapSink", "McapSource", "McapMessage", "TopicInfo", "SIGNALS_TOPIC", "BLOCK_TOPIC",
            "SIGNALS_SCHEMA", "BLOCK_SCHEMA", "LAYOUT_METADATA", "signals_schema", "block_schema",
-           "encode_json"]
+           "encode_json", "inspect"]

@@ -12,11 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk, Metadata
+from mcap.stream_reader import StreamReader
 
 from replay.base import Samples
 from replay.csvio import CsvSink, CsvSource
 from replay.factory import open_sink, open_source
-from replay.mcapio import (BLOCK_SCHEMA, BLOCK_TOPIC, SIGNALS_SCHEMA, SIGNALS_TOPIC, McapSink, McapSource)
+from replay.mcapio import (BLOCK_SCHEMA, BLOCK_TOPIC, LAYOUT_METADATA, SIGNALS_SCHEMA, SIGNALS_TOPIC, McapSink,
+                           McapSource)
 from roundtrip_base import DATA, RoundTripBase
 from twin.errors import DataError, LogFormatError, SourceError
 
@@ -183,12 +186,13 @@ def test_mcap_layout_is_what_foxglove_plots(tmp_path: Path) -> None:
             assert (ch.message_encoding, schema.encoding, schema.name) == ("json", "jsonschema", schema_name)
             assert ch.metadata["signals"] == "x,pA" and ch.metadata["units"] == "m,Pa"
         props = json.loads(summary.schemas[topics[SIGNALS_TOPIC].schema_id].data)["properties"]
-        assert set(props) == {"t", "x", "pA"}
+        assert set(props) == {"t", "timestamp", "x", "pA"} and props["timestamp"]["title"] == "time"
         counts = summary.statistics.channel_message_counts
         assert counts[topics[SIGNALS_TOPIC].id] == 1500 and counts[topics[BLOCK_TOPIC].id] == 2
         _, _, msg = next(reader.iter_messages(topics=[SIGNALS_TOPIC]))
         first = json.loads(msg.data)
-        assert set(first) == {"t", "x", "pA"} and first["t"] == msg.log_time * 1e-9
+        assert set(first) == {"t", "timestamp", "x", "pA"} and first["t"] == msg.log_time * 1e-9
+        assert first["timestamp"]["sec"] * 10**9 + first["timestamp"]["nsec"] == msg.log_time
         # each flush is its own chunks: block chunks hold no per-sample messages
         block_chunks = [ci for ci in summary.chunk_indexes if topics[BLOCK_TOPIC].id in ci.message_index_offsets]
         assert block_chunks and all(len(ci.message_index_offsets) == 1 for ci in block_chunks)
@@ -218,11 +222,34 @@ def test_mcap_generic_messages(tmp_path: Path) -> None:
         topics = {t.topic: t for t in src.topics()}
     assert [(m.topic, m.t_ns) for m in msgs] == [("/twin/estimate", 1_000), ("/twin/alarm", 2_000),
                                                  ("/twin/estimate", 3_000)]
-    assert msgs[0].data == {"theta": [1.0, 2.0], "nis": 0.5}
-    assert msgs[1].data == {"level": "warn", "score": None}
+    assert msgs[0].data == {"theta": [1.0, 2.0], "nis": 0.5, "timestamp": {"sec": 0, "nsec": 1_000}}
+    assert msgs[1].data == {"level": "warn", "score": None, "timestamp": {"sec": 0, "nsec": 2_000}}
     assert topics["/twin/estimate"].schema == "fpdd.twin.estimate" and topics["/twin/estimate"].messages == 2
     with open(path, "rb") as f:
-        assert len(make_reader(f).get_summary().schemas) == 4  # registered once per topic
+        summary = make_reader(f).get_summary()
+    assert len(summary.schemas) == 4  # registered once per topic
+    for schema in summary.schemas.values():  # every schema declares the Foxglove time
+        assert json.loads(schema.data)["properties"]["timestamp"]["required"] == ["sec", "nsec"]
+
+
+def test_mcap_twin_output_chunks_hold_about_a_second_and_no_layout(tmp_path: Path) -> None:
+    """A messages-only file (a twin output): one chunk per second of message time, not per
+    message; no fpdd.layout metadata naming sample topics it does not have; t_ns beyond 2**53
+    travels exactly as timestamp {sec, nsec}."""
+    path = tmp_path / "rig.twin.mcap"
+    t0 = 1_700_000_000_123_456_789
+    with McapSink(path) as sink:
+        for i in range(607):
+            sink.write_message("/twin/estimate", t0 + i * 20_000_000, {"t_ns": t0 + i * 20_000_000, "v": 1.0})
+    with open(path, "rb") as f:
+        records = list(StreamReader(f, emit_chunks=True).records)
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    assert 11 <= len(chunks) <= 14, len(chunks)  # 12.1 s of messages
+    assert not [r for r in records if isinstance(r, Metadata) and r.name == LAYOUT_METADATA]
+    with McapSource(path, any_topic=True) as src:
+        last = list(src.messages())[-1]
+    assert last.data["timestamp"] == {"sec": (t0 + 606 * 20_000_000) // 10**9,
+                                      "nsec": (t0 + 606 * 20_000_000) % 10**9}
 
 
 def test_mcap_truncated_keeps_the_readable_prefix(tmp_path: Path) -> None:
@@ -239,13 +266,17 @@ def test_mcap_truncated_keeps_the_readable_prefix(tmp_path: Path) -> None:
     assert 2000 <= len(got) < 5000
     assert np.array_equal(got.t_ns, np.arange(len(got)) * 1_000_000)  # a prefix, nothing invented
     text = "\n".join(map(str, report.problems))
-    assert "reading the file as a stream" in text and f"recovered {len(got) // 1000} message(s)" in text
+    assert "reading the file as a stream" in text and f"recovered {len(got) // 1000} message(s)" in text, text
 
 
-def test_mcap_corrupt_chunk_is_detected_by_crc(tmp_path: Path) -> None:
+@pytest.mark.parametrize("per_sample", [True, False])
+def test_mcap_corrupt_chunk_costs_only_itself(tmp_path: Path, per_sample: bool) -> None:
+    """One flipped bit in the third block chunk: the CRC finds it, the chunks after it are read,
+    and the block's samples come back from /rig/signals when the file has that topic."""
     path = tmp_path / "crc.mcap"
-    with McapSink(path, compression="none") as sink:
-        sink.write(_rig(5000))
+    ref = _rig(5000)
+    with McapSink(path, compression="none", per_sample=per_sample) as sink:
+        sink.write(ref)
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     block_id = next(c.id for c in summary.channels.values() if c.topic == BLOCK_TOPIC)
@@ -256,9 +287,18 @@ def test_mcap_corrupt_chunk_is_detected_by_crc(tmp_path: Path) -> None:
     with McapSource(path) as src:
         got = src.read_all()
         report = src.report
-    assert len(got) == 2000 and report.truncated
-    assert any("crc validation failed" in str(p) and "recovered 2 message(s) of 5" in str(p)
-               for p in report.problems)
+    assert report.skipped["damaged_chunk"] == 1 and not report.truncated and report.lossy
+    text = "\n".join(map(str, report.problems))
+    assert "crc validation failed" in text and "its 1 message(s) of /rig/signals_block are lost" in text, text
+    if per_sample:
+        assert len(got) == 5000 and report.samples_lost == 0
+        np.testing.assert_array_equal(got.t_ns, ref.t_ns)
+        np.testing.assert_array_equal(got["x"], ref["x"])
+        assert "1000 sample(s) of the damaged /rig/signals_block chunk recovered from /rig/signals" in text
+    else:
+        assert len(got) == 4000 and report.samples_lost == 1000
+        keep = (ref.t_ns < 2_000_000_000) | (ref.t_ns >= 3_000_000_000)
+        np.testing.assert_array_equal(got.t_ns, ref.t_ns[keep])
 
 
 def test_mcap_killed_writer_loses_at_most_one_second(tmp_path: Path) -> None:
