@@ -145,10 +145,50 @@ def _lazy(module: str, add: str, run: str):
     return getattr(mod, add), getattr(mod, run)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fpdd-twin")
+    except PackageNotFoundError:  # running from a source tree that was not installed
+        from twin import __version__
+
+        return __version__
+
+
+def _common() -> argparse.ArgumentParser:
+    """Flags every subcommand accepts too (before or after its name)."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                        help="no progress messages on stderr")
+    return common
+
+
+def jit_note(command: str) -> str | None:
+    """A line to show before the first run compiles the models (numba caches them for later runs)."""
+    import glob
+    import os
+
+    if command in ("params", "alarms"):
+        return None
+    here = os.path.join(os.path.dirname(__file__), "models", "__pycache__")
+    if glob.glob(os.path.join(here, "msp25.*.nbi")):
+        return None
+    return ("twin: first run: compiling the models (about a minute, once; later runs load them from the "
+            "cache)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="twin", description=__doc__.split("\n")[0])
-    ap.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
+    common = _common()
+    ap = argparse.ArgumentParser(prog="twin", description=__doc__.split("\n")[0], parents=[common])
+    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add = sub.add_parser
+
+    def add_parser(name, **kw):
+        return _add(name, parents=[common], **kw)
+
+    sub.add_parser = add_parser  # type: ignore[method-assign]
 
     p = sub.add_parser("params", help="list a model's parameters, units, bounds and effects")
     p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
@@ -226,6 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if not hasattr(args, "quiet"):
+        args.quiet = False
+    note = None if args.quiet else jit_note(args.command)
+    if note:
+        print(note, file=sys.stderr, flush=True)
     try:
         return int(args.func(args) or 0)
     except TwinError as exc:
@@ -233,6 +278,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader went away (``twin params | head``): not an error of ours
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
