@@ -376,10 +376,10 @@ def simulate_msp25(spec: dict) -> Record:
     ctrl = spec["controller"]
     held = spec["intersample"] in ("zoh", "foh")
     if ctrl == "digital" or held:
-        states, u_log, xm_log = _run_ticks(s, y0, j_pre)
+        states, u_log, xm_log, xclean = _run_ticks(s, y0, j_pre)
     else:
-        states, u_log, xm_log = _run_smooth(s, y0, t_first)
-    return _record(s, states, u_log, xm_log, how, time.perf_counter() - t_start)
+        states, u_log, xm_log, xclean = _run_smooth(s, y0, t_first)
+    return _record(s, states, u_log, xm_log, xclean, how, time.perf_counter() - t_start)
 
 
 def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
@@ -392,6 +392,7 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
     states = np.empty((s.n_log, R.NS))
     u_log = np.empty(s.n_log)
     xm_log = np.empty(s.n_log)
+    xclean = np.empty(s.n_log)
     digital = spec["controller"] == "digital"
     open_loop = spec["controller"] == "open_loop"
     kn = spec["known"]
@@ -409,13 +410,18 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
     if delay > 0.0:
         jr = np.array([j for j in range(-j_pre, j_end + 1) if j % C == 0 or (j >= 0 and j % L == 0)])
         t_read = jr * hb - delay
+        on_grid = np.round(t_read / hb)
+        snap = np.abs(t_read / hb - on_grid) < 1e-9  # a read on a piece boundary comes from its end state
+        t_read[snap] = on_grid[snap] * hb
         x_read = np.full(jr.size, x_first)
         read_of = {int(j): i for i, j in enumerate(jr)}
 
-    def measure(j: int, t: float, y_now: np.ndarray) -> float:
+    def measure(j: int, t: float, y_now: np.ndarray) -> tuple[float, float]:
+        """(reading, noise-free sensor output) at base instant j."""
         xt = x_read[read_of[j]] if delay > 0.0 else y_now[R.S_X]
-        xm = P[R.GAIN] * xt + (s.xnoise[j] if j >= 0 else 0.0)
-        return float(quantise(np.array(xm), qx))
+        clean = P[R.GAIN] * xt
+        xm = clean + (s.xnoise[j] if j >= 0 else 0.0)
+        return float(quantise(np.array(xm), qx)), clean
 
     held_demand = spec["intersample"] in ("zoh", "foh")
     opts = dict(s.opts, max_step=min(s.max_step, hb))
@@ -424,7 +430,7 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
         k, on_log = divmod(j, L) if j >= 0 else (-1, 1)
         xm = None
         if digital and j % C == 0:
-            xm = measure(j, t, y)
+            xm, clean = measure(j, t, y)
             r = sig_eval(s.sigp, s.sc, t, j // L if (j >= 0 and held_demand) else -1)
             e = r - xm
             integ += e * Tc
@@ -439,9 +445,9 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
             states[k] = y
             u_log[k] = P[R.UHELD] if (digital or P[R.MODE] == R.M_HELD) else s.u_now(t, y)
             if digital:
-                xm_log[k] = xm if xm is not None else measure(j, t, y)
+                xm_log[k], xclean[k] = (xm, clean) if xm is not None else measure(j, t, y)
             else:
-                xm_log[k] = R.measured_nonoise(y, P)  # noise added in _record
+                xm_log[k] = xclean[k] = R.measured_nonoise(y, P)  # noise added in _record
         if j == j_end:
             break
         tb = (j + 1) * hb
@@ -454,7 +460,7 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
         else:
             ys = s.piece(t, tb, y, np.array([tb]), opts)
         y = ys[-1].copy()
-    return states, u_log, xm_log
+    return states, u_log, xm_log, xclean
 
 
 def _run_smooth(s: _Setup, y: np.ndarray, t_first: float):
@@ -486,10 +492,10 @@ def _run_smooth(s: _Setup, y: np.ndarray, t_first: float):
         raise RuntimeError(f"smooth run logged {filled} of {s.n_log} samples")
     u_log = np.array([s.u_now(t, states[i]) for i, t in enumerate(tk)])
     xm_log = np.array([R.measured_nonoise(states[i], s.P) for i in range(s.n_log)])
-    return states, u_log, xm_log
+    return states, u_log, xm_log, xm_log.copy()
 
 
-def _record(s: _Setup, states, u_log, xm_log, how: str, elapsed: float) -> Record:
+def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) -> Record:
     spec = s.spec
     nz = spec["noise"]
     tk = np.arange(s.n_log) * s.dt_log
@@ -516,7 +522,7 @@ def _record(s: _Setup, states, u_log, xm_log, how: str, elapsed: float) -> Recor
         signals = {"x_ref": s.x_ref.copy(), "u": u_log}
     signals.update({"x": x, "pA": pA, "pB": pB})
     hidden = {"x": states[:, R.S_X].copy(), "v": states[:, R.S_V].copy(), "pA": states[:, R.S_PA].copy(),
-              "pB": states[:, R.S_PB].copy(), "xs": states[:, R.S_XS].copy(), "x_sensor": xm_log.copy()}
+              "pB": states[:, R.S_PB].copy(), "xs": states[:, R.S_XS].copy(), "x_sensor": xclean}
     for i, name in enumerate(R.FREE_ORDER):
         if name in spec["time_varying"]:
             hidden[name] = np.array([tv_eval(s.tv, s.tab, i, t) for t in tk])
@@ -544,3 +550,16 @@ def _describe(d: Any) -> Any:
     if isinstance(d, list) and len(d) > 16:
         return f"list[{len(d)}]"
     return d
+
+
+def replay_spec(spec: dict, record: Record, intersample: str = "zoh", noise=None) -> dict:
+    """An open-loop spec driving the rig of ``spec`` by ``record``'s logged u (with ``intersample``),
+    from the record's initial state, without pre-roll."""
+    return msp25_spec(spec["seed"], duration=spec["duration"], log_rate_hz=spec["log_rate_hz"],
+                      controller="open_loop", intersample=intersample,
+                      drive={"u": record.signals["u"], "x_ref": record.signals["x_ref"]},
+                      truth=spec["truth"], time_varying=spec["time_varying"], known=spec["known"],
+                      Fext=spec["Fext"], effects=spec["effects"], noise=noise, preroll=0.0,
+                      init=record.meta["state0"], rtol=spec["solver"]["rtol"],
+                      atol_scale=spec["solver"]["atol_scale"], max_step=spec["solver"]["max_step"],
+                      method=spec["solver"]["method"], driver=spec["solver"]["driver"])
