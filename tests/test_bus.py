@@ -31,9 +31,10 @@ from twin.bus import (
     run_alarms_cli,
     zenoh_config,
 )
-from twin.errors import ConfigError, DataError
+from twin.errors import ConfigError, DataError, SourceError
 from twin.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.journal import AlarmJournal
+from twin.store import Store
 from twin.demo import free_port
 from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
@@ -65,7 +66,7 @@ def connected(endpoint: str) -> Iterator[zenoh.Session]:
 
 @pytest.fixture
 def journal(tmp_path: Path) -> Iterator[AlarmJournal]:
-    with AlarmJournal(tmp_path / "alarms.jsonl") as j:
+    with AlarmJournal(tmp_path / "alarms.db") as j:
         yield j
 
 
@@ -97,8 +98,26 @@ def test_zenoh_config_has_explicit_endpoints() -> None:
         zenoh_config(mode="client", listen=["tcp/127.0.0.1:7447"])
     with pytest.raises(ConfigError, match="mode: 'server'"):
         zenoh_config(mode="server")
-    with pytest.raises(ConfigError, match="invalid Zenoh configuration"):
+    with pytest.raises(ConfigError, match=r"connect: 'nonsense' is not an endpoint \(expected PROTOCOL/HOST:PORT"):
         zenoh_config(connect=["nonsense"])
+    with pytest.raises(ConfigError, match=r"listen: 'tcp/127.0.0.1:99999': port '99999' is not in 0..65535"):
+        zenoh_config(listen=["tcp/127.0.0.1:99999"])
+
+
+def test_a_zenoh_file_is_overridden_only_by_what_is_given(tmp_path: Path) -> None:
+    file = tmp_path / "client.json5"
+    file.write_text('{mode: "client", connect: {endpoints: ["tcp/10.1.2.3:7447"]}, '
+                    'scouting: {multicast: {enabled: false}}}')
+    config = zenoh_config(config_file=file)  # no defaults forced on the file
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.1.2.3:7447"]
+    config = zenoh_config("peer", connect=["tcp/127.0.0.1:7447"], config_file=file)
+    assert json.loads(config.get_json("mode")) == "peer"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    with pytest.raises(ConfigError, match="a client cannot listen"):
+        zenoh_config(listen=["tcp/127.0.0.1:7447"], config_file=file)
+    with pytest.raises(ConfigError, match=r"missing\.json5: cannot read the Zenoh configuration: does not exist"):
+        zenoh_config(config_file=tmp_path / "missing.json5")
 
 
 def test_key_space() -> None:
@@ -139,8 +158,8 @@ def test_alarm_is_journaled_before_it_is_published(
 
     def check(sample: zenoh.Sample) -> None:
         seq = json.loads(sample.payload.to_string())["seq"]
-        lines = journal.path.read_text(encoding="utf-8").splitlines()
-        on_disk.put(any(json.loads(line)["seq"] == seq for line in lines))
+        with Store(journal.path, writer=False) as reader:  # what another process sees in the file
+            on_disk.put(any(e.seq == seq for e in reader.alarms("r1")))
 
     with connected(endpoint) as sub_session:
         raw = sub_session.declare_subscriber("fpdd/r1/alarm", check)
@@ -251,18 +270,60 @@ def test_twin_coming_up_later_delivers_its_journal(
 def test_journal_survives_a_restart_of_the_service(
     hub: zenoh.Session, endpoint: str, tmp_path: Path
 ) -> None:
-    path = tmp_path / "alarms.jsonl"
-    for run in range(2):  # two lives of the service on the same journal
+    path = tmp_path / "alarms.db"
+    for run in range(2):  # two lives of the service on the same journal, the second raising its alarms again
         with connected(endpoint) as s, AlarmJournal(path) as j, TwinPublisher(s, "r1", j) as twin:
-            twin.publish_alarm(alarm("r1", 2 * run + 1))
+            assert twin.publish_alarm(alarm("r1", 1)).seq == 1
             twin.publish_alarm(alarm("r1", 2 * run + 2))
-    with path.open("ab") as f:
-        f.write(b'{"rig":"r1","se')  # the second life crashed mid-write
     with connected(endpoint) as s, AlarmJournal(path) as j, TwinPublisher(s, "r1", j) as twin:
-        assert j.torn_bytes > 0
-        assert twin.publish_alarm(alarm("r1", 5)).seq == 5
+        assert twin.publish_alarm(alarm("r1", 5)).seq == 4
         with AlarmSubscriber(hub, "r1") as sub:
-            assert [e.seq for e in receive(sub, 5)] == [1, 2, 3, 4, 5]
+            assert [(e.seq, e.message) for e in receive(sub, 4)] == [
+                (1, "alarm 1"), (2, "alarm 2"), (3, "alarm 4"), (4, "alarm 5")]
+
+
+# --------------------------------------------------------------------------- forged and unverifiable alarms
+
+
+def test_a_forged_jump_is_checked_against_the_history_and_no_real_alarm_is_dropped(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    """An alarm with seq 100 put by someone else on the rig's key while its twin is alive."""
+    # The listening session stands in for the router: it relays between the twin and the forger.
+    with AlarmSubscriber(hub, "r1") as sub, connected(endpoint) as twin_session, \
+            connected(endpoint) as forger_session:
+        with TwinPublisher(twin_session, "r1", journal) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            real = [twin.publish_alarm(alarm("r1", i)) for i in (1, 2)]
+            assert receive(sub, 2) == real
+            forger = forger_session.declare_publisher("fpdd/r1/alarm")
+            wait_matching(forger)
+            forger.put(event_to_json(alarm("r1", 100, seq=100)))
+            forger.put(event_to_json(alarm("r1", 77, seq=2)))  # a different payload under a number seen
+            real += [twin.publish_alarm(alarm("r1", i)) for i in (3, 4, 5, 6)]
+            assert receive(sub, 4) == real[2:]
+            with pytest.raises(TimeoutError):
+                sub.recv(timeout=0.3)
+            forger.undeclare()
+    assert sub.missed == [] and sub.rejected == 1  # seq 100: not in the twin's history; seq 2: a duplicate
+
+
+def test_an_unverifiable_jump_is_delivered_and_the_real_alarms_follow_when_the_twin_is_back(
+    hub: zenoh.Session, endpoint: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "alarms.db"
+    with AlarmJournal(path) as j:  # the twin journaled 1..3 while it was unreachable
+        real = [j.append(alarm("r1", i)) for i in (1, 2, 3)]
+    with AlarmSubscriber(hub, "r1") as sub, connected(endpoint) as other:
+        raw = other.declare_publisher("fpdd/r1/alarm")  # no twin alive: nothing can be checked
+        wait_matching(raw)
+        raw.put(event_to_json(alarm("r1", 100, seq=100)))
+        assert sub.recv(timeout=WAIT_S).seq == 100  # delivered: it may be real
+        assert sub.missed == [("r1", 1, 99)]
+        with connected(endpoint) as twin_session, AlarmJournal(path) as j, TwinPublisher(twin_session, "r1", j):
+            assert receive(sub, 3) == real  # the twin is back: its history fills the gap
+        raw.undeclare()
+    assert sub.recovered == 3
 
 
 def _child_publisher(endpoint: str, journal_path: str, n: int, done: object) -> None:
@@ -356,12 +417,24 @@ def test_alarms_cli_json_count(
 
 
 def test_alarms_cli_times_out_without_enough_alarms(
-    hub: zenoh.Session, endpoint: str, capsys: pytest.CaptureFixture[str]
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal, capsys: pytest.CaptureFixture[str]
 ) -> None:
     parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
-    args = parser.parse_args(["--connect", endpoint, "--count", "1", "--timeout", "0.3"])
-    assert run_alarms_cli(args) == 1
+    args = parser.parse_args(["--connect", endpoint, "--count", "1", "--timeout", "0.3", "--no-history"])
+    with TwinPublisher(hub, "r1", journal):
+        assert run_alarms_cli(args) == 1
     assert capsys.readouterr().out == ""
+
+
+def test_alarms_cli_without_a_twin_gives_up_naming_the_endpoint(endpoint: str) -> None:
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
+    with zenoh.open(zenoh_config(listen=[endpoint])):  # something answers, but no twin
+        args = parser.parse_args(["--connect", endpoint, "--wait", "0.5"])
+        with pytest.raises(SourceError, match=rf"no twin reachable through {endpoint} within 0.5 s"):
+            run_alarms_cli(args)
+    args = parser.parse_args(["--connect", endpoint, "--mode", "client"])
+    with pytest.raises(SourceError, match=rf"cannot reach {endpoint}: nothing answers there"):
+        run_alarms_cli(args)
 
 
 def test_cli_argument_parsing_and_human_format() -> None:

@@ -46,7 +46,7 @@ def test_good_config_with_defaults(tmp_path):
     (lambda s: s.replace('track = ["Ffric", "CdAleak"]', 'track = ["mass"]'), r"\.track: \['mass'\] not among"),
     (lambda s: s.replace('rel_band = 0.5', 'lo = 10.0\nhi = 40.0'), r"baseline\.Ffric: the band \[10, 40\] must contain the value 60"),
     (lambda s: s.replace('mode = "peer"', 'mode = "mesh"'), r"zenoh\.mode must be peer, client or router"),
-    (lambda s: s.replace('rel_band = 0.5', 'rel_band = "wide"'), r"baseline\.Ffric\.rel_band: expected float"),
+    (lambda s: s.replace('rel_band = 0.5', 'rel_band = "wide"'), r"baseline\.Ffric\.rel_band: expected a number, got 'wide'"),
 ])
 def test_bad_config_names_file_and_key(tmp_path, edit, message):
     p = tmp_path / "rigs.toml"

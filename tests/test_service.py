@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import threading
+import time
 
 import pytest
 import zenoh
@@ -19,7 +21,9 @@ from twin.demo import free_port
 from twin.demo import run as run_demo
 from twin.models import msp25 as M
 from twin.scenario import Drift, simulate_wear
+from twin.events import StatusEvent
 from twin.service import serve
+from twin.store import Store
 from twin.simulate import DEFAULT_NOISE, excite
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
@@ -66,41 +70,77 @@ def test_twin_track_json_names_the_fault_and_its_time(tmp_path, capsys):
     assert os.path.getsize(tmp_path / "out" / "parameter_trends.png") > 1000
 
 
-def _config(tmp_path, log, port, speed=0.0):
+def _config(tmp_path, log, port, speed=0.0, extra_rigs=(), **service):
     return parse_config({
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
-        "service": {"journal_dir": str(tmp_path / "journal"), "estimate_every": 100},
-        "rig": [{"name": "rig-a", "source": str(log), "speed": speed}],
+        "service": {"journal_dir": str(tmp_path / "journal"), "estimate_every": 100, "stale_s": 0.2, **service},
+        "rig": [{"name": "rig-a", "source": str(log), "speed": speed}, *extra_rigs],
     }, str(tmp_path / "rigs.toml"))
 
 
-def test_journal_survives_a_restart_and_a_late_subscriber_gets_every_alarm(tmp_path):
+def _journal(tmp_path, rig):
+    """The rig's journaled alarms (read without the writer's lock, as the bus does)."""
+    with Store(tmp_path / "journal" / f"{rig}.db", writer=False) as store:
+        return store.alarms(rig)
+
+
+class StatusWatch:
+    """Statuses of a rig as they are published (a plain subscriber on its status key)."""
+
+    def __init__(self, session, rig):
+        self.q: queue.Queue[StatusEvent] = queue.Queue()
+        self.sub = session.declare_subscriber(
+            f"fpdd/{rig}/status", lambda s: self.q.put(StatusEvent.from_dict(json.loads(s.payload.to_string()))))
+
+    def until(self, predicate, timeout=30.0):
+        deadline = time.monotonic() + timeout
+        while True:
+            status = self.q.get(timeout=max(0.01, deadline - time.monotonic()))
+            if predicate(status):
+                return status
+
+    def close(self):
+        self.sub.undeclare()
+
+
+IDLE = {"name": "idle", "source": "zenoh://fpdd/idle/samples"}  # a live rig nobody feeds: keeps the service up
+
+
+def test_a_restart_resumes_instead_of_replaying_and_a_late_subscriber_gets_every_alarm(tmp_path):
     log = tmp_path / "rig.mcap"
     _log(log, 12.0, [Drift("Ffric", 3.0, 4.0, shape="step")], seed=3)
     first = serve(_config(tmp_path, log, free_port()))
-    assert first["rig-a"].alarms >= 1
     n1 = first["rig-a"].alarms
-    # restart on the same journal, now replayed in real time so that a subscriber can join late
-    cfg = _config(tmp_path, log, free_port(), speed=2.0)
+    assert n1 >= 1 and first["rig-a"].samples == 12000
+    journaled = _journal(tmp_path, "rig-a")
+    assert [e.seq for e in journaled] == list(range(1, n1 + 1))
+    # Restart on the same journal with a live rig that keeps the service up: the log rig resumes at
+    # its end (nothing processed twice, nothing journaled twice), the idle rig waits ('stale_input').
+    cfg = _config(tmp_path, log, free_port(), extra_rigs=[IDLE])
     stop = threading.Event()
-    alarmed = threading.Event()
-    result = {}
-    th = threading.Thread(target=lambda: result.update(serve(cfg, stop, on_alarm=lambda ev: alarmed.set())))
-    th.start()
-    try:
-        assert alarmed.wait(timeout=30.0), "the restarted service raised no alarm"
-        with zenoh.open(zenoh_config("peer", connect=list(cfg.listen))) as session, \
-                AlarmSubscriber(session, rig="rig-a") as sub:
-            got = [sub.recv(timeout=10.0) for _ in range(n1 + 1)]
-    finally:
-        stop.set()
-        th.join(timeout=30.0)
-    seqs = [e.seq for e in got]
-    assert seqs == list(range(1, n1 + 2))  # the first run's alarms, then the restarted run's first
-    assert all(e.parameter == "Ffric" for e in got)
-    with open(tmp_path / "journal" / "rig-a.alarms.jsonl") as f:
-        journal = [json.loads(line) for line in f]
-    assert [j["seq"] for j in journal] == list(range(1, len(journal) + 1)) and len(journal) >= n1 + 1
+    summaries: dict = {}
+    th = threading.Thread(target=serve, args=(cfg, stop), kwargs={"summaries": summaries})
+    with zenoh.open(zenoh_config("peer", connect=list(cfg.listen))) as session:
+        watch = StatusWatch(session, "idle")
+        th.start()
+        try:
+            stale = watch.until(lambda s: s.state == "stale_input" and s.counters.get("stale_ms", 0) > 0)
+            assert "no input from zenoh://fpdd/idle/samples" in stale.message
+            with AlarmSubscriber(session, rig="rig-a") as sub:
+                got = [sub.recv(timeout=10.0) for _ in range(n1)]
+                with pytest.raises(TimeoutError):
+                    sub.recv(timeout=0.3)
+            assert th.is_alive(), "a live rig keeps the service running until it is told to stop"
+        finally:
+            watch.close()
+            stop.set()
+            th.join(timeout=30.0)
+    assert not th.is_alive()
+    assert got == journaled
+    assert summaries["rig-a"].state == "finished" and summaries["rig-a"].samples == 0
+    assert summaries["rig-a"].resumed_samples == 12000
+    assert summaries["idle"].state == "stopped"
+    assert _journal(tmp_path, "rig-a") == journaled
 
 
 def test_serve_reports_a_bad_configuration_without_a_traceback(tmp_path, capsys):
@@ -111,33 +151,54 @@ def test_serve_reports_a_bad_configuration_without_a_traceback(tmp_path, capsys)
     assert "rigs.toml" in err and "mass" in err and "Traceback" not in err
 
 
-def test_serve_tracks_a_live_zenoh_input(tmp_path):
+def test_a_live_input_that_pauses_or_sends_garbage_is_waited_for_not_ended(tmp_path):
     from replay.live import ZenohSampleSink
 
     port = free_port()
     cfg = parse_config({
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
-        "service": {"journal_dir": str(tmp_path / "journal")},
+        "service": {"journal_dir": str(tmp_path / "journal"), "stale_s": 0.2},
         "rig": [{"name": "rig-z", "source": "zenoh://fpdd/rig-z/samples"}],
     }, "<live>")
     _, xr = excite(M.MODEL, 12.0, 1e-3, seed=4)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 4.0, shape="step")],
                            noise=NOISE, seed=4)
-    result: dict = {}
-    th = threading.Thread(target=lambda: result.update(serve(cfg)))
+    samples = rec.to_samples()
+    half = len(samples) // 2
+    stop = threading.Event()
+    summaries: dict = {}
+    th = threading.Thread(target=serve, args=(cfg, stop), kwargs={"summaries": summaries})
     th.start()
     try:
         with zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"])) as rig_session:
-            with ZenohSampleSink("fpdd/rig-z/samples", session=rig_session) as sink:
+            watch = StatusWatch(rig_session, "rig-z")
+            raw = rig_session.declare_publisher("fpdd/rig-z/samples")
+            with ZenohSampleSink("fpdd/rig-z/samples", session=rig_session, end_marker=False) as sink:
                 assert sink.wait_for_subscriber(10.0), "the service did not subscribe to its input"
-                sink.write(rec.to_samples())
+                sink.write(samples.slice(0, half))
+                first = watch.until(lambda s: s.state == "stale_input" and s.counters["samples"] == half)
+                # garbage that used to kill the rig: a t_ns beyond int64, signals that are not an object
+                raw.put(b'{"format":"fpdd.samples/1","t_ns":[99999999999999999999],"signals":{"x":[1.0]}}')
+                raw.put(b'{"format":"fpdd.samples/1","t_ns":5,"signals":[1,2]}')
+                sink.write(samples.slice(half, len(samples)))
+                last = watch.until(lambda s: s.state == "stale_input" and s.counters["samples"] == len(samples))
+            raw.undeclare()
+            watch.close()
+        assert th.is_alive(), "a quiet live input does not end the service"
     finally:
-        th.join(timeout=60.0)
+        stop.set()
+        th.join(timeout=30.0)
     assert not th.is_alive()
-    assert result["rig-z"].samples == len(rec)
-    with open(tmp_path / "journal" / "rig-z.alarms.jsonl") as f:
-        alarms = [json.loads(line) for line in f]
-    assert alarms and {a["parameter"] for a in alarms} == {"Ffric"}
+    assert first.counters["stale_ms"] >= 200 and "no input from zenoh://fpdd/rig-z/samples" in first.message
+    assert last.counters["samples"] == len(samples)
+    s = summaries["rig-z"]
+    assert s.state == "stopped" and s.samples == len(samples)
+    # the garbage was counted (by the source, or by the rig when the source let it through), not fatal
+    assert s.source_errors + s.bad_blocks + s.bad_samples + s.input_dropped >= 2
+    if s.input_dropped:
+        assert sum(v for k, v in last.counters.items() if k.startswith("dropped_")) == s.input_dropped
+    alarms = _journal(tmp_path, "rig-z")
+    assert alarms and {a.parameter for a in alarms} == {"Ffric"}
 
 
 def test_one_process_serves_several_rigs_each_with_its_own_journal(tmp_path):
@@ -152,6 +213,66 @@ def test_one_process_serves_several_rigs_each_with_its_own_journal(tmp_path):
     stats = serve(cfg)
     assert set(stats) == set(logs) and all(s.samples == 10000 for s in stats.values())
     for name, drifts in logs.items():
-        with open(tmp_path / "journal" / f"{name}.alarms.jsonl") as f:
-            params = {json.loads(line)["parameter"] for line in f}
+        params = {a.parameter for a in _journal(tmp_path, name)}
         assert params == {drifts[0].parameter}, (name, params)
+
+
+def test_worker_processes_run_the_rigs_and_the_bus_answers_from_their_journals(tmp_path):
+    """workers = 2: the log rigs run in spawned processes; history queries are answered by the service."""
+    logs = {"rig-f": [Drift("Ffric", 3.0, 3.0, shape="step")], "rig-g": [Drift("Ffric", 3.0, 5.0, shape="step")],
+            "rig-h": []}
+    for name, drifts in logs.items():
+        _log(tmp_path / f"{name}.mcap", 8.0, drifts, seed=7)
+    port = free_port()
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "workers": 2, "stale_s": 0.2},
+        "rig": [*({"name": n, "source": str(tmp_path / f"{n}.mcap"), "speed": 0.0} for n in logs), IDLE],
+    }, "<workers>")
+    stop = threading.Event()
+    summaries: dict = {}
+    th = threading.Thread(target=serve, args=(cfg, stop), kwargs={"summaries": summaries})
+    th.start()
+    try:
+        with zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            watch = StatusWatch(session, "rig-h")
+            done = watch.until(lambda s: s.state == "finished", timeout=60.0)
+            watch.close()
+            with AlarmSubscriber(session, rig="rig-g") as sub:
+                got = [sub.recv(timeout=10.0) for _ in range(len(_journal(tmp_path, "rig-g")))]
+    finally:
+        stop.set()
+        th.join(timeout=60.0)
+    assert not th.is_alive()
+    assert done.counters["samples"] == 8000
+    assert {n: summaries[n].state for n in logs} == {n: "finished" for n in logs}
+    assert all(summaries[n].samples == 8000 for n in logs)
+    assert got and got == _journal(tmp_path, "rig-g") and {a.parameter for a in got} == {"Ffric"}
+    assert _journal(tmp_path, "rig-h") == []
+
+
+def test_a_rig_that_fails_stops_the_service_with_its_name_and_cause(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x\n" + "".join(f"{i * 1e-3:.3f},{1e-3 * (i % 7)}\n" for i in range(2000)))
+    good = tmp_path / "good.mcap"
+    _log(good, 30.0, [], seed=8)
+    p = tmp_path / "rigs.toml"
+    p.write_text(f"""
+[zenoh]
+listen = ["tcp/127.0.0.1:{free_port()}"]
+[service]
+journal_dir = "{tmp_path / 'journal'}"
+[[rig]]
+name = "bad"
+source = "{bad}"
+speed = 0
+[[rig]]
+name = "good"
+source = "{good}"
+speed = 1.0
+""")
+    assert cli.main(["serve", "--config", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "twin serve: error: rig bad failed:" in err and "'u' or the demand 'x_ref'" in err
+    assert "summary bad: failed" in err and "summary good: stopped" in err  # the other rig stopped cleanly
+    assert "Traceback" not in err

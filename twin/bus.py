@@ -66,7 +66,7 @@ from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 import zenoh
 from zenoh import ext as zext
@@ -149,48 +149,201 @@ class RigKeys:
 # --------------------------------------------------------------------------- config
 
 
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+"""Link protocols of Zenoh 1.x endpoints; those before ``unixsock-stream`` need ``HOST:PORT``."""
+
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[A-Za-z][A-Za-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
+
+
+def check_endpoint(endpoint: Any, where: str, *, listen: bool = False) -> str:
+    """``endpoint`` if it is a Zenoh endpoint ``PROTOCOL/HOST:PORT``, else a one-line ConfigError.
+
+    :param where: what names the value in the message (file and key, or a CLI option).
+    :param listen: a listening endpoint may use port 0 (any free port).
+    """
+    example = "expected PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447"
+    if not isinstance(endpoint, str):
+        raise ConfigError(f"{where}: {endpoint!r} is not an endpoint string ({example})")
+    m = _ENDPOINT_RE.match(endpoint)
+    if m is None:
+        raise ConfigError(f"{where}: {endpoint!r} is not an endpoint ({example})")
+    proto, addr = m.group("proto"), m.group("addr")
+    if proto not in ENDPOINT_PROTOCOLS:
+        raise ConfigError(f"{where}: {endpoint!r}: unknown protocol {proto!r} "
+                          f"(one of {', '.join(ENDPOINT_PROTOCOLS)})")
+    if proto in ("tcp", "udp", "tls", "quic", "ws"):
+        host, sep, port = addr.rpartition(":")
+        if not sep or not host or host in ("[", "[]"):
+            raise ConfigError(f"{where}: {endpoint!r} has no HOST:PORT ({example})")
+        if not port.isdigit() or not (0 if listen else 1) <= int(port) <= 65535:
+            raise ConfigError(f"{where}: {endpoint!r}: port {port!r} is not in "
+                              f"{0 if listen else 1}..65535 ({example})")
+    return endpoint
+
+
 def zenoh_config(
-    mode: str = "peer",
+    mode: str | None = None,
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
-    multicast_scouting: bool = False,
+    multicast_scouting: bool | None = None,
     *,
     config_file: str | Path | None = None,
 ) -> zenoh.Config:
-    """A Zenoh configuration with explicit endpoints.
+    """The project's one Zenoh configuration builder.
 
-    :param mode: ``"peer"``, ``"client"`` or ``"router"``.
-    :param listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``
-        (not allowed for a client).
-    :param connect: endpoints to connect to, e.g. ``["tls/router.site:7447"]``.
-    :param multicast_scouting: enable discovery by UDP multicast (off by
-        default: sites and tests name their endpoints).
-    :param config_file: a JSON5 Zenoh configuration to start from (TLS,
-        access control, ...); the arguments above override its values when given
-        (``listen``/``connect`` only when non-empty).
-    :raises ConfigError: an unknown mode, a client asked to listen, or a file
-        or endpoint Zenoh rejects.
+    Without ``config_file``: a session in ``mode`` (default ``peer``) with
+    exactly these endpoints and multicast scouting off unless asked for.
+    With ``config_file`` (JSON5: TLS, access control, ...): the file as it is,
+    and only what the caller gives explicitly overrides it: ``mode`` when not
+    ``None``, ``listen``/``connect`` when non-empty, ``multicast_scouting``
+    when not ``None``. A default never overrides the file.
+
+    :raises ConfigError: an unknown mode, a client asked to listen, an endpoint
+        that is not ``PROTOCOL/HOST:PORT``, or a file Zenoh cannot read (named).
     """
-    if mode not in ("peer", "client", "router"):
+    if mode is not None and mode not in ("peer", "client", "router"):
         raise ConfigError(f"mode: {mode!r} is not one of ['peer', 'client', 'router']")
-    if mode == "client" and listen:
+    for e in listen:
+        check_endpoint(e, "listen", listen=True)
+    for e in connect:
+        check_endpoint(e, "connect")
+    if config_file:
+        path = Path(config_file)
+        if not path.is_file():
+            what = "is a directory" if path.is_dir() else "does not exist"
+            raise ConfigError(f"{config_file}: cannot read the Zenoh configuration: {what}")
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except (zenoh.ZError, ValueError) as exc:
+            raise ConfigError(f"{config_file}: invalid Zenoh configuration: {_zenoh_text(exc)}") from exc
+    else:
+        config = zenoh.Config()
+        mode = mode or "peer"
+        multicast_scouting = bool(multicast_scouting)
+    effective = mode or json.loads(config.get_json("mode") or '"peer"') or "peer"
+    if effective == "client" and listen:
         raise ConfigError(f"listen: a client cannot listen (got {list(listen)!r}); use mode 'peer'")
     try:
-        config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
-        config.insert_json5("mode", json.dumps(mode))
+        if mode is not None:
+            config.insert_json5("mode", json.dumps(mode))
         if listen or not config_file:
             config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect or not config_file:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+        if multicast_scouting is not None:
+            config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     except zenoh.ZError as exc:
         where = f"{config_file}: " if config_file else ""
-        raise ConfigError(f"{where}invalid Zenoh configuration: {exc}") from exc
+        raise ConfigError(f"{where}invalid Zenoh configuration: {_zenoh_text(exc)}") from exc
     return config
 
 
+def config_endpoints(config: zenoh.Config) -> tuple[list[str], list[str]]:
+    """``(listen, connect)`` endpoints of a Zenoh configuration (for messages)."""
+    def endpoints(key: str) -> list[str]:
+        try:
+            value = json.loads(config.get_json(key))
+        except (zenoh.ZError, ValueError):
+            return []
+        if isinstance(value, dict):  # per-mode endpoints: {"router": [...], "peer": [...]}
+            value = [e for v in value.values() for e in (v or [])]
+        return [str(e) for e in value or []]
+
+    return endpoints("listen/endpoints"), endpoints("connect/endpoints")
+
+
+_RUST_LOCATION = re.compile(r"\s*at /\S+?\.rs:\d+\.?")
+
+
+def _zenoh_text(exc: BaseException) -> str:
+    """A Zenoh (Rust) error message without its source locations, on one line."""
+    text = _RUST_LOCATION.sub("", str(exc)).replace("\n", " ").strip()
+    return re.sub(r"\s+", " ", text).strip(" .[]")
+
+
+def open_session(config: zenoh.Config, who: str = "twin") -> zenoh.Session:
+    """``zenoh.open(config)``; a failure becomes one line naming the endpoint and the cause.
+
+    :raises SourceError: a listen endpoint in use or not local, a router
+        unreachable, a host name that does not resolve, a certificate missing.
+    """
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise SourceError(f"{who}: {describe_open_error(config, exc)}") from None
+
+
+def describe_open_error(config: zenoh.Config, exc: BaseException) -> str:
+    text = _zenoh_text(exc)
+    listen, connect = config_endpoints(config)
+    m = re.search(r"bound to (\S+?):? ", text)
+    if "Address already in use" in text:
+        ep = m.group(1) if m else ", ".join(listen)
+        return f"cannot listen on {ep}: the address is already in use (another twin serve or zenohd?)"
+    if "Cannot assign requested address" in text or "not available" in text:
+        ep = m.group(1) if m else ", ".join(listen)
+        return f"cannot listen on {ep}: not an address of this host"
+    if "Unable to connect to any of" in text:
+        return (f"cannot reach {', '.join(connect) or 'any Zenoh router'}: nothing answers there "
+                "(is the router or the twin running, and the address right?)")
+    if "lookup address" in text or "Name or service not known" in text:
+        return f"cannot resolve the host name of {', '.join(listen + connect)}: {text}"
+    return f"cannot open a Zenoh session (listen {listen or 'none'}, connect {connect or 'none'}): {text}"
+
+
 def _open_error(exc: zenoh.ZError, what: str) -> SourceError:
-    return SourceError(f"{what}: {exc}")
+    return SourceError(f"{what}: {_zenoh_text(exc)}")
+
+
+# --------------------------------------------------------------------------- history
+
+
+class History(Protocol):
+    """What the history queryable answers from: an :class:`AlarmJournal` or a :class:`StoreHistory`."""
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]: ...
+
+    def last_seq(self, rig: str) -> int: ...
+
+
+class StoreHistory:
+    """A rig's journal read from another process (no writer lock), plus alarms its writer could not write.
+
+    The service's main process answers history queries with it while the
+    rig's worker process owns the journal. ``add_pending`` keeps an alarm the
+    worker published without a durable write, until the file has it.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        from twin.store import Store
+
+        self._store = Store(path, writer=False)
+        self._pending: dict[tuple[str, int], AlarmEvent] = {}
+        self._lock = threading.Lock()
+
+    def add_pending(self, event: AlarmEvent) -> None:
+        with self._lock:
+            self._pending[(event.rig, event.seq)] = event
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]:
+        events = self._store.alarms(rig, since_seq, since_t_ns)
+        have = {(e.rig, e.seq) for e in events}
+        with self._lock:
+            for key in [k for k in self._pending if k in have]:
+                del self._pending[key]
+            extra = [e for e in self._pending.values() if (rig in (None, "*") or e.rig == rig)
+                     and (since_seq is None or e.seq >= since_seq) and (since_t_ns is None or e.t_ns >= since_t_ns)]
+        return sorted(events + extra, key=lambda e: (e.rig, e.seq))
+
+    def last_seq(self, rig: str) -> int:
+        with self._lock:
+            mine = [seq for (r, seq) in self._pending if r == rig]
+        return max([self._store.last_seq(rig), *mine])
+
+    def close(self) -> None:
+        self._store.close()
 
 
 # --------------------------------------------------------------------------- publisher
@@ -236,7 +389,13 @@ class TwinPublisher(_Declarations):
     replaces a dropped one) and the status publisher (``BLOCK``), both
     ``zenoh.ext`` advanced publishers with a one-sample cache; latest-value
     queryables on the estimate and status keys; the alarm-history queryable
-    answering from ``journal``; and the liveliness token ``fpdd/<rig>/twin``.
+    answering from ``history`` (default: ``journal``); and the liveliness
+    token ``fpdd/<rig>/twin``.
+
+    ``journal`` is needed by :meth:`publish_alarm` (journal, then put). The
+    service's main process, whose rigs journal in their worker, passes only a
+    ``history`` (:class:`StoreHistory`) and puts already journaled alarms with
+    :meth:`put_alarm`.
 
     Use as a context manager (or call :meth:`close`); the session stays open.
     Several publishers (one per rig) may share one session and one journal.
@@ -254,14 +413,18 @@ class TwinPublisher(_Declarations):
         self,
         session: zenoh.Session,
         rig: str,
-        journal: AlarmJournal,
+        journal: AlarmJournal | None = None,
         *,
+        history: History | None = None,
         heartbeat_s: float = 1.0,
     ) -> None:
         self.rig = _check_rig(rig, wildcard=False)
         self.keys = RigKeys(rig)
         self._session = session
         self._journal = journal
+        if history is None and journal is None:
+            raise ConfigError(f"rig {rig!r}: a twin publisher needs a journal or a history to answer from")
+        self._history: History = history if history is not None else journal  # type: ignore[assignment]
         self._latest: dict[str, str] = {}
         self._latest_lock = threading.Lock()
         self._declared: list[Any] = []
@@ -329,7 +492,7 @@ class TwinPublisher(_Declarations):
             )
 
     def publish_alarm(self, event: AlarmEvent) -> AlarmEvent:
-        """Journal the alarm durably (``fsync``), then put it on ``fpdd/<rig>/alarm``.
+        """Journal the alarm durably, then put it on ``fpdd/<rig>/alarm``.
 
         :param event: the alarm; ``seq=0`` lets the journal number it.
         :returns: the journaled event with its ``seq``.
@@ -339,15 +502,37 @@ class TwinPublisher(_Declarations):
             from the history).
         """
         self._check_event_rig(event)
-        event = self._journal.append(event)
+        if self._journal is None:
+            raise ConfigError(f"rig {self.rig!r}: this publisher has no journal; use put_alarm for journaled alarms")
+        recorded = self._journal.record(event)
+        if recorded.new:  # the same alarm raised again (re-processed data) is not published twice
+            self.put_alarm(recorded.event)
+        return recorded.event
+
+    def put_alarm(self, event: AlarmEvent) -> None:
+        """Put an alarm that is already journaled (it has its ``seq``) on ``fpdd/<rig>/alarm``.
+
+        :raises SourceError: the put failed; the alarm is journaled and
+            subscribers get it from the history.
+        """
+        self._check_event_rig(event)
         try:
             self._alarm_pub.put(event_to_json(event))
         except zenoh.ZError as exc:
             raise SourceError(
-                f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({exc}); "
+                f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({_zenoh_text(exc)}); "
                 f"subscribers will get it from {self.keys.history}"
             ) from exc
-        return event
+
+    def put_payload(self, what: str, payload: str) -> None:
+        """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value."""
+        pub = {"estimate": self._estimate_pub, "status": self._status_pub}[what]
+        with self._latest_lock:
+            self._latest[what] = payload
+        try:
+            pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish {what}: {_zenoh_text(exc)}") from exc
 
     def publish_estimate(self, event: EstimateEvent) -> None:
         """Put an estimate on ``fpdd/<rig>/estimate`` (may be dropped under congestion)."""
@@ -370,7 +555,8 @@ class TwinPublisher(_Declarations):
         """
         self._check_event_rig(event)
         counters = dict(event.counters)
-        counters["alarm_seq"] = self._journal.last_seq(self.rig)
+        if "alarm_seq" not in counters:  # a rig's worker fills it in from its own journal
+            counters["alarm_seq"] = self._history.last_seq(self.rig)
         event = replace(event, counters=counters)
         payload = event_to_json(event)
         with self._latest_lock:
@@ -399,7 +585,13 @@ class TwinPublisher(_Declarations):
             except DataError as exc:
                 query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
                 return
-            for event in self._journal.read(since_seq=since_seq, since_t_ns=since_t_ns, rig=self.rig):
+            try:
+                events = self._history.read(since_seq=since_seq, since_t_ns=since_t_ns, rig=self.rig)
+            except (SourceError, DataError) as exc:
+                log.error("rig %s: history query failed: %s", self.rig, exc)
+                query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
+                return
+            for event in events:
                 query.reply(self.keys.history, event_to_json(event), encoding=_JSON)
 
 
@@ -460,19 +652,29 @@ def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) 
 
 
 class AlarmSubscriber(_Declarations):
-    """Every alarm of one rig (or all rigs), history first, then live, without gaps.
+    """Every alarm of one rig (or all rigs), history first, then live; nothing forged, nothing dropped.
 
     On construction it subscribes to ``fpdd/<rig>/alarm``, to the status key
     (for ``alarm_seq``) and to the twins' liveliness, and only then fetches
-    the history, so nothing published in between is lost. Events are handed
-    out in ``seq`` order per rig, each ``(rig, seq)`` once:
+    the history, so nothing published in between is lost. Each ``(rig, seq)``
+    is handed out once, in ``seq`` order per rig as far as the history allows.
 
-    * a live alarm whose ``seq`` jumps ahead of the last one received triggers
-      a history query for the missing numbers before it is delivered;
-    * a twin's liveliness token appearing (twin restarted, router came back)
-      and a status whose ``alarm_seq`` is ahead both trigger the same query;
-    * numbers the history cannot supply (journal lost, no twin reachable)
-      are recorded in :attr:`missed` as ``(rig, first, last)`` and logged.
+    The twin's journal (its history queryable) is the authority on what a
+    sequence number holds:
+
+    * a live alarm whose ``seq`` jumps ahead triggers a history query for the
+      numbers in between *before* anything is declared lost; the history's
+      version of an alarm wins over a live payload claiming the same number;
+    * while the rig's twin is alive (its liveliness token is present), a live
+      alarm or a status ``alarm_seq`` that its history does not hold is
+      rejected (:attr:`rejected`, logged): it was not journaled by the twin,
+      so it is forged or corrupt, and it moves no sequence number;
+    * with no twin alive nothing can be checked: the alarm is delivered (a
+      real alarm is never dropped) and the numbers in between are recorded in
+      :attr:`missed`; when a twin appears (liveliness), the history is
+      fetched again from the first missed number, and every alarm found
+      there is delivered, even below numbers already seen
+      (:attr:`recovered` counts them).
 
     :param session: an open Zenoh session (stays open after :meth:`close`).
     :param rig: a rig id or ``"*"`` for all rigs.
@@ -505,14 +707,18 @@ class AlarmSubscriber(_Declarations):
         self._inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._ready: deque[AlarmEvent] = deque()
         self._last: dict[str, int] = {}
+        self._gaps: dict[str, list[list[int]]] = {}
+        self._alive: set[str] = set()
         self._status_seq: dict[str, int] = {}
         self._declared: list[Any] = []
         self.missed: list[tuple[str, int, int]] = []
-        """Alarm numbers that could not be recovered: ``(rig, first_seq, last_seq)``."""
+        """Alarm numbers not recoverable when noticed: ``(rig, first_seq, last_seq)``."""
+        self.recovered = 0
+        """Alarms of a range recorded in :attr:`missed` that the history delivered later."""
         self.rejected = 0
-        """Payloads on the alarm key that did not validate (logged and skipped)."""
+        """Payloads rejected: not a valid alarm, or a number the live twin's history does not hold."""
         self.history_queries = 0
-        """History queries sent (initial fetch, gap fills, re-syncs)."""
+        """History queries sent (initial fetch, gap fills, re-syncs, checks)."""
         try:
             # Declarations reach a remote twin in this order: once a live alarm
             # arrives, the status and liveliness subscriptions are in place too.
@@ -533,7 +739,7 @@ class AlarmSubscriber(_Declarations):
         super().close()
 
     def last_seq(self, rig: str) -> int | None:
-        """The last ``seq`` handed over (or queued) for ``rig``, ``None`` if none yet."""
+        """The highest ``seq`` of ``rig`` up to which every number was handed over or recorded missed."""
         return self._last.get(rig)
 
     # ------------------------------------------------------------------ zenoh callbacks
@@ -542,9 +748,10 @@ class AlarmSubscriber(_Declarations):
     def _on_alarm(self, sample: zenoh.Sample) -> None:
         try:
             event = AlarmEvent.from_dict(json.loads(sample.payload.to_string()))
+            if event.rig != RigKeys.rig_of(sample.key_expr):
+                raise DataError(f"AlarmEvent.rig: {event.rig!r} published on {sample.key_expr}")
         except (DataError, ValueError) as exc:
-            self.rejected += 1
-            log.warning("%s: rejected alarm payload: %s", sample.key_expr, exc)
+            self._inbox.put(("rejected", f"{sample.key_expr}: rejected alarm payload: {exc}"))
             return
         self._inbox.put(("alarm", event))
 
@@ -558,11 +765,12 @@ class AlarmSubscriber(_Declarations):
             self._inbox.put(("status", (status.rig, status.counters["alarm_seq"])))
 
     def _on_twin(self, sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            try:
-                self._inbox.put(("twin", RigKeys.rig_of(sample.key_expr)))
-            except DataError as exc:
-                log.warning("liveliness: %s", exc)
+        try:
+            rig = RigKeys.rig_of(sample.key_expr)
+        except DataError as exc:
+            log.warning("liveliness: %s", exc)
+            return
+        self._inbox.put(("twin" if sample.kind == zenoh.SampleKind.PUT else "twin-gone", rig))
 
     # ------------------------------------------------------------------ ordering logic
 
@@ -576,13 +784,34 @@ class AlarmSubscriber(_Declarations):
             return self.since_seq
         return 1 if self.since_t_ns is None else None
 
+    def _in_gap(self, rig: str, seq: int) -> bool:
+        return any(lo <= seq <= hi for lo, hi in self._gaps.get(rig, ()))
+
+    def _close_gap(self, rig: str, seq: int) -> None:
+        out = []
+        for lo, hi in self._gaps.get(rig, ()):
+            if lo <= seq <= hi:
+                out += [r for r in ([lo, seq - 1], [seq + 1, hi]) if r[0] <= r[1]]
+            else:
+                out.append([lo, hi])
+        self._gaps[rig] = out
+
     def _accept(self, event: AlarmEvent) -> bool:
-        last = self._last.get(event.rig)
-        if last is not None and event.seq <= last:
+        """Hand ``event`` over unless its number was handed over already."""
+        rig, seq = event.rig, event.seq
+        if self.since_seq is not None and seq < self.since_seq:
             return False
-        if self.since_seq is not None and event.seq < self.since_seq:
-            return False
-        self._last[event.rig] = event.seq
+        last = self._last.get(rig)
+        if last is not None and seq <= last:
+            if not self._in_gap(rig, seq):
+                return False
+            self._close_gap(rig, seq)  # a number recorded missed, found in the history after all
+            self.recovered += 1
+            self._ready.append(event)
+            return True
+        if last is not None and seq > last + 1:
+            self._record_missed(rig, last + 1, seq - 1)
+        self._last[rig] = seq
         self._ready.append(event)
         return True
 
@@ -607,71 +836,120 @@ class AlarmSubscriber(_Declarations):
                     log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
                     continue
                 try:
-                    events.append(AlarmEvent.from_dict(json.loads(reply.ok.payload.to_string())))
+                    event = AlarmEvent.from_dict(json.loads(reply.ok.payload.to_string()))
+                    if event.rig != RigKeys.rig_of(reply.ok.key_expr):
+                        raise DataError(f"AlarmEvent.rig: {event.rig!r} in a reply on {reply.ok.key_expr}")
+                    events.append(event)
                 except (DataError, ValueError) as exc:
                     self.rejected += 1
                     log.warning("%s: rejected history reply: %s", selector, exc)
         except zenoh.ZError as exc:
-            log.warning("%s: history query failed: %s", selector, exc)
+            log.warning("%s: history query failed: %s", selector, _zenoh_text(exc))
         return events
 
-    def _fill(self, rig: str) -> None:
-        """Fetch what the history holds for ``rig`` beyond the last number received."""
-        if rig in self._last:
+    def _fill(self, rig: str) -> list[AlarmEvent]:
+        """Fetch what the history holds for ``rig`` from the first number not yet handed over."""
+        gaps = self._gaps.get(rig)
+        if gaps:
+            since_seq, since_t_ns = min(lo for lo, _ in gaps), None
+        elif rig in self._last:
             since_seq, since_t_ns = self._last[rig] + 1, None
         else:
             since_seq, since_t_ns = self.since_seq, self.since_t_ns
-        found = [e for e in self._query(rig, since_seq, since_t_ns) if e.rig == rig]
-        for event in sorted(found, key=lambda e: e.seq):
+        found = sorted((e for e in self._query(rig, since_seq, since_t_ns) if e.rig == rig), key=lambda e: e.seq)
+        for event in found:
             self._accept(event)
+        return found
+
+    def _twin_alive(self, rig: str) -> bool:
+        """Whether the rig's twin holds its liveliness token (asked again when not known alive)."""
+        if rig in self._alive:
+            return True
+        try:
+            replies = list(self._session.liveliness().get(RigKeys(rig).twin, timeout=min(self._query_timeout, 1.0)))
+        except zenoh.ZError:
+            return False
+        if any(r.ok is not None for r in replies):
+            self._alive.add(rig)
+        return rig in self._alive
 
     def _record_missed(self, rig: str, first: int, last: int) -> None:
         self.missed.append((rig, first, last))
+        self._gaps.setdefault(rig, []).append([first, last])
         log.warning(
-            "rig %s: alarms seq %d..%d were lost in transit and are not in the twin's history",
+            "rig %s: alarms seq %d..%d were lost in transit and the twin's history could not supply them "
+            "(no twin reachable); they are fetched when the twin is back",
             rig, first, last,
         )
 
+    def _reject(self, message: str) -> None:
+        self.rejected += 1
+        log.warning("%s", message)
+
     def _on_live(self, event: AlarmEvent) -> None:
-        last = self._last.get(event.rig)
-        if last is not None and event.seq <= last:
+        rig, seq = event.rig, event.seq
+        last = self._last.get(rig)
+        if last is not None and seq <= last and not self._in_gap(rig, seq):
+            return  # a duplicate (live after history, or twice)
+        expected = self._expected(rig)
+        if expected is not None and seq < expected and last is None:
+            return  # below --since-seq
+        if expected is None or seq == expected:
+            self._accept(event)
             return
-        expected = self._expected(event.rig)
-        if (expected is not None and event.seq > expected) or (last is None and self._history):
-            self._fill(event.rig)
-            last = self._last.get(event.rig)
-            if last is not None and event.seq <= last:
-                return
-            expected = self._expected(event.rig)
-            if expected is not None and event.seq > expected:
-                self._record_missed(event.rig, expected, event.seq - 1)
-        self._accept(event)
+        # A jump (or a number inside a recorded gap): ask the history before believing anything.
+        found = {e.seq: e for e in self._fill(rig)}
+        if seq in found:
+            if found[seq] != event:
+                self._reject(f"rig {rig}: live alarm seq {seq} differs from the twin's journaled one; "
+                             "the journaled one was delivered")
+            return
+        if self._twin_alive(rig):
+            self._reject(f"rig {rig}: alarm seq {seq} on {RigKeys(rig).alarm} is not in the twin's history "
+                         "(not journaled by the twin: forged or corrupt); rejected")
+            return
+        expected = self._expected(rig)
+        if rig not in self._last and expected is not None and seq > expected:
+            self._record_missed(rig, expected, seq - 1)
+            self._last[rig] = seq - 1
+        self._accept(event)  # unverifiable: never drop what may be a real alarm
 
     def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
         if self._status_seq.get(rig) == alarm_seq:
             return
         self._status_seq[rig] = alarm_seq
         last = self._last.get(rig)
-        if last is not None and alarm_seq <= last:
+        if last is not None and alarm_seq <= last and not self._gaps.get(rig):
             return
         if last is None and not self._history:
             return
         expected = self._expected(rig)
-        if expected is not None and alarm_seq < expected:
+        if expected is not None and alarm_seq < expected and not self._gaps.get(rig):
             return
         self._fill(rig)
         expected = self._expected(rig)
-        if expected is not None and alarm_seq >= expected:
-            self._record_missed(rig, expected, alarm_seq)
-            self._last[rig] = alarm_seq
+        if expected is None or alarm_seq < expected:
+            return
+        if self._twin_alive(rig):
+            self._reject(f"rig {rig}: a status claims alarm seq {alarm_seq}, the twin's history ends at "
+                         f"{expected - 1}; claim ignored")
+            return
+        self._record_missed(rig, expected, alarm_seq)
+        self._last[rig] = alarm_seq
 
     def _process(self, kind: str, value: Any) -> None:
         if kind == "alarm":
             self._on_live(value)
         elif kind == "status":
             self._on_alarm_seq(*value)
-        elif kind == "twin" and (self._history or value in self._last):
-            self._fill(value)
+        elif kind == "rejected":
+            self._reject(value)
+        elif kind == "twin-gone":
+            self._alive.discard(value)
+        elif kind == "twin":
+            self._alive.add(value)
+            if self._history or value in self._last:
+                self._fill(value)
 
     # ------------------------------------------------------------------ consuming
 
@@ -766,6 +1044,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{value} must be a number of seconds >= 0")
+    return value
+
+
 def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the options of ``twin alarms`` to ``parser`` (a sub-command parser)."""
     parser.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
@@ -785,7 +1073,8 @@ def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         "without --connect or --zenoh-config, peers are discovered by multicast scouting",
     )
     parser.add_argument(
-        "--mode", choices=("peer", "client"), default="peer", help="Zenoh session mode (default peer)"
+        "--mode", choices=("peer", "client"), default=None,
+        help="Zenoh session mode (default: the --zenoh-config file's, else peer)",
     )
     parser.add_argument(
         "--zenoh-config", type=Path, metavar="FILE",
@@ -795,6 +1084,11 @@ def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N alarms")
     parser.add_argument(
         "--timeout", type=_positive_float, metavar="S", help="exit after S seconds (default: run until stopped)"
+    )
+    parser.add_argument(
+        "--wait", type=_non_negative_float, default=10.0, metavar="S",
+        help="give up (exit status 2) when no twin of --rig is reachable within S seconds "
+        "(default 10; 0: wait for ever)",
     )
     return parser
 
@@ -814,47 +1108,64 @@ def format_alarm(event: AlarmEvent) -> str:
     return f"{text} {event.message}" if event.message else text
 
 
+def wait_for_twin(session: zenoh.Session, rig: str, wait_s: float, where: str) -> list[str]:
+    """The rigs whose twin is alive, waiting up to ``wait_s``; SourceError naming ``where`` if none."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        remaining = deadline - time.monotonic()
+        rigs = live_twins(session, rig, timeout=max(0.2, min(1.0, remaining)))
+        if rigs:
+            return rigs
+        if time.monotonic() >= deadline:
+            raise SourceError(f"no twin reachable through {where} within {wait_s:g} s "
+                              f"(no liveliness token on {RigKeys(rig).twin})")
+
+
 def run_alarms_cli(args: argparse.Namespace) -> int:
     """``twin alarms``: print alarms as they come, the history first.
 
     :param args: parsed by a parser set up with :func:`add_alarms_arguments`.
     :returns: exit status: 0, or 1 when ``--count`` alarms did not arrive within ``--timeout``.
-    :raises ConfigError, SourceError: bad Zenoh configuration or session failure.
+    :raises ConfigError: a bad option or Zenoh file (one line naming it).
+    :raises SourceError: the session cannot be opened, or no twin is reachable within ``--wait``.
     """
-    scouting = not args.connect and args.zenoh_config is None
+    scouting = True if not args.connect and args.zenoh_config is None else None
+    for e in args.connect:
+        check_endpoint(e, "--connect")
     config = zenoh_config(
         mode=args.mode,
         connect=args.connect,
         multicast_scouting=scouting,
         config_file=args.zenoh_config,
     )
+    _, connect = config_endpoints(config)
+    where = ", ".join(connect) if connect else "multicast scouting"
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
     printed = 0
-    try:
-        session = zenoh.open(config)
-    except zenoh.ZError as exc:
-        raise _open_error(exc, "cannot open a Zenoh session") from exc
-    with session, AlarmSubscriber(
-        session,
-        rig=args.rig,
-        since_seq=args.since_seq,
-        since_t_ns=args.since,
-        history=not args.no_history,
-    ) as subscriber:
-        reported = 0
-        while args.count is None or printed < args.count:
-            remaining = None if deadline is None else deadline - time.monotonic()
-            if remaining is not None and remaining <= 0:
-                break
-            try:
-                event = subscriber.recv(timeout=remaining)
-            except TimeoutError:
-                break
-            for rig, first, last in subscriber.missed[reported:]:
-                print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
-            reported = len(subscriber.missed)
-            line = event_to_json(event) if args.json else format_alarm(event)
-            print(line, flush=True)
-            printed += 1
+    session = open_session(config, "twin alarms")
+    with session:
+        if args.wait > 0:
+            wait_for_twin(session, args.rig, args.wait, where)
+        with AlarmSubscriber(
+            session,
+            rig=args.rig,
+            since_seq=args.since_seq,
+            since_t_ns=args.since,
+            history=not args.no_history,
+        ) as subscriber:
+            reported = 0
+            while args.count is None or printed < args.count:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    break
+                try:
+                    event = subscriber.recv(timeout=remaining)
+                except TimeoutError:
+                    break
+                for rig, first, last in subscriber.missed[reported:]:
+                    print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
+                reported = len(subscriber.missed)
+                line = event_to_json(event) if args.json else format_alarm(event)
+                print(line, flush=True)
+                printed += 1
     return 1 if args.count is not None and printed < args.count else 0
-

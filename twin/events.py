@@ -41,6 +41,7 @@ __all__ = [
     "ALARM_LEVELS",
     "SERVICE_STATES",
     "AlarmEvent",
+    "AlarmIdentity",
     "EstimateEvent",
     "ParamEstimate",
     "StatusEvent",
@@ -55,8 +56,18 @@ ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
 """What happened: a level left ``ok`` (raised), went from warning to alarm
 (escalated), or came back down (returned, to ``warning`` or ``ok``)."""
 
-SERVICE_STATES: tuple[str, ...] = ("starting", "running", "degraded", "stopped")
-"""Life-cycle states of a twin service for one rig."""
+SERVICE_STATES: tuple[str, ...] = (
+    "starting", "running", "degraded", "stale_input", "finished", "failed", "stopped",
+)
+"""Life-cycle states of a twin service for one rig: ``starting``; ``running``;
+``degraded`` (running, but behind real time or unable to journal: the message
+says which); ``stale_input`` (no sample for a while: the rig waits, counter
+``stale_ms`` says how long); ``finished`` (a replayed log ended); ``failed``
+(an unrecoverable error, named in the message; the service exits non-zero);
+``stopped`` (told to stop)."""
+
+INT64_MAX = 2**63 - 1
+"""Largest ``t_ns`` (and counter): times are int64 nanoseconds everywhere (numpy, SQLite, MCAP)."""
 
 RIG_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
 """A rig id is one Zenoh key chunk: letters, digits, ``_ . -`` (no ``/ * $ ? # @``)."""
@@ -101,7 +112,7 @@ def validate(value: Any, schema: Mapping[str, Any], where: str) -> None:
     """Check ``value`` against the subset of JSON Schema the event schemas use.
 
     Supported keywords: ``type`` (a name or a list of names), ``enum``,
-    ``minimum``, ``minLength``, ``pattern``, ``properties``, ``required``,
+    ``minimum``, ``maximum``, ``minLength``, ``pattern``, ``properties``, ``required``,
     ``additionalProperties`` (a schema) and ``propertyNames``. Numbers must be
     finite; booleans are not numbers.
 
@@ -120,6 +131,8 @@ def validate(value: Any, schema: Mapping[str, Any], where: str) -> None:
         raise DataError(f"{where}: {value!r} is not one of {list(schema['enum'])}")
     if "minimum" in schema and isinstance(value, (int, float)) and value < schema["minimum"]:
         raise DataError(f"{where}: {value!r} must be >= {schema['minimum']}")
+    if "maximum" in schema and isinstance(value, (int, float)) and value > schema["maximum"]:
+        raise DataError(f"{where}: {value!r} must be <= {schema['maximum']}")
     if isinstance(value, str):
         if "minLength" in schema and len(value) < schema["minLength"]:
             raise DataError(f"{where}: {value!r} must have at least {schema['minLength']} characters")
@@ -178,7 +191,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "parameter": {"type": "string", "pattern": NAME_PATTERN, "description": "parameter name"},
         "level": {"type": "string", "enum": list(ALARM_LEVELS), "description": "level after this event"},
         "kind": {"type": "string", "enum": list(ALARM_KINDS), "description": "transition"},
-        "t_ns": {"type": "integer", "minimum": 0, "description": "ingest time [ns]"},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "t_s": _num("time from the start of the record [s]"),
         "estimate": _num("parameter estimate, SI unit of the parameter"),
         "std": _num("standard deviation of the estimate, same unit", minimum=0),
@@ -207,6 +220,26 @@ class _FromJson:
         data = _as_mapping(data, cls.__name__)
         _check(cls.__name__, cls.SCHEMA, data)
         return cls(**{name: data[name] for name in cls.SCHEMA["required"]})
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmIdentity:
+    """What makes an alarm the same alarm: rig, parameter, level, kind and the sample time.
+
+    The detector is deterministic, so a rig whose log is processed again (a
+    restart before the last checkpoint, a replay of the same log) raises the
+    same transitions at the same sample times; the journal keeps one alarm per
+    identity, whatever its sequence number would have been.
+    """
+
+    rig: str
+    parameter: str
+    level: str
+    kind: str
+    t_ns: int
+
+    def __str__(self) -> str:
+        return f"{self.rig}/{self.parameter} {self.kind} {self.level} at t_ns={self.t_ns}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -282,6 +315,11 @@ class AlarmEvent(_FromJson):
         """A copy carrying sequence number ``seq``."""
         return replace(self, seq=seq)
 
+    @property
+    def identity(self) -> AlarmIdentity:
+        """(rig, parameter, level, kind, t_ns): equal for the same alarm raised twice."""
+        return AlarmIdentity(self.rig, self.parameter, self.level, self.kind, self.t_ns)
+
 
 # --------------------------------------------------------------------------- estimates
 
@@ -304,7 +342,7 @@ _ESTIMATE_SCHEMA: dict[str, Any] = {
     "required": ["rig", "t_ns", "t_s", "params", "nis", "status"],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN},
-        "t_ns": {"type": "integer", "minimum": 0, "description": "ingest time [ns]"},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "t_s": _num("time from the start of the record [s]"),
         "params": {
             "type": "object",
@@ -394,7 +432,7 @@ _STATUS_SCHEMA: dict[str, Any] = {
     "required": ["rig", "t_ns", "state", "parameters", "counters", "message"],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN},
-        "t_ns": {"type": "integer", "minimum": 0, "description": "ingest time [ns]"},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "state": {"type": "string", "enum": list(SERVICE_STATES)},
         "parameters": {
             "type": "object",
@@ -405,8 +443,8 @@ _STATUS_SCHEMA: dict[str, Any] = {
         "counters": {
             "type": "object",
             "propertyNames": {"pattern": NAME_PATTERN},
-            "additionalProperties": {"type": "integer", "minimum": 0},
-            "description": "monotonic counters, e.g. samples, gated, repaired_covariance; 'alarm_seq' is the last journaled alarm seq (set by the publisher)",
+            "additionalProperties": {"type": "integer", "minimum": 0, "maximum": INT64_MAX},
+            "description": "non-negative counters: samples, alarms, gated, repaired_covariance, bad_blocks, source_errors, ...; 'alarm_seq' is the last journaled alarm seq; gauges 'lag_ms' (how far behind real time) and 'stale_ms' (how long without input)",
         },
         "message": {"type": "string"},
     },

@@ -1,30 +1,33 @@
-"""Durable, append-only journal of alarms (JSON lines on disk).
+"""The durable alarm journal of a twin: an SQLite database (:mod:`twin.store`) with a memory of last resort.
 
-Every alarm the twin publishes is first written here, flushed and
-``fsync``-ed, and only then put on the bus (:meth:`twin.bus.TwinPublisher.publish_alarm`).
-The journal is therefore the source of truth: the bus's history queryable
-answers from it, and a subscriber that missed a live alarm fills the gap from it.
+Every alarm the twin publishes is journaled first (committed with
+``synchronous=FULL``), so the bus's history queryable (which answers from the
+journal) has every alarm that was ever published. The journal numbers the
+alarms of each rig 1, 2, 3, ... and keeps one alarm per identity
+(:attr:`twin.events.AlarmEvent.identity`): re-processing the same data after a
+restart raises the same alarms, which are recognised and neither journaled
+nor published again.
 
-File format: one :meth:`AlarmEvent.to_dict` JSON object per line, UTF-8,
-``\\n``-terminated, sorted keys. One journal may hold several rigs; sequence
-numbers are per rig and run 1, 2, 3, ... without gaps.
+When a write fails (disk full, file system remounted read-only, I/O error)
+the alarm is *not* lost: it gets the next number, stays in memory as
+*pending*, is published and served by the history like any other, and every
+later :meth:`AlarmJournal.record` (and :meth:`AlarmJournal.retry`) tries to
+write the pending alarms again, in order. :attr:`AlarmJournal.write_error`
+names the file and the cause while writes fail; the service reports it in
+the rig's status. Only a crash while alarms are pending loses them (logged
+loudly when they are first kept in memory).
 
-Crash safety:
-
-* a write is ``write() + flush() + fsync()`` of one whole line, so after a
-  crash only the *last* line can be incomplete. On reopen a torn last line
-  (no terminating newline, or not valid JSON) is reported (``logging``
-  warning, :attr:`AlarmJournal.torn_bytes`) and truncated away; the journal
-  then resumes at the last complete sequence number + 1;
-* a bad line anywhere *else* is not a crash artefact but corruption and
-  raises :class:`~twin.errors.LogFormatError` naming the file and line;
-* the file is held under an exclusive ``flock`` while open, so two services
-  cannot interleave writes into the same journal (:class:`~twin.errors.SourceError`).
+Migration: the journal of earlier versions was a JSON-lines file
+(``<rig>.alarms.jsonl``). Given ``legacy=PATH``, an existing file is imported
+once, in one transaction, and renamed ``PATH.imported``; a file that is not a
+clean journal (a bad line other than a torn last one, or sequence numbers
+that jump) is refused with the file and line, and nothing is imported.
 """
 
 from __future__ import annotations
 
-import fcntl
+import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -35,208 +38,233 @@ from types import TracebackType
 from typing import Self
 
 from twin.errors import DataError, LogFormatError, SourceError
-from twin.events import AlarmEvent, event_to_json
+from twin.events import AlarmEvent
+from twin.store import Checkpoint, Store
 
-__all__ = ["AlarmJournal"]
+__all__ = ["AlarmJournal", "Recorded", "read_legacy_journal"]
 
 log = logging.getLogger(__name__)
 
 
+@dataclasses.dataclass(frozen=True)
+class Recorded:
+    """What :meth:`AlarmJournal.record` did with an alarm."""
+
+    event: AlarmEvent
+    """The alarm with its sequence number (for a duplicate: the one journaled before)."""
+    new: bool
+    """False: an alarm of the same identity was journaled before (do not publish it again)."""
+    durable: bool
+    """False: the write failed; the alarm is pending in memory and retried."""
+
+
 class AlarmJournal:
-    """Append-only JSON-lines alarm journal with per-rig sequence numbers.
+    """Alarms and checkpoints of one or more rigs in one SQLite file (one writer).
 
-    Open it with ``with AlarmJournal(path) as journal:`` (or call :meth:`close`).
-    Thread-safe: the bus's history queryable reads while the service appends.
-
-    :param path: the journal file; created (with its parent directories) if missing.
-    :param fsync: ``True`` (default) makes every append durable before it
-        returns. Only tests of throughput should ever turn it off.
-    :raises SourceError: the file cannot be opened or is locked by another process.
-    :raises LogFormatError: a line other than the last one is corrupt, or
-        sequence numbers in the file are not 1, 2, 3, ... per rig.
+    :param path: the database file (created with its directory if missing).
+    :param legacy: an old JSON-lines journal to import once if it exists.
+    :raises SourceError: the file cannot be opened or is locked by another writer.
+    :raises LogFormatError: the file (or the legacy journal) is corrupt; nothing is changed.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, fsync: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, legacy: str | os.PathLike[str] | None = None,
+                 lock_wait_s: float = 5.0) -> None:
         self.path = Path(path)
-        self._fsync = fsync
-        self._lock = threading.Lock()
-        self._events: list[AlarmEvent] = []
-        self._last_seq: dict[str, int] = {}
-        self.torn_bytes = 0
-        """Bytes of a torn last line truncated away when the journal was opened (0 if none)."""
         try:
-            created = not self.path.exists()
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "a+b")  # noqa: SIM115 - held open until close()
         except OSError as exc:
-            raise SourceError(f"{self.path}: cannot open alarm journal: {exc.strerror or exc}") from exc
-        try:
-            fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            self._file.close()
-            raise SourceError(
-                f"{self.path}: alarm journal is locked by another process (one writer per journal)"
-            ) from exc
-        try:
-            self._load()
-            if created:
-                self._sync_dir()
-        except BaseException:
-            self._file.close()
-            raise
+            raise SourceError(f"{self.path.parent}: cannot create the journal directory "
+                              f"({exc.strerror or exc})") from None
+        self.store = Store(self.path, lock_wait_s=lock_wait_s)
+        self._lock = threading.Lock()
+        self._pending: list[AlarmEvent] = []
+        self.write_error: str | None = None
+        """While writes fail: one line naming the file and the cause; ``None`` when all is on disk."""
+        self.imported = 0
+        """Alarms imported from the legacy journal by this open."""
+        if legacy is not None:
+            try:
+                self._import(Path(legacy))
+            except BaseException:
+                self.store.close()
+                raise
 
     # ------------------------------------------------------------------ life cycle
 
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self.close()
 
     def close(self) -> None:
-        """Release the lock and close the file (idempotent)."""
-        with self._lock:
-            if not self._file.closed:
-                self._file.close()
+        """Try the pending alarms one last time, then close (idempotent)."""
+        if not self.store.closed:
+            self.retry()
+            if self._pending:
+                log.error("%s: closing with %d alarm(s) not written (%s); they were published but are lost "
+                          "from the journal", self.path, len(self._pending), self.write_error)
+        self.store.close()
 
     @property
     def closed(self) -> bool:
-        """``True`` once :meth:`close` has been called."""
-        return self._file.closed
-
-    # ------------------------------------------------------------------ loading
-
-    def _load(self) -> None:
-        self._file.seek(0)
-        data = self._file.read()
-        good_end = 0
-        lines = data.split(b"\n")
-        # split() leaves the bytes after the last newline (b"" when the file ends cleanly).
-        tail = lines.pop()
-        for number, raw in enumerate(lines, start=1):
-            is_last = number == len(lines) and not tail
-            try:
-                event = AlarmEvent.from_dict(json.loads(raw))
-            except (ValueError, UnicodeDecodeError) as exc:
-                if is_last:
-                    # A complete but unreadable last line: also a crash artefact
-                    # (a line is written in one write(); treat it like a torn one).
-                    tail = raw + b"\n"
-                    break
-                raise LogFormatError(f"{self.path}:{number}: corrupt journal line: {exc}") from exc
-            expected = self._last_seq.get(event.rig, 0) + 1
-            if event.seq != expected:
-                raise LogFormatError(
-                    f"{self.path}:{number}: rig {event.rig!r} seq {event.seq} where {expected} was expected"
-                )
-            self._append_memory(event)
-            good_end += len(raw) + 1
-        if tail:
-            self.torn_bytes = len(data) - good_end
-            log.warning(
-                "%s: torn last line (%d bytes) from an interrupted write truncated away; "
-                "journal resumes after %d complete alarm(s)",
-                self.path, self.torn_bytes, len(self._events),
-            )
-            self._file.truncate(good_end)
-            self._file.flush()
-            os.fsync(self._file.fileno())
-        self._file.seek(0, os.SEEK_END)
-
-    def _append_memory(self, event: AlarmEvent) -> None:
-        self._events.append(event)
-        self._last_seq[event.rig] = event.seq
-
-    def _sync_dir(self) -> None:
-        """Make the directory entry of a new journal durable too."""
-        if not self._fsync:
-            return
-        fd = os.open(self.path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        return self.store.closed
 
     # ------------------------------------------------------------------ writing
 
-    def last_seq(self, rig: str) -> int:
-        """The last journaled sequence number of ``rig`` (0 if none yet)."""
-        with self._lock:
-            return self._last_seq.get(rig, 0)
+    def record(self, event: AlarmEvent) -> Recorded:
+        """Journal ``event`` (see the module docstring); never loses it on a write failure.
 
-    def append(self, event: AlarmEvent) -> AlarmEvent:
-        """Write one alarm durably and return it with its sequence number.
-
-        An event with ``seq=0`` gets the rig's next number; an event that
-        already carries one must carry exactly the next number.
-
-        :returns: the journaled event (a copy with ``seq`` set).
         :raises DataError: ``event.seq`` is not 0 and not the rig's next number.
-        :raises SourceError: the write or the ``fsync`` failed (disk full, I/O error)
-            or the journal is closed.
+        :raises SourceError: the journal is closed.
         """
         with self._lock:
-            if self._file.closed:
+            if self.store.closed:
                 raise SourceError(f"{self.path}: alarm journal is closed")
-            expected = self._last_seq.get(event.rig, 0) + 1
-            if event.seq == 0:
-                event = event.with_seq(expected)
-            elif event.seq != expected:
-                raise DataError(
-                    f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {expected} "
-                    f"(the next journal number) or 0 (assign) was expected"
-                )
-            line = (event_to_json(event) + "\n").encode("utf-8")
-            start = self._file.tell()
+            self._retry_locked()
+            for p in self._pending:
+                if p.identity == event.identity:
+                    return Recorded(p, False, False)
+            if not self._pending:
+                try:
+                    ev, new = self.store.insert_alarm(event)
+                    return Recorded(ev, new, True)
+                except SourceError as exc:
+                    self._failed(exc)
             try:
-                self._file.write(line)
-                self._file.flush()
-                if self._fsync:
-                    os.fsync(self._file.fileno())
-            except OSError as exc:
-                # Do not leave half a line behind for the next append to extend.
-                self._file.truncate(start)
-                raise SourceError(f"{self.path}: cannot write alarm journal: {exc}") from exc
-            self._append_memory(event)
-            return event
+                found = self.store.find(event.identity)
+            except SourceError:
+                found = None
+            if found is not None:
+                return Recorded(found, False, True)
+            nxt = self._last_seq_locked(event.rig) + 1
+            if event.seq not in (0, nxt):
+                raise DataError(f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {nxt} "
+                                f"(the next journal number) or 0 (assign) was expected")
+            event = event.with_seq(nxt)
+            self._pending.append(event)
+            log.error("rig %s: alarm seq %d kept in memory, not on disk: %s; retrying with every alarm and "
+                      "every checkpoint", event.rig, event.seq, self.write_error)
+            return Recorded(event, True, False)
+
+    def append(self, event: AlarmEvent) -> AlarmEvent:
+        """:meth:`record` returning just the journaled event (with its ``seq``)."""
+        return self.record(event).event
+
+    def retry(self) -> bool:
+        """Write the pending alarms; ``True`` when nothing is pending any more."""
+        with self._lock:
+            return self._retry_locked()
+
+    def _retry_locked(self) -> bool:
+        while self._pending:
+            try:
+                self.store.insert_alarm(self._pending[0])
+            except SourceError as exc:
+                self._failed(exc)
+                return False
+            done = self._pending.pop(0)
+            log.warning("rig %s: pending alarm seq %d is now on disk in %s", done.rig, done.seq, self.path)
+        if self.write_error is not None:
+            log.warning("%s: journal writes work again", self.path)
+        self.write_error = None
+        return True
+
+    def _failed(self, exc: SourceError) -> None:
+        self.write_error = str(exc)
+
+    @property
+    def pending(self) -> int:
+        """Alarms kept in memory because their write failed."""
+        with self._lock:
+            return len(self._pending)
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def save_checkpoint(self, cp: Checkpoint) -> None:
+        """Save a rig's checkpoint (raises SourceError naming the file if the write fails)."""
+        self.store.save_checkpoint(cp)
+
+    def load_checkpoint(self, rig: str) -> Checkpoint | None:
+        return self.store.load_checkpoint(rig)
 
     # ------------------------------------------------------------------ reading
 
-    def read(
-        self,
-        since_seq: int | None = None,
-        since_t_ns: int | None = None,
-        rig: str | None = None,
-    ) -> list[AlarmEvent]:
-        """Journaled alarms in journal order, filtered.
+    def _last_seq_locked(self, rig: str) -> int:
+        mine = [p.seq for p in self._pending if p.rig == rig]
+        return max(mine) if mine else self.store.last_seq(rig)
 
-        :param since_seq: keep ``seq >= since_seq`` (inclusive).
-        :param since_t_ns: keep ``t_ns >= since_t_ns`` (inclusive).
-        :param rig: keep only this rig (``None`` or ``"*"``: all rigs).
-        """
+    def last_seq(self, rig: str) -> int:
+        """The last number given to an alarm of ``rig`` (journaled or pending; 0 if none)."""
         with self._lock:
-            events = list(self._events)
-        return [
-            e
-            for e in events
-            if (rig is None or rig == "*" or e.rig == rig)
-            and (since_seq is None or e.seq >= since_seq)
-            and (since_t_ns is None or e.t_ns >= since_t_ns)
-        ]
+            return self._last_seq_locked(rig)
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]:
+        """Journaled and pending alarms, by rig then seq, filtered (``since_*`` inclusive)."""
+        with self._lock:
+            pending = list(self._pending)
+        events = self.store.alarms(rig, since_seq, since_t_ns)
+        have = {(e.rig, e.seq) for e in events}
+        events += [p for p in pending if (p.rig, p.seq) not in have
+                   and (rig in (None, "*") or p.rig == rig)
+                   and (since_seq is None or p.seq >= since_seq)
+                   and (since_t_ns is None or p.t_ns >= since_t_ns)]
+        return sorted(events, key=lambda e: (e.rig, e.seq))
 
     def __iter__(self) -> Iterator[AlarmEvent]:
         return iter(self.read())
 
     def __len__(self) -> int:
-        with self._lock:
-            return len(self._events)
+        return len(self.read())
 
     def rigs(self) -> list[str]:
-        """The rigs that have at least one journaled alarm, sorted."""
-        with self._lock:
-            return sorted(self._last_seq)
+        """The rigs that have at least one alarm, sorted."""
+        return sorted({e.rig for e in self.read()})
+
+    # ------------------------------------------------------------------ migration
+
+    def _import(self, legacy: Path) -> None:
+        if not legacy.exists():
+            return
+        data = legacy.read_bytes()
+        digest = hashlib.sha256(data).hexdigest()
+        if self.store.meta(f"imported:{legacy.name}") == digest:
+            log.warning("%s: already imported into %s; rename or remove it", legacy, self.path)
+            return
+        events, torn = read_legacy_journal(legacy, data)
+        n = self.store.insert_many(events, {f"imported:{legacy.name}": digest})
+        self.imported = n
+        target = legacy.with_name(legacy.name + ".imported")
+        os.replace(legacy, target)
+        log.warning("%s: imported %d alarm(s) of the old JSON-lines journal%s; the old file is now %s",
+                    self.path, n, f" (a torn last line of {torn} bytes was left out)" if torn else "", target)
+
+
+def read_legacy_journal(path: Path, data: bytes | None = None) -> tuple[list[AlarmEvent], int]:
+    """Alarms of an old JSON-lines journal, and the bytes of a torn last line left out.
+
+    Only an *incomplete* last line (no newline: a write interrupted by a crash)
+    is left out. Any complete line that does not parse, or a jump in a rig's
+    numbers, raises :class:`LogFormatError` naming the file and line: it is
+    damage, not a crash artefact, and a damaged journal is not imported.
+    """
+    data = path.read_bytes() if data is None else data
+    lines = data.split(b"\n")
+    tail = lines.pop()
+    events: list[AlarmEvent] = []
+    last: dict[str, int] = {}
+    for number, raw in enumerate(lines, start=1):
+        try:
+            ev = AlarmEvent.from_dict(json.loads(raw))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise LogFormatError(f"{path}:{number}: corrupt journal line ({exc}); not imported: fix or move "
+                                 "the file aside") from None
+        expected = last.get(ev.rig, 0) + 1
+        if ev.seq != expected:
+            raise LogFormatError(f"{path}:{number}: rig {ev.rig!r} seq {ev.seq} where {expected} was expected; "
+                                 "not imported")
+        last[ev.rig] = ev.seq
+        events.append(ev)
+    return events, len(tail)

@@ -1,33 +1,37 @@
 """The online twin service: per rig, samples in, tracked parameters and drift alarms out over Zenoh.
 
-``twin serve --config rigs.toml`` opens one Zenoh session and, per rig, a
-:class:`RigTwin`: the rig's source (a live CAN bus, a Zenoh key expression or
-a log replayed in real time), the tracker, the drift detector, the alarm
-journal and a :class:`twin.bus.TwinPublisher`.  Each rig runs in its own
-thread (the compiled filter releases no Python state between samples, and a
-block of samples is filtered in one compiled call).
+``twin serve --config rigs.toml`` opens one Zenoh session and runs every rig
+of the configuration (:mod:`twin.fleet`: a :class:`~twin.fleet.RigRunner` per
+rig, in threads of this process or spread over spawned worker processes).
+Each rig's computing part is a :class:`RigTwin`: the tracker, the drift
+detector, estimates in a bounded ring, and the events it hands to a publisher.
 
 Per block of samples the rig twin
 
-1. filters the block (``twin.track.OnlineTracker``);
+1. filters the block (``twin.tracker.OnlineTracker``);
 2. feeds every published estimate to the drift detector (``twin.drift``);
-3. journals, then publishes each alarm event (reliable, blocking);
+3. hands each alarm event to its publisher (which journals it, then puts it
+   on the bus; an alarm journaled before is recognised and not repeated);
 4. publishes the latest estimate every ``estimate_every`` samples and a status
    on every change of the filter's or a parameter's status, and at least once
    a second;
 5. optionally records estimates, alarms and statuses to MCAP.
+
+Its state (tracker and detector objects, whole) is what the runner
+checkpoints (:meth:`RigTwin.state` / :meth:`RigTwin.restore`).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
+import hashlib
 import logging
-import os
 import sys
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -38,6 +42,11 @@ from twin.events import AlarmEvent, EstimateEvent, StatusEvent
 
 log = logging.getLogger(__name__)
 
+#: Estimates kept per rig by the service (at 20 per second: about 3 minutes); ``twin track`` keeps all.
+SERVICE_HISTORY = 4096
+#: Alarm events kept in memory per rig (the journal has them all).
+ALARMS_KEPT = 10000
+
 
 @dataclasses.dataclass
 class RigStats:
@@ -47,13 +56,82 @@ class RigStats:
     estimates: int = 0
     statuses: int = 0
     busy_s: float = 0.0
+    duplicates: int = 0
+    """Alarms raised again on data processed before (journaled already: not published again)."""
+
+
+@dataclasses.dataclass
+class Health:
+    """What a rig's runner says about it; goes into every status the twin publishes."""
+
+    state: str = "running"
+    message: str = ""
+    counters: dict[str, int] = dataclasses.field(default_factory=dict)
+
+
+class Ring:
+    """The last ``capacity`` rows of (t, values[p], stds[p]) in preallocated arrays; ``None``: unbounded."""
+
+    def __init__(self, p: int, capacity: int | None) -> None:
+        self.p = p
+        self.capacity = capacity
+        size = capacity if capacity is not None else 256
+        self._t = np.empty(size)
+        self._v = np.empty((size, p))
+        self._s = np.empty((size, p))
+        self._n = 0  # rows ever added
+
+    def add(self, t: float, v: np.ndarray, s: np.ndarray) -> None:
+        if self.capacity is None and self._n == len(self._t):  # unbounded: grow
+            self._t = np.concatenate([self._t, np.empty_like(self._t)])
+            self._v = np.concatenate([self._v, np.empty_like(self._v)])
+            self._s = np.concatenate([self._s, np.empty_like(self._s)])
+        i = self._n % len(self._t)
+        self._t[i], self._v[i], self._s[i] = t, v, s
+        self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, len(self._t))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows in time order (copies)."""
+        n, size = len(self), len(self._t)
+        idx = np.arange(self._n - n, self._n) % size
+        return self._t[idx].copy(), self._v[idx].copy(), self._s[idx].copy()
+
+    def last(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        if self._n == 0:
+            return None
+        i = (self._n - 1) % len(self._t)
+        return float(self._t[i]), self._v[i].copy(), self._s[i].copy()
+
+
+def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
+              history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
+    """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
+    return RigTwin(rig, publisher, recorder, estimate_every, dt=dt, history=history)
+
+
+def fingerprint(rig: RigConfig, estimate_every: int) -> str:
+    """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
+    d = dataclasses.asdict(rig)
+    d.pop("speed")
+    d["estimate_every"] = estimate_every
+    return hashlib.sha256(repr(sorted(d.items())).encode()).hexdigest()[:16]
 
 
 class RigTwin(Sink):
-    """One rig's twin: a :class:`~replay.base.Sink` that samples are written to."""
+    """One rig's twin: a :class:`~replay.base.Sink` that samples are written to.
+
+    ``publisher``: ``publish_alarm(ev)`` returns the journaled event (or
+    ``None`` for an alarm journaled before), ``publish_estimate(ev)``,
+    ``publish_status(ev)``. ``history``: how many published estimates to keep
+    (``None``: all, for offline tracks of finite logs).
+    """
 
     def __init__(self, rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50,
-                 on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None):
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None,
+                 history: int | None = None):
         from twin.drift import DriftMonitor
         from twin.tracker import OnlineTracker
 
@@ -65,14 +143,49 @@ class RigTwin(Sink):
         self.tracker = OnlineTracker(rig.model, params=rig.params, tracked=rig.track, dt=dt)
         self.drift = DriftMonitor(rig.name, rig.baseline)
         self.stats = RigStats()
-        self.alarms: list[AlarmEvent] = []
+        self.health = Health()
+        self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
+        self.last_t_ns: int | None = None
         self._t0_ns: int | None = None
         self._last_status = None
         self._last_status_wall = 0.0
         self._since_estimate = 0
-        self._hist_t: list[float] = []
-        self._hist_v: list[np.ndarray] = []
-        self._hist_s: list[np.ndarray] = []
+        self._ring = Ring(len(self.tracker.tracked), history)
+
+    # -- checkpoints ------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Everything the twin's future output depends on (tracker and detector objects whole)."""
+        return {"tracker": self.tracker, "drift": self.drift, "t0_ns": self._t0_ns, "last_t_ns": self.last_t_ns,
+                "since_estimate": self._since_estimate, "samples": self.stats.samples}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state` of an earlier twin of the same rig."""
+        self.tracker = state["tracker"]
+        self.drift = state["drift"]
+        self._t0_ns = state["t0_ns"]
+        self.last_t_ns = state["last_t_ns"]
+        self._since_estimate = state["since_estimate"]
+        self.stats.samples = state["samples"]
+
+    def restart_filter(self, start: dict[str, float] | None = None) -> None:
+        """A fresh tracker starting from ``start`` (e.g. the last good estimates); the detector carries on.
+
+        After an input gap or a diverged filter the model states cannot be
+        carried over; the parameters restart from their last estimates with
+        the prior's uncertainty (the detector calls them ``unresolved`` until
+        the data resolve them again, so nothing is raised on a guess).
+        """
+        from twin.errors import ParameterError
+        from twin.tracker import OnlineTracker
+
+        old = self.tracker
+        try:
+            self.tracker = OnlineTracker(self.rig.model, params=self.rig.params, tracked=self.rig.track, dt=old.dt,
+                                         start=start or None)
+        except ParameterError:
+            self.tracker = OnlineTracker(self.rig.model, params=self.rig.params, tracked=self.rig.track, dt=old.dt)
+        for k, v in old.counters.items():
+            self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
 
     # -- Sink ---------------------------------------------------------------------------
     def write(self, samples: Samples) -> None:
@@ -82,6 +195,7 @@ class RigTwin(Sink):
         if self._t0_ns is None:
             self._t0_ns = int(samples.t_ns[0])
         out = self.tracker.process(samples)
+        self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
                                           out.frozen):
@@ -92,9 +206,9 @@ class RigTwin(Sink):
         for i in range(first, n, self.estimate_every):
             self._estimate(out, t_s, i)
         self._since_estimate = (self._since_estimate + n) % self.estimate_every
-        self._status(out)
         self.stats.samples += len(samples)
         self.stats.blocks += 1
+        self._status(out)
         self.stats.busy_s += time.perf_counter() - t_start
 
     def close(self) -> None:
@@ -102,21 +216,25 @@ class RigTwin(Sink):
 
     # -- what the twin has seen -----------------------------------------------------------------
     def history_arrays(self) -> dict[str, np.ndarray]:
-        """Published estimates: ``t_s [n]``, ``values [n, p]``, ``stds [n, p]`` (SI)."""
-        p = len(self.tracker.tracked)
-        return {"t_s": np.array(self._hist_t),
-                "values": np.array(self._hist_v).reshape(-1, p), "stds": np.array(self._hist_s).reshape(-1, p)}
+        """Published estimates kept (the last ``history``): ``t_s [n]``, ``values [n, p]``, ``stds [n, p]`` (SI)."""
+        t, v, s = self._ring.arrays()
+        return {"t_s": t, "values": v, "stds": s}
 
     def final_estimates(self) -> dict[str, dict]:
-        if not self._hist_t:
+        last = self._ring.last()
+        if last is None:
             return {}
-        return {n: {"value": float(self._hist_v[-1][j]), "std": float(self._hist_s[-1][j]),
-                    "unit": self.tracker.units[j]} for j, n in enumerate(self.tracker.tracked)}
+        _, v, s = last
+        return {n: {"value": float(v[j]), "std": float(s[j]), "unit": self.tracker.units[j]}
+                for j, n in enumerate(self.tracker.tracked)}
 
     # -- publishing ---------------------------------------------------------------------------
     def _alarm(self, ev: AlarmEvent) -> None:
         if self.publisher is not None:
             ev = self.publisher.publish_alarm(ev)
+            if ev is None:  # journaled before (data processed again after a restart)
+                self.stats.duplicates += 1
+                return
         self.alarms.append(ev)
         self.stats.alarms += 1
         if self.recorder is not None:
@@ -125,152 +243,174 @@ class RigTwin(Sink):
             self.on_alarm(ev)
 
     def _estimate(self, out, t_s, i: int) -> None:
+        self._ring.add(float(t_s[i]), out.estimates[i], out.stds[i])
+        if self.publisher is None and self.recorder is None:
+            self.stats.estimates += 1
+            return
         params = {n: {"value": float(out.estimates[i][j]), "std": float(out.stds[i][j]),
                       "unit": self.tracker.units[j]} for j, n in enumerate(self.tracker.tracked)}
         ev = EstimateEvent(rig=self.rig.name, t_ns=int(out.t_ns[i]), t_s=float(t_s[i]), params=params,
                            nis=float(out.nis[i]) if np.isfinite(out.nis[i]) else None,
                            status=str(out.status[i]))
-        self._hist_t.append(float(t_s[i]))
-        self._hist_v.append(np.array(out.estimates[i], dtype=float))
-        self._hist_s.append(np.array(out.stds[i], dtype=float))
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
         if self.recorder is not None:
             self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict())
         self.stats.estimates += 1
 
-    def _status(self, out, force: bool = False, state: str = "running") -> None:
+    def publish_status(self, force: bool = False) -> None:
+        """Publish a status now if it changed or a second has passed (``force``: now)."""
+        self._status(None, force=force)
+
+    def _status(self, out, force: bool = False, state: str | None = None) -> None:
         now = time.monotonic()
         per_param = self.drift.statuses()
-        key = (state, tuple(sorted(per_param.items())))
+        state = state or self.health.state
+        key = (state, self.health.message, tuple(sorted(per_param.items())))
         if not force and key == self._last_status and now - self._last_status_wall < 1.0:
             return
         self._last_status = key
         self._last_status_wall = now
-        t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self._t0_ns or 0)
+        t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
         counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
-                    **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"}}
-        ev = StatusEvent(rig=self.rig.name, t_ns=t_ns, state=state, parameters=per_param, counters=counters,
-                         message="")
+                    **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
+                    **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
+        ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
+                         counters=counters, message=self.health.message)
         if self.publisher is not None:
-            ev = self.publisher.publish_status(ev)
+            ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:
             self.recorder.write_message("/twin/status", ev.t_ns, ev.to_dict())
         self.stats.statuses += 1
 
 
-def open_rig_source(rig: RigConfig, session=None):
-    """The rig's source; a ``zenoh://`` input rides on the service's own Zenoh session."""
-    from replay.factory import open_source
-
-    opts = {"dbc": rig.dbc} if rig.dbc else {}
-    if rig.source.startswith("zenoh://") and session is not None:
-        opts["session"] = session
-    return open_source(rig.source, **opts)
-
-
-def is_live(uri: str) -> bool:
-    return uri.startswith(("can://", "zenoh://"))
-
-
-def run_rig(rig: RigConfig, twin: RigTwin, stop: threading.Event, chunk: int = 100, session=None) -> None:
-    """Feed ``twin`` from the rig's source until it ends or ``stop`` is set."""
-    from replay.play import play
-
-    with open_rig_source(rig, session) as src:
-        if is_live(rig.source):
-            for block in src.chunks(chunk):
-                if stop.is_set():
-                    break
-                twin.write(block)
-        else:
-            speed = rig.speed if rig.speed > 0 else float("inf")
-            play(src, twin, speed, chunk=chunk, should_stop=stop.is_set)
-
-
 def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
           on_alarm: Callable[[AlarmEvent], None] | None = None, session=None,
-          twins: dict[str, RigTwin] | None = None) -> dict[str, RigStats]:
-    """Run every rig of ``cfg`` until their sources end or ``stop`` is set; returns per-rig stats.
+          twins: dict[str, RigTwin] | None = None, *, summaries: dict | None = None) -> dict[str, RigStats]:
+    """Run every rig of ``cfg`` until their logs end or ``stop`` is set; returns per-rig stats.
 
-    ``session``: an open Zenoh session to use (default: open one from ``cfg``);
-    ``twins``: a dict that receives each rig's :class:`RigTwin` (for reports).
+    A live rig runs until ``stop``. ``session``: an open Zenoh session to use
+    (default: open one from ``cfg`` and ``ZENOH_CONFIG``); ``twins``: a dict
+    that receives each rig's :class:`RigTwin` (rigs then run in threads of this
+    process); ``summaries``: a dict that receives each rig's
+    :class:`twin.fleet.RigSummary`, failures included.
+
+    :raises ConfigError: the configuration cannot run (journal directory, a log missing).
+    :raises SourceError: the Zenoh session cannot be opened (one line naming the endpoint).
+    :raises TwinError: a rig failed (``rig NAME failed: cause``) after the others stopped.
     """
-    import zenoh
-
-    from replay.mcapio import McapSink
-    from twin.bus import TwinPublisher, zenoh_config
-    from twin.journal import AlarmJournal
+    from twin.fleet import Fleet, check_journal_dir, check_sources
 
     stop = stop or threading.Event()
+    check_journal_dir(cfg)
+    check_sources(cfg)
     own_session = session is None
     if own_session:
-        conf = zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect,
-                            config_file=os.environ.get("ZENOH_CONFIG") or None)
-        session = zenoh.open(conf)
-    os.makedirs(cfg.journal_dir, exist_ok=True)
-    if cfg.out_dir:
-        os.makedirs(cfg.out_dir, exist_ok=True)
-    errors: dict[str, BaseException] = {}
-    stats: dict[str, RigStats] = {}
-
-    def worker(rig: RigConfig) -> None:
-        try:
-            with AlarmJournal(os.path.join(cfg.journal_dir, f"{rig.name}.alarms.jsonl")) as journal, \
-                    TwinPublisher(session, rig.name, journal) as pub:
-                rec = McapSink(os.path.join(cfg.out_dir, f"{rig.name}.twin.mcap")) if cfg.out_dir else None
-                twin = RigTwin(rig, pub, rec, cfg.estimate_every, on_alarm)
-                if twins is not None:
-                    twins[rig.name] = twin
-                try:
-                    run_rig(rig, twin, stop, session=session)
-                finally:
-                    twin.close()
-                    if rec is not None:
-                        rec.close()
-                stats[rig.name] = twin.stats
-        except BaseException as exc:  # reported by serve() after every rig has ended
-            errors[rig.name] = exc
-            log.error("rig %s stopped: %s", rig.name, exc)
-
+        session = open_service_session(cfg)
     try:
-        threads = [threading.Thread(target=worker, args=(r,), name=f"rig-{r.name}", daemon=True) for r in cfg.rigs]
-        for t in threads:
-            t.start()
-        for t in threads:
-            while t.is_alive():
-                t.join(0.2)
-    except KeyboardInterrupt:
-        stop.set()
-        for t in threads:
-            t.join(5.0)
+        fleet = Fleet(cfg, session, stop, on_alarm=on_alarm, keep=twins)
+        result = fleet.run()
     finally:
         if own_session:
             session.close()
-    if errors:
-        name, exc = next(iter(errors.items()))
-        if isinstance(exc, TwinError):
-            raise exc
-        raise TwinError(f"rig {name}: {exc}") from exc
-    return stats
+    if summaries is not None:
+        summaries.update(result)
+    failed = [s for s in result.values() if s.state == "failed"]
+    if failed:
+        raise TwinError("; ".join(f"rig {s.rig} failed: {s.message}" for s in failed))
+    return {name: s.stats for name, s in result.items()}
+
+
+def zenoh_settings(cfg: ServiceConfig):
+    """The service's Zenoh configuration: ``ZENOH_CONFIG`` (if set), then what ``[zenoh]`` gives explicitly."""
+    import os
+
+    from twin.bus import zenoh_config
+    from twin.errors import ConfigError
+
+    file = os.environ.get("ZENOH_CONFIG") or None
+    try:
+        return zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect, None, config_file=file)
+    except ConfigError as exc:
+        text = str(exc)
+        raise ConfigError(f"ZENOH_CONFIG={text}" if file and text.startswith(file) else f"{cfg.path}: zenoh: {text}") \
+            from None
+
+
+def open_service_session(cfg: ServiceConfig):
+    from twin.bus import open_session
+
+    return open_session(zenoh_settings(cfg), "twin serve")
 
 
 def add_serve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/config.py)")
     p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
+                   help="console messages from this level up (default info)")
+
+
+def startup_line(cfg: ServiceConfig, workers: int) -> str:
+    from twin.bus import config_endpoints
+
+    from twin.fleet import journal_path
+
+    conf = zenoh_settings(cfg)
+    import json as _json
+
+    mode = _json.loads(conf.get_json("mode") or '"peer"')
+    listen, connect = config_endpoints(conf)
+    rigs = ", ".join(f"{r.name} <- {r.source}" for r in cfg.rigs)
+    where = "in this process" if workers == 0 else f"over {workers} worker process(es)"
+    return (f"{len(cfg.rigs)} rig(s) {where}: {rigs}; zenoh {mode}, listen {listen or 'none'}, "
+            f"connect {connect or 'none'}; journal {journal_path(cfg, '<rig>').parent}/<rig>.db")
 
 
 def run_serve(args) -> int:
     import json
+    import signal
 
+    from twin.fleet import Fleet, check_journal_dir, check_sources
+
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
+                        stream=sys.stderr)
     cfg = load_config(args.config)
+    check_journal_dir(cfg)
+    check_sources(cfg)
+    stop = threading.Event()
+
+    def on_signal(signum, frame) -> None:  # noqa: ARG001
+        if not stop.is_set():
+            print(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)",
+                  file=sys.stderr, flush=True)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def show(ev: AlarmEvent) -> None:
-        print(f"[{ev.rig}] t={ev.t_s:9.3f}s {ev.level.upper():7s} {ev.kind:9s} {ev.parameter}: "
+        print(f"twin serve: [{ev.rig}] t={ev.t_s:9.3f}s {ev.level.upper():7s} {ev.kind:9s} {ev.parameter}: "
               f"{ev.estimate:.4g} +- {ev.std:.2g} (band {ev.band_lo:.4g}..{ev.band_hi:.4g}) seq {ev.seq}",
               file=sys.stderr, flush=True)
 
-    stats = serve(cfg, on_alarm=show)
+    session = open_service_session(cfg)
+    summaries: dict = {}
+    try:
+        workers = Fleet(cfg, session, stop).worker_count
+        print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
+        error = None
+        try:
+            stats = serve(cfg, stop, on_alarm=show, session=session, summaries=summaries)
+        except TwinError as exc:
+            error, stats = exc, {k: v.stats for k, v in summaries.items()}
+    finally:
+        session.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for name in (r.name for r in cfg.rigs):
+        if name in summaries:
+            print(f"twin serve: summary {summaries[name].line()}", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
+    if error is not None:
+        raise error
     return 0
