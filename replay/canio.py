@@ -370,6 +370,11 @@ class Aligner:
                 self._check_gaps(d.t_ns)
         return self._emit(final=False)
 
+    def release(self) -> Samples:
+        """Live streams, after a quiet spell longer than the window: emit every pending grid
+        instant now (no frame of its cycle can still come); alignment goes on after."""
+        return self._emit(final=True)
+
     def flush(self) -> Samples:
         out = self._emit(final=True)
         if not self.started and self.warmup:
@@ -911,6 +916,10 @@ class CanStream:
 
     def feed(self, frames: Frames) -> Samples:
         return self.aligner.feed(self.decoder.decode(frames))
+
+    def release(self) -> Samples:
+        """What the aligner holds back for a window that has passed (live: after a quiet spell)."""
+        return self.aligner.release()
 
     def flush(self) -> Samples:
         return self.aligner.flush()

@@ -170,6 +170,10 @@ class QualityOptions:
     ``check_range``: turn the range and unit check off (e.g. for raw diagnostics).
     ``specs``: signal specifications that replace :data:`~replay.base.SIGNALS` for this
     read (e.g. the oscillator's ``u`` is a force in N, not a valve voltage).
+    ``keep_nan``: pass NaN through as a missing value (live streams: ``null``); infinite
+    values are still dropped.  ``systematic``: ``"raise"`` (files: a wrong unit refuses
+    the read) or ``"drop"`` (live streams: the block is dropped and counted under
+    ``wrong_unit`` with the same message; the gate never raises).
     """
 
     required: tuple[str, ...] = ()
@@ -178,6 +182,8 @@ class QualityOptions:
     check_range: bool = True
     range_tolerance: float = 1e-3
     specs: Mapping[str, SignalSpec] | None = None
+    keep_nan: bool = False
+    systematic: str = "raise"
 
     def __post_init__(self) -> None:
         if self.max_gap_s is not None and not self.max_gap_s > 0:
@@ -186,6 +192,8 @@ class QualityOptions:
             raise ValueError(f"gap_factor (={self.gap_factor}) must be > 1")
         if not 0 <= self.range_tolerance < 1:
             raise ValueError(f"range_tolerance (={self.range_tolerance}) must be in [0, 1)")
+        if self.systematic not in ("raise", "drop"):
+            raise ValueError(f"systematic (={self.systematic!r}) must be 'raise' or 'drop'")
 
 
 _N_EXAMPLES = 5
@@ -213,6 +221,7 @@ class QualityGate:
         self._gap_prev: int | None = None  # last kept time seen by the gap check
         self._checked: dict[str, int] = {}
         self._out: dict[str, int] = {}
+        self._recent: dict[str, np.ndarray] = {}  # live mode: the last pressures seen, per signal
 
     @property
     def max_gap_ns(self) -> int | None:
@@ -234,6 +243,8 @@ class QualityGate:
         if not keep.all():
             idx = np.flatnonzero(keep)
             block = Samples(block.t_ns[idx], {k: v[idx] for k, v in block.signals.items()})
+        if len(block):  # the latest time of what is kept (a dropped block does not move it)
+            self._last_t_ns = int(block.t_ns[-1])
         self._gaps(block.t_ns)
         self.report.samples_out += len(block)
         return block
@@ -244,11 +255,12 @@ class QualityGate:
         nan_any = np.zeros(len(block), dtype=bool)
         inf_any = np.zeros(len(block), dtype=bool)
         examples: dict[str, list[tuple[str, str]]] = {"nan": [], "inf": []}
+        keep_nan = self.options.keep_nan
         for name, v in block.signals.items():
-            bad = ~np.isfinite(v)
+            bad = np.isinf(v) if keep_nan else ~np.isfinite(v)
             if not bad.any():
                 continue
-            isnan = np.isnan(v)
+            isnan = np.zeros_like(bad) if keep_nan else np.isnan(v)
             nan_any |= isnan
             inf_any |= bad & ~isnan
             for i in np.flatnonzero(bad)[:_N_EXAMPLES]:
@@ -295,40 +307,45 @@ class QualityGate:
                      "expected strictly increasing time")
                     for p in pos[:_N_EXAMPLES]))
                 keep[idx[pos]] = False
-        kept_t = block.t_ns[keep]
-        if kept_t.size:
-            self._last_t_ns = int(kept_t[-1])
 
     def _range(self, block: Samples, keep: np.ndarray, labels: np.ndarray, label: str) -> None:
         idx = np.flatnonzero(keep)
         if idx.size == 0:
             return
+        drop_mode = self.options.systematic == "drop"
         for name, v_all in block.signals.items():
             spec = self.specs.get(name)
             if spec is None:
                 continue
             v = v_all[idx]
-            out = (v < spec.lo) | (v > spec.hi)
+            fin = np.isfinite(v)
+            if not fin.any():
+                continue
+            out = fin & ((v < spec.lo) | (v > spec.hi))
             n_out = int(out.sum())
-            self._checked[name] = self._checked.get(name, 0) + int(v.size)
-            self._out[name] = self._out.get(name, 0) + n_out
-            lo, hi = float(v.min()), float(v.max())
-            allowed = max(1, int(self.options.range_tolerance * self._checked[name]))
-            if self._out[name] > allowed:
-                raise DataError(
-                    f"{self.report.file}: signal {name!r}: observed range [{lo:.6g}, {hi:.6g}] "
-                    f"({n_out} of {v.size} samples of this block outside [{spec.lo:.6g}, {spec.hi:.6g}] "
-                    f"{spec.unit}), expected {spec.meaning} in {spec.unit}"
-                    + unit_hint(spec, *_robust_range(v))
-                )
-            if spec.unit == "Pa" and v.size >= _PRESSURE_MIN_BLOCK:
-                mag = float(np.max(np.abs(v)))
-                if 1.0 < mag <= 1e3:
+            lo, hi = float(np.min(v[fin])), float(np.max(v[fin]))
+            if drop_mode:
+                if self._systematic_in_block(name, spec, v[fin], n_out, lo, hi, keep, idx, labels, label):
+                    return
+            else:
+                self._checked[name] = self._checked.get(name, 0) + int(v.size)
+                self._out[name] = self._out.get(name, 0) + n_out
+                allowed = max(1, int(self.options.range_tolerance * self._checked[name]))
+                if self._out[name] > allowed:
                     raise DataError(
-                        f"{self.report.file}: signal {name!r}: observed range [{lo:.6g}, {hi:.6g}] Pa "
-                        f"is implausibly small for {spec.meaning} (|p| <= 1 kPa over {v.size} samples), "
-                        f"expected Pa" + unit_hint(spec, lo, hi)
+                        f"{self.report.file}: signal {name!r}: observed range [{lo:.6g}, {hi:.6g}] "
+                        f"({n_out} of {v.size} samples of this block outside [{spec.lo:.6g}, {spec.hi:.6g}] "
+                        f"{spec.unit}), expected {spec.meaning} in {spec.unit}"
+                        + unit_hint(spec, *_robust_range(v[fin]))
                     )
+                if spec.unit == "Pa" and v.size >= _PRESSURE_MIN_BLOCK:
+                    mag = float(np.max(np.abs(v[fin])))
+                    if 1.0 < mag <= 1e3:
+                        raise DataError(
+                            f"{self.report.file}: signal {name!r}: observed range [{lo:.6g}, {hi:.6g}] Pa "
+                            f"is implausibly small for {spec.meaning} (|p| <= 1 kPa over {v.size} samples), "
+                            f"expected Pa" + unit_hint(spec, lo, hi)
+                        )
             if n_out:
                 pos = np.flatnonzero(out)
                 add_skips(self.report, "out_of_range", n_out, (
@@ -336,6 +353,30 @@ class QualityGate:
                      f"signal {name!r} = {v[p]:.6g} {spec.unit} outside [{spec.lo:.6g}, {spec.hi:.6g}] {spec.unit}")
                     for p in pos[:_N_EXAMPLES]))
                 keep[idx[pos]] = False
+
+    def _systematic_in_block(self, name: str, spec: SignalSpec, v: np.ndarray, n_out: int, lo: float, hi: float,
+                             keep: np.ndarray, idx: np.ndarray, labels: np.ndarray, label: str) -> bool:
+        """Live mode: drop the whole block if its values look like a wrong unit (True if dropped)."""
+        why = ""
+        if v.size >= 10 and n_out > max(1, self.options.range_tolerance * v.size):
+            why = (f"{n_out} of {v.size} samples outside [{spec.lo:.6g}, {spec.hi:.6g}] {spec.unit}"
+                   + unit_hint(spec, *_robust_range(v)))
+        elif spec.unit == "Pa":
+            recent = self._recent.get(name)
+            recent = v[-_PRESSURE_MIN_BLOCK:] if recent is None else np.concatenate([recent, v])[-_PRESSURE_MIN_BLOCK:]
+            self._recent[name] = recent
+            mag = float(np.max(np.abs(recent)))
+            if recent.size >= _PRESSURE_MIN_BLOCK and 1.0 < mag <= 1e3 and float(np.max(np.abs(v))) <= 1e3:
+                why = (f"|p| <= 1 kPa over the last {recent.size} samples: implausibly small for {spec.meaning}"
+                       + unit_hint(spec, lo, hi))
+        if not why:
+            return False
+        add_skips(self.report, "wrong_unit", int(idx.size), [(
+            f"{label} {labels[idx[0]]}..{labels[idx[-1]]}",
+            f"signal {name!r}: observed range [{lo:.6g}, {hi:.6g}], expected {spec.meaning} in {spec.unit} "
+            f"({why}); the block of {idx.size} samples is dropped")])
+        keep[idx] = False
+        return True
 
     def _gaps(self, t: np.ndarray) -> None:
         """Report steps longer than the threshold between kept samples (``t`` already ordered)."""
