@@ -27,28 +27,28 @@ def _rel_rms(a, b, ref=None):
 SPECS = {
     "rest": msp25_spec(0, duration=1.0, demand=QUIET, truth={"CdAleak": 0.0}, noise=None),
     "loaded": msp25_spec(0, duration=1.0, demand=QUIET, Fext=15e3, noise=None),
-    "analog": msp25_spec(1, duration=3.0, controller="analog", noise=None),
-    "analog_tight": msp25_spec(1, duration=3.0, controller="analog", noise=None, rtol=1e-10, atol_scale=0.01),
-    "digital1k": msp25_spec(1, duration=3.0, controller="digital", noise=None),
-    "digital5k": msp25_spec(1, duration=3.0, controller="digital", rate_hz=5000, noise=None),
+    "analog": msp25_spec(1, duration=2.0, controller="analog", noise=None),
+    "analog_tight": msp25_spec(1, duration=2.0, controller="analog", noise=None, rtol=1e-10, atol_scale=0.01),
+    "digital1k": msp25_spec(1, duration=2.0, controller="digital", noise=None),
+    "digital5k": msp25_spec(1, duration=2.0, controller="digital", rate_hz=5000, noise=None),
     "digital1k_radau": msp25_spec(1, duration=0.5, controller="digital", noise=None, driver="solve_ivp",
                                   method="Radau"),
     "digital1k_short": msp25_spec(1, duration=0.5, controller="digital", noise=None),
-    "noisy_digital": msp25_spec(2, duration=3.0, controller="digital", intersample="zoh"),
+    "noisy_digital": msp25_spec(2, duration=2.0, controller="digital", intersample="zoh"),
     "noisy_digital5k": msp25_spec(2, duration=2.0, controller="digital", rate_hz=5000, intersample="foh"),
     "noisy_analog": msp25_spec(2, duration=2.0, controller="analog", intersample="cubic"),
     "ar1": msp25_spec(2, duration=2.0, controller="digital", noise={"tau": 5e-3}),
-    "delay_digital": msp25_spec(3, duration=3.0, effects={"sensor_delay": {"delay": 2e-3}}, noise=None),
-    "delay_analog": msp25_spec(3, duration=3.0, controller="analog", effects={"sensor_delay": {"delay": 2e-3}},
+    "delay_digital": msp25_spec(3, duration=2.0, effects={"sensor_delay": {"delay": 2e-3}}, noise=None),
+    "delay_analog": msp25_spec(3, duration=2.0, controller="analog", effects={"sensor_delay": {"delay": 2e-3}},
                                noise=None),
-    "nodelay_digital": msp25_spec(3, duration=3.0, noise=None),
-    "crosscheck": msp25_spec(4, duration=6.0, controller="digital", intersample="zoh", noise=None),
+    "nodelay_digital": msp25_spec(3, duration=2.0, noise=None),
+    "crosscheck": msp25_spec(4, duration=5.0, controller="digital", intersample="zoh", noise=None),
     "tv_step": msp25_spec(5, duration=2.0, noise=None, time_varying={
         "Ffric": {"kind": "step", "t0": 1.0, "before": 60.0, "after": 150.0}}),
     "tv_const60": msp25_spec(5, duration=2.0, noise=None, truth={"Ffric": 60.0}),
-    "healthy": msp25_spec(6, duration=2.0, noise=None, demand={"amplitude": 8e-3}),
+    "healthy": msp25_spec(6, duration=1.5, noise=None, demand={"amplitude": 8e-3}),
 }
-EFFECT_SPECS = {name: msp25_spec(6, duration=2.0, noise=None, demand={"amplitude": 8e-3}, effects=[name])
+EFFECT_SPECS = {name: msp25_spec(6, duration=1.5, noise=None, demand={"amplitude": 8e-3}, effects=[name])
                 for name in MSP25_EFFECTS}
 
 
@@ -85,7 +85,7 @@ def test_loaded_rig_starts_settled_with_the_load_balanced(rec):
 
 def test_tolerances_converge(rec):
     a, b = rec["analog"], rec["analog_tight"]
-    assert np.max(np.abs(a.hidden["x"] - b.hidden["x"])) < 1e-9
+    assert np.max(np.abs(a.hidden["x"] - b.hidden["x"])) < 1e-6 * np.max(np.abs(b.hidden["x"]))
     assert np.max(np.abs(a.signals["pA"] - b.signals["pA"])) < 20.0
     # solve_ivp's Radau and odeint's LSODA agree tick by tick
     c, d = rec["digital1k_radau"], rec["digital1k_short"]
@@ -168,7 +168,7 @@ def test_every_effect_changes_the_record_with_its_drawn_size(rec):
         changed = max(np.max(np.abs(r.signals[k] - h.signals[k])) / np.std(h.signals[k]) for k in ("x", "pA", "pB", "u"))
         assert changed > 1e-3, name
     # sizes are drawn per seed, not one typical value
-    a, b = draw_effects(1, MSP25_EFFECTS), draw_effects(2, MSP25_EFFECTS)
+    a, b = draw_effects(1, list(MSP25_EFFECTS)), draw_effects(2, list(MSP25_EFFECTS))
     assert a["viscous_friction"]["c"] != b["viscous_friction"]["c"]
     assert draw_effects(1, {"viscous_friction": {"c": 1234.0}})["viscous_friction"]["c"] == 1234.0
 
