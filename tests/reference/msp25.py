@@ -8,7 +8,8 @@ Controllers (``controller``):
   its knots at the log instants are the logged noise).
 * ``digital``: at every tick of ``rate_hz`` the controller reads
   xm = quantise(gain x(t - delay) + noise), computes u and holds it to the next tick;
-  the ODE is integrated tick by tick (delayed x from the integrator's dense output).
+  the ODE is integrated tick by tick (a delayed x is taken from the integrator's output
+  at the delayed instants).
 * ``open_loop``: u given at the log instants (``drive``), with an intersample behaviour.
 
 The demand r(t) is a multisine evaluated analytically (``intersample: analytic``) or
@@ -64,6 +65,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
     ``{"kind": "samples", "values": array}``; ``intersample`` sets the demand's (or the open-loop
     drive's) intersample behaviour.  ``drive`` (open loop): ``{"u": array}`` at the log instants
     (optionally ``"x_ref"``).  ``init``: a full initial state (14 values) instead of the equilibrium.
+    Solver: ``driver`` ``odeint`` (LSODA, default) or ``solve_ivp`` with ``method`` LSODA, Radau or BDF;
+    ``rtol``, per-state absolute tolerances :data:`ATOL` times ``atol_scale``, ``max_step`` [s].
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
