@@ -213,6 +213,8 @@ class ReadReport:
             "truncated": self.truncated,
             "samples_lost": self.samples_lost,
             "lossy": self.lossy,
+            "losses": self.losses(),
+            "loss_line": self.loss_line(),
             "problems": [str(p) for p in self.problems],
         }
 

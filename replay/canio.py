@@ -45,6 +45,7 @@ nothing skipped), and a truncated file (``report.truncated``; what was read is k
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import re
 from collections import Counter
@@ -829,6 +830,21 @@ def _blf_container(mm, pos: int, end: int, parser, report: ReadReport, state: _R
         off += found
 
 
+class _ReaderWarnings(logging.Filter):
+    """Takes python-can's reader warnings (``Unknown object header version``, ``Failed to parse
+    message``) off stderr while a log is read: the report already counts what they are about."""
+
+    def __init__(self, report: ReadReport) -> None:
+        super().__init__()
+        self.report = report
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if "object header version" in msg:  # a BLF object whose header is garbage (damaged container)
+            self.report.skip("damaged_object", "BLF object", f"python-can: {msg}; the object is skipped")
+        return False
+
+
 def iter_frames(path: str | Path, report: ReadReport, block_frames: int = BLOCK_FRAMES) -> Iterator[Frames]:
     """Frames of a CAN log in blocks, through python-can's reader for the suffix.
 
@@ -844,10 +860,18 @@ def iter_frames(path: str | Path, report: ReadReport, block_frames: int = BLOCK_
     coll = FrameCollector()
     state = _ReadState()
     messages = _blf_messages(path, report, state) if suf == ".blf" else _text_messages(path, suf, report, state)
-    for msg in messages:
-        coll.add(msg)
-        if len(coll) >= block_frames:
-            yield coll.take()
+    quiet = _ReaderWarnings(report)
+    loggers = [logging.getLogger(n) for n in ("can.io.blf", "can.io.trc", "can.io.asc", "can.io.canutils")]
+    for lg in loggers:
+        lg.addFilter(quiet)
+    try:
+        for msg in messages:
+            coll.add(msg)
+            if len(coll) >= block_frames:
+                yield coll.take()
+    finally:
+        for lg in loggers:
+            lg.removeFilter(quiet)
     if len(coll):
         yield coll.take()
     _check_complete(path, suf, report, state)

@@ -1,18 +1,31 @@
-"""The ``replay`` command: inspect, convert and play rig logs.
+"""The ``replay`` command: inspect, convert, play and record rig logs.
 
 ::
 
-    replay info LOG [--json] [--dbc FILE] [--map COL=SIGNAL[:UNIT] ...] [--topic TOPIC]
-    replay convert IN OUT [--dbc FILE] [--map COL=SIGNAL[:UNIT] ...] [--topic TOPIC] [--json]
-    replay play LOG --to can|zenoh [--speed 1.0]     (from replay.play, when installed)
+    replay --version
+    replay info LOG [--json] [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC]
+    replay convert IN OUT [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC] [--json]
+    replay play LOG --to can --channel can://INTERFACE/CHANNEL | --to zenoh [--key K] [--speed 1.0]
+    replay record can://INTERFACE/CHANNEL|zenoh://KEY --out FILE [--duration S] [--limit N]
 
 ``info`` reads the whole log through the quality gate and prints its signals, sample
 count, duration (s), mean rate (Hz) and median step (s), per-signal ranges (SI), gaps,
 counts of skipped records and the first problems, plus format-specific facts (MCAP
-topics) from the source's ``describe()`` when it has one.  ``convert`` writes what the
-reader kept to any format :func:`replay.factory.open_sink` knows.  ``--json`` prints one
-JSON object on stdout for another program.  Exit status: 0 ok, 1 the input could not
-be used (the message names file and record), 2 bad command line.
+topics).  An MCAP file without rig samples (e.g. a twin output with ``/twin/estimate``,
+``/twin/status``, ``/twin/alarm``) is described by its topics, message counts and time
+span.  ``convert`` writes what the reader kept to any format of :mod:`replay.formats`.
+``play`` is :mod:`replay.play`, ``record`` :mod:`replay.record`.  ``--json`` prints
+one JSON object on stdout for another program (progress goes to stderr).
+
+``--map NAME=COLUMN[:UNIT]`` (CSV input, repeatable) says which column holds signal
+``NAME`` and in which unit, e.g. ``--map x=pos_mm:mm --map t=time:ms``; the parser is
+:func:`replay.csvio.parse_map`, for every command that reads a record.
+
+Exit status: 0 ok; 1 the input or output could not be used (one line on stderr naming
+the file, the record or field, and what was expected); 2 bad command line; 3 the
+command completed but input was lost on the way (damaged or dropped records: the
+line ``replay: warning: ... input lost (...)`` on stderr says what and where).
+Nothing already read is lost on an error: outputs are closed with what they got.
 """
 
 from __future__ import annotations
@@ -20,13 +33,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from replay.factory import CAN_LOG_SUFFIXES, open_sink, open_source
+from replay import formats
+from replay.factory import open_sink, open_source
 from twin.errors import TwinError
+
+#: Exit status of a command that completed but lost input on the way.
+EXIT_LOSS = 3
 
 try:
     from replay import play as _play
@@ -36,48 +54,67 @@ except ModuleNotFoundError as exc:  # replay.play is written separately; only it
     _play = None
 
 
-def _parse_map(items: Sequence[str]) -> dict[str, str | tuple[str, str]]:
-    """``["pos_mm=x:mm", "p=pA"]`` -> ``{"pos_mm": ("x", "mm"), "p": "pA"}``."""
-    out: dict[str, str | tuple[str, str]] = {}
-    for item in items:
-        column, sep, target = item.partition("=")
-        if not sep or not column or not target:
-            raise argparse.ArgumentTypeError(f"--map {item!r}: expected COLUMN=SIGNAL or COLUMN=SIGNAL:UNIT")
-        name, colon, unit = target.partition(":")
-        out[column] = (name, unit) if colon else name
-    return out
+def version() -> str:
+    try:
+        return metadata.version("fpdd-twin")
+    except metadata.PackageNotFoundError:  # running from a source tree
+        return "0+unknown"
 
 
-def _source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
-    """Constructor options for the input's source; each option only where its format takes it."""
-    suffix = Path(path).suffix.lower()
+def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
+    """Constructor options for the input's source; each option only where its format takes it.
+
+    Raises :class:`argparse.ArgumentTypeError` for an option its input does not take and
+    :class:`~twin.errors.DataError` for a malformed ``--map``.
+    """
+    from replay.csvio import parse_map
+
+    suffix = formats.suffix_of(path)
     options: dict[str, Any] = {}
-    if args.dbc:
-        if suffix not in CAN_LOG_SUFFIXES:
-            raise argparse.ArgumentTypeError(f"--dbc applies to CAN logs ({', '.join(CAN_LOG_SUFFIXES)}), "
+    if getattr(args, "dbc", None):
+        if suffix not in formats.CAN_LOG_SUFFIXES:
+            raise argparse.ArgumentTypeError(f"--dbc applies to CAN logs ({', '.join(formats.CAN_LOG_SUFFIXES)}), "
                                              f"not to {path}")
         options["dbc"] = args.dbc
-    if args.map:
+    if getattr(args, "map", None):
         if suffix != ".csv":
             raise argparse.ArgumentTypeError(f"--map applies to CSV input, not to {path}")
-        options["mapping"] = _parse_map(args.map)
-    if args.topic:
+        try:
+            options["mapping"] = parse_map(args.map)
+        except TwinError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    if getattr(args, "topic", None):
         if suffix != ".mcap":
             raise argparse.ArgumentTypeError(f"--topic applies to MCAP input, not to {path}")
         options["topic"] = args.topic
     return options
 
 
-def _add_input_options(p: argparse.ArgumentParser) -> None:
+def add_input_options(p: argparse.ArgumentParser) -> None:
+    """``--dbc``, ``--map``, ``--topic``: the options of a command that reads a record."""
     p.add_argument("--dbc", metavar="FILE", help="DBC file for CAN logs (default: the MSP25 DBC shipped)")
-    p.add_argument("--map", metavar="COL=SIGNAL[:UNIT]", action="append", default=[],
-                   help="CSV input: rename a column and convert its unit, e.g. pos_mm=x:mm (repeatable)")
+    p.add_argument("--map", metavar="NAME=COLUMN[:UNIT]", action="append", default=[],
+                   help="CSV input: signal NAME is in column COLUMN, in UNIT (converted to SI), e.g. x=pos_mm:mm, "
+                        "t=time:ms (repeatable)")
     p.add_argument("--topic", metavar="TOPIC", help="MCAP input: the samples topic (default: "
                    "/rig/signals_block if present, else /rig/signals)")
 
 
 def info(path: str, **options: Any) -> dict[str, Any]:
     """Read ``path`` completely and return what ``replay info`` prints (units: s, Hz, SI)."""
+    if formats.suffix_of(path) == ".mcap" and "topic" not in options:
+        from replay.factory import check_readable
+        from replay.mcapio import inspect
+
+        check_readable(path)
+        d = inspect(path)
+        if d["samples_topic"] is None:  # no rig samples: a twin output or another writer's file
+            span = (d["t_last_ns"] - d["t_first_ns"]) * 1e-9 if d["t_first_ns"] is not None else 0.0
+            return {"file": path, "kind": "messages", "samples": 0, "signals": [], "duration_s": span,
+                    "format": {k: d[k] for k in ("format", "summary", "topics", "samples_topic")},
+                    "messages": d["messages"], "t_first_ns": d["t_first_ns"], "t_last_ns": d["t_last_ns"],
+                    "report": d["report"], "summary": f"{path}: MCAP without rig samples (no /rig/signals or "
+                    f"/rig/signals_block): {d['messages']} messages on {len(d['topics'])} topic(s)"}
     with open_source(path, **options) as src:
         n = 0
         t_first = t_last = None
@@ -93,12 +130,16 @@ def info(path: str, **options: Any) -> dict[str, Any]:
             t_last = int(block.t_ns[-1])
             n += len(block)
             for k, v in block.signals.items():
-                lo, hi = float(v.min()), float(v.max())
+                fin = v[np.isfinite(v)]
+                if not fin.size:
+                    continue
+                lo, hi = float(fin.min()), float(fin.max())
                 r = ranges.setdefault(k, [lo, hi])
                 r[0], r[1] = min(r[0], lo), max(r[1], hi)
         duration = (t_last - t_first) * 1e-9 if n else 0.0
         out: dict[str, Any] = {
             "file": path,
+            "kind": "samples",
             "signals": list(src.signals),
             "samples": n,
             "t_first_ns": t_first,
@@ -116,15 +157,28 @@ def info(path: str, **options: Any) -> dict[str, Any]:
         return out
 
 
+def _t(t_ns: int | None) -> str:
+    return "-" if t_ns is None else f"{t_ns * 1e-9:.6f} s"
+
+
 def _print_info(d: dict[str, Any]) -> None:
     print(d["summary"])
+    rep = d["report"]
+    if d.get("kind") == "messages":
+        print(f"messages: {d['messages']}  time span: {d['duration_s']:.6f} s "
+              f"(t = {_t(d['t_first_ns'])} .. {_t(d['t_last_ns'])})")
+        for t in d["format"]["topics"]:
+            print(f"topic {t['topic']}: schema {t['schema'] or '-'}, {t['encoding']}, {t['messages']} messages, "
+                  f"t = {_t(t['t_first_ns'])} .. {_t(t['t_last_ns'])}")
+        for p in rep["problems"][:20]:
+            print(f"  {p}")
+        return
     print(f"signals: {', '.join(d['signals'])}")
     rate = f"{d['rate_hz']:.6g} Hz" if d["rate_hz"] else "n/a"
     step = f"{d['median_step_s']:.6g} s" if d["median_step_s"] else "n/a"
     print(f"samples: {d['samples']}  duration: {d['duration_s']:.6f} s  mean rate: {rate}  median step: {step}")
     for k, r in d["ranges"].items():
         print(f"  {k:>8}: [{r['min']:.6g}, {r['max']:.6g}]")
-    rep = d["report"]
     print(f"gaps: {len(rep['gaps_ns'])}")
     for a, b in rep["gaps_ns"][:10]:
         print(f"  {a * 1e-9:.6f} s -> {b * 1e-9:.6f} s ({(b - a) * 1e-9:.6g} s)")
@@ -139,7 +193,11 @@ def _print_info(d: dict[str, Any]) -> None:
 
 
 def convert(src_path: str, dst_path: str, **options: Any) -> dict[str, Any]:
-    """Copy every sample the reader keeps from ``src_path`` to ``dst_path``; return the read report."""
+    """Copy every sample the reader keeps from ``src_path`` to ``dst_path``; return the read report.
+
+    The output is opened after the input (a bad input creates no file) and closed with
+    what it got if the read fails part way.
+    """
     with open_source(src_path, **options) as src:
         with open_sink(dst_path) as sink:
             for block in src.chunks():
@@ -147,54 +205,92 @@ def convert(src_path: str, dst_path: str, **options: Any) -> dict[str, Any]:
         return {"input": src.report.to_dict(), "summary": src.report.summary(), "output": dst_path}
 
 
+def loss_warning(report: dict[str, Any] | None) -> int:
+    """Print the loss line of a read report (``ReadReport.to_dict()``); EXIT_LOSS if input was lost."""
+    if not report or not report.get("lossy"):
+        return 0
+    print(f"replay: warning: {report['loss_line']}", file=sys.stderr)
+    return EXIT_LOSS
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors naming the command (exit status 2)."""
+
+    def error(self, message: str):  # noqa: D102
+        self.exit(2, f"{self.prog}: error: {message}\n(see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="replay", description="Read, convert and play rig signal logs "
-                                     "(CSV, MCAP, CAN logs) as one stream of samples in SI units.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser = _Parser(prog="replay", description="Read, convert, play and record rig signal logs "
+                     "(CSV, MCAP, CAN logs, live CAN and Zenoh) as one stream of samples in SI units.",
+                     epilog="exit status: 0 ok, 1 unusable input or output, 2 bad command line, "
+                            "3 completed but input was lost (see the warning line)")
+    parser.add_argument("--version", action="version", version=f"%(prog)s (fpdd-twin) {version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+    logs = ", ".join(formats.FILE_SUFFIXES)
     p = sub.add_parser("info", help="signals, duration, rates, gaps and bad records of a log",
-                       description="Read a log through the quality checks and summarise it.")
-    p.add_argument("log", metavar="LOG", help="log file (.csv, .mcap, .asc, .blf, .log, .trc)")
-    _add_input_options(p)
+                       description="Read a log through the quality checks and summarise it; an MCAP file without "
+                                   "rig samples (a twin output) is summarised by its topics.")
+    p.add_argument("log", metavar="LOG", help=f"log file ({logs})")
+    add_input_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p = sub.add_parser("convert", help="convert a log to another format",
                        description="Read IN through the quality checks and write the kept samples to OUT; "
                                    "the formats come from the suffixes.")
-    p.add_argument("input", metavar="IN", help="input log")
-    p.add_argument("output", metavar="OUT", help="output file (.csv, .mcap or a CAN log suffix)")
-    _add_input_options(p)
+    p.add_argument("input", metavar="IN", help=f"input log ({logs})")
+    p.add_argument("output", metavar="OUT", help=f"output file ({logs})")
+    add_input_options(p)
     p.add_argument("--json", action="store_true", help="print the read report as one JSON object")
     if _play is not None:
         _play.register(sub)
+    from replay import record as _record
+
+    _record.register(sub)
     return parser
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if args.command not in ("info", "convert"):
+        return int(args.func(args) or 0)
+    try:
+        options = source_options(args, args.log if args.command == "info" else args.input)
+    except argparse.ArgumentTypeError as exc:
+        parser.error(str(exc))
+    if args.command == "info":
+        d = info(args.log, **options)
+        if args.json:
+            print(json.dumps(d, indent=1))
+        else:
+            _print_info(d)
+        return loss_warning(d["report"])
+    d = convert(args.input, args.output, **options)
+    if args.json:
+        print(json.dumps(d, indent=1))
+    else:
+        print(d["summary"])
+        print(f"written: {args.output}")
+    return loss_warning(d["input"])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command not in ("info", "convert"):
-        return int(args.func(args) or 0)
     try:
-        options = _source_options(args, args.log if args.command == "info" else args.input)
-    except argparse.ArgumentTypeError as exc:
-        parser.error(str(exc))
-    try:
-        if args.command == "info":
-            d = info(args.log, **options)
-            if args.json:
-                print(json.dumps(d, indent=1))
-            else:
-                _print_info(d)
-        else:
-            d = convert(args.input, args.output, **options)
-            if args.json:
-                print(json.dumps(d, indent=1))
-            else:
-                print(d["summary"])
-                print(f"written: {args.output}")
+        return _run(parser, args)
     except TwinError as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    except KeyboardInterrupt:
+        print("replay: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"replay: error: {where}{exc.strerror or exc}", file=sys.stderr)
+    except MemoryError:
+        print("replay: error: out of memory", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - one line, never a traceback, for a command line user
+        print(f"replay: error: unexpected {type(exc).__name__}: {exc} (a bug: please report it with the command "
+              "line)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

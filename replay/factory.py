@@ -72,6 +72,9 @@ def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
         return formats.load(URI_SCHEMES[scheme])(text, **options)
     if scheme is not None:
         raise LogFormatError(f"{text}: unknown URI scheme {scheme!r}; known: {formats.known()}")
+    if Path(text).is_dir():
+        raise SourceError(f"{text}: cannot read log file: is a directory, expected a log file "
+                          f"({', '.join(FILE_SUFFIXES)})")
     fmt = formats.lookup(text)
     path = check_readable(text)
     cls = formats.load(fmt.source)

@@ -1,5 +1,9 @@
 """Real-time replay of a recorded stream: ``replay play LOG --to can|zenoh [--speed 1.0]``.
 
+``--to can`` needs ``--channel can://INTERFACE/CHANNEL`` (no default: python-can's
+``virtual`` bus lives inside one process, no other program would hear it).  A bus
+that cannot be opened (e.g. SocketCAN on a host without it) is a one-line error.
+
 Pacing follows python-can's :class:`can.MessageSync`: every sample is due at
 ``wall_start + (t_ns - t_first) / speed`` on the monotonic clock, fixed when the
 replay starts, so a late write never shifts the samples after it (no drift
@@ -15,7 +19,6 @@ import dataclasses
 import json
 import sys
 import time
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -120,16 +123,6 @@ def _finish(stats: PlayStats, lat: _Lateness, wall_s: float) -> PlayStats:
 
 # --- command line --------------------------------------------------------------------------
 
-def _open_source(path: str, dbc: str | None) -> Source:
-    from replay.canio import FORMATS, CanLogSource
-
-    if Path(path).suffix.lower() in FORMATS:
-        return CanLogSource(path, dbc=dbc)
-    from replay import factory
-
-    return factory.open_source(path)
-
-
 def _open_sink(args: argparse.Namespace) -> Sink:
     if args.to == "can":
         from replay.live import CanBusSink
@@ -156,7 +149,24 @@ def _print_progress(total_s: float) -> Callable[[PlayStats, float], None]:
 
 def cmd_play(args: argparse.Namespace) -> int:
     """``replay play``: open LOG and the target, replay, print the pacing statistics."""
-    with _open_source(args.log, args.dbc) as src, _open_sink(args) as sink:
+    from replay.cli import loss_warning, source_options
+    from replay.factory import open_source
+
+    if args.to == "can" and not args.channel:
+        args.parser.error("--to can needs --channel can://INTERFACE/CHANNEL, e.g. can://socketcan/can0 "
+                          "(python-can's virtual bus is in-process: no other program would hear it)")
+    if args.to == "can" and args.payload != "samples":
+        args.parser.error("--payload applies to --to zenoh")
+    from replay import formats
+
+    ns = argparse.Namespace(**vars(args))
+    if not formats.is_can_log(args.log):
+        ns.dbc = None  # --dbc then encodes the output frames only
+    try:
+        options = source_options(ns, args.log)
+    except argparse.ArgumentTypeError as exc:
+        args.parser.error(str(exc))
+    with open_source(args.log, **options) as src, _open_sink(args) as sink:
         if args.to == "zenoh" and args.wait_s > 0:
             sink.wait_for_subscriber(args.wait_s)
         stats = play(src, sink, args.speed, progress=None if args.quiet else _print_progress(0.0))
@@ -169,18 +179,32 @@ def cmd_play(args: argparse.Namespace) -> int:
               f"at x{stats.speed:g}; lateness max {stats.late_max_s * 1e3:.3f} ms, "
               f"p99 {stats.late_p99_s * 1e3:.3f} ms, mean {stats.late_mean_s * 1e3:.3f} ms")
         print(src.report.summary())
-    return 0
+    return loss_warning(src.report.to_dict())
+
+
+def _speed(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text}: expected a factor > 0 (inf: as fast as possible)")
+    return v
 
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``play`` to the ``replay`` command's subparsers."""
+    from replay import formats
+    from replay.cli import add_input_options
+
     p = subparsers.add_parser("play", help="replay a log in real time to a CAN bus or Zenoh",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("log", help="log to replay (CAN log, MCAP, CSV)")
+    p.add_argument("log", help=f"log to replay ({', '.join(formats.FILE_SUFFIXES)})")
     p.add_argument("--to", choices=("can", "zenoh"), required=True, help="where to send the samples")
-    p.add_argument("--speed", type=float, default=1.0, help="speed factor (default 1.0 = real time)")
-    p.add_argument("--channel", default="can://virtual/rig1",
-                   help="CAN bus as can://INTERFACE/CHANNEL (default can://virtual/rig1)")
+    p.add_argument("--speed", type=_speed, default=1.0, help="speed factor (default 1.0 = real time; inf: "
+                   "as fast as possible)")
+    p.add_argument("--channel", metavar="can://INTERFACE/CHANNEL",
+                   help="CAN bus, required with --to can, e.g. can://socketcan/can0, can://pcan/PCAN_USBBUS1")
     p.add_argument("--key", default="fpdd/msp25/samples", help="Zenoh key expression (default fpdd/msp25/samples)")
     p.add_argument("--payload", choices=("samples", "can"), default="samples",
                    help="Zenoh payload: JSON sample blocks or raw CAN frames (see replay.live)")
@@ -189,8 +213,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--zenoh-config", help="Zenoh json5 config file")
     p.add_argument("--wait-s", type=float, default=2.0,
                    help="Zenoh: wait up to this long for a subscriber before starting (default 2)")
-    p.add_argument("--dbc", help="DBC for CAN encoding/decoding (default: the MSP25 DBC)")
+    add_input_options(p)
+    p.set_defaults(dbc=None)
     p.add_argument("--json", action="store_true", help="print the statistics and read report as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress display on stderr")
-    p.set_defaults(func=cmd_play)
+    p.set_defaults(func=cmd_play, parser=p)
     return p

@@ -40,10 +40,12 @@ def test_info_text_reports_gaps_and_bad_rows(capsys: pytest.CaptureFixture, tmp_
     rows = [f"{i * 1e-3!r},{0.001 * i!r}" for i in range(40)] + ["0.041,oops"]
     rows += [f"{0.5 + i * 1e-3!r},0.0" for i in range(40)]
     path.write_text("t,x\n" + "\n".join(rows) + "\n")
-    code, out, _ = run(capsys, "info", str(path))
-    assert code == 0
+    code, out, err = run(capsys, "info", str(path))
+    assert code == cli.EXIT_LOSS  # it completed, but a row was lost: the exit status says so
     assert "samples: 80" in out and "gaps: 1" in out and "bad_row=1" in out
     assert "line 42: field 'x' = 'oops' is not a number" in out
+    assert err == (f"replay: warning: {path}: input lost (bad_row=1); 80 samples kept; first: line 42: "
+                   "field 'x' = 'oops' is not a number, expected a float\n")
 
 
 def test_convert_csv_to_mcap_and_back(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
@@ -61,7 +63,7 @@ def test_convert_with_mapping(capsys: pytest.CaptureFixture, tmp_path: Path) -> 
     src = tmp_path / "foreign.csv"
     src.write_text("t,pos_mm,p_a_bar\n0.0,1.0,100\n0.001,2.0,110\n")
     out = tmp_path / "si.csv"
-    code, _, err = run(capsys, "convert", str(src), str(out), "--map", "pos_mm=x:mm", "--map", "p_a_bar=pA:bar")
+    code, _, err = run(capsys, "convert", str(src), str(out), "--map", "x=pos_mm:mm", "--map", "pA=p_a_bar:bar")
     assert code == 0, err
     with open_source(out) as s:
         got = s.read_all()
@@ -77,7 +79,8 @@ def test_errors_name_the_file_and_exit_1(capsys: pytest.CaptureFixture, tmp_path
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["info", str(DATA / "reference.csv"), "--map", "nonsense"], "expected COLUMN=SIGNAL"),
+    (["info", str(DATA / "reference.csv"), "--map", "nonsense"], "expected --map NAME=COLUMN[:UNIT]"),
+    (["info", str(DATA / "reference.csv"), "--map", "pos_mm=x:mm"], "did you mean --map x=pos_mm:mm?"),
     (["info", str(DATA / "reference.mcap"), "--map", "a=x"], "--map applies to CSV input"),
     (["info", str(DATA / "reference.csv"), "--topic", "/rig/signals"], "--topic applies to MCAP input"),
     (["convert", str(DATA / "reference.mcap"), "out.csv", "--dbc", "rig.dbc"], "--dbc applies to CAN logs"),
@@ -89,7 +92,7 @@ def test_misplaced_options_are_usage_errors(capsys: pytest.CaptureFixture, argv:
     assert message in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("argv", [[], ["info"], ["convert"], ["play"]])
+@pytest.mark.parametrize("argv", [[], ["info"], ["convert"], ["play"], ["record"]])
 def test_every_command_has_help(capsys: pytest.CaptureFixture, argv: list[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         cli.main([*argv, "--help"])
