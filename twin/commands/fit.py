@@ -1,0 +1,79 @@
+"""``twin fit``: fit free parameters to measured records (output error)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from twin.cliutil import add_timing_arguments, finite_or_none, load_params_file, timing_of
+from twin.cliutil import dump as _dump
+from twin.cliutil import kv as _kv
+from twin.cliutil import names as _names
+from twin.cliutil import progress as _progress
+
+HELP = "fit free parameters to measured records (output error)"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
+    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
+    p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
+    p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
+    p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")
+    p.add_argument("--set", help="known parameter values NAME=VALUE,..., with a unit or SI (e.g. Fext=15kN)")
+    p.add_argument("--start", help="start values of free parameters NAME=VALUE,..., with a unit or SI (e.g. wn=40Hz)")
+    p.add_argument("--effects", help="effects to switch on by name")
+    p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"),
+                   help="closed loop from x_ref or open loop from u (default: x_ref if logged)")
+    p.add_argument("--estimate-init", help="initial-state quantities to estimate per record, e.g. x0,dp0 "
+                   "(the initial state is read off the first samples in any case)")
+    p.add_argument("--noise-levels", help="noise std per output used as residual weights, NAME=STD,...")
+    p.add_argument("--starts", type=int, default=8, help="multi-start candidates screened (default 8)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plot", metavar="DIR", help="write convergence plots (PNG) to DIR")
+    p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
+    add_timing_arguments(p)
+    p.add_argument("--json", action="store_true")
+
+
+def run(args) -> int:
+    from twin.fit import fit
+    from twin.models import get_model
+    from twin.record import load_records
+
+    model = get_model(args.model)
+    records = []
+    for path in args.data:
+        records.extend(load_records(path, model=model.name))
+    base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
+                                          with_timing=True)
+    timing = timing_of(args, saved_timing)
+    free = _names(args.free) or model.PHENOMENOLOGICAL
+    outputs = _names(args.outputs) or None
+    res = fit(model, records, free, base=base, start=_kv(args.start), outputs=outputs,
+              noise=_kv(args.noise_levels), drive=args.drive, estimate_init=_names(args.estimate_init),
+              n_starts=args.starts, seed=args.seed, progress=None if args.json else _progress(args),
+              timing=timing)
+    plots = []
+    if args.plot:
+        from twin.plots import fit_convergence
+
+        plots = fit_convergence(res, records, model, args.plot)
+    if args.save:
+        with open(args.save, "w") as f:
+            json.dump(finite_or_none({"model": model.name, "effects": list(res.params.effects),
+                                      "params": res.params.as_dict(), "std": res.std, "timing": res.timing,
+                                      "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs}}),
+                      f, indent=2, allow_nan=False)
+    if args.json:
+        d = res.to_dict()
+        d["plots"] = plots
+        d["records"] = [r.name for r in records]
+        _dump(d)
+    else:
+        print(res.table())
+        for p in plots:
+            print(f"plot: {p}", file=sys.stderr)
+    return 0

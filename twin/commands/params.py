@@ -1,0 +1,31 @@
+"""``twin params``: list a model's parameters, units, bounds and effects."""
+
+from __future__ import annotations
+
+from twin.cliutil import dump as _dump
+from twin.cliutil import names as _names
+
+HELP = "list a model's parameters, units, bounds and effects"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
+    p.add_argument("--effects", help="comma-separated effects to switch on")
+    p.add_argument("--json", action="store_true")
+
+
+def run(args) -> int:
+    from twin.models import get_model
+
+    model = get_model(args.model)
+    ps = model.params(effects=_names(args.effects))
+    if args.json:
+        _dump({"model": model.name, "params": [dict(s.to_dict(), value=v) for s, v in zip(ps.specs, ps.values)],
+               "effects": {n: {"description": e.description, "signature": e.signature,
+                               "params": list(e.names)} for n, e in model.EFFECTS.items()}})
+        return 0
+    print(ps.table())
+    print("\neffects (switch on with --effects NAME,...):")
+    for n, e in model.EFFECTS.items():
+        print(f"  {n:<22} {e.description}  [{', '.join(e.names)}]")
+    return 0
