@@ -59,6 +59,23 @@ def test_paper_scenarios_a_and_b_on_noise_free_reference_records_within_half_a_p
         assert row["error_pct"] <= 0.5, row  # the paper: 0-2 %
 
 
+@pytest.mark.parametrize("intersample,timing", [("zoh", Timing()), ("analytic", Timing(intersample="cubic"))])
+def test_paper_oscillator_cases_on_noise_free_reference_records(intersample, timing, reference_records):
+    """The force held by a DAC (zoh) or smooth (a signal generator, fitted with the cubic intersample)."""
+    from conftest import oscillator_spec
+
+    ref = reference_records([oscillator_spec(12, duration=10.0, truth="draw", noise=None, effects=(),
+                                             intersample=intersample)])[0]
+    rows = []
+    for case in CASES:
+        if case.model == "oscillator":
+            r, _ = run_case(case, record=product_record(ref), truth=ref.truth, timing=timing)
+            rows.extend(r)
+    assert len(rows) == 6
+    for row in rows:
+        assert row["error_pct"] <= 0.05, row
+
+
 TIMINGS = {
     "digital": ({}, Timing()),
     "analog": ({"controller": "analog", "demand": {"intersample": "cubic"}}, Timing.parse("continuous", "cubic")),
