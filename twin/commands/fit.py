@@ -33,6 +33,8 @@ def add_arguments(p) -> None:
     p.add_argument("--starts", type=int, default=8, help="multi-start candidates screened (default 8)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--plot", metavar="DIR", help="write convergence plots (PNG) to DIR")
+    p.add_argument("--report", metavar="DIR", help="write DIR/fit_report.html: compare, resid, parameters, "
+                   "correlation, loop timing (one self-contained file)")
     p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
     add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
@@ -61,6 +63,11 @@ def run(args) -> int:
         from twin.plots import fit_convergence
 
         plots = fit_convergence(res, records, model, args.plot)
+    report = None
+    if args.report:
+        from twin.reports import fit_report
+
+        report = fit_report(res, records, model, args.report)
     if args.save:
         with open(args.save, "w") as f:
             json.dump(finite_or_none({"model": model.name, "effects": list(res.params.effects),
@@ -71,9 +78,13 @@ def run(args) -> int:
         d = res.to_dict()
         d["plots"] = plots
         d["records"] = [r.name for r in records]
+        if report:
+            d["report"] = report
         _dump(d)
     else:
         print(res.table())
         for p in plots:
             print(f"plot: {p}", file=sys.stderr)
+        if report:
+            print(f"report: {report}", file=sys.stderr)
     return 0

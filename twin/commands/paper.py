@@ -15,6 +15,8 @@ def add_arguments(p) -> None:
     p.add_argument("--noise", action="store_true", help="with realistic sensor noise (x: 2 um, y: 1 um)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--plot", metavar="DIR", help="write the comparison plot (PNG) to DIR")
+    p.add_argument("--report", metavar="DIR", help="write DIR/paper_report.html: the cases, our errors beside "
+                   "the paper's (one self-contained file)")
     add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
 
@@ -30,6 +32,12 @@ def run(args) -> int:
         p = paper_table(rows, args.plot)
         if not args.json:
             print(f"plot: {p}", file=sys.stderr)
+    if args.report:
+        from twin.reports import paper_report
+
+        p = paper_report(rows, args.report, elapsed_s=elapsed)
+        if not args.json:
+            print(f"report: {p}", file=sys.stderr)
     if args.json:
         _dump(rows)
         return 0
