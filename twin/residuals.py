@@ -67,13 +67,17 @@ def autocorrelation(r: np.ndarray, max_lag: int) -> np.ndarray:
     return ac / ac[0] if ac[0] > 0 else np.zeros(max_lag + 1)
 
 
-def ljung_box(r: np.ndarray, lags: int) -> dict:
-    """Ljung-Box statistic ``Q = N (N + 2) sum rho_k^2 / (N - k)`` over lags 1..``lags``, its p-value."""
+def ljung_box(r: np.ndarray, lags: int, df: int | None = None) -> dict:
+    """Ljung-Box statistic ``Q = N (N + 2) sum rho_k^2 / (N - k)`` over lags 1..``lags``, its p-value.
+
+    ``df``: degrees of freedom (default ``lags``); residuals of a fitted AR(p) model have ``lags - p``.
+    """
     n = np.asarray(r).size
     rho = autocorrelation(r, lags)[1:]
     k = np.arange(1, lags + 1)
     q = float(n * (n + 2) * np.sum(rho * rho / (n - k)))
-    return {"Q": q, "df": int(lags), "p": float(stats.chi2.sf(q, lags))}
+    df = int(lags if df is None else max(1, df))
+    return {"Q": q, "df": df, "lags": int(lags), "p": float(stats.chi2.sf(q, df))}
 
 
 def cross_correlation(r: np.ndarray, s: np.ndarray, max_lag: int) -> tuple[np.ndarray, np.ndarray, float]:

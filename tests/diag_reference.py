@@ -1,0 +1,66 @@
+"""Records of the independent reference simulator (``tests/reference``) for the diagnosis tests and the
+confusion table, cached on disk.
+
+Truth drawn off Table 9 per seed (3-20 % away), effects in the reference's own formulation with sizes
+drawn per seed, a controller reading the noisy measured displacement (digital at the log's rate unless
+said otherwise), white or AR(1) noise.  The cache key is the spec plus a digest of the reference's
+sources, so a change of the simulator invalidates it.  Cache directory: ``$FPDD_REF_CACHE`` or
+``<tmp>/fpdd-ref-cache``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if _ROOT not in sys.path:  # the reference is imported as tests.reference (its numba cache says so)
+    sys.path.insert(0, _ROOT)
+
+from tests.reference import msp25_spec, simulate_msp25  # noqa: E402
+from tests.reference.record import Record as RefRecord  # noqa: E402
+from twin.record import Record  # noqa: E402
+
+CACHE = os.environ.get("FPDD_REF_CACHE", os.path.join(tempfile.gettempdir(), "fpdd-ref-cache"))
+REF_DIR = os.path.join(_ROOT, "tests", "reference")
+
+#: the reference's catalogue effects that the product's catalogue names the same way
+IN_CATALOGUE = ("viscous_friction", "stribeck_friction", "laminar_leakage", "spool_deadband", "valve_null_bias",
+                "supply_pressure_droop", "specimen_stiffness", "sensor_delay", "entrained_air", "spool_saturation",
+                "position_sensor_gain", "pressure_sensor_offset")
+OUT_OF_CATALOGUE = ("mechanical_resonance", "parameter_drift")
+
+
+def _source_digest() -> str:
+    h = hashlib.sha1()
+    for name in sorted(os.listdir(REF_DIR)):
+        if name.endswith(".py"):
+            with open(os.path.join(REF_DIR, name), "rb") as f:
+                h.update(name.encode() + f.read())
+    return h.hexdigest()[:12]
+
+
+def reference_record(effects=(), seed: int = 0, duration: float = 8.0, controller: str = "digital",
+                     tau: float = 0.0, **spec) -> tuple[Record, dict]:
+    """A reference record as the product reads it, and the truth behind it (``truth``, ``meta``)."""
+    noise = {"tau": float(tau)} if tau else "default"
+    kwargs = dict(seed=int(seed), duration=float(duration), controller=controller, truth="draw",
+                  effects=list(effects), noise=noise, **spec)
+    key = hashlib.sha1((json.dumps(kwargs, sort_keys=True, default=str) + _source_digest()).encode()).hexdigest()
+    os.makedirs(CACHE, exist_ok=True)
+    path = os.path.join(CACHE, f"msp25-{key[:20]}.npz")
+    if os.path.exists(path):
+        ref = RefRecord.load(path)
+    else:
+        kw = dict(kwargs)
+        kw["effects"] = tuple(kw["effects"])
+        ref = simulate_msp25(msp25_spec(**kw))
+        ref.save(path)
+    label = "+".join(effects) or "healthy"
+    sig = {k: np.asarray(v, dtype=float) for k, v in ref.signals.items()}
+    return Record(ref.dt, sig, f"reference:{label}:{controller}:seed{seed}"), {"truth": ref.truth, "meta": ref.meta}
