@@ -247,7 +247,7 @@ def test_worker_processes_run_the_rigs_and_the_bus_answers_from_their_journals(t
     assert done.counters["samples"] == 8000
     assert {n: summaries[n].state for n in logs} == {n: "finished" for n in logs}
     assert all(summaries[n].samples == 8000 for n in logs)
-    assert got and got == _journal(tmp_path, "rig-g") and {a.parameter for a in got} == {"Ffric"}
+    assert got and got == _journal(tmp_path, "rig-g") and "Ffric" in {a.parameter for a in got}
     assert _journal(tmp_path, "rig-h") == []
 
 

@@ -240,13 +240,18 @@ def zenoh_config(
 
 def config_endpoints(config: zenoh.Config) -> tuple[list[str], list[str]]:
     """``(listen, connect)`` endpoints of a Zenoh configuration (for messages)."""
+    try:
+        mode = json.loads(config.get_json("mode")) or "peer"
+    except (zenoh.ZError, ValueError):
+        mode = "peer"
+
     def endpoints(key: str) -> list[str]:
         try:
             value = json.loads(config.get_json(key))
         except (zenoh.ZError, ValueError):
             return []
-        if isinstance(value, dict):  # per-mode endpoints: {"router": [...], "peer": [...]}
-            value = [e for v in value.values() for e in (v or [])]
+        if isinstance(value, dict):  # per-mode endpoints: {"router": [...], "peer": [...], "client": [...]}
+            value = value.get(mode) or []
         return [str(e) for e in value or []]
 
     return endpoints("listen/endpoints"), endpoints("connect/endpoints")
