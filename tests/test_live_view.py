@@ -1,0 +1,223 @@
+"""The Foxglove live view on a real WebSocket connection (loopback, ``foxglove.websocket.v1``).
+
+A client speaks the protocol itself (``websockets``; subprotocol
+``foxglove.websocket.v1``, which foxglove-sdk 0.30 servers call ``foxglove.sdk.v1``:
+they refuse the old name, the messages are the same): it receives ``serverInfo``
+and ``advertise``, subscribes, and decodes the binary message frames (opcode 1:
+subscription id, log time, JSON payload), which must validate against the
+schema the channel advertised.  Every wait is bounded; nothing sleeps a fixed time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from websockets.sync.client import connect
+
+from replay.base import Samples
+from twin.bus import TwinPublisher, zenoh_config
+from twin.config import default_baseline
+from twin.demo import free_port
+from twin.events import EstimateEvent, StatusEvent, validate
+from twin.journal import AlarmJournal
+from twin.live_view import TOPICS, LiveView, foxglove_layout
+
+sys.path.insert(0, os.path.dirname(__file__))
+from event_helpers import T0_NS  # noqa: E402
+
+WAIT_S = 10.0
+#: the protocol's name, and the name foxglove-sdk >= 0.30 servers answer to (the same messages)
+SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Client:
+    """A minimal foxglove.websocket.v1 client."""
+
+    def __init__(self, url: str) -> None:
+        self._conn = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=WAIT_S)
+        self.ws = self._conn.__enter__()
+        assert self.ws.subprotocol in SUBPROTOCOLS
+        self.info = self.recv_json("serverInfo")
+        self.channels: dict[str, dict] = {}
+        while set(self.channels) != {t for t, _ in TOPICS.values()}:
+            for ch in self.recv_json("advertise")["channels"]:
+                self.channels[ch["topic"]] = ch
+        self.sub_of: dict[int, str] = {}
+
+    def recv_json(self, op: str) -> dict:
+        while True:
+            msg = self.ws.recv(timeout=WAIT_S)
+            if isinstance(msg, str):
+                d = json.loads(msg)
+                if d["op"] == op:
+                    return d
+
+    def subscribe(self, topics) -> None:
+        subs = []
+        for i, topic in enumerate(topics, start=1):
+            subs.append({"id": i, "channelId": self.channels[topic]["id"]})
+            self.sub_of[i] = topic
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def messages(self, want: dict[str, int], timeout: float = WAIT_S) -> dict[str, list[tuple[int, dict]]]:
+        """Message data frames until ``want[topic]`` of each arrived: topic -> [(log time ns, payload)]."""
+        got: dict[str, list] = {t: [] for t in want}
+        while any(len(got[t]) < n for t, n in want.items()):
+            msg = self.ws.recv(timeout=timeout)
+            if isinstance(msg, bytes):
+                assert msg[0] == 0x01, f"opcode {msg[0]}"
+                sub, log_time = struct.unpack_from("<IQ", msg, 1)
+                topic = self.sub_of[sub]
+                if topic in got:
+                    got[topic].append((log_time, json.loads(msg[13:])))
+        return got
+
+    def close(self) -> None:
+        self._conn.__exit__(None, None, None)
+
+
+def schema_of(ch: dict) -> dict:
+    assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
+    return json.loads(ch["schema"])
+
+
+def check(payload: dict, ch: dict) -> None:
+    validate(payload, schema_of(ch), ch["schemaName"])
+
+
+@pytest.fixture
+def view():
+    with LiveView(port=0, bands={"rig-1": default_baseline("msp25")}, signal_rate_hz=100.0) as v:
+        yield v
+
+
+def estimate(rig: str, i: int) -> EstimateEvent:
+    return EstimateEvent(rig=rig, t_ns=T0_NS + i * 50_000_000, t_s=i * 0.05,
+                         params={"CdAleak": {"value": 3.3e-9 * (1 + 0.1 * i), "std": 3e-10, "unit": "m^2"},
+                                 "wn": {"value": 2 * np.pi * 43.0, "std": 1.0, "unit": "rad/s"},
+                                 "zeta": {"value": 0.37, "std": 0.002, "unit": "1"}},
+                         nis=1.2, status="ok")
+
+
+def test_messages_arrive_with_their_schemas(view, tmp_path):
+    client = Client(view.url)
+    try:
+        assert client.info["name"] == "fpdd-twin"
+        names = {t: ch["schemaName"] for t, ch in client.channels.items()}
+        assert names == {"/rig/signals": "fpdd.live.Signals", "/twin/estimate": "fpdd.live.Estimate",
+                         "/twin/status": "fpdd.live.Status", "/twin/alarm": "fpdd.live.Alarm",
+                         "/twin/alarm_log": "foxglove.Log"}
+        client.subscribe(list(client.channels))
+        for topic in client.channels:
+            assert view.wait_subscribed(topic, WAIT_S), topic
+        # a second of 1 kHz samples: decimated to 100 per second
+        n = 1000
+        t_ns = T0_NS + np.arange(n, dtype=np.int64) * 1_000_000
+        sig = {"x": 1e-3 * np.sin(np.arange(n) / 50), "x_ref": np.zeros(n), "u": np.full(n, 0.5),
+               "pA": np.full(n, 10e6), "pB": np.full(n, 9e6)}
+        assert view.signals("rig-1", Samples(t_ns, sig)) == 100
+        # a twin's publisher wrapped by the view: whatever it publishes is shown
+        with AlarmJournal(tmp_path / "alarms.db") as journal:
+            from event_helpers import alarm
+
+            tee = view.tee(_Recorder(journal))
+            tee.publish_estimate(estimate("rig-1", 1))
+            tee.publish_status(StatusEvent(rig="rig-1", t_ns=T0_NS, state="running",
+                                           parameters={"CdAleak": "alarm"}, counters={"samples": 1000}))
+            published = tee.publish_alarm(alarm("rig-1", 2))
+            assert published.seq == 1
+        got = client.messages({"/rig/signals": 100, "/twin/estimate": 1, "/twin/status": 1, "/twin/alarm": 1,
+                               "/twin/alarm_log": 1})
+    finally:
+        client.close()
+    for topic, msgs in got.items():
+        for log_time, payload in msgs:
+            check(payload, client.channels[topic])
+            ts = payload["timestamp"]
+            assert ts["sec"] * 1_000_000_000 + ts["nsec"] == log_time  # Foxglove time = the sample's t_ns
+    sig0 = got["/rig/signals"][0][1]
+    assert sig0["rig"] == "rig-1" and sig0["pA_MPa"] == pytest.approx(10.0) and sig0["u_V"] == 0.5
+    assert [m["t_s"] for _, m in got["/rig/signals"][:3]] == pytest.approx([0.0, 0.01, 0.02])
+    est = got["/twin/estimate"][0][1]["params"]
+    assert est["wn"]["value"] == pytest.approx(43.0) and est["wn"]["unit"] == "Hz"  # display units
+    assert est["CdAleak"]["unit"] == "mm²" and est["CdAleak"]["value"] == pytest.approx(3.63e-3)
+    assert est["CdAleak"]["lo95"] < est["CdAleak"]["value"] < est["CdAleak"]["hi95"]
+    band = default_baseline("msp25")["CdAleak"]
+    assert est["CdAleak"]["band_lo"] == pytest.approx(band.lo * 1e6) and est["zeta"]["unit"] == ""
+    a = got["/twin/alarm"][0][1]
+    assert a["seq"] == 1 and a["level"] == "alarm" and a["rig"] == "rig-1"
+    assert got["/twin/alarm_log"][0][1]["level"] == 4 and "ALARM" in got["/twin/alarm_log"][0][1]["message"]
+    assert got["/twin/status"][0][1]["parameters"] == {"CdAleak": "alarm"}
+
+
+class _Recorder:
+    """A publisher as the service's: journals alarms (numbering them), keeps the rest."""
+
+    def __init__(self, journal: AlarmJournal) -> None:
+        self.journal = journal
+
+    def publish_alarm(self, ev):
+        return self.journal.record(ev).event
+
+    def publish_estimate(self, ev):
+        return None
+
+    def publish_status(self, ev):
+        return ev
+
+
+def test_follows_a_twin_over_zenoh(view, tmp_path):
+    """What a real TwinPublisher puts on Zenoh (loopback, scouting off) reaches the Foxglove client."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    client = Client(view.url)
+    try:
+        client.subscribe(["/twin/estimate", "/twin/alarm"])
+        assert view.wait_subscribed("/twin/estimate", WAIT_S) and view.wait_subscribed("/twin/alarm", WAIT_S)
+        with zenoh.open(zenoh_config(listen=[endpoint])) as hub, zenoh.open(zenoh_config(connect=[endpoint])) as s, \
+                AlarmJournal(tmp_path / "j.db") as journal, TwinPublisher(hub, "rig-2", journal) as pub:
+            view.follow(s, "*")
+            from event_helpers import alarm
+
+            # the subscription may take a moment to propagate: publish until the view has shown one
+            for i in range(int(WAIT_S / 0.2)):
+                pub.publish_estimate(estimate("rig-2", i))
+                try:
+                    first = client.messages({"/twin/estimate": 1}, timeout=0.2)
+                    break
+                except TimeoutError:
+                    continue
+            else:
+                pytest.fail(f"no estimate reached the Foxglove client within {WAIT_S} s")
+            pub.publish_alarm(alarm("rig-2", 5))
+            got = client.messages({"/twin/alarm": 1})
+    finally:
+        client.close()
+    assert first["/twin/estimate"][0][1]["rig"] == "rig-2"
+    check(got["/twin/alarm"][0][1], client.channels["/twin/alarm"])
+    assert got["/twin/alarm"][0][1]["seq"] == 1
+
+
+def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_alarms():
+    shipped = json.loads((ROOT / "deploy" / "foxglove-layout.json").read_text(encoding="utf-8"))
+    assert shipped == foxglove_layout(), "regenerate: python -m twin.live_view --layout deploy/foxglove-layout.json"
+    fields = {topic: set(schema["properties"]) for topic, schema in TOPICS.values()}
+    param_fields = set(json.loads(json.dumps(TOPICS["estimate"][1]))["properties"]["params"]
+                       ["additionalProperties"]["properties"])
+    paths = [p["value"] for c in shipped["configById"].values() for p in c.get("paths", [])]
+    for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):
+        for f in ("value", "lo95", "hi95", "band_lo", "band_hi"):
+            assert f"/twin/estimate{{rig==$rig}}.params.{name}.{f}" in paths
+    for p in paths:
+        topic, rest = p.split("{", 1)
+        field = rest.split("}.", 1)[1].split(".")
+        assert field[0] in fields[topic] and (field[0] != "params" or field[2] in param_fields), p
+    assert any(c.get("topicToRender") == "/twin/alarm_log" for c in shipped["configById"].values())
+    assert shipped["globalVariables"]["rig"]
