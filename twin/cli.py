@@ -31,6 +31,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "serve": ("twin.service", "add_serve_arguments", "run_serve", "run the online twin for one or more rigs"),
     "demo": ("twin.demo", "add_demo_arguments", "run_demo",
              "end-to-end demo: simulate a wearing rig, track it, alarm over Zenoh"),
+    "top": ("twin.top", "add_top_arguments", "run_top",
+            "live terminal view of the running twins: estimates, statuses, last alarms"),
 }
 
 
@@ -58,7 +60,7 @@ def jit_note(command: str) -> str | None:
     import glob
     import os
 
-    if command in ("params", "alarms"):
+    if command in ("params", "alarms", "top"):
         return None
     here = os.path.join(os.path.dirname(__file__), "models", "__pycache__")
     if glob.glob(os.path.join(here, "msp25.*.nbi")):

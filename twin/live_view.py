@@ -259,7 +259,7 @@ class LiveView:
         self.set_band(d["rig"], name, (d["band_lo"], d["band_hi"], d.get("baseline")))
         u = pretty_unit(sh.unit)
         text = (f"#{d.get('seq', 0)} t={d['t_s']:.3f} s {d['level'].upper()} {d['kind']} {name} = "
-                f"{sh.text(d['estimate'], 4)} ± {sh.text(d['std'], 2)} (band {sh.text(d['band_lo'], 4, unit=False)}"
+                f"{sh.text(d['estimate'], 4, unit=False)} ± {sh.text(d['std'], 2)} (band {sh.text(d['band_lo'], 4, unit=False)}"
                 f" … {sh.text(d['band_hi'], 4)})")
         msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": d["rig"], "seq": int(d.get("seq", 0)), "parameter": name,
                "level": d["level"], "kind": d["kind"], "t_s": float(d["t_s"]), "estimate": sh(d["estimate"]),
