@@ -132,15 +132,15 @@ class RigTwin(Sink):
     def __init__(self, rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50,
                  on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None,
                  history: int | None = None):
+        from twin.commission import tracker_for
         from twin.drift import DriftMonitor
-        from twin.tracker import OnlineTracker
 
         self.rig = rig
         self.publisher = publisher
         self.recorder = recorder
         self.estimate_every = int(estimate_every)
         self.on_alarm = on_alarm
-        self.tracker = OnlineTracker(rig.model, params=rig.params, tracked=rig.track, dt=dt)
+        self.tracker = tracker_for(rig, dt=dt)
         self.drift = DriftMonitor(rig.name, rig.baseline)
         self.stats = RigStats()
         self.health = Health()
@@ -175,15 +175,10 @@ class RigTwin(Sink):
         the prior's uncertainty (the detector calls them ``unresolved`` until
         the data resolve them again, so nothing is raised on a guess).
         """
-        from twin.errors import ParameterError
-        from twin.tracker import OnlineTracker
+        from twin.commission import tracker_for
 
         old = self.tracker
-        try:
-            self.tracker = OnlineTracker(self.rig.model, params=self.rig.params, tracked=self.rig.track, dt=old.dt,
-                                         start=start or None)
-        except ParameterError:
-            self.tracker = OnlineTracker(self.rig.model, params=self.rig.params, tracked=self.rig.track, dt=old.dt)
+        self.tracker = tracker_for(self.rig, dt=old.dt, start=start or None)
         for k, v in old.counters.items():
             self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
 
@@ -198,7 +193,7 @@ class RigTwin(Sink):
         self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
-                                          out.frozen):
+                                          out.frozen, out.hold, out.guard):
             self._alarm(ev)
         # an estimate every estimate_every samples, wherever the block boundaries fall
         n = len(out.t_ns)
@@ -264,9 +259,12 @@ class RigTwin(Sink):
 
     def _status(self, out, force: bool = False, state: str | None = None) -> None:
         now = time.monotonic()
+        from twin.tracker import consistency_note
+
         per_param = self.drift.statuses()
         state = state or self.health.state
-        key = (state, self.health.message, tuple(sorted(per_param.items())))
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        key = (state, message, tuple(sorted(per_param.items())))
         if not force and key == self._last_status and now - self._last_status_wall < 1.0:
             return
         self._last_status = key
@@ -276,7 +274,7 @@ class RigTwin(Sink):
                     **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
                     **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
-                         counters=counters, message=self.health.message)
+                         counters=counters, message=message)
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:

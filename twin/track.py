@@ -20,7 +20,7 @@ import os
 import sys
 from collections.abc import Iterable
 
-from twin.cliutil import dump, kv, load_params_file, names
+from twin.cliutil import add_timing_arguments, dump, kv, names, timing_of
 
 
 class SequenceNumbers:
@@ -65,7 +65,7 @@ def _blocks(source, chunk: int, dbc: str | None):
 
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
-          estimate_every: int = 50):
+          estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None):
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -73,7 +73,11 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     them in time order (a stream of blocks).  ``params``: known parameters that
     differ from the nominal MSP25; ``tracked``: parameter names (default all five
     phenomenological ones); ``baseline``: ``{name: twin.config.Baseline}``
-    overriding the default bands.  With ``out_dir`` the estimates, alarms and
+    overriding the default bands; ``noise``: sensor noise standard deviations
+    per output (SI); ``timing``: the loop's :class:`~twin.models.base.Timing`;
+    ``commission``: a :class:`twin.commission.Commission` (or the path of a
+    ``twin fit --save`` file): known values, healthy bands around the fitted
+    values, noise and timing.  With ``out_dir`` the estimates, alarms and
     statuses go to ``OUT_DIR/RIG.twin.mcap``, an estimate every ``estimate_every``
     samples.  The twin holds the results:
     ``alarms`` (events with ``t_s`` from the start of the record),
@@ -85,8 +89,14 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     from twin.models import msp25 as M
     from twin.service import RigTwin
 
+    from twin.commission import Commission, load_fit, tracker_for
+
     tracked = tuple(tracked or M.PHENOMENOLOGICAL)
+    if isinstance(commission, (str, os.PathLike)):
+        commission = load_fit(os.fspath(commission))
     base = default_baseline("msp25", params, tracked)
+    if isinstance(commission, Commission):
+        base.update(commission.baseline(tracked))
     base.update(baseline or {})
     where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else f"<{type(source).__name__}>"
     rig = RigConfig(rig_name, "msp25", where, dbc, 0.0, tracked, dict(params or {}), base)
@@ -96,6 +106,14 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         rec = McapSink(os.path.join(out_dir, f"{rig_name}.twin.mcap"))
     every = max(1, int(estimate_every))
     twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
+    if noise or timing is not None or commission is not None:
+        class _Rig:  # the rig configuration plus what the command line adds
+            pass
+
+        r = _Rig()
+        r.model, r.params, r.track = "msp25", dict(params or {}), tracked
+        r.noise, r.timing, r.commission = dict(noise or {}), timing, commission
+        twin.tracker = tracker_for(r)
     try:
         for block in _blocks(source, chunk, dbc):
             twin.write(block)
@@ -112,12 +130,18 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
     p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
     p.add_argument("--track", help="parameters to track (default Ffric,CdAleak,Cd,zeta,wn)")
-    p.add_argument("--params", metavar="FILE", help="known parameters (JSON of twin fit/diagnose --save)")
+    p.add_argument("--params", metavar="FIT.json",
+                   help="commissioning fit (JSON of twin fit --save): known values, healthy bands around the fitted "
+                        "ones, sensor noise, loop timing")
+    p.add_argument("--noise-levels", metavar="x=2e-6,pA=2e4,...",
+                   help="sensor noise standard deviations (SI) per output; default the fit's, else x=2e-6,pA=2e4,pB=2e4 "
+                        "(the filter goes on learning them online)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,...")
     p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")
     p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
     p.add_argument("--json", action="store_true", help="print alarms and final estimates as JSON")
+    add_timing_arguments(p)
 
 
 def run_track(args) -> int:
@@ -132,16 +156,29 @@ def run_track(args) -> int:
         cfg = load_config(args.config)
         rig = next((r for r in cfg.rigs if r.name == args.rig), cfg.rigs[0])
         params, baseline, tracked = dict(rig.params), rig.baseline, tracked or rig.track
-    if args.params or args.set:
-        ps = load_params_file(get_model("msp25"), args.params, kv(args.set))
-        params.update(ps.as_dict())
-        if ps.effects:
+    commission = None
+    if args.params:
+        from twin.commission import load_fit, tracker_params
+
+        commission = load_fit(args.params)
+        tracker_params(commission, tracked or get_model("msp25").PHENOMENOLOGICAL)  # refuses effects
+    if args.set:
+        model = get_model("msp25")
+        over = kv(args.set)
+        model.params(**over)  # checks names and ranges
+        params.update(over)
+    noise = kv(args.noise_levels) if args.noise_levels else None
+    if noise:
+        bad = [k for k in noise if k not in ("x", "pA", "pB")]
+        if bad or any(not v > 0 for v in noise.values()):
             from twin.errors import ParameterError
 
-            raise ParameterError(f"the tracker follows the nominal rig model; effects {list(ps.effects)} "
-                                 "are not tracked (fit them with twin fit instead)")
+            raise ParameterError(f"--noise-levels: expected positive standard deviations of x, pA, pB (SI), got "
+                                 f"{args.noise_levels!r}")
+    timing = timing_of(args, None)
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
-    twin = track(args.log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say)
+    twin = track(args.log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
+                 timing=timing, commission=commission)
     if say:
         print(file=sys.stderr)
     png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
@@ -152,6 +189,10 @@ def run_track(args) -> int:
         "final": twin.final_estimates(),
         "status": twin.drift.statuses(),
         "counters": twin.tracker.counters,
+        "consistency": twin.drift.guard,
+        "sensors": twin.tracker.sensor_status(),
+        "noise": twin.tracker.noise_levels(),
+        "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
     }
     if args.json:
@@ -160,7 +201,12 @@ def run_track(args) -> int:
     for a in twin.alarms:
         print(f"t={a.t_s:9.3f} s {a.level.upper():7s} {a.kind:9s} {a.parameter}: {a.estimate:.4g} +- {a.std:.2g} "
               f"(band {a.band_lo:.4g}..{a.band_hi:.4g})")
-    print(f"{twin.stats.samples} samples, {len(twin.alarms)} alarm event(s)")
+    print(f"{twin.stats.samples} samples, {len(twin.alarms)} alarm event(s); timing {result['timing']}")
+    note = ", ".join(f"{o} {s}" for o, s in result["sensors"].items() if s != "ok")
+    if note:
+        print(f"  sensors: {note}")
+    if result["consistency"] != "consistent":
+        print(f"  filter not consistent with the data at the end: {result['consistency']}")
     for n, d in result["final"].items():
         print(f"  {n:8s} {d['value']:.5g} +- {d['std']:.2g} {d['unit']}  [{result['status'][n]}]")
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
