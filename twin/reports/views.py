@@ -71,18 +71,18 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
     pl = plt()
     with pl.rc_context(RC):
         n = len(outputs)
-        fig = pl.figure(figsize=(10.5, 3.3 * n + (0.35 if title else 0.0)))
-        gs = fig.add_gridspec(2 * n, 2, width_ratios=[3, 2], height_ratios=[3, 1.25] * n, hspace=0.12,
-                              wspace=0.18)
+        fig = pl.figure(figsize=(10.5, 3.6 * n + (0.35 if title else 0.0)))
+        outer = fig.add_gridspec(n, 1, hspace=0.32)
         colours = [BLUE, ORANGE, PURPLE, GREEN]
         for i, o in enumerate(outputs):
             sc = o["scale"]
             y = np.asarray(o["measured"]) * sc
             sims = [(lbl, np.asarray(s) * sc) for lbl, s in o["models"]]
             zoom = _zoom_window(t, y - sims[0][1]) if sims else slice(0, t.size)
+            gs = outer[i].subgridspec(2, 2, width_ratios=[3, 2], height_ratios=[3, 1.25], hspace=0.1, wspace=0.18)
             for col, sl in ((0, slice(0, t.size)), (1, zoom)):
-                ax = fig.add_subplot(gs[2 * i, col])
-                axr = fig.add_subplot(gs[2 * i + 1, col], sharex=ax)
+                ax = fig.add_subplot(gs[0, col])
+                axr = fig.add_subplot(gs[1, col], sharex=ax)
                 if col == 0:
                     ax.plot(t[sl], y[sl], color=MEASURED, lw=1.6, label="measured", zorder=1)
                 else:  # the zoom shows the samples themselves: a line on a line hides one of them
@@ -103,8 +103,7 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
                     ax.legend(loc="upper right", ncol=1 + len(sims))
                 else:
                     ax.set_title(f"zoom: {t[zoom][0]:.2f} … {t[zoom][-1]:.2f} s (largest error)", loc="left")
-                if i == n - 1:
-                    axr.set_xlabel("t [s]")
+                axr.set_xlabel("t [s]")
         if title:
             fig.suptitle(title, x=0.01, ha="left", fontsize=10)
         fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.45 / fig.get_figheight() - (0.25 / fig.get_figheight() if title else 0),
