@@ -95,16 +95,18 @@ def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_
     # the reference: one uninterrupted run, as fast as it goes
     serve(load_config(str(write_config(tmp_path / "ref.toml", log, tmp_path / "ref", 0.0))))
     reference = alarms(tmp_path / "ref")
-    assert len(reference) >= 4 and {a.parameter for a in reference} == {"Ffric", "wn"}
+    assert len(reference) >= 3 and {a.parameter for a in reference} == {"Ffric", "wn"}
 
-    # the same log in (fast) real time, killed right after each of its first three new alarms
+    # the same log in (fast) real time, killed right after each of its first two new alarms,
+    # then once while it resumes (re-processing what followed its checkpoint)
     config = write_config(tmp_path / "rigs.toml", log, tmp_path / "journal", 6.0)
     kills = []
     for life in range(3):
         svc = Service(config)
         if life:
             svc.wait_for(re.compile(r"^twin serve: rig rig-k: resumed from its checkpoint after \d+ samples"))
-        kills.append(int(svc.wait_for(ALARM_LINE).group(1)))
+        if life < 2:
+            kills.append(int(svc.wait_for(ALARM_LINE).group(1)))
         svc.kill()  # the alarm is journaled; the checkpoint may be older: its data are processed again
     svc = Service(config)
     assert svc.finish() == 0, "\n".join(svc.seen)

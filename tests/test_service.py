@@ -235,8 +235,16 @@ def test_worker_processes_run_the_rigs_and_the_bus_answers_from_their_journals(t
     th.start()
     try:
         with zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"])) as session:
-            watch = StatusWatch(session, "rig-h")
-            done = watch.until(lambda s: s.state == "finished", timeout=60.0)
+            watch = StatusWatch(session, "*")
+            finished: dict[str, StatusEvent] = {}
+
+            def all_finished(s: StatusEvent) -> bool:
+                if s.state == "finished":
+                    finished[s.rig] = s
+                return set(finished) == set(logs)
+
+            watch.until(all_finished, timeout=120.0)
+            done = finished["rig-h"]
             watch.close()
             with AlarmSubscriber(session, rig="rig-g") as sub:
                 got = [sub.recv(timeout=10.0) for _ in range(len(_journal(tmp_path, "rig-g")))]
