@@ -623,8 +623,9 @@ class _ZenohPublisher(Sink):
         self.key = parse_zenoh_uri(key) if key.startswith("zenoh://") else key
         self._owned = session is None
         self.session = session if session is not None else _open_session(config, f"zenoh://{self.key}")
-        try:
-            self.publisher = self.session.declare_publisher(self.key, encoding=encoding)
+        try:  # BLOCK: a replay is lossless (zenoh's default, DROP, may drop even the end marker under load)
+            self.publisher = self.session.declare_publisher(self.key, encoding=encoding,
+                                                            congestion_control=zenoh.CongestionControl.BLOCK)
         except Exception as e:  # ZError: an invalid key expression
             if self._owned:
                 self.session.close()

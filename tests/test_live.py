@@ -76,9 +76,16 @@ def _consume(src, *, until, timeout_s: float = 20.0, size: int = 65536):
 
     th = threading.Thread(target=run, daemon=True)
     th.start()
-    assert done.wait(timeout_s), "the live source did not end after close()"
+    if not done.wait(timeout_s):
+        src.close()
+        pytest.fail(f"the live source did not end within {timeout_s} s")
     th.join(timeout_s)
     return blocks
+
+
+def _read_to_end(src, timeout_s: float = 30.0) -> Samples:
+    """Everything up to the sender's end marker (the source is closed, and the test fails, on timeout)."""
+    return Samples.concat(_consume(src, until=lambda b: None, timeout_s=timeout_s))
 
 
 def test_can_bus_source_probes_signals_and_stays_open_when_quiet():
@@ -142,7 +149,7 @@ def test_zenoh_json_samples_two_sessions():
         with ZenohSampleSink("zenoh://fpdd/test/samples", config=zenoh_config(connect=[ep]), max_block=128) as sink:
             assert sink.wait_for_subscriber(5.0)
             sink.write(samples)
-        back = src.read_all()
+        back = _read_to_end(src)
     assert back.names == samples.names
     np.testing.assert_array_equal(back.t_ns, samples.t_ns)
     for k in samples.names:
@@ -159,7 +166,7 @@ def test_zenoh_can_frames_two_sessions_and_bad_payload():
             sink.write(samples.slice(0, 100))
             sink._put(b"FCAN\x07\x00\x18\x00")  # a version nobody speaks
             sink.write(samples.slice(100, len(samples)))
-        back = src.read_all()
+        back = _read_to_end(src)
     assert len(back) == len(samples)
     assert np.abs(back["x"] - samples["x"]).max() <= LSB_X / 2 + 1e-15
     assert src.report.skipped["bad_payload"] == 1
@@ -192,7 +199,7 @@ def test_zenoh_can_frames_across_processes():
         child = ctx.Process(target=_publish_can_in_child, args=(ep, "fpdd/proc/can", 0.5, 11))
         child.start()
         try:
-            back = src.read_all()
+            back = _read_to_end(src)
         finally:
             child.join(20.0)
     assert child.exitcode == 0
@@ -252,7 +259,7 @@ def test_zenoh_bad_payloads_are_dropped_counted_per_cause_and_logged(caplog):
     with ZenohSource("fpdd/bad", config=zenoh_config(listen=[ep]), timeout_s=10.0, poll_s=0.05,
                      signals=good.names) as src:
         with zenoh.open(zenoh_config(connect=[ep])) as session:
-            pub = session.declare_publisher("fpdd/bad")
+            pub = session.declare_publisher("fpdd/bad", congestion_control=zenoh.CongestionControl.BLOCK)
             deadline = time.monotonic() + 10.0
             while not pub.matching_status.matching:
                 assert time.monotonic() < deadline, "no subscriber matched"
@@ -262,7 +269,7 @@ def test_zenoh_bad_payloads_are_dropped_counted_per_cause_and_logged(caplog):
                 pub.put(payload)
             pub.put(samples_json(good.slice(100, len(good))))
             pub.put(b'{"format":"fpdd.samples/1","end":true}')
-            back = src.read_all()
+            back = _read_to_end(src)
     np.testing.assert_array_equal(back.t_ns, good.t_ns)
     want = {}
     for _, cause in bad_payloads:
