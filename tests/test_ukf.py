@@ -4,6 +4,8 @@ bounded parameter random walk across a long rest, unrepairable covariances and s
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
@@ -15,6 +17,7 @@ from twin.models import msp25 as M
 from twin.scenario import simulate_wear
 from twin.simulate import DEFAULT_NOISE, excite
 from twin.tracker import OnlineTracker
+from tests.ukf_mirror import mirror, ours
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
 WRONG = {"Ffric": 75.0, "CdAleak": 3.2863e-9 * 0.5, "Cd": 0.2191 * 1.5, "zeta": 0.3701 * 0.5,
@@ -29,38 +32,22 @@ def _samples(duration, seed, xr=None):
     return rec.to_samples()
 
 
-def _filterpy_reference(tr: OnlineTracker, s: Samples, drive_u: np.ndarray) -> np.ndarray:
-    """filterpy's UnscentedKalmanFilter with the same fx (the numba step per sigma point), a per-sample hx
-    and R over the measurements present in that sample (none: no update), as in the tracker."""
-    n = tr.n
-    pts = MerweScaledSigmaPoints(n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
-
-    def fx(x, dt, u):
-        out = np.empty(n)
-        ukf.fx_one(x, u, tr.pvec, tr.idx, tr.ref, tr.scale, dt, tr.substeps, out)
-        return out
-
-    f = UnscentedKalmanFilter(dim_x=n, dim_z=3, dt=1e-3, hx=lambda x: x[tr.meas_idx], fx=fx, points=pts)
-    f.x = tr.x.copy()
-    f.P = tr.P.copy()
-    f.Q = tr._q(1e-3)
-    Z = np.stack([s[o] / tr.scale[ukf.MEAS_INDEX[o]] for o in NAMES], axis=1)
-    X = np.empty((len(s), n))
-    for k in range(len(s)):
-        if k > 0:
-            f.predict(u=drive_u[k - 1])
-        else:  # the first sample is measured at the prior
-            f.sigmas_f = pts.sigma_points(f.x, f.P)
-        use = np.flatnonzero(np.isfinite(Z[k]))
-        if use.size:
-            idx = tr.meas_idx[use]
-            f.update(Z[k, use], R=np.diag(tr.R[use]), hx=lambda x, idx=idx: x[idx])
-        X[k] = f.x
-    return X
+def _prepared(samples, **kw):
+    """A tracker that has read its initial state off ``samples`` (so a copy can start filterpy there)."""
+    tr = OnlineTracker(**{"start": WRONG, "adapt_noise": False, **kw})
+    tr.dt = 1e-3
+    tr._start_from_data(samples)
+    tr._started = True
+    return tr
 
 
-def _ours(out, tr):
-    return np.concatenate([out.states / tr.scale, np.log(out.estimates / tr.ref)], axis=1)
+def _compare(samples, rtol=1e-7, atol=1e-9, **kw):
+    tr = _prepared(samples, **kw)
+    ref = copy.deepcopy(tr)
+    out = tr.process(samples)
+    expected = mirror(ref, samples, out)
+    np.testing.assert_allclose(ours(tr, out), expected[:, :tr.nmod], rtol=rtol, atol=atol)
+    return tr, out, expected
 
 
 def test_same_as_filterpy_with_missing_measurements_per_sample():
@@ -72,22 +59,32 @@ def test_same_as_filterpy_with_missing_measurements_per_sample():
         sig[name][rng.random(T) < frac] = np.nan
     sig["x"][100:103] = sig["pA"][100:103] = sig["pB"][100:103] = np.nan  # nothing measured: prediction only
     holes = Samples(s.t_ns, sig)
-    tr = OnlineTracker(start=WRONG, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
-    expected = _filterpy_reference(tr, holes, holes["u"])
-    out = tr.process(holes)
+    tr, out, _ = _compare(holes, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
     assert list(out.status[100:103]) == ["stale_input"] * 3
-    np.testing.assert_allclose(_ours(out, tr), expected, rtol=1e-7, atol=1e-9)
 
 
-def test_same_as_filterpy_when_driven_from_x_ref():
+def test_same_as_filterpy_with_coloured_noise_states_and_a_linear_input():
+    """AR(1) noise states (a = 0.9 on x) and foh between the logged u samples: filterpy's algebra."""
     s = _samples(0.3, 22)
-    no_u = Samples(s.t_ns, {k: v for k, v in s.signals.items() if k != "u"})
-    tr = OnlineTracker(start=WRONG, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
-    u = tr.pvec[M.I_KP] * (no_u["x_ref"] - no_u["x"])  # the digital P controller on the measured x
-    expected = _filterpy_reference(tr, no_u, u)
-    out = tr.process(no_u)
-    np.testing.assert_allclose(_ours(out, tr), expected, rtol=1e-7, atol=1e-9)
-    assert np.max(np.abs(expected[-1, 6:] - expected[0, 6:])) > 0.05
+    tr, out, expected = _compare(s, excite=(0.0, 0.0, 0.0), gate_p=1e-300, noise_colour={"x": 0.9},
+                                 timing="continuous")
+    assert tr.timing.intersample_code(1e-3) == 2 and np.max(np.abs(expected[-1, 6:11] - expected[0, 6:11])) > 0.05
+
+
+def test_same_as_filterpy_with_the_production_settings_over_twenty_seconds():
+    """Gating, excitation freezing and the consistency guard on (noise learning off): 20 s of a healthy
+    record started away from the truth, filterpy following the same decisions, same numbers."""
+    s = _samples(20.0, 26)
+    sig = {k: v.copy() for k, v in s.signals.items()}
+    sig["x"][5000] += 5e-3  # one output far off while the others agree: left out of the update
+    for k, d in (("x", 1e-3), ("pA", 2e6), ("pB", -2e6)):
+        sig[k][7000] += d  # all three: gated
+    s = Samples(s.t_ns, sig)
+    tr, out, expected = _compare(s, rtol=1e-6, atol=1e-7)
+    assert out.frozen.any() and out.status[7000] == "gated" and not out.used[5000, 0]  # all paths exercised
+    assert (out.guard == "consistent").mean() > 0.5
+    truth = np.array([M.NOMINAL[n] for n in tr.tracked])
+    assert np.all(np.abs(out.estimates[-1] / truth - 1) < 4 * out.log_std[-1] + 0.01)
 
 
 def _random_pd(n, rng):
@@ -115,7 +112,8 @@ def test_update_is_the_linear_kalman_update():
     kf.update(z)
     x, P = x0.copy(), P0.copy()
     innov, Sd = np.empty(3), np.empty(3)
-    st, nis, ll, m = ukf._update(x, P, z, meas_idx, R, np.zeros(n, dtype=np.bool_), np.inf, innov, Sd)
+    st, nis, ll, m = ukf._update(x, P, z, meas_idx, -1, R, np.ones(3, bool), np.zeros(n, dtype=np.bool_), np.inf,
+                                 innov, Sd)
     assert (ukf.STATUS[st], m) == ("ok", 3)
     np.testing.assert_allclose(x, kf.x, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(P, kf.P, rtol=1e-10, atol=1e-12)
@@ -125,12 +123,31 @@ def test_update_is_the_linear_kalman_update():
     assert ll == pytest.approx(kf.log_likelihood, rel=1e-10)
 
 
+def test_update_with_noise_states_is_the_linear_kalman_update_of_model_plus_noise():
+    n, meas_idx, H, R, x0, P0, z = _update_problem(7)
+    H2 = np.zeros((3, n))
+    H2[np.arange(3), meas_idx] = 1.0
+    H2[np.arange(3), 8 + np.arange(3)] = 1.0  # noise states 8, 9, 10
+    use = np.array([True, False, True])
+    kf = KalmanFilter(dim_x=n, dim_z=2)
+    kf.x, kf.P, kf.H, kf.R = x0.copy(), P0.copy(), H2[use], np.diag(R[use])
+    kf.update(z[use])
+    x, P = x0.copy(), P0.copy()
+    innov = np.full(3, np.nan)
+    st, nis, ll, m = ukf._update(x, P, z, meas_idx, 8, R, use, np.zeros(n, dtype=np.bool_), np.inf, innov,
+                                 np.empty(3))
+    assert m == 2 and np.isnan(innov[1])
+    np.testing.assert_allclose(x, kf.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(P, kf.P, rtol=1e-10, atol=1e-12)
+    assert ll == pytest.approx(kf.log_likelihood, rel=1e-10)
+
+
 def test_frozen_rows_get_no_gain_and_an_honest_covariance():
     n, meas_idx, H, R, x0, P0, z = _update_problem(6)
     freeze = np.zeros(n, dtype=np.bool_)
     freeze[[6, 8]] = True
     x, P = x0.copy(), P0.copy()
-    st, _, _, _ = ukf._update(x, P, z, meas_idx, R, freeze, np.inf, np.empty(3), np.empty(3))
+    st, _, _, _ = ukf._update(x, P, z, meas_idx, -1, R, np.ones(3, bool), freeze, np.inf, np.empty(3), np.empty(3))
     assert ukf.STATUS[st] == "frozen"
     assert x[6] == x0[6] and x[8] == x0[8]
     K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + np.diag(R))
@@ -150,10 +167,9 @@ def test_a_long_rest_does_not_blow_up_the_parameters():
     s = _samples(0.0, 23, xr=np.concatenate([np.zeros(3000), xr]))
     tr = OnlineTracker(q_rate={n: 20.0 for n in M.PHENOMENOLOGICAL})
     rest = tr.process(s.slice(0, 3000))
-    assert rest.frozen[-1].all() and set(rest.status[1000:]) == {"frozen"}
-    np.testing.assert_allclose(rest.log_std[-1], ukf.PARAM_STD_CAP, rtol=1e-9)
+    assert rest.frozen[-1].all() and np.mean(rest.status[1000:] == "frozen") > 0.95
+    np.testing.assert_allclose(rest.log_std[-1], ukf.PARAM_STD_CAP, rtol=1e-3)  # to the logit's curvature
     tr.q_rate[:] = [0.3, 0.15, 0.02, 0.05, 0.05]
-    tr._Q = None
     out = tr.process(s.slice(3000, len(s)))
     assert np.all(np.isfinite(out.estimates))
     j = tr.tracked.index("Cd")

@@ -114,6 +114,7 @@ class TrackBlock:
     sensors: np.ndarray = None  # [T, m] sensor status names (twin.ukf.SENSOR)
     noise: np.ndarray = None    # [T, m] learnt noise standard deviation (SI)
     outputs: tuple = ()
+    used: np.ndarray = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
 
     @property
     def param_status(self) -> np.ndarray:
@@ -400,13 +401,14 @@ class OnlineTracker:
         guard = np.empty(T, dtype=np.int64)
         sens = np.empty((T, m), dtype=np.int64)
         noise = np.empty((T, m))
+        used = np.empty((T, m), dtype=np.bool_)
         q_param = self.q_rate ** 2
         bad = ukf.run_kernel(
             self.x, self.P, self.fs, self.ch, self.x_ck, self.P_ck, U, XREF, Z, DT, self.meas_idx, closed, ticks,
             mode, self.dt, self.pvec, self.idx, self.lo_log, self.width, self.scale, self.substeps, self.q_state,
             q_param, PRIOR_MODEL, self.Wm, self.Wc, self.lam, self.floor, self.gate, self.max_gated, self.chan,
             self.excite_thresh, self.tau_excite, self.x_col, self.cfg,
-            X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise)
+            X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used)
         if bad >= 0:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) before "
                               "it had ever been consistent with the data: state or covariance not finite")
@@ -423,14 +425,15 @@ class OnlineTracker:
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
                           status=np.array(ukf.STATUS)[st], frozen=frozen, innovation=innov * msc, states=states,
                           guard=np.array(ukf.GUARD)[guard], sensors=np.array(ukf.SENSOR)[sens],
-                          noise=noise * msc, outputs=self.outputs)
+                          noise=noise * msc, outputs=self.outputs, used=used)
 
     def _empty(self) -> TrackBlock:
         p, m = len(self.tracked), len(self.outputs)
         z = np.zeros((0, p))
         return TrackBlock(np.zeros(0, np.int64), z, z, z, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U19"),
                           np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, 6)),
-                          np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs)
+                          np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs,
+                          np.zeros((0, m), bool))
 
     def estimate(self) -> dict[str, tuple[float, float]]:
         """Current (value, std) of every tracked parameter (SI)."""

@@ -108,8 +108,8 @@ N_CFG = 25
 N_FS = 19
 # per-output carried state (array CH [q, N_CH])
 (H_SIG, H_A, H_C, H_R1, H_NU_PREV, H_LAST_RAW, H_RUN_SAME, H_OUT_RUN, H_CLEAR_RUN, H_STATUS, H_UNIT_RUN,
- H_SIG_NOM, H_R_FLOOR, H_HAVE_NU) = range(14)
-N_CH = 14
+ H_SIG_NOM, H_R_FLOOR, H_HAVE_NU, H_EXT) = range(15)
+N_CH = 15
 
 
 @nb.njit(cache=True)
@@ -548,7 +548,7 @@ def _reinit_states(x, P, z, meas_idx, u, pvec, scale, prior_mod, ch, nmod, infla
 def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mode, dt0, pvec, idx, lo_log, width, scale,
                nsub, q_state, q_param, prior_mod, Wm, Wc, lam, floor, gate, max_gated, chan, thresh, tau_excite,
                x_col, cfg, X_out, Pd_out, nis_out, ll_out, st_out, innov_out, S_out, frozen_out, guard_out, sens_out,
-               sig_out):
+               sig_out, used_out):
     """Filter ``T`` samples in place; ``x``, ``P``, ``fs``, ``ch``, ``x_ck``, ``P_ck`` carry over between calls.
 
     ``U[k]`` the logged controller output (NaN if missing), ``XREF[k]`` the demand (the drive when
@@ -579,6 +579,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     R = np.empty(q)
     a_pow = np.empty(q)
     wnd = np.empty(4)
+    unit_like = np.zeros(q, dtype=np.bool_)
     inn2 = np.empty(q)
     sd2 = np.empty(q)
     pmid = 0.5 * (pvec[M.I_PP] + pvec[M.I_PT])
@@ -656,8 +657,10 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                                       nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl)
                         if ps < 0:
                             break
-                if ps < 0:
-                    reinit = True  # not finite: treated as divergence below
+                if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
+                    if fs[F_CK_OK] <= 0.0:
+                        return k
+                    reinit = True
                     fs[F_RECOVERIES] += 1.0
                     for i in range(n):
                         x[i] = x_ck[i]
@@ -678,6 +681,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
         for j in range(q):
             zj = zk[j]
             st = int(ch[j, H_STATUS])
+            unit_like[j] = False
             if not math.isfinite(zj):
                 use[j] = False
                 continue
@@ -685,11 +689,13 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             # physical range (a unit error shows first here)
             if (j == x_col and abs(zj * scale[4]) > cfg[C_STROKE]) or \
                     (j != x_col and (zj * 1e6 < cfg[C_PMIN] or zj * 1e6 > cfg[C_PMAX])):
-                ch[j, H_UNIT_RUN] += 1.0
                 use[j] = False
-                if ch[j, H_UNIT_RUN] >= 3.0:
-                    ch[j, H_STATUS] = S_UNIT
-                    ch[j, H_CLEAR_RUN] = 0.0
+                unit_like[j] = True
+            else:
+                unit_like[j] = False
+            # the largest excursion of the signal from its centre lately (a clip sits at it)
+            cen = 0.0 if j == x_col else pmid / 1e6
+            ch[j, H_EXT] = max(abs(zj - cen), ch[j, H_EXT] * (1.0 - max(dtk, dt0) / 30.0))
             # the same value again: suspect until it moves
             if zj == ch[j, H_LAST_RAW]:
                 ch[j, H_RUN_SAME] += 1.0
@@ -738,7 +744,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                     if abs(pred) > 1e-9 and abs(zk[j]) > 0.0:
                         l10 = math.log10(abs(zk[j] / pred))
                         if abs(l10) >= 1.9 and abs(l10 - round(l10)) < 0.1:
-                            ch[j, H_UNIT_RUN] += 1.0
+                            unit_like[j] = True
                     continue
             ch[j, H_OUT_RUN] = 0.0
         # sensor status transitions
@@ -747,20 +753,19 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             zj = zk[j]
             if not math.isfinite(zj):
                 continue
+            ch[j, H_UNIT_RUN] = ch[j, H_UNIT_RUN] + 1.0 if unit_like[j] else 0.0
             run = ch[j, H_RUN_SAME]
             nuj = nu[j]
             if st in (S_OK, S_NOISY):
+                centre = 0.0 if j == x_col else pmid / 1e6
+                at_extreme = abs(zj - centre) >= 0.98 * ch[j, H_EXT]
                 if ch[j, H_UNIT_RUN] >= 3.0:
                     st = S_UNIT
                 elif ch[j, H_OUT_RUN] >= cfg[C_OFF_N]:
                     st = S_OFFSET
-                elif run >= 2.0 and math.isfinite(nuj) and abs(nuj) > 4.0:
-                    # held at a value the model passes: clipped if the model is beyond it outward
-                    centre = 0.0 if j == x_col else pmid / 1e6
-                    if (zj - centre) * (-innov[j]) > 0.0 and run >= 2.0:
-                        st = S_CLIPPED
-                    elif run >= cfg[C_STUCK_N]:
-                        st = S_STUCK
+                elif run >= 2.0 and at_extreme and math.isfinite(nuj) and abs(nuj) > 4.0 and \
+                        (zj - centre) * (-innov[j]) > 0.0:
+                    st = S_CLIPPED  # held at its extreme while the model goes beyond it
                 elif run >= cfg[C_STUCK_N] and math.isfinite(nuj) and abs(nuj) > 2.0:
                     st = S_STUCK
                 if st != S_NOISY and st != S_OK:
@@ -768,18 +773,11 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                     use[j] = False
             else:
                 use[j] = False
-                fine = run < 1.0 and math.isfinite(nuj) and abs(nuj) < 3.0
-                if st == S_UNIT:
-                    fine = fine and ch[j, H_UNIT_RUN] < 1.0
+                fine = run < 1.0 and math.isfinite(nuj) and abs(nuj) < 3.0 and not unit_like[j]
                 ch[j, H_CLEAR_RUN] = ch[j, H_CLEAR_RUN] + 1.0 if fine else 0.0
                 if ch[j, H_CLEAR_RUN] >= cfg[C_CLEAR_N]:
                     st = S_OK
                     ch[j, H_OUT_RUN] = 0.0
-            if abs(zj) > 0.0 and ch[j, H_UNIT_RUN] > 0.0 and not (
-                    (j == x_col and abs(zj * scale[4]) > cfg[C_STROKE])
-                    or (j != x_col and (zj * 1e6 < cfg[C_PMIN] or zj * 1e6 > cfg[C_PMAX]))) and \
-                    (ch[j, H_OUT_RUN] == 0.0):
-                ch[j, H_UNIT_RUN] = 0.0
             if st in (S_OK, S_NOISY):
                 st = S_NOISY if ch[j, H_SIG] > cfg[C_NOISY] * ch[j, H_SIG_NOM] else (
                     S_OK if ch[j, H_SIG] < 0.7 * cfg[C_NOISY] * ch[j, H_SIG_NOM] else st)
@@ -881,7 +879,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             for j in range(q):
                 if int(ch[j, H_STATUS]) not in (S_OK, S_NOISY):
                     status = ST_SENSOR
-        if not drive_ok and status == ST_OK:
+        if not drive_ok and status in (ST_OK, ST_GATED, ST_FROZEN, ST_GAP):
             status = ST_STALE
         for i in range(n):
             X_out[k, i] = x[i]
@@ -891,6 +889,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             S_out[k, j] = Sd[j]
             sens_out[k, j] = int(ch[j, H_STATUS]) if math.isfinite(zk[j]) else S_MISSING
             sig_out[k, j] = ch[j, H_SIG]
+            used_out[k, j] = use[j] and not reinit
         nis_out[k] = nis
         ll_out[k] = ll
         st_out[k] = status
