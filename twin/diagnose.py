@@ -862,7 +862,7 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
     scores.sort(key=lambda s: s[0])
     say("  timings at the current estimates: " + ", ".join(f"{a.label} cost {c:.4g}" for c, _, a in scores))
     best = None
-    for c, which, a in scores[:2]:
+    for c, which, a in scores[:1]:
         start = dict(cur.fit.estimate) if which == 0 else {n: configured[n] for n in cur.free if n in configured}
         st = _fit_state(data, cur.params.update(start), cur.free, start, 1, seed, a)
         t = _judge(data, (CONTROLLER_RATE,), cur, st, min_share)
@@ -995,7 +995,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         say("screen: " + ", ".join(f"{r.effect} LM={r.lm:.3g} p_Holm={r.p_adjusted:.2g}" for r in scr[:4]))
         promising = [r for r in scr if r.p_adjusted < alpha][:max_fits]
         trials: list[Trial] = []
-        if timing_candidate and CONTROLLER_RATE not in causes:
+        if timing_candidate and cur is nominal:
             tt = _try_timing(data, cur, seed, min_share, base, say)
             if tt is not None:
                 trials.append(tt)
@@ -1021,6 +1021,12 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         if not ok:
             sig = sorted((t for t in trials if t.p_adjusted < alpha and t.delta_aicc < 0 and t.holdout_gain > 0
                           and t.effects[0] != CONTROLLER_RATE), key=lambda t: -t.lr)
+            if len(sig) == 1:  # its partner may be mimicked by bent nominal parameters when fitted alone
+                rest = [t for t in trials if t is not sig[0] and t.effects[0] != CONTROLLER_RATE
+                        and math.isfinite(t.state.wcost)]
+                rank = {r.effect: i for i, r in enumerate(scr)}
+                rest.sort(key=lambda t: rank.get(t.effects[0], len(rank)))
+                sig += rest[:1]
             if len(sig) < 2 or len(causes) + 2 > max_effects:
                 break
             a, b = sig[0], sig[1]

@@ -1,0 +1,187 @@
+"""``twin diagnose`` on records of the independent reference simulator (``tests/reference``).
+
+Truth drawn 3-20 % off Table 9 per seed (the nominal fit starts at Table 9, not at the truth), effects in
+the reference's own formulation with sizes drawn per seed, a digital controller reading the noisy measured
+displacement (so output-error residuals are coloured even when the model is exact), white or AR(1) noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from diag_reference import IN_CATALOGUE, reference_record
+from twin import cli
+from twin.cliutil import finite_or_none
+from twin.diagnose import CONTROLLER_RATE, diagnose, holm
+from twin.models import get_model
+from twin.models.base import Timing
+from twin.noise_model import block_bootstrap, fit_noise_model, long_run_variance
+
+RIG = get_model("msp25")
+DURATION = 6.0
+
+#: product parameter -> (reference truth key, sign convention) where the two formulations share a meaning
+COMPARABLE = {
+    "c_visc": "viscous_friction.c", "K_lam": "laminar_leakage.G", "k_spec": "specimen_stiffness.k",
+    "tau_x": "sensor_delay.delay", "k_xm": "position_sensor_gain.gain", "xs_max": "spool_saturation.xs_max",
+}
+
+_CACHE: dict = {}
+
+
+def _diag(effects=(), seed=1, controller="digital", tau=0.0, timing=None):
+    key = (tuple(effects), seed, controller, tau, timing)
+    if key not in _CACHE:
+        rec, info = reference_record(effects, seed=seed, duration=DURATION, controller=controller, tau=tau)
+        _CACHE[key] = (diagnose(RIG, rec, timing=Timing.parse(timing), seed=seed), info)
+    return _CACHE[key]
+
+
+@pytest.mark.parametrize("effect", IN_CATALOGUE)
+def test_each_catalogue_effect_is_named_exactly(effect):
+    d, info = _diag((effect,), seed=1)
+    assert d.causes == [effect], d.text()
+    assert not d.unexplained, d.text()
+    g = d.gains[effect]
+    assert g["p_adjusted"] < d.alpha and g["delta_aicc"] < 0
+    lo, hi = g["holdout_gain_interval"]
+    assert 0 < lo <= g["holdout_gain"] <= hi
+    for name, v in d.effect_params(effect).items():
+        key = COMPARABLE.get(name)
+        if key is not None:  # the same physical quantity in both formulations: the right size
+            truth = info["truth"][key]
+            assert v["value"] == pytest.approx(truth, rel=0.35), (name, v, truth)
+
+
+def test_healthy_record_with_loop_noise_names_nothing():
+    d, _ = _diag((), seed=2)
+    assert d.causes == [] and not d.unexplained, d.text()
+    # the output-error residuals are coloured (the sensor noise goes round the loop) ...
+    assert d.nominal.analysis.ljung_box["x"]["p"] < 1e-6
+    # ... the one-step prediction errors are not
+    assert d.nominal.adequacy["whiteness"]["x"]["p"] > 1e-4
+    assert d.nominal.noise.orders["x"] > 0
+
+
+def test_healthy_record_with_coloured_noise_names_nothing():
+    d, _ = _diag((), seed=3, tau=0.005)
+    assert d.causes == [] and not d.unexplained, d.text()
+    assert all(n > 0 for n in d.nominal.noise.orders.values())
+
+
+def test_analog_controller_is_named_controller_rate_and_not_with_the_right_timing():
+    d, _ = _diag((), seed=1, controller="analog")
+    assert d.causes == [CONTROLLER_RATE] and not d.unexplained, d.text()
+    assert d.final.timing.controller == "continuous" or (d.final.timing.rate_hz or 0) >= 5000
+    out = json.loads(json.dumps(d.to_dict(), allow_nan=False))
+    assert out["timing_final"] == d.final.timing.to_dict() and out["timing_assumed"]["controller"] == "digital"
+    right, _ = _diag((), seed=1, controller="analog", timing="continuous")
+    assert right.causes == [] and not right.unexplained, right.text()
+
+
+@pytest.mark.parametrize("effect", ["mechanical_resonance", "parameter_drift"])
+def test_out_of_catalogue_error_is_unexplained_without_a_name(effect):
+    d, _ = _diag((effect,), seed=1)
+    assert d.unexplained and d.causes == [], d.text()
+    sig = d.to_dict()["signature"]
+    assert sig is not None and sig["adequacy"]["adequate"] is False
+    assert "UNEXPLAINED" in d.text()
+
+
+# --- statistics ----------------------------------------------------------------------------------
+def test_noise_model_whitens_an_ar_process_and_keeps_an_offset():
+    rng = np.random.default_rng(7)
+    e = rng.normal(size=(2, 8000))
+    r = np.empty_like(e)
+    r[:, 0] = e[:, 0]
+    for t in range(1, e.shape[1]):
+        r[:, t] = np.array([0.8, -0.5]) * r[:, t - 1] + e[:, t]
+    nm = fit_noise_model([r], ("a", "b"))
+    assert nm.orders["a"] >= 1 and nm.A[0, 0, 0] == pytest.approx(0.8, abs=0.03)
+    w = nm.whiten(r)
+    assert np.std(w[0]) == pytest.approx(1.0, abs=0.03) and abs(np.corrcoef(w[0, 1:], w[0, :-1])[0, 1]) < 0.04
+    # a constant offset is not absorbed as noise: it survives whitening (scaled by A(1))
+    shifted = nm.whiten(r + np.array([[3.0], [0.0]]))
+    assert np.mean(shifted[0] - w[0]) == pytest.approx(3.0 * (1 - nm.A[:, 0, 0].sum()) / math.sqrt(nm.sigma[0, 0]),
+                                                       rel=1e-6)
+
+
+def test_long_run_variance_and_block_bootstrap_see_autocorrelation():
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=20000)
+    ar = np.empty_like(w)
+    ar[0] = w[0]
+    for t in range(1, w.size):
+        ar[t] = 0.7 * ar[t - 1] + w[t]
+    # long-run variance of an AR(1) with unit innovations: 1 / (1 - 0.7)^2 = 11.1
+    assert long_run_variance(w) == pytest.approx(1.0, rel=0.1)
+    assert long_run_variance(ar) == pytest.approx(11.1, rel=0.25)
+    sums = block_bootstrap(ar, 200, 400, seed=0)
+    assert np.std(sums) / math.sqrt(ar.size) == pytest.approx(math.sqrt(11.1), rel=0.25)
+
+
+def test_holm_adjusts_step_down_and_monotone():
+    assert holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
+
+
+# --- every result serialises ---------------------------------------------------------------------
+def _strict(obj):
+    return json.loads(json.dumps(obj, allow_nan=False))
+
+
+def _variant(d, causes, unexplained=False, converged=True):
+    """``d`` as if it had named ``causes`` (each with the gain and parameters of a real step)."""
+    model = RIG
+    one = next(iter(d.gains.values())) if d.gains else {"lr": 1.0, "p": 0.5, "df": 1, "p_adjusted": 0.5,
+                                                         "delta_aicc": 1.0, "holdout_gain": 0.0,
+                                                         "holdout_gain_interval": [0.0, 0.0], "holdout": {}}
+    effects = tuple(c for c in causes if c != CONTROLLER_RATE)
+    ps = model.params(effects=effects).update(d.final.params.as_dict())
+    fit = dataclasses.replace(d.final.fit, params=ps, success=converged,
+                              std={**d.final.fit.std, **{n: float("nan") for n in ps.names}})
+    final = dataclasses.replace(d.final, params=ps, fit=fit, free=d.final.free + tuple(
+        n for e in effects for n in model.EFFECTS[e].names if n not in d.final.free))
+    return dataclasses.replace(d, causes=list(causes), unexplained=unexplained, final=final,
+                               gains={c: dict(one, pair="+".join(causes)) for c in causes})
+
+
+@pytest.mark.parametrize("causes, unexplained, converged", [
+    ([], False, True), ([], True, True), (["viscous_friction"], False, True),
+    (["spool_deadband", "stribeck_friction"], False, True),
+    (["spool_deadband", "stribeck_friction", "valve_null_bias"], True, True),
+    ([CONTROLLER_RATE, "pressure_sensor_offset"], False, False),
+], ids=["none", "unexplained", "one", "two", "three+unexplained", "timing+offset, not converged"])
+def test_every_kind_of_result_serialises_to_strict_json(causes, unexplained, converged):
+    d, _ = _diag((), seed=2)
+    v = _variant(d, causes, unexplained, converged)
+    out = _strict(v.to_dict())
+    assert out["causes"] == causes and out["unexplained"] is unexplained
+    assert set(out["effects"]) == set(causes)
+    for c in causes:
+        assert out["effects"][c]["params"]
+    _strict(finite_or_none(v.extended_params()))
+    assert ("UNEXPLAINED" in v.text()) is unexplained
+
+
+def test_cli_json_save_report_and_timing_flags(tmp_path, capsys):
+    rec, _ = reference_record((), seed=1, duration=DURATION, controller="analog")
+    path = tmp_path / "analog.csv"
+    cols = ["x_ref", "u", "x", "pA", "pB"]
+    np.savetxt(path, np.column_stack([rec.t_s] + [rec[c] for c in cols]), delimiter=",",
+               header=",".join(["t"] + cols), comments="", fmt="%.17g")
+    report, save = tmp_path / "report", tmp_path / "ext.json"
+    assert cli.main(["-q", "diagnose", str(path), "--model", "msp25", "--json", "--report", str(report),
+                     "--save", str(save), "--controller", "continuous"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["causes"] == [] and out["unexplained"] is False and out["timing_assumed"]["controller"] == "continuous"
+    for f in (report / "diagnosis.json", report / "extended_params.json", save):
+        json.loads(f.read_text(), parse_constant=lambda c: pytest.fail(f"{f}: {c} is not strict JSON"))
+    assert json.loads(save.read_text())["timing"]["controller"] == "continuous"
+    rc = cli.main(["-q", "diagnose", str(path), "--model", "msp25", "--controller", "digital:1500"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and "1500" in err and len(err.strip().splitlines()) == 1
