@@ -638,17 +638,14 @@ def _text_messages(path: Path, suf: str, report: ReadReport, state: _ReadState) 
         raise SourceError(f"{path}: cannot open CAN log: {e.strerror or e}") from e
     with raw:
         lines = _Lines(raw, suf, path, report)
-        last_error: str | None = None
         while True:
             try:
                 reader = reader_cls(lines, **({"relative_timestamp": relative} if suf == ".asc" else {}))
             except Exception as e:
                 raise LogFormatError(f"{path}: not a {suf[1:].upper()} file: {type(e).__name__}: {e}") from e
-            got = 0
             try:
                 for msg in reader:
                     lines.frame()
-                    got += 1
                     state.n += 1
                     state.last_t = msg.timestamp
                     yield msg
@@ -662,19 +659,13 @@ def _text_messages(path: Path, suf: str, report: ReadReport, state: _ReadState) 
                     raw.seek(0)
                     lines = _Lines(raw, suf, path, report)
                     continue
-                again = got == 0 and last_error == f"{type(e).__name__}: {e}"
-                if again or not lines.fail(e):
-                    # the header itself does not parse (every restart fails the same way)
-                    if state.n == 0 and not again:
-                        raise LogFormatError(f"{path}: not a readable {suf[1:].upper()} file: "
-                                             f"{type(e).__name__}: {e}") from e
+                if not lines.fail(e):  # the header itself does not parse
                     if state.n == 0:
-                        raise LogFormatError(f"{path}: not a readable {suf[1:].upper()} file: the header does not "
-                                             f"parse ({type(e).__name__}: {e}) and no line gives a frame") from e
+                        raise LogFormatError(f"{path}: not a readable {suf[1:].upper()} file: its header does not "
+                                             f"parse ({type(e).__name__}: {e})") from e
                     _truncated(report, path, state.n, state.last_t, e)
                     return
                 state.damaged += 1
-                last_error = f"{type(e).__name__}: {e}" if got == 0 else None
 
 
 def _blf_messages(path: Path, report: ReadReport, state: _ReadState) -> Iterator[can.Message]:

@@ -97,6 +97,7 @@ import math
 import mmap
 import os
 import struct
+import zlib
 from typing import IO, Any, Iterator, Mapping, Sequence
 
 import numpy as np
@@ -536,6 +537,8 @@ class McapSource(Source):
         try:
             reader = SeekingReader(self._rewound(), validate_crcs=True, record_size_limit=_RECORD_SIZE_LIMIT)
             self._summary = reader.get_summary()
+            if self._summary is not None:
+                self._check_summary_crc()
         except _DAMAGE as exc:
             self.report.problems.append(Problem(
                 self.path, "footer and summary", f"unreadable ({type(exc).__name__}: "
@@ -572,6 +575,24 @@ class McapSource(Source):
             have = tuple(signals)
         require_signals(self.path, have, options.required)
         self._signals = have
+
+    def _check_summary_crc(self) -> None:
+        """The footer's CRC of the summary section (``mcap`` does not check it); McapError if it differs."""
+        f = self._file
+        footer = self._size - len(MCAP_MAGIC) - 29  # opcode, length, summary_start, summary_offset_start, crc
+        f.seek(footer)
+        rec = f.read(29)
+        if len(rec) < 29 or rec[0] != Opcode.FOOTER:
+            return
+        summary_start = int.from_bytes(rec[9:17], "little")
+        crc = int.from_bytes(rec[25:29], "little")
+        if not crc or not 0 < summary_start <= footer:
+            return
+        f.seek(summary_start)
+        body = f.read(footer - summary_start) + rec[:25]
+        if zlib.crc32(body) != crc:
+            raise McapError(f"summary CRC mismatch (footer says 0x{crc:08x}, the {len(body)} summary bytes give "
+                            f"0x{zlib.crc32(body):08x})")
 
     def _rewound(self) -> IO[bytes]:
         self._file.seek(0)
@@ -970,7 +991,8 @@ class McapSource(Source):
                    if s not in self._channel_signals(self._by_topic[SIGNALS_TOPIC], None)]
         if missing:
             return
-        yield from self._decode_rows(self._messages([SIGNALS_TOPIC], a, b, self.report), topic=SIGNALS_TOPIC)
+        yield from self._decode_rows(self._messages([SIGNALS_TOPIC], a, b, self.report), topic=SIGNALS_TOPIC,
+                                     count_lost=False)
 
     def _decode_blocks(self, messages: Iterator[tuple[Channel | None, Any]]) -> Iterator[tuple[Samples, np.ndarray]]:
         index = 0
@@ -998,9 +1020,6 @@ class McapSource(Source):
                 elif msg.t_start is not None:
                     hole_msgs = None if hole_msgs is None or msg.messages is None else hole_msgs + msg.messages
                 continue
-            if hole is not None:
-                yield from fill(msg.log_time)
-                hole = None
             self.report.records_read += 1
             index += 1
             try:
@@ -1019,6 +1038,10 @@ class McapSource(Source):
                 continue
             if n > 1:
                 step = int(np.median(np.diff(t[:64])))
+            typical_n = typical_n or n
+            if hole is not None:  # the samples of the damaged chunk(s) before this block
+                yield from fill(msg.log_time)
+                hole = None
             typical_n = n
             labels = np.full(n, index, dtype=np.int64)
             yield Samples(t.astype(np.int64), {k: v.astype(np.float64) for k, v in cols.items()}), labels
@@ -1026,13 +1049,13 @@ class McapSource(Source):
             yield from fill(self._end_ns)
 
     def _decode_rows(self, messages: Iterator[tuple[Channel | None, Any]], batch: int = 16384,
-                     topic: str | None = None) -> Iterator[tuple[Samples, np.ndarray]]:
+                     topic: str | None = None, count_lost: bool = True) -> Iterator[tuple[Samples, np.ndarray]]:
         datas: list[bytes] = []
         times: list[int] = []
         first = 1
         for channel, msg in messages:
             if channel is None:
-                if msg.messages:
+                if msg.messages and count_lost:
                     self.report.samples_lost += msg.messages
                 continue
             datas.append(msg.data)
