@@ -48,12 +48,54 @@ def test_default_baseline_is_table_9():
     assert b["wn"].value == pytest.approx(2 * math.pi * 43.0)
 
 
-def test_healthy_stream_raises_nothing():
+def _ar1(n, tau_s, sd, seed):
+    """An AR(1) stream at FS with correlation time ``tau_s`` (what a tracked estimate looks like)."""
+    rng = np.random.default_rng(seed)
+    a = math.exp(-1.0 / (FS * tau_s))
+    w = rng.normal(0.0, sd * math.sqrt(1 - a * a), n)
+    out = np.empty(n)
+    out[0] = rng.normal(0.0, sd)
+    for i in range(1, n):
+        out[i] = a * out[i - 1] + w[i]
+    return out
+
+
+def test_autocorrelated_estimate_at_the_bands_edge_raises_nothing_only_with_the_weight():
+    """A leakage estimate wandering about the band's top edge with its own standard deviation (0.3 log
+    units, the filter's memory sigma^2 / q = 4 s): half of it lies outside, in excursions seconds long.
+    Weighted by the effective sample size the test stays quiet; without the weight it alarms."""
+    sd, q = 0.3, 0.15
+    tau = sd * sd / q**2
+    leak = 3 * 3.2863e-9 * np.exp(_ar1(120_000, tau, sd, 3))  # 2 minutes at the upper edge
+    v = _stream(np.full(leak.size, 50.0), leak)
+    std = [0.02, sd]
+    assert _feed(DriftMonitor("r1", BAND, drift_rate={"Ffric": 0.3, "CdAleak": q}), v, std) == []
+    naive = _feed(DriftMonitor("r1", BAND, drift_rate={"Ffric": 0.3, "CdAleak": q}, max_ess_factor=1.0), v, std)
+    assert [e.parameter for e in naive if e.level == "alarm"][:1] == ["CdAleak"]
+
+
+def test_effective_sample_factor_follows_the_filters_memory():
+    dm = DriftMonitor("r1", BAND, drift_rate={"Ffric": 0.3, "CdAleak": 0.15})
+    assert dm.ess_factor("Ffric", 0.001) == pytest.approx(1.0, abs=1e-9)  # sharp and fast: independent
+    r = math.exp(-1.0 / (20.0 * 0.1**2 / 0.15**2))
+    assert dm.ess_factor("CdAleak", 0.1) == pytest.approx((1 + r) / (1 - r))
+    assert dm.ess_factor("CdAleak", 10.0) == dm.max_ess_factor
+
+
+def test_held_samples_keep_the_statistic_and_say_inconsistent():
     dm = DriftMonitor("r1", BAND)
-    rng = np.random.default_rng(1)
-    v = _stream(50.0 * np.exp(rng.normal(0, 0.02, 20000)))
-    assert _feed(dm, v, [0.02, 0.3]) == []
-    assert dm.statuses() == {"Ffric": "ok", "CdAleak": "ok"}
+    v = _stream(np.full(20000, 200.0))  # far above the band
+    hold = np.zeros(20000, bool)
+    hold[:] = True
+    t_ns = 5_000_000_000 + np.arange(20000, dtype=np.int64) * 1_000_000
+    guard = np.full(20000, "inconsistent_nis")
+    ev = dm.update_block(NAMES, t_ns, (t_ns - t_ns[0]) * 1e-9, v, np.full(v.shape, 0.02), np.zeros(v.shape, bool),
+                         hold, guard)
+    assert ev == [] and dm.statuses()["Ffric"] == "inconsistent" and dm.guard == "inconsistent_nis"
+    ev = dm.update_block(NAMES, t_ns + 20_000_000_000, (t_ns - t_ns[0]) * 1e-9 + 20, v, np.full(v.shape, 0.02),
+                         np.zeros(v.shape, bool), ~hold, guard)
+    ff = [e for e in ev if e.parameter == "Ffric"]
+    assert ff and ff[-1].level == "alarm" and ff[0].t_s < 20.2  # evidence counts again as soon as it is consistent
 
 
 def test_step_out_warns_then_alarms_then_returns_with_hysteresis():

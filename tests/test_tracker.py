@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from replay.base import Samples
-from twin import ukf
 from twin.config import default_baseline
 from twin.drift import DriftMonitor
 from twin.errors import DataError, ParameterError
@@ -39,45 +39,9 @@ def _run(rec, tracker=None, chunk=None):
         out = tr.process(b)
         outs.append(out)
         t_s = (out.t_ns - s.t_ns[0]) * 1e-9
-        events += dm.update_block(tr.tracked, out.t_ns, t_s, out.estimates, out.log_std, out.frozen)
+        events += dm.update_block(tr.tracked, out.t_ns, t_s, out.estimates, out.log_std, out.frozen, out.hold,
+                                  out.guard)
     return tr, dm, events, outs
-
-
-def test_same_estimates_as_filterpy_ukf():
-    rec, _ = _record(0.4, 1)
-    T = len(rec)
-    tr = OnlineTracker(start=WRONG, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
-    n = tr.n
-    pts = MerweScaledSigmaPoints(n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
-    np.testing.assert_allclose(pts.Wm, tr.Wm)
-    np.testing.assert_allclose(pts.Wc, tr.Wc)
-
-    def fx(x, dt, u):
-        out = np.empty(n)
-        ukf.fx_one(x, u, tr.pvec, tr.idx, tr.ref, tr.scale, dt, tr.substeps, out)
-        return out
-
-    def hx(x):
-        return x[tr.meas_idx]
-
-    ref = UnscentedKalmanFilter(dim_x=n, dim_z=3, dt=1e-3, hx=hx, fx=fx, points=pts)
-    ref.x = tr.x.copy()
-    ref.P = tr.P.copy()
-    ref.Q = tr._q(1e-3)
-    ref.R = np.diag(tr.R)
-    Z = np.stack([rec["x"] / 1e-3, rec["pA"] / 1e6, rec["pB"] / 1e6], axis=1)
-    expected = np.empty((T, n))
-    for k in range(T):
-        if k > 0:
-            ref.predict(u=rec["u"][k - 1])
-        else:  # the first sample is measured at the prior: no prediction, sigma points of the prior
-            ref.sigmas_f = pts.sigma_points(ref.x, ref.P)
-        ref.update(Z[k])
-        expected[k] = ref.x
-    out = tr.process(rec.to_samples())
-    ours = np.concatenate([out.states / tr.scale, np.log(out.estimates / tr.ref)], axis=1)
-    np.testing.assert_allclose(ours, expected, rtol=1e-7, atol=1e-9)
-    assert np.max(np.abs(ours[-1, 6:] - ours[0, 6:])) > 0.05  # the parameters did move
 
 
 def test_converges_from_wrong_starts_to_the_truth_within_three_sigma():
@@ -119,14 +83,6 @@ def test_fault_alarms_the_right_parameter_in_time(label, drift, limit):
     assert 0.0 <= alarms[0].t_s - t_cross <= limit, (alarms[0].t_s, t_cross)
     assert alarms[0].kind in ("raised", "escalated") and alarms[0].std > 0
     assert dm.statuses()[drift.parameter] == "alarm"
-
-
-def test_healthy_ten_minute_record_raises_no_alarm():
-    _, xr = excite(M.MODEL, 600.0, 1e-3, seed=7)
-    rec, _ = _record(600.0, 7, xr=xr)
-    _, dm, events, _ = _run(rec, chunk=20000)
-    assert events == []
-    assert set(dm.statuses().values()) <= {"ok", "unresolved"}
 
 
 def test_quiet_rig_freezes_friction_and_says_so():
@@ -198,24 +154,43 @@ def test_bad_tracker_input_is_rejected_clearly():
 def test_julier_sigma_points_are_injectable_and_match_filterpy():
     from filterpy.kalman import JulierSigmaPoints
 
+    from tests.ukf_mirror import mirror, ours
+
     rec, _ = _record(0.2, 12)
-    tr = OnlineTracker(points=JulierSigmaPoints(11, kappa=-8.0), excite=(0.0, 0.0, 0.0), gate_p=1e-300)
-    pts = tr.points
-
-    def fx(x, dt, u):
-        out = np.empty(tr.n)
-        ukf.fx_one(x, u, tr.pvec, tr.idx, tr.ref, tr.scale, dt, tr.substeps, out)
-        return out
-
-    ref = UnscentedKalmanFilter(dim_x=tr.n, dim_z=3, dt=1e-3, hx=lambda x: x[tr.meas_idx], fx=fx, points=pts)
-    ref.x, ref.P, ref.Q, ref.R = tr.x.copy(), tr.P.copy(), tr._q(1e-3), np.diag(tr.R)
-    ref.sigmas_f = pts.sigma_points(ref.x, ref.P)
-    Z = np.stack([rec["x"] / 1e-3, rec["pA"] / 1e6, rec["pB"] / 1e6], axis=1)
-    out = tr.process(rec.to_samples())
-    for k in range(len(rec)):
-        if k > 0:
-            ref.predict(u=rec["u"][k - 1])
-        ref.update(Z[k])
-    np.testing.assert_allclose(np.log(out.estimates[-1] / tr.ref), ref.x[6:], rtol=1e-7, atol=1e-10)
+    s = rec.to_samples()
+    tr = OnlineTracker(points=JulierSigmaPoints(14, kappa=-11.0), excite=(0.0, 0.0, 0.0), gate_p=1e-300,
+                       adapt_noise=False, start=WRONG)
+    tr.dt = 1e-3
+    tr._start_from_data(s)
+    tr._started = True
+    ref = copy.deepcopy(tr)
+    out = tr.process(s)
+    np.testing.assert_allclose(ours(tr, out), mirror(ref, s, out)[:, :tr.nmod], rtol=1e-7, atol=1e-9)
     with pytest.raises(ParameterError, match="sigma points for n=5"):
         OnlineTracker(points=JulierSigmaPoints(5))
+
+
+def test_estimates_stay_within_their_physical_bounds_whatever_the_data():
+    """A record that no healthy rig produces (pressures swapped, x scaled) cannot push a parameter past its
+    physical bound; the filter says what it thinks of the data instead."""
+    rec, _ = _record(4.0, 13)
+    s = rec.to_samples()
+    bad = Samples(s.t_ns, {**s.signals, "pA": s.signals["pB"], "pB": s.signals["pA"], "x": 3 * s.signals["x"]})
+    tr = OnlineTracker()
+    out = tr.process(bad)
+    lo = np.array([tr.bounds[n][0] for n in tr.tracked])
+    hi = np.array([tr.bounds[n][1] for n in tr.tracked])
+    assert np.all((out.estimates >= lo) & (out.estimates <= hi))
+    assert (out.guard != "consistent").mean() > 0.5
+    assert hi[tr.tracked.index("Ffric")] <= M.NOMINAL["pP"] * M.NOMINAL["A"]
+    assert hi[tr.tracked.index("wn")] == pytest.approx(3 * M.NOMINAL["wn"])
+
+
+def test_noise_levels_are_configurable_and_checked():
+    tr = OnlineTracker(noise={"x": 4e-6})
+    assert tr.noise_levels()["x"]["nominal"] == pytest.approx(4e-6)
+    assert tr.noise_levels()["pA"]["nominal"] == pytest.approx(2e4)
+    with pytest.raises(ParameterError, match="noise level of pB must be a positive number"):
+        OnlineTracker(noise={"pB": -1.0})
+    with pytest.raises(ParameterError, match="outside its physical bounds"):
+        OnlineTracker(start={"wn": 10 * M.NOMINAL["wn"]})

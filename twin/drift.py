@@ -118,7 +118,7 @@ class DriftMonitor:
     def __init__(self, rig: str, baseline: Mapping[str, Baseline], kappa: float = 1.0, h_warn: float = 4.0,
                  h_alarm: float = 10.0, rate_hz: float = 20.0, hold_s: float = 1.0, resolve: float = 0.5,
                  settle_s: float = 2.0, drift_rate: Mapping[str, float] | None = None,
-                 max_ess_factor: float = 16.0):
+                 max_ess_factor: float = 1000.0):
         from twin.tracker import DRIFT_RATE
 
         self.rig = rig

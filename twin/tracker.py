@@ -275,8 +275,9 @@ class OnlineTracker:
         for o, a in dict(noise_colour or {}).items():
             if o in self.outputs:
                 self.ch[self.outputs.index(o), ukf.H_A] = float(a)
-        self.x_ck = self.x.copy()
-        self.P_ck = self.P.copy()
+        self.x_ck = self.x.copy()  # the first checkpoint: the prior (a divergence before any consistent
+        self.P_ck = self.P.copy()  # stretch goes back to it)
+        self.fs[ukf.F_CK_OK] = 1.0
         self.samples = 0
         self.counters = {s: 0 for s in ukf.STATUS}
         self._last_t_ns: int | None = None
@@ -410,8 +411,8 @@ class OnlineTracker:
             self.excite_thresh, self.tau_excite, self.x_col, self.cfg,
             X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used)
         if bad >= 0:
-            raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) before "
-                              "it had ever been consistent with the data: state or covariance not finite")
+            raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
+                              "has no checkpoint to go back to: state or covariance not finite")
         self.samples += T
         codes, counts = np.unique(st, return_counts=True)
         for c, k in zip(codes, counts):

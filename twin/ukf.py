@@ -151,6 +151,17 @@ def _repair(P, floor):
     return True
 
 
+@nb.njit(cache=True)
+def _all_finite(x, P):
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return False
+        for j in range(x.shape[0]):
+            if not math.isfinite(P[i, j]):
+                return False
+    return True
+
+
 @nb.njit(cache=True, inline="always")
 def sigmoid(z):
     if z >= 0.0:
@@ -658,7 +669,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                         if ps < 0:
                             break
                 if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
-                    if fs[F_CK_OK] <= 0.0:
+                    if fs[F_CK_OK] <= 0.0 or not _all_finite(x_ck, P_ck):
                         return k
                     reinit = True
                     fs[F_RECOVERIES] += 1.0
@@ -829,7 +840,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             bad = True
         gcode = G_OK
         if bad:
-            if fs[F_CK_OK] <= 0.0:
+            if fs[F_CK_OK] <= 0.0 or not _all_finite(x_ck, P_ck):
                 return k
             for i in range(n):
                 x[i] = x_ck[i]
