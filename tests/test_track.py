@@ -85,3 +85,39 @@ def test_cli_on_a_csv_log_writes_mcap_png_and_json(friction_step, tmp_path, caps
     estimates = [p for t, p in msgs if t == "/twin/estimate"]
     assert len(estimates) >= 200 and set(estimates[-1]["params"]) == {"Ffric", "Cd", "wn"}
     assert {t for t, _ in msgs} == set(kinds)
+
+
+def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys):
+    """An analog-controller rig of the reference simulator with twice the nominal noise, commissioned from a
+    fit file (values near the truth, its noise levels, continuous timing): nothing raised, the noise as the
+    fit said (and learnt), the timing the fit's; the flags override the file; bad flags are one line."""
+    from tests.track_reference import record, to_samples
+
+    rec, _ = record("analog", 4, 30.0)
+    log = tmp_path / "analog.csv"
+    with CsvSink(log) as sink:
+        sink.write(to_samples(rec, t0_ns=0))
+    truth = {n: float(rec.truth[n]) for n in M.PHENOMENOLOGICAL}
+    fit = {"model": "msp25", "effects": [], "params": {n: v * 1.05 for n, v in truth.items()},
+           "std": {n: 0.01 * v for n, v in truth.items()}, "timing": {"controller": "continuous"},
+           "noise": {"x": 2.1e-6, "pA": 1.9e4, "pB": 2.0e4}}
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(fit))
+    rc = cli.main(["track", str(log), "--params", str(path), "--out", str(tmp_path / "o"), "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["alarms"] == [] and doc["timing"] == "continuous"
+    assert doc["noise"]["x"]["nominal"] == pytest.approx(2.1e-6)
+    assert set(doc["sensors"].values()) == {"ok"}
+    rc = cli.main(["track", str(log), "--params", str(path), "--noise-levels", "x=4e-6", "--controller",
+                   "digital:5000", "--out", str(tmp_path / "o"), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["noise"]["x"]["nominal"] == pytest.approx(4e-6) and doc["timing"] == "digital:5000"
+    rc = cli.main(["track", str(log), "--noise-levels", "y=1", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and err == ["twin track: error: --noise-levels: expected positive standard deviations of x, pA, "
+                               "pB (SI), got 'y=1'"]
+    path.write_text(json.dumps({**fit, "noise": {"x": -1.0}}))
+    rc = cli.main(["track", str(log), "--params", str(path), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(err) == 1 and "fit.json: noise.x must be a positive standard deviation" in err[0]

@@ -175,7 +175,7 @@ def run_track(args) -> int:
 
             raise ParameterError(f"--noise-levels: expected positive standard deviations of x, pA, pB (SI), got "
                                  f"{args.noise_levels!r}")
-    timing = timing_of(args, None)
+    timing = timing_of(args) if (args.controller or args.intersample) else None
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
     twin = track(args.log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
                  timing=timing, commission=commission)
