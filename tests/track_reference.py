@@ -21,11 +21,12 @@ from typing import Any
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-if os.path.dirname(HERE) not in sys.path:
-    sys.path.insert(0, os.path.dirname(HERE))
+for _p in (HERE, os.path.dirname(HERE)):  # the simulator is the top-level package ``reference`` (as in conftest)
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
 
-from tests.reference import Record, msp25_spec, simulate_msp25  # noqa: E402
-from tests.reference.tables import MSP25_FREE  # noqa: E402
+from reference import Record, msp25_spec, simulate_msp25  # noqa: E402
+from reference.tables import MSP25_FREE  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 WN = MSP25_FREE["wn"]

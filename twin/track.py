@@ -134,8 +134,8 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
                    help="commissioning fit (JSON of twin fit --save): known values, healthy bands around the fitted "
                         "ones, sensor noise, loop timing")
     p.add_argument("--noise-levels", metavar="x=2e-6,pA=2e4,...",
-                   help="sensor noise standard deviations (SI) per output; default the fit's, else x=2e-6,pA=2e4,pB=2e4 "
-                        "(the filter goes on learning them online)")
+                   help="sensor noise standard deviations (SI) per output; default the fit's, else "
+                        "x=2e-6,pA=2e4,pB=2e4 (the filter goes on learning them online)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,...")
     p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")

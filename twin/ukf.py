@@ -696,7 +696,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             if not math.isfinite(zj):
                 use[j] = False
                 continue
-            use[j] = st == S_OK or st == S_NOISY
+            use[j] = st in (S_OK, S_NOISY)
             # physical range (a unit error shows first here)
             if (j == x_col and abs(zj * scale[4]) > cfg[C_STROKE]) or \
                     (j != x_col and (zj * 1e6 < cfg[C_PMIN] or zj * 1e6 > cfg[C_PMAX])):
@@ -793,9 +793,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                 st = S_NOISY if ch[j, H_SIG] > cfg[C_NOISY] * ch[j, H_SIG_NOM] else (
                     S_OK if ch[j, H_SIG] < 0.7 * cfg[C_NOISY] * ch[j, H_SIG_NOM] else st)
             ch[j, H_STATUS] = st
-            if st != S_OK and st != S_NOISY:
-                any_fault = True
-            elif st == S_NOISY:
+            if st != S_OK:  # a faulty or noisy sensor: the drift test holds
                 any_fault = True
         # the update
         us = ST_STALE
@@ -882,7 +880,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             fs[F_CK_OK] = 1.0
         # ---- status and outputs
         if status == ST_OK:
-            if us == ST_GATED or us == ST_STALE:
+            if us in (ST_GATED, ST_STALE):
                 status = us
             elif us == ST_FROZEN:
                 status = ST_FROZEN
