@@ -283,6 +283,7 @@ class OnlineTracker:
         self._last_t_ns: int | None = None
         self._pending = None
         self._started = False
+        self.closed_fast = True
 
     # --- coordinates ---------------------------------------------------------------------
     def _z_of(self, j: int, value: float) -> float:
@@ -381,7 +382,10 @@ class OnlineTracker:
             DT[1:] = np.diff(t_ns) * 1e-9
             self._last_t_ns = int(t_ns[-1])
         nan = np.full(T, np.nan)
-        closed = "u" not in sig
+        # a digital controller faster than the log: its output between samples is a staircase the logged u
+        # cannot show, so the controller itself drives the model from x_ref (when it is the paper's P controller)
+        closed = "u" not in sig or (ticks > 1 and "x_ref" in sig and self.ps["KI"] == 0 and self.ps["KD"] == 0
+                                    and self.closed_fast)
         U = np.ascontiguousarray(sig.get("u", nan), dtype=float)
         XREF = np.ascontiguousarray(sig.get("x_ref", nan), dtype=float)
         Z = np.empty((T, len(self.outputs)))
