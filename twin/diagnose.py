@@ -1249,6 +1249,11 @@ def run_diagnose(args) -> int:
         diag.plots = plot_report(diag, args.report)
         _write_json(os.path.join(args.report, "extended_params.json"), diag.extended_params())
         _write_json(os.path.join(args.report, "diagnosis.json"), diag.to_dict())
+        from twin.reports import diagnose_report
+
+        html = diagnose_report(diag, args.report)
+        if not args.json:
+            print(f"report: {html}", file=sys.stderr)
     if args.save:
         _write_json(args.save, diag.extended_params())
     if args.json:
