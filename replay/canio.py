@@ -39,7 +39,17 @@ the first 20 ids by name, further ones as ``unknown_id other``),
 ``wrong_dlc``, ``decode_error`` (a value outside the DBC's [min, max], a remote or
 error frame), ``time_backwards`` (earlier than a frame before it), ``time_repeated``
 (same id, same or earlier time), ``counter_gap`` (frames lost by the rolling counter,
-nothing skipped), and a truncated file (``report.truncated``; what was read is kept).
+nothing skipped), ``time_jump`` (a single wild timestamp: only that frame is skipped),
+``bad_line`` (a text-log line python-can cannot parse, or skips silently although it
+looks like a frame; ``ignored_line`` for ASC event lines), ``damaged_object`` (a BLF
+object or container that does not parse or inflate), and a truncated file
+(``report.truncated``; what was read is kept).
+
+Damage costs only itself: python-can's text readers are restarted after a bad line
+(the header is replayed to them), so the lines after it are read; a BLF file is walked
+object by object here (python-can's structs and its container parser) and
+resynchronised at the next ``LOBJ`` signature; a container that fails to inflate keeps
+what inflated before the damage.
 """
 
 from __future__ import annotations

@@ -14,7 +14,18 @@ Layout::
 * The oscillator contract is the same layout with the columns ``t, u, y``.
 * ``mapping`` renames foreign columns and converts units at ingest, e.g.
   ``{"pos_mm": ("x", "mm"), "p_a_bar": ("pA", "bar"), "time": ("t", "ms")}``; a plain
-  string renames only.  Units: :data:`replay.quality.UNITS`.
+  string renames only.  Units: :data:`replay.quality.UNITS`.  On the command line
+  this is ``--map NAME=COLUMN[:UNIT]`` (``--map x=pos_mm:mm --map t=time:ms``),
+  parsed by :func:`parse_map` for every command that reads a record.
+* A time column whose median step gives a rate outside 10 Hz .. 200 kHz (a time in ms
+  read as seconds looks like 1 Hz) is refused, the error naming the rate found and the
+  unit that would make it plausible; an explicit time unit in the mapping (``t:s``,
+  ``t:ms``, ...) is trusted.
+* A file must have the time column and at least one known signal (after mapping);
+  otherwise the error lists the columns found and those needed, with the ``--map``
+  syntax.  UTF-8 (BOM or not) and ASCII are read; UTF-16/32, binary data and an
+  undecodable header are refused with the byte offset; an undecodable byte further
+  down spoils only its row (``bad_row``).
 * Blank lines and lines starting with ``#`` are ignored; a row that does not parse
   (wrong field count, a field that is not a number, an empty field) is skipped,
   counted under ``bad_row`` and named by its line number (1 = the first line of the file).
