@@ -34,7 +34,6 @@ import argparse
 import json
 import sys
 from importlib import metadata
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
