@@ -69,7 +69,7 @@ from replay import formats
 from replay.base import SIGNALS, Problem, ReadReport, Samples, Sink, Source
 from replay.dbc import COUNTER, EFF_FLAG, FrameCollector, Frames, MessageLayout, VectorCodec, key_str
 from replay.quality import require_signals, time_spikes
-from twin.errors import DataError, LogFormatError, SourceError
+from replay.errors import DataError, LogFormatError, SourceError
 
 #: CAN log formats by suffix -> (python-can reader, python-can writer, text format?), from the
 #: one registry :data:`replay.formats.FORMATS`.

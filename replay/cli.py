@@ -40,7 +40,7 @@ import numpy as np
 
 from replay import formats
 from replay.factory import open_sink, open_source
-from twin.errors import TwinError
+from replay.errors import TwinError
 
 #: Exit status of a command that completed but lost input on the way.
 EXIT_LOSS = 3

@@ -47,7 +47,7 @@ import numpy as np
 
 from replay.base import SIGNALS, ReadReport, Samples, Sink, Source
 from replay.quality import UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
-from twin.errors import DataError, LogFormatError, SourceError
+from replay.errors import DataError, LogFormatError, SourceError
 
 #: Name of the time column (seconds).
 TIME_COLUMN = "t"

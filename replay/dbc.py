@@ -54,7 +54,7 @@ import numpy as np
 
 from replay.base import SIGNALS
 from replay.quality import UNITS
-from twin.errors import LogFormatError, SourceError
+from replay.errors import LogFormatError, SourceError
 
 #: The DBC shipped for the MSP25 rig.
 DEFAULT_DBC: Path = Path(__file__).with_name("data") / "msp25.dbc"
@@ -451,7 +451,7 @@ class VectorCodec:
         :class:`~twin.errors.DataError` (naming signal and row) for a value that is not
         finite, outside the DBC's [minimum, maximum] or does not fit the bit field.
         """
-        from twin.errors import DataError
+        from replay.errors import DataError
 
         lay = self.messages[int(key)]
         if lay.multiplexed:

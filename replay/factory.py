@@ -28,7 +28,7 @@ from typing import Any
 from replay import formats
 from replay.base import Sink, Source
 from replay.formats import CAN_LOG_SUFFIXES, FILE_SUFFIXES, URI_SCHEMES
-from twin.errors import LogFormatError, SourceError
+from replay.errors import LogFormatError, SourceError
 
 
 def _scheme(path_or_uri: str) -> str | None:

@@ -116,7 +116,7 @@ from replay.canio import (BLOCK_FRAMES, CanStream, FrameScheduler, _split, frame
                           probe_plan)
 from replay.dbc import FrameCollector, Frames, VectorCodec
 from replay.quality import QualityGate, QualityOptions, require_signals
-from twin.errors import DataError, LogFormatError, SourceError, TwinError
+from replay.errors import DataError, LogFormatError, SourceError, TwinError
 
 log = logging.getLogger("replay.live")
 

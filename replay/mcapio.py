@@ -113,7 +113,7 @@ from mcap.writer import CompressionType, Writer
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, Sink, Source
 from replay.quality import QualityGate, QualityOptions, require_signals
-from twin.errors import DataError, LogFormatError, SourceError
+from replay.errors import DataError, LogFormatError, SourceError
 
 SIGNALS_TOPIC = "/rig/signals"
 SIGNALS_SCHEMA = "fpdd.RigSignals"

@@ -42,7 +42,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec
-from twin.errors import DataError
+from replay.errors import DataError
 
 # --- units ---------------------------------------------------------------------------------
 

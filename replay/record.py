@@ -44,7 +44,7 @@ from typing import Callable
 
 from replay import formats
 from replay.base import ReadReport
-from twin.errors import DataError, SourceError
+from replay.errors import DataError, SourceError
 
 #: Longest recording one command takes (s): a week.
 MAX_DURATION_S = 7 * 24 * 3600.0
