@@ -179,3 +179,16 @@ def test_json_never_carries_nan() -> None:
     text = event_to_json(event)
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text)["params"]["Kleak"]["unit"] == "m^3/(s*Pa)"
+
+
+def test_estimate_from_tracker_arrays_equals_the_validated_event_and_refuses_what_it_would() -> None:
+    names, units = ("Fc", "Kleak"), ("N", "m^3/(s*Pa)")
+    fast = EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, [51.0, 1.1e-12], [2.5, 1.4e-13], units, 2.7, "ok")
+    slow = EstimateEvent("msp25", T0_NS, 1.25, {"Fc": {"value": 51.0, "std": 2.5, "unit": "N"},
+                                                 "Kleak": {"value": 1.1e-12, "std": 1.4e-13, "unit": units[1]}},
+                         2.7, "ok")
+    assert fast == slow and event_to_json(fast) == event_to_json(slow)
+    with pytest.raises(DataError, match=r"EstimateEvent\.params\.Fc\.std: -1\.0 must be >= 0"):
+        EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, [51.0, 1e-12], [-1.0, 1e-13], units, None, "ok")
+    with pytest.raises(DataError, match=r"EstimateEvent\.params\.Kleak\.value: nan must be a finite number"):
+        EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, [51.0, math.nan], [1.0, 1e-13], units, None, "ok")

@@ -213,7 +213,8 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
             t0 = time.monotonic()
             finished: set[str] = set()
             lags: dict[str, list[float]] = {}
-            cpu0 = None
+            cpu0 = cpu1 = None
+            tc0 = tc1 = 0.0
             deadline = t0 + seconds + 120.0
             while len(finished) < n and time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(1.0)
@@ -223,9 +224,13 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
                         finished.add(rig)
                     elif st["state"] in ("running", "degraded"):
                         lags.setdefault(rig, []).append(st["counters"].get("lag_ms", 0) / 1000)
-                if cpu0 is None and len(lags) == n:
-                    cpu0, tc0 = _cpu_s(_tree(proc.pid)), time.monotonic()
-            cpu = (_cpu_s(_tree(proc.pid)) - cpu0) / (time.monotonic() - tc0) if cpu0 is not None else float("nan")
+                if not finished:  # CPU of the tree while every rig runs (a finished worker leaves the tree)
+                    now_cpu, now_t = _cpu_s(_tree(proc.pid)), time.monotonic()
+                    if cpu0 is None and len(lags) == n:
+                        cpu0, tc0 = now_cpu, now_t
+                    elif cpu0 is not None:
+                        cpu1, tc1 = now_cpu, now_t
+            cpu = (cpu1 - cpu0) / (tc1 - tc0) if cpu0 is not None and tc1 > tc0 else float("nan")
             err = _stop(proc)
             watch.close()
             # the steady part: each rig's statuses after its first 5 s

@@ -14,7 +14,7 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     estimate_every = 50                 # publish an estimate every N samples
     workers = "auto"                    # worker processes: "auto", 0 = threads in this process, N
     checkpoint_s = 1.0                  # checkpoint each rig's state this often (wall clock)
-    block_s = 0.05                      # a replayed log is paced in blocks of this much log time
+    block_s = 0.1                       # samples are filtered in blocks of this much time (latency)
     lag_warn_s = 1.0                    # status 'degraded' when a rig is this far behind real time
     stale_s = 1.0                       # a live input quiet this long is 'stale_input'
 
@@ -88,7 +88,7 @@ class ServiceConfig:
     workers: int | None = 0
     """Worker processes: 0 = rigs in threads of the service's process, ``None`` = auto."""
     checkpoint_s: float = 1.0
-    block_s: float = 0.05
+    block_s: float = 0.1
     lag_warn_s: float = 1.0
     stale_s: float = 1.0
 
@@ -248,7 +248,7 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
         out_dir=_get(s, "out_dir", str, sw, "") or None,
         estimate_every=every, rigs=tuple(rigs), workers=workers,
         checkpoint_s=_number(s, "checkpoint_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
-        block_s=_number(s, "block_s", sw, 0.05, lo=0.001, what=" seconds"),
+        block_s=_number(s, "block_s", sw, 0.1, lo=0.001, what=" seconds"),
         lag_warn_s=_number(s, "lag_warn_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
         stale_s=_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"),
     )

@@ -409,6 +409,36 @@ class EstimateEvent(_FromJson):
         object.__setattr__(self, "params", MappingProxyType(converted))
         _check("EstimateEvent", self.SCHEMA, self.to_dict())
 
+    @classmethod
+    def of_tracker(cls, rig: str, t_ns: int, t_s: float, names: tuple[str, ...], values, stds,
+                   units: tuple[str, ...], nis: float | None, status: str) -> Self:
+        """An estimate from the tracker's arrays, built without the schema walk when every number is finite.
+
+        The service builds one per published estimate of every rig (20 per
+        second per rig by default); the full validation of ``__init__`` is kept
+        for anything unusual (a non-finite value, a negative std), which then
+        raises as usual.
+        """
+        vals = [float(v) for v in values]
+        sds = [float(v) for v in stds]
+        if (not all(math.isfinite(v) for v in vals) or not all(math.isfinite(v) and v >= 0 for v in sds)
+                or not 0 <= t_ns <= INT64_MAX or not math.isfinite(t_s)
+                or (nis is not None and not (math.isfinite(nis) and nis >= 0))):
+            return cls(rig, t_ns, t_s, {n: {"value": v, "std": sd, "unit": u}
+                                        for n, v, sd, u in zip(names, vals, sds, units)}, nis, status)
+        ev = object.__new__(cls)
+        params = {}
+        for n, v, sd, u in zip(names, vals, sds, units):
+            p = object.__new__(ParamEstimate)
+            object.__setattr__(p, "value", v)
+            object.__setattr__(p, "std", sd)
+            object.__setattr__(p, "unit", u)
+            params[n] = p
+        for name, value in (("rig", rig), ("t_ns", int(t_ns)), ("t_s", float(t_s)),
+                            ("params", MappingProxyType(params)), ("nis", nis), ("status", status)):
+            object.__setattr__(ev, name, value)
+        return ev
+
     def to_dict(self) -> dict[str, Any]:
         """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/estimate``)."""
         return {

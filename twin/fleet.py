@@ -706,15 +706,32 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
-def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop, log_level: int) -> None:
-    """A spawned worker: its rigs in threads; results and bus messages go to ``out``."""
+def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_level: int) -> None:
+    """A spawned worker: its rigs in threads; results and bus messages go to ``out``.
+
+    ``stop_conn``: the reading end of a pipe from the service; a message or
+    its end (the service's process gone) stops the rigs. Not a
+    ``multiprocessing.Event``: a process that exits while one of its threads
+    waits on it leaves the event's condition blocked for whoever sets it, and
+    many threads waiting on it serialise on its process-shared semaphores.
+    """
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service's process decides when to stop
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=log_level, format="twin serve: %(message)s")
+    local = threading.Event()
+
+    def relay() -> None:
+        try:
+            stop_conn.recv()
+        except (EOFError, OSError):
+            pass
+        local.set()
+
+    threading.Thread(target=relay, name="stop-relay", daemon=True).start()
     threads = []
     for rig in rigs:
-        threads.append(threading.Thread(target=_run_one, args=(rig, cfg, out, stop), name=f"rig-{rig.name}",
+        threads.append(threading.Thread(target=_run_one, args=(rig, cfg, out, local), name=f"rig-{rig.name}",
                                         daemon=True))
     for t in threads:
         t.start()
@@ -826,7 +843,7 @@ class Fleet:
         ctx = mp.get_context("spawn")
         # One queue from every runner to the bus; a process-safe one once there are workers.
         inbox = ctx.Queue() if self.remote else queue.Queue()
-        remote_stop = ctx.Event() if self.remote else None
+        stop_pipes: list = []
         threads: list[threading.Thread] = []
         try:
             # Every journal is opened here first: integrity, migration and locks are checked before any rig runs.
@@ -843,7 +860,9 @@ class Fleet:
                                    keep=self.keep)
                 threads.append(threading.Thread(target=runner.run, name=f"rig-{rig.name}", daemon=True))
             for i, group in enumerate(self.remote):
-                p = ctx.Process(target=worker_main, args=(group, cfg, inbox, remote_stop,
+                reader, writer = ctx.Pipe(duplex=False)
+                stop_pipes.append((reader, writer))
+                p = ctx.Process(target=worker_main, args=(group, cfg, inbox, reader,
                                                           logging.getLogger().getEffectiveLevel()),
                                 name=f"twin-worker-{i}", daemon=True)
                 procs.append((p, [r.name for r in group]))
@@ -854,9 +873,15 @@ class Fleet:
             self._loop(front, inbox, procs)
         finally:
             self.stop.set()
-            if remote_stop is not None:
-                remote_stop.set()
+            for reader, writer in stop_pipes:
+                try:
+                    writer.send("stop")
+                except OSError:  # that worker is gone already
+                    pass
             self._drain_until_done(front, inbox, procs, threads)
+            for reader, writer in stop_pipes:
+                reader.close()
+                writer.close()
             if front is not None:
                 front.close()
             for h in histories.values():

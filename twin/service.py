@@ -242,11 +242,9 @@ class RigTwin(Sink):
         if self.publisher is None and self.recorder is None:
             self.stats.estimates += 1
             return
-        params = {n: {"value": float(out.estimates[i][j]), "std": float(out.stds[i][j]),
-                      "unit": self.tracker.units[j]} for j, n in enumerate(self.tracker.tracked)}
-        ev = EstimateEvent(rig=self.rig.name, t_ns=int(out.t_ns[i]), t_s=float(t_s[i]), params=params,
-                           nis=float(out.nis[i]) if np.isfinite(out.nis[i]) else None,
-                           status=str(out.status[i]))
+        ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
+                                      out.estimates[i], out.stds[i], self.tracker.units,
+                                      float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
         if self.recorder is not None:
