@@ -13,7 +13,7 @@ from twin.drift import DriftMonitor
 from twin.errors import DataError, ParameterError
 from twin.models import msp25 as M
 from twin.scenario import Drift, simulate_wear
-from twin.simulate import DEFAULT_NOISE, default_noise, excite, measure
+from twin.simulate import DEFAULT_NOISE, excite
 from twin.tracker import OnlineTracker
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}

@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 import pytest
-from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from replay.base import Samples
 from twin import ukf
