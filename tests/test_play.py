@@ -138,10 +138,10 @@ def test_cli_play_to_zenoh(log, capsys):
     args = _parser().parse_args(["play", str(log), "--to", "zenoh", "--key", "fpdd/play/samples",
                                  "--zenoh-connect", ep, "--speed", "10", "--json", "--quiet"])
     with ZenohSource("fpdd/play/samples", config=zenoh_config(listen=[ep]), timeout_s=5.0) as src:
-        assert args.func(args) == 0
         got: list = []
         reader = threading.Thread(target=lambda: got.extend(src.chunks()), daemon=True)
-        reader.start()  # ends at the player's end marker
+        reader.start()  # consumes while the player sends (a live consumer); ends at the player's end marker
+        assert args.func(args) == 0
         reader.join(30.0)
         if reader.is_alive():
             src.close()
