@@ -73,3 +73,43 @@ def test_the_shipped_example_configuration_validates():
     cfg = load_config(os.path.join(os.path.dirname(__file__), "..", "deploy", "rigs.example.toml"))
     assert [r.name for r in cfg.rigs] == ["msp25-hall1-a", "msp25-hall1-b"]
     assert cfg.zenoh_mode is None and cfg.journal_dir == "/var/lib/fpdd/journal"  # the mode comes from ZENOH_CONFIG
+
+
+def test_commissioning_keys_bring_bands_noise_and_timing_from_a_saved_fit(tmp_path):
+    """The operator's flow: twin fit --save, then rigs.toml names the file; bands centre on the fit."""
+    import json
+    import math
+
+    from twin.commission import tracker_for
+
+    fit = {"model": "msp25", "effects": [], "params": {"Ffric": 64.0, "CdAleak": 4.1e-9, "Cd": 0.23, "zeta": 0.41,
+                                                       "wn": 2 * math.pi * 40},
+           "std": {"Ffric": 0.5, "CdAleak": 4e-10, "Cd": 1e-5, "zeta": 3e-4, "wn": 0.2},
+           "timing": {"controller": "continuous", "rate_hz": None, "intersample": "cubic"},
+           "noise": {"x": 3e-6, "pA": 2.5e4, "pB": 2.5e4}}
+    (tmp_path / "fit.json").write_text(json.dumps(fit))
+    (tmp_path / "rigs.toml").write_text(
+        '[service]\njournal_dir = "j"\n[[rig]]\nname = "a"\nsource = "rig.csv"\ncommission = "fit.json"\n'
+        'noise = { x = "4um" }\n[rig.baseline.zeta]\nvalue = 0.4\nrel_band = 0.2\n')
+    rig = load_config(str(tmp_path / "rigs.toml")).rigs[0]
+    assert rig.commission == str(tmp_path / "fit.json")
+    assert rig.baseline["Ffric"].value == 64.0 and rig.baseline["Ffric"].lo < 64.0 < rig.baseline["Ffric"].hi
+    assert rig.baseline["zeta"].value == 0.4  # an explicit band still wins
+    assert rig.noise == {"x": pytest.approx(4e-6)}
+    tracker = tracker_for(rig)
+    assert tracker.timing.controller == "continuous"  # from the fit: the rig's loop is analog
+    assert tracker.ps["Ffric"] == 64.0
+
+
+@pytest.mark.parametrize("rig_lines,message", [
+    ('noise = { y = 1e-6 }', "noise: unknown output 'y'"),
+    ('noise = { x = -1e-6 }', "noise.x: expected a positive standard deviation"),
+    ('noise = { x = "2 N" }', "noise.x: x: '2 N' is not in a unit of m"),
+    ('controller = "digital:abc"', "controller: controller 'digital:abc'"),
+    ('intersample = "spline"', "intersample 'spline'"),
+    ('commission = "missing.json"', "missing.json: cannot read the commissioning fit"),
+])
+def test_bad_commissioning_keys_name_the_key(tmp_path, rig_lines, message):
+    (tmp_path / "rigs.toml").write_text(f'[[rig]]\nname = "a"\nsource = "rig.csv"\n{rig_lines}\n')
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        load_config(str(tmp_path / "rigs.toml"))

@@ -25,6 +25,11 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     dbc = ""                            # default: the MSP25 DBC shipped with replay
     speed = 1.0                         # replay speed for log sources (0 = as fast as possible)
     track = ["Ffric", "CdAleak", "Cd", "zeta", "wn"]
+    commission = "commissioning.json"   # a `twin fit --save` file (relative to this file): bands
+                                        # centred on the fit, its noise levels and its timing
+    controller = "digital"              # the loop's timing: digital, digital:5000, continuous
+    intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
+    noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
     [rig.params]                        # known parameters that differ from the nominal MSP25
     KP = 400.0
     [rig.baseline.Ffric]                # healthy band (default: nominal value, DEFAULT_REL_BAND)
@@ -49,6 +54,7 @@ from typing import Any
 from twin.errors import ConfigError, ParameterError
 from twin.events import RIG_PATTERN
 from twin.models import MODELS, get_model
+from twin.models.base import Timing
 
 DEFAULT_REL_BAND = {"Ffric": 0.5, "CdAleak": 2.0, "Cd": 0.15, "zeta": 0.3, "wn": 0.15}
 
@@ -72,6 +78,12 @@ class RigConfig:
     track: tuple[str, ...]
     params: dict[str, float]
     baseline: dict[str, Baseline]
+    noise: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Sensor noise standard deviations (SI) per output; learnt online on top."""
+    timing: Timing | None = None
+    """The loop's timing (``controller``, ``intersample``); None: digital at the log's rate, or the fit's."""
+    commission: str | None = None
+    """A ``twin fit --save`` file: known values, bands centred on the fit, noise levels and timing."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +109,9 @@ TOP_KEYS = ("zenoh", "service", "rig")
 ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s")
-RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline")
+RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
+            "intersample", "commission")
+NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
 
@@ -294,7 +308,40 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
                           f"{suggest(bad[0], model.PHENOMENOLOGICAL) if len(bad) == 1 else ''}")
     if len(set(track)) != len(track):
         raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
-    baseline = default_baseline(model_name, params, track)
+    commission = _get(r, "commission", str, where, "") or None
+    if commission is not None:
+        from twin.commission import load_fit
+
+        if not os.path.isabs(commission):
+            commission = os.path.join(os.path.dirname(os.path.abspath(path)), commission)
+        com = load_fit(commission)
+        baseline = com.baseline(track)
+    else:
+        baseline = default_baseline(model_name, params, track)
+    noise: dict[str, float] = {}
+    for k, v in _get(r, "noise", dict, where, {}).items():
+        if k not in NOISE_KEYS:
+            raise ConfigError(f"{where}.noise: unknown output {k!r}; known: {', '.join(NOISE_KEYS)}"
+                              f"{suggest(k, NOISE_KEYS)}")
+        if isinstance(v, str):
+            from twin.units import to_si
+
+            try:
+                noise[k] = to_si(k, v)
+            except ParameterError as exc:
+                raise ConfigError(f"{where}.noise.{k}: {exc}") from None
+        else:
+            noise[k] = _number(r["noise"], k, f"{where}.noise")
+        if not noise[k] > 0:
+            raise ConfigError(f"{where}.noise.{k}: expected a positive standard deviation (SI or with a unit, "
+                              f"e.g. \"2um\"), got {v!r}")
+    timing = None
+    if "controller" in r or "intersample" in r:
+        try:
+            timing = Timing.parse(_get(r, "controller", str, where, "digital"),
+                                  _get(r, "intersample", str, where, "") or None)
+        except ParameterError as exc:
+            raise ConfigError(f"{where}.controller: {exc}") from None
     for pname, b in _get(r, "baseline", dict, where, {}).items():
         if pname not in track:
             raise ConfigError(f"{where}.baseline.{pname}: not a tracked parameter ({', '.join(track)})"
@@ -329,4 +376,4 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
-    return RigConfig(name, model_name, source, dbc, speed, track, params, baseline)
+    return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission)
