@@ -44,7 +44,7 @@ def test_demo_end_to_end(tmp_path):
     assert leak and 0.0 <= s["detection_delay_s"] <= 5.0
     assert s["false_alarms"] == []
     assert s["received_by_subscriber"] == len(s["alarms"]) > 0
-    assert any("subscriber: seq  1" in line for line in lines)
+    assert any("subscriber: msp25-demo #1 " in line and "mm^2" in line for line in lines)  # display units
     for key in ("html", "trends_png", "rig_mcap", "twin_mcap"):
         assert os.path.getsize(s["files"][key]) > 1000, key
     with open(s["files"]["twin_mcap"], "rb") as f:

@@ -63,7 +63,7 @@ import time
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
-from datetime import datetime, timezone
+from datetime import datetime
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol, Self
@@ -78,6 +78,7 @@ from twin.events import (
     EstimateEvent,
     StatusEvent,
     event_to_json,
+    format_alarm,
 )
 from twin.journal import AlarmJournal
 
@@ -1096,21 +1097,6 @@ def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         "(default 10; 0: wait for ever)",
     )
     return parser
-
-
-def format_alarm(event: AlarmEvent) -> str:
-    """One human-readable line for an alarm."""
-    when = ""
-    if event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: show the wall-clock time
-        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=timezone.utc)
-        when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
-    text = (
-        f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} "
-        f"{event.kind:9s} {event.parameter} = {event.estimate:.4g} ± {event.std:.2g} "
-        f"(baseline {event.baseline:.4g}, band [{event.band_lo:.4g}, {event.band_hi:.4g}], "
-        f"statistic {event.statistic:.3g})"
-    )
-    return f"{text} {event.message}" if event.message else text
 
 
 def wait_for_twin(session: zenoh.Session, rig: str, wait_s: float, where: str) -> list[str]:

@@ -24,10 +24,14 @@ import sys
 import threading
 import time
 
+from twin.events import format_alarm
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
 
 def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float):
     from twin.models import msp25 as M
@@ -89,9 +93,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
                     except TimeoutError:
                         continue
                     received.append(ev)
-                    say(f"   subscriber: seq {ev.seq:2d} t={ev.t_s:7.2f} s {ev.level.upper():7s} {ev.kind:9s} "
-                        f"{ev.parameter} = {ev.estimate:.4g} +- {ev.std:.2g} "
-                        f"(band {ev.band_lo:.4g}..{ev.band_hi:.4g})")
+                    say(f"   subscriber: {format_alarm(ev, wall_clock=False)}")
             sub_done.set()
 
         expected = [10 ** 9]

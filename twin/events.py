@@ -164,6 +164,39 @@ def _as_mapping(data: Any, cls_name: str) -> Mapping[str, Any]:
     return data
 
 
+def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = True) -> str:
+    """One line a person reads: values in the parameter's display unit (``43 Hz``, ``0.0033 mm^2``).
+
+    The machine outputs (JSON, MCAP, Zenoh) stay SI; this is the one formatter of
+    every console and log line about an alarm.
+    """
+    from datetime import datetime, timezone
+
+    from twin.models import get_model
+
+    try:
+        show = get_model(model).params(effects=()).spec(event.parameter).show
+    except Exception:  # a parameter of another model or an effect: SI with no unit rather than nothing
+        def show(v: float) -> str:
+            return f"{v:.6g}"
+
+    def short(v: float) -> str:
+        if not math.isfinite(v):
+            return "n/a"
+        text = show(float(f"{v:.4g}"))
+        return text
+
+    when = ""
+    if wall_clock and event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: the wall-clock time too
+        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=timezone.utc)
+        when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
+    text = (f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} {event.kind:9s} "
+            f"{event.parameter} = {short(event.estimate)} ± {short(event.std)} "
+            f"(baseline {short(event.baseline)}, band {short(event.band_lo)} .. {short(event.band_hi)}, "
+            f"statistic {event.statistic:.3g})")
+    return f"{text} {event.message}" if event.message else text
+
+
 def event_to_json(event: AlarmEvent | EstimateEvent | StatusEvent) -> str:
     """Serialise an event to compact JSON (sorted keys, no NaN/inf)."""
     return json.dumps(event.to_dict(), separators=(",", ":"), sort_keys=True, allow_nan=False)

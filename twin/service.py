@@ -38,7 +38,7 @@ import numpy as np
 from replay.base import Samples, Sink
 from twin.config import RigConfig, ServiceConfig, load_config
 from twin.errors import TwinError
-from twin.events import AlarmEvent, EstimateEvent, StatusEvent
+from twin.events import AlarmEvent, EstimateEvent, StatusEvent, format_alarm
 
 log = logging.getLogger(__name__)
 
@@ -344,6 +344,9 @@ def add_serve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
                    help="console messages from this level up (default info)")
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
+                   "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
 
 
 def startup_line(cfg: ServiceConfig, workers: int) -> str:
@@ -384,13 +387,20 @@ def run_serve(args) -> int:
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def show(ev: AlarmEvent) -> None:
-        print(f"twin serve: [{ev.rig}] t={ev.t_s:9.3f}s {ev.level.upper():7s} {ev.kind:9s} {ev.parameter}: "
-              f"{ev.estimate:.4g} +- {ev.std:.2g} (band {ev.band_lo:.4g}..{ev.band_hi:.4g}) seq {ev.seq}",
-              file=sys.stderr, flush=True)
+        print(f"twin serve: {format_alarm(ev, wall_clock=False)}", file=sys.stderr, flush=True)
 
     session = open_service_session(cfg)
     summaries: dict = {}
+    view = None
     try:
+        if args.foxglove is not None:
+            from twin.live_view import LiveView
+
+            view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
+                            model=cfg.rigs[0].model)
+            view.follow(session)  # every rig's estimate, status and alarm as published, workers included
+            print(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}", file=sys.stderr,
+                  flush=True)
         workers = Fleet(cfg, session, stop).worker_count
         print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
         error = None
@@ -399,6 +409,8 @@ def run_serve(args) -> int:
         except TwinError as exc:
             error, stats = exc, {k: v.stats for k, v in summaries.items()}
     finally:
+        if view is not None:
+            view.close()
         session.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -21,6 +21,7 @@ import sys
 from collections.abc import Iterable
 
 from twin.cliutil import add_timing_arguments, dump, kv, names, timing_of
+from twin.events import format_alarm
 
 
 class SequenceNumbers:
@@ -195,12 +196,14 @@ def run_track(args) -> int:
         "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
     }
+    from twin.reports import track_report
+
+    result["files"]["report"] = track_report(twin, args.out, log=args.log)
     if args.json:
         dump(result)
         return 0
     for a in twin.alarms:
-        print(f"t={a.t_s:9.3f} s {a.level.upper():7s} {a.kind:9s} {a.parameter}: {a.estimate:.4g} +- {a.std:.2g} "
-              f"(band {a.band_lo:.4g}..{a.band_hi:.4g})")
+        print(format_alarm(a, wall_clock=False))
     print(f"{twin.stats.samples} samples, {len(twin.alarms)} alarm event(s); timing {result['timing']}")
     note = ", ".join(f"{o} {s}" for o, s in result["sensors"].items() if s != "ok")
     if note:
