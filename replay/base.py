@@ -15,7 +15,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 from collections import Counter
-from typing import Iterator, Mapping
+from collections.abc import Iterator, Mapping
 
 import numpy as np
 
@@ -102,16 +102,16 @@ class Samples:
         for i in range(len(self)):
             yield Sample(int(self.t_ns[i]), {k: float(c[i]) for k, c in zip(names, cols)})
 
-    def slice(self, start: int, stop: int) -> "Samples":
+    def slice(self, start: int, stop: int) -> Samples:
         return Samples(self.t_ns[start:stop].copy(), {k: v[start:stop].copy() for k, v in self.signals.items()})
 
     @staticmethod
-    def empty(names: "tuple[str, ...] | list[str]" = ()) -> "Samples":
+    def empty(names: tuple[str, ...] | list[str] = ()) -> Samples:
         """A block of no samples carrying the given signal names."""
         return Samples(np.zeros(0, np.int64), {k: np.zeros(0) for k in names})
 
     @staticmethod
-    def concat(blocks: list["Samples"]) -> "Samples":
+    def concat(blocks: list[Samples]) -> Samples:
         blocks = [b for b in blocks if len(b)]
         if not blocks:
             return Samples(np.zeros(0, np.int64), {})
@@ -232,7 +232,7 @@ class Source(abc.ABC):
     path: str
     report: ReadReport
 
-    def __enter__(self) -> "Source":
+    def __enter__(self) -> Source:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -261,7 +261,7 @@ class Source(abc.ABC):
 class Sink(abc.ABC):
     """Where samples are written. Use as a context manager."""
 
-    def __enter__(self) -> "Sink":
+    def __enter__(self) -> Sink:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -60,7 +60,8 @@ import os
 import re
 from collections import Counter
 from pathlib import Path
-from typing import IO, Iterable, Iterator, Sequence
+from typing import IO
+from collections.abc import Iterable, Iterator, Sequence
 
 import can
 import numpy as np
@@ -242,7 +243,6 @@ class FrameDecoder:
         return out
 
     def _check_rows(self, frames: Frames, rows: np.ndarray, lay: MessageLayout) -> np.ndarray:
-        rep = self.report
         kind = frames.kind[rows]
         remote = kind == Frames.REMOTE
         if remote.any():
@@ -581,7 +581,7 @@ class _Lines:
         self.produced = 0             # file line of the last frame
         self.any_frame = False
 
-    def __iter__(self) -> "_Lines":
+    def __iter__(self) -> _Lines:
         return self
 
     def __next__(self) -> str:

@@ -34,7 +34,8 @@ import argparse
 import json
 import sys
 from importlib import metadata
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 

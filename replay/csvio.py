@@ -41,7 +41,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import warnings
-from typing import IO, Iterator, Mapping, Sequence
+from typing import IO
+from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 

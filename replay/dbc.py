@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Mapping
+from collections.abc import Mapping
 
 import cantools
 import cantools.database
@@ -133,15 +133,15 @@ class Frames:
         return int(self.t_ns.shape[0])
 
     @staticmethod
-    def empty() -> "Frames":
+    def empty() -> Frames:
         return Frames(np.zeros(0, np.int64), np.zeros(0, np.uint32), np.zeros(0, np.uint8),
                       np.zeros((0, 8), np.uint8), np.zeros(0, np.uint8))
 
-    def take(self, idx: np.ndarray) -> "Frames":
+    def take(self, idx: np.ndarray) -> Frames:
         return Frames(self.t_ns[idx], self.key[idx], self.dlc[idx], self.data[idx], self.kind[idx])
 
     @staticmethod
-    def concat(blocks: list["Frames"]) -> "Frames":
+    def concat(blocks: list[Frames]) -> Frames:
         blocks = [b for b in blocks if len(b)]
         if not blocks:
             return Frames.empty()

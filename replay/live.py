@@ -104,7 +104,7 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from urllib.parse import urlparse
 
 import can

@@ -98,7 +98,8 @@ import mmap
 import os
 import struct
 import zlib
-from typing import IO, Any, Iterator, Mapping, Sequence
+from typing import IO, Any
+from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 import zstandard

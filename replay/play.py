@@ -19,7 +19,7 @@ import dataclasses
 import json
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -37,7 +37,7 @@ lost.  The unit table :data:`UNITS` converts foreign units to SI at one boundary
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 

@@ -40,7 +40,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from typing import Callable
+from collections.abc import Callable
 
 from replay import formats
 from replay.base import ReadReport

@@ -7,7 +7,7 @@ simulated in two worker processes.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import pytest
 

@@ -16,7 +16,8 @@ A subclass whose name starts with ``Test`` is collected by pytest; this base is 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Mapping
+from typing import ClassVar
+from collections.abc import Mapping
 
 import numpy as np
 import pytest

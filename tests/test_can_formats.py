@@ -270,7 +270,7 @@ def test_unknown_id_counted_skipped_and_named(tmp_path):
 
     lines.insert(10, _line(t_of(10), 0x7AB, b"\x01\x02"))
     lines.insert(20, _line(t_of(20), 0x7AB, b"\x01\x02"))
-    lines.insert(30, "(%.6f) can0 18FF0001#0102\n" % t_of(30))
+    lines.insert(30, f"({t_of(30):.6f}) can0 18FF0001#0102\n")
     p = _write(tmp_path / "unk.log", lines)
     s, rep = _read(p)
     assert len(s) == 300

@@ -18,7 +18,8 @@ import functools
 import struct
 import zlib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import can
 import numpy as np

@@ -196,7 +196,7 @@ def test_cli_json_save_report_and_timing_flags(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["causes"] == [] and out["unexplained"] is False and out["timing_assumed"]["controller"] == "continuous"
     for f in (report / "diagnosis.json", report / "extended_params.json", save):
-        json.loads(f.read_text(), parse_constant=lambda c: pytest.fail(f"{f}: {c} is not strict JSON"))
+        json.loads(f.read_text(), parse_constant=lambda c, f=f: pytest.fail(f"{f}: {c} is not strict JSON"))
     html = (report / "diagnose_report.html").read_text()
     assert "verdict" in html.lower() and "continuous" in html
     assert json.loads(save.read_text())["timing"]["controller"] == "continuous"

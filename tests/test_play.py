@@ -47,7 +47,7 @@ class JitterProbe:
             if self.late[-1] > self.period_s:  # fell behind: restart the schedule (no catch-up burst)
                 t0, k = time.monotonic(), 0
 
-    def __enter__(self) -> "JitterProbe":
+    def __enter__(self) -> JitterProbe:
         self._thread.start()
         return self
 

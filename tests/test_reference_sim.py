@@ -10,7 +10,7 @@ import pytest
 from scipy.linalg import expm
 
 from conftest import get_records
-from reference import (MSP25_EFFECTS, MSP25_FREE, MSP25_KNOWN, OSC_FREE, Record, batch, draw_effects, draw_truth,
+from reference import (MSP25_EFFECTS, MSP25_FREE, MSP25_KNOWN, OSC_FREE, Record, draw_effects, draw_truth,
                        get_record, msp25_spec, oscillator_spec, replay_spec, spec_key)
 
 KP = MSP25_KNOWN["KP"]

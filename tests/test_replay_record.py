@@ -54,7 +54,7 @@ class Sender:
             lap += 1
             self.stop.wait(0.005)  # let the recorder breathe between laps
 
-    def __enter__(self) -> "Sender":
+    def __enter__(self) -> Sender:
         self.thread.start()
         return self
 

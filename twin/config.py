@@ -290,7 +290,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     params_doc = _get(r, "params", dict, where, {})
     names = model.params().names
     params = {}
-    for k, v in params_doc.items():
+    for k in params_doc:
         if k not in names:
             raise ConfigError(f"{where}.params: unknown parameter {k!r} of model {model_name}{suggest(k, names)}")
         params[k] = _get(params_doc, k, float, f"{where}.params")

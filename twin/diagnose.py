@@ -72,7 +72,7 @@ import math
 import os
 import sys
 import time
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from scipy import stats
@@ -862,7 +862,7 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
     scores.sort(key=lambda s: s[0])
     say("  timings at the current estimates: " + ", ".join(f"{a.label} cost {c:.4g}" for c, _, a in scores))
     best = None
-    for c, which, a in scores[:1]:
+    for _cost, which, a in scores[:1]:
         start = dict(cur.fit.estimate) if which == 0 else {n: configured[n] for n in cur.free if n in configured}
         st = _fit_state(data, cur.params.update(start), cur.free, start, 1, seed, a)
         t = _judge(data, (CONTROLLER_RATE,), cur, st, min_share)

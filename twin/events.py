@@ -35,6 +35,7 @@ from types import MappingProxyType
 from typing import Any, ClassVar, Self
 
 from twin.errors import DataError
+from datetime import UTC
 
 __all__ = [
     "ALARM_KINDS",
@@ -170,7 +171,7 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
     The machine outputs (JSON, MCAP, Zenoh) stay SI; this is the one formatter of
     every console and log line about an alarm.
     """
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from twin.models import get_model
 
@@ -188,7 +189,7 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
 
     when = ""
     if wall_clock and event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: the wall-clock time too
-        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=timezone.utc)
+        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=UTC)
         when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
     text = (f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} {event.kind:9s} "
             f"{event.parameter} = {short(event.estimate)} ± {short(event.std)} "

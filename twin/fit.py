@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from scipy import optimize, stats
@@ -345,7 +345,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
     for rank, i in enumerate(order):
         cache: dict = {}
 
-        def fun(z):
+        def fun(z, cache=cache):
             key = z.tobytes()
             if key not in cache:
                 cache.clear()
@@ -353,7 +353,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
                 cache[key] = prob.residuals(Zb)
             return cache[key][0]
 
-        def jac(z):
+        def jac(z, cache=cache, rank=rank):
             fun(z)
             R = cache[z.tobytes()]
             J = ((R[1:] - R[0]) / FD_STEP).T
@@ -407,7 +407,7 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     # a parameter held at a bound has no meaningful standard error: say so
     lo, hi = prob.bounds_z()
     zt = z[: prob.n_theta]
-    at_bound = [n for n, zi, l, h in zip(prob.free, zt, lo, hi) if min(zi - l, h - zi) < 1e-6]  # z is order one
+    at_bound = [n for n, zi, a, b in zip(prob.free, zt, lo, hi) if min(zi - a, b - zi) < 1e-6]  # z is order one
     std = np.where([n in at_bound for n in prob.free], np.nan, std)
     std_white = np.where([n in at_bound for n in prob.free], np.nan, std_white)
     with np.errstate(invalid="ignore", divide="ignore"):

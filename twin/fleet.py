@@ -48,7 +48,8 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
@@ -873,7 +874,7 @@ class Fleet:
             self._loop(front, inbox, procs)
         finally:
             self.stop.set()
-            for reader, writer in stop_pipes:
+            for _reader, writer in stop_pipes:
                 try:
                     writer.send("stop")
                 except OSError:  # that worker is gone already

@@ -36,7 +36,8 @@ from __future__ import annotations
 import json
 import math
 import threading
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from twin.reports.units import Shown, pretty_unit, signal_unit
 
@@ -170,7 +171,7 @@ class LiveView:
         for ch in self._channels.values():
             ch.close()
 
-    def __enter__(self) -> "LiveView":
+    def __enter__(self) -> LiveView:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -280,7 +281,7 @@ class LiveView:
         {"estimate": self.estimate, "status": self.status, "alarm": self.alarm}[kind](d)
 
     # ------------------------------------------------------------------ hooks
-    def tee(self, publisher=None) -> "_Tee":
+    def tee(self, publisher=None) -> _Tee:
         """A publisher for :class:`twin.service.RigTwin` that hands every event to ``publisher`` (may be
         ``None``) and shows what was published."""
         return _Tee(self, publisher)

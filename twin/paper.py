@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 from twin.fit import FitResult, fit
 from twin.models import get_model

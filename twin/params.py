@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
@@ -134,11 +134,11 @@ class ParameterSet:
     def as_dict(self) -> dict[str, float]:
         return dict(zip(self.names, self.values))
 
-    def replace(self, **values: float) -> "ParameterSet":
+    def replace(self, **values: float) -> ParameterSet:
         """A copy with some values changed (validated)."""
         return self.update(values)
 
-    def update(self, values: Mapping[str, float]) -> "ParameterSet":
+    def update(self, values: Mapping[str, float]) -> ParameterSet:
         for k in values:
             self.spec(k)  # raises for unknown names
         new = tuple(values.get(s.name, v) for s, v in zip(self.specs, self.values))

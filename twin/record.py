@@ -64,7 +64,7 @@ class Record:
             raise DataError(f"{self.name}: {what} needs signal(s) {', '.join(missing)}; "
                             f"the record has {', '.join(self.signals) or 'none'}")
 
-    def slice(self, start: int, stop: int) -> "Record":
+    def slice(self, start: int, stop: int) -> Record:
         return Record(self.dt, {k: v[start:stop].copy() for k, v in self.signals.items()},
                       f"{self.name}[{start}:{stop}]", self.t0_ns + int(round(start * self.dt * 1e9)))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import base64
 import html
 import os
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 
 def table(rows: Sequence[dict], columns: Sequence[str] | None = None, fmt: str = "{:.6g}") -> str:

@@ -10,7 +10,7 @@ fault tests are built on it.
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numba as nb
 import numpy as np

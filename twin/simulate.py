@@ -6,7 +6,7 @@ chamber pressures with 20 kPa noise; the oscillator's displacement with 1 um.
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

@@ -24,7 +24,8 @@ import copy
 import hashlib
 import math
 import time
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 from scipy.optimize import root
@@ -402,7 +403,6 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
     qx = spec["noise"]["quant"]["x"]
     delay = s.delay if digital else 0.0
     x_first = y[R.S_X]
-    t_first = -j_pre * hb
     integ = float(y[R.S_ZI])
     e_prev = None
     Tc = C * hb

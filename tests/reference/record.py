@@ -53,7 +53,7 @@ class Record:
         os.replace(tmp, path)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Record":
+    def load(cls, path: str | os.PathLike) -> Record:
         with np.load(path) as z:
             info = json.loads(bytes(z["json"]).decode())
             signals = {k[2:]: z[k] for k in z.files if k.startswith("s.")}

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
@@ -72,7 +72,7 @@ class Timing:
             raise ParameterError(f"intersample {self.intersample!r}: expected one of {', '.join(INTERSAMPLE)}")
 
     @classmethod
-    def parse(cls, controller: str | None = None, intersample: str | None = None) -> "Timing":
+    def parse(cls, controller: str | None = None, intersample: str | None = None) -> Timing:
         """From the command-line / config spelling: ``digital``, ``digital:5000``, ``continuous``."""
         controller = (controller or "digital").strip().lower()
         rate = None

@@ -35,7 +35,7 @@ into the one right-hand side; see :data:`EFFECTS`.
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from collections.abc import Mapping
 
 import numba as nb
 import numpy as np

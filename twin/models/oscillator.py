@@ -10,7 +10,7 @@ a smooth cubic between them; output ``y = x`` [m].  Effects of the catalogue:
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from collections.abc import Mapping
 
 import numba as nb
 import numpy as np

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from twin.reports import page as P
 from twin.reports import views
-from twin.reports.units import Shown, fmt, label, pct, signal_unit
+from twin.reports.units import Shown, fmt, pct, signal_unit
 
 #: records shown in the compare view (the fit uses them all)
 MAX_RECORDS_SHOWN = 3

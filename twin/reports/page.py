@@ -11,7 +11,7 @@ import base64
 import html
 import io
 import os
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 from twin.reports.units import fmt
 

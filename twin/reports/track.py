@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import math
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -53,7 +53,6 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
     s = track if isinstance(track, Mapping) else track_summary(track, log)
     model = s.get("model", "msp25")
     alarms = list(s.get("alarms") or [])
-    worst = max((a["level"] for a in alarms), key=["ok", "warning", "alarm"].index, default="ok")
     status = dict(s.get("status") or {})
     facts = {"rig": s.get("rig", "rig"), "log": s.get("log", ""), "samples": str(s.get("samples", "")),
              "alarm events": str(len(alarms)),

@@ -43,7 +43,7 @@ def signal_unit(name: str, model: str | None = None) -> tuple[str, float]:
     return own.get(name) or SIGNALS.get(name) or ("", 1.0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _specs(model: str) -> dict:
     from twin.models import get_model
 
