@@ -60,3 +60,32 @@ def test_a_value_with_the_wrong_unit_is_a_one_line_error(tmp_path, capsys):
                      "--set", "CdAleak=0.01mm"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "CdAleak" in err[0] and "m^2" in err[0]
+
+
+def test_fit_track_and_diagnose_read_foreign_csv_columns_with_map(tmp_path, capsys):
+    """A CSV logged by another tool: other column names, position in mm; --map says which is which."""
+    import numpy as np
+
+    rec = tmp_path / "r.csv"
+    assert cli.main(["-q", "simulate", "-o", str(rec), "--duration", "2", "--seed", "4"]) == 0
+    data = np.genfromtxt(rec, delimiter=",", names=True)
+    foreign = tmp_path / "foreign.csv"
+    np.savetxt(foreign, np.column_stack([data["t"], data["x_ref"], data["u"], data["x"] * 1e3, data["pA"],
+                                         data["pB"]]),
+               delimiter=",", header="time,demand,command,pos_mm,p_a,p_b", comments="", fmt="%.17g")
+    maps = ["--map", "t=time", "--map", "x_ref=demand", "--map", "u=command", "--map", "x=pos_mm:mm",
+            "--map", "pA=p_a", "--map", "pB=p_b"]
+    capsys.readouterr()
+    assert cli.main(["-q", "fit", str(foreign), "--free", "Ffric", "--start", "Ffric=70N", "--json", *maps]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert abs(out["params"]["Ffric"]["value"] - 50.0) < 3 * out["params"]["Ffric"]["std"]
+    assert cli.main(["-q", "fit", str(foreign), "--free", "Ffric"]) == 2
+    err = capsys.readouterr().err
+    assert "pos_mm" in err and "--map" in err and len(err.strip().splitlines()) == 1
+    assert cli.main(["-q", "track", str(foreign), "--out", str(tmp_path / "tr"), "--json", *maps]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == 2000
+    mcap = tmp_path / "r.mcap"
+    assert cli.main(["-q", "simulate", "-o", str(mcap), "--duration", "0.5"]) == 0
+    capsys.readouterr()
+    assert cli.main(["-q", "fit", str(mcap), "--free", "Ffric", "--map", "x=pos"]) == 2
+    assert "not a CSV" in capsys.readouterr().err

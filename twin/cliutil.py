@@ -119,3 +119,25 @@ def timing_of(args, default=None):
     if controller is None and intersample is None and default is not None:
         return default
     return Timing.parse(controller, intersample)
+
+
+def add_map_argument(p) -> None:
+    """``--map NAME=COLUMN[:UNIT]`` (repeatable): read a CSV whose columns have other names or units."""
+    p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT]",
+                   help="a CSV column under another name or unit, e.g. --map x=pos_mm:mm --map t=time:ms "
+                        "(repeatable; CSV files only)")
+
+
+def source_options(args, path: str) -> dict:
+    """Reader options for ``path`` from ``--map`` (a CSV column mapping), checked."""
+    items = getattr(args, "map", None)
+    if not items:
+        return {}
+    if not str(path).lower().endswith(".csv"):
+        from twin.errors import DataError
+
+        raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
+                        "its format)")
+    from replay.csvio import parse_map
+
+    return {"mapping": parse_map(items)}

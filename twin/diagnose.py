@@ -77,7 +77,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 from scipy import stats
 
-from twin.cliutil import add_timing_arguments, dump, finite_or_none, timing_of
+from twin.cliutil import add_map_argument, add_timing_arguments, dump, finite_or_none, source_options, timing_of
 from twin.cliutil import json_default as _json_default
 from twin.cliutil import kv as _kv
 from twin.cliutil import names as _names
@@ -1217,6 +1217,7 @@ def add_diagnose_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-timing-test", action="store_true",
                    help="do not test other loop timings (the controller_rate candidate)")
     add_timing_arguments(p)
+    add_map_argument(p)
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
 
 
@@ -1236,7 +1237,7 @@ def run_diagnose(args) -> int:
     model = get_model(args.model)
     records: list[Record] = []
     for path in args.data:
-        records.extend(load_records(path, model=model.name))
+        records.extend(load_records(path, model=model.name, **source_options(args, path)))
     base = model.params(effects=_names(args.effects), **_kv(args.set))
     quiet = getattr(args, "quiet", False)
     progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))

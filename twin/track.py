@@ -20,7 +20,7 @@ import os
 import sys
 from collections.abc import Iterable
 
-from twin.cliutil import add_timing_arguments, dump, kv, names, timing_of
+from twin.cliutil import add_map_argument, add_timing_arguments, dump, kv, names, source_options, timing_of
 from twin.events import format_alarm
 
 
@@ -39,6 +39,14 @@ class SequenceNumbers:
 
     def publish_status(self, ev):
         return ev
+
+
+def _mapped(path: str, opts: dict):
+    """Blocks of a CSV read with a column mapping (``--map``)."""
+    from replay.factory import open_source
+
+    with open_source(path, **opts) as src:
+        yield from src.chunks(10000)
 
 
 def _blocks(source, chunk: int, dbc: str | None):
@@ -143,6 +151,7 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
     p.add_argument("--json", action="store_true", help="print alarms and final estimates as JSON")
     add_timing_arguments(p)
+    add_map_argument(p)
 
 
 def run_track(args) -> int:
@@ -178,7 +187,10 @@ def run_track(args) -> int:
                                  f"{args.noise_levels!r}")
     timing = timing_of(args) if (args.controller or args.intersample) else None
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
-    twin = track(args.log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
+    log = args.log
+    if getattr(args, "map", None):
+        log = _mapped(args.log, source_options(args, args.log))
+    twin = track(log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
                  timing=timing, commission=commission)
     if say:
         print(file=sys.stderr)
@@ -210,7 +222,10 @@ def run_track(args) -> int:
         print(f"  sensors: {note}")
     if result["consistency"] != "consistent":
         print(f"  filter not consistent with the data at the end: {result['consistency']}")
-    for n, d in result["final"].items():
-        print(f"  {n:8s} {d['value']:.5g} +- {d['std']:.2g} {d['unit']}  [{result['status'][n]}]")
+    specs = twin.tracker.ps
+    for n, d in result["final"].items():  # display units (JSON above stays SI)
+        show = specs.spec(n).show
+        value, std = float(f"{d['value']:.5g}"), float(f"{d['std']:.2g}")
+        print(f"  {n:8s} {show(value)} +- {show(std)}  [{result['status'][n]}]")
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
     return 0

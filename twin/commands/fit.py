@@ -7,7 +7,8 @@ import sys
 
 import numpy as np
 
-from twin.cliutil import add_timing_arguments, finite_or_none, load_params_file, timing_of
+from twin.cliutil import (add_map_argument, add_timing_arguments, finite_or_none, load_params_file, source_options,
+                          timing_of)
 from twin.cliutil import dump as _dump
 from twin.cliutil import kv as _kv
 from twin.cliutil import names as _names
@@ -37,6 +38,7 @@ def add_arguments(p) -> None:
                    "correlation, loop timing (one self-contained file)")
     p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
     add_timing_arguments(p)
+    add_map_argument(p)
     p.add_argument("--json", action="store_true")
 
 
@@ -48,7 +50,7 @@ def run(args) -> int:
     model = get_model(args.model)
     records = []
     for path in args.data:
-        records.extend(load_records(path, model=model.name))
+        records.extend(load_records(path, model=model.name, **source_options(args, path)))
     base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
                                           with_timing=True)
     timing = timing_of(args, saved_timing)
