@@ -89,3 +89,12 @@ def test_fit_track_and_diagnose_read_foreign_csv_columns_with_map(tmp_path, caps
     capsys.readouterr()
     assert cli.main(["-q", "fit", str(mcap), "--free", "Ffric", "--map", "x=pos"]) == 2
     assert "not a CSV" in capsys.readouterr().err
+
+
+def test_track_says_an_oscillator_record_is_not_a_rig_log(tmp_path, capsys):
+    osc = tmp_path / "osc.csv"
+    assert cli.main(["-q", "simulate", "--model", "oscillator", "-o", str(osc), "--duration", "0.5"]) == 0
+    capsys.readouterr()
+    assert cli.main(["-q", "track", str(osc), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "oscillator" in err[0] and "msp25" in err[0]

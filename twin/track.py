@@ -154,11 +154,28 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     add_map_argument(p)
 
 
+def _check_rig_log(path: str) -> None:
+    """A CSV of the oscillator (columns u, y, no x) is not a rig log: say so before reading it."""
+    if not str(path).lower().endswith(".csv"):
+        return
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            header = [c.strip() for c in f.readline().split(",")]
+    except OSError:
+        return  # the reader names the problem
+    if "y" in header and not {"x", "pA", "pB"} & set(header):
+        from twin.errors import DataError
+
+        raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the msp25 "
+                        "rig model (it needs u or x_ref and at least one of x, pA, pB)")
+
+
 def run_track(args) -> int:
     from twin.config import load_config
     from twin.models import get_model
     from twin.plots import parameter_trends
 
+    _check_rig_log(args.log)
     params = {}
     baseline = None
     tracked = names(args.track) or None
