@@ -23,7 +23,7 @@ from twin.store import Store
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 60.0
-ALARM_LINE = re.compile(r"^twin serve: \[rig-k\] .* seq (\d+)$")
+ALARM_LINE = re.compile(r"^twin serve: rig-k #(\d+) ")
 
 
 def write_config(path: Path, log: Path, journal: Path, speed: float) -> Path:

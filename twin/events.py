@@ -253,7 +253,11 @@ class _FromJson:
         """
         data = _as_mapping(data, cls.__name__)
         _check(cls.__name__, cls.SCHEMA, data)
-        return cls(**{name: data[name] for name in cls.SCHEMA["required"]})
+        import dataclasses
+
+        optional = {f.name for f in dataclasses.fields(cls)} - set(cls.SCHEMA["required"])  # type: ignore[arg-type]
+        return cls(**{name: data[name] for name in cls.SCHEMA["required"]},
+                   **{name: data[name] for name in optional if name in data})
 
 
 @dataclass(frozen=True, slots=True)
@@ -487,13 +491,16 @@ class EstimateEvent(_FromJson):
 
 # --------------------------------------------------------------------------- status
 
+#: what the tracker says of each measured signal
+SENSOR_STATES = ("ok", "noisy", "stuck", "clipped", "offset", "wrong_unit", "missing")
+
 _STATUS_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "fpdd-twin/status-event.schema.json",
     "title": "StatusEvent",
     "description": "Health of the twin serving one rig (key fpdd/<rig>/status).",
     "type": "object",
-    "required": ["rig", "t_ns", "state", "parameters", "counters", "message"],
+    "required": ["rig", "t_ns", "state", "parameters", "counters", "message", "sensors", "consistency"],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN},
         "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
@@ -511,6 +518,18 @@ _STATUS_SCHEMA: dict[str, Any] = {
             "description": "non-negative counters: samples, alarms, gated, repaired_covariance, bad_blocks, source_errors, ...; 'alarm_seq' is the last journaled alarm seq; gauges 'lag_ms' (how far behind real time) and 'stale_ms' (how long without input)",
         },
         "message": {"type": "string"},
+        "sensors": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "string", "enum": list(SENSOR_STATES)},
+            "description": "measured signal -> sensor status: ok, noisy, stuck, clipped, offset, wrong_unit, "
+                           "missing (a faulty signal is left out of the filter and parameter alarms are held)",
+        },
+        "consistency": {
+            "type": "string",
+            "description": "the filter's consistency with the data: 'consistent', or why not (the drift test "
+                           "holds its evidence meanwhile)",
+        },
     },
 }
 
@@ -529,6 +548,8 @@ class StatusEvent(_FromJson):
         :meth:`twin.bus.TwinPublisher.publish_status`; subscribers use it to
         notice a lost last alarm.
     :ivar message: one human-readable line.
+    :ivar sensors: measured signal -> sensor status (:data:`SENSOR_STATES`).
+    :ivar consistency: ``consistent`` or why the filter is not consistent with the data.
     """
 
     rig: str
@@ -537,11 +558,13 @@ class StatusEvent(_FromJson):
     parameters: Mapping[str, str] = field(default_factory=dict)
     counters: Mapping[str, int] = field(default_factory=dict)
     message: str = ""
+    sensors: Mapping[str, str] = field(default_factory=dict)
+    consistency: str = "consistent"
 
     SCHEMA: ClassVar[dict[str, Any]] = _STATUS_SCHEMA
 
     def __post_init__(self) -> None:
-        for name in ("parameters", "counters"):
+        for name in ("parameters", "counters", "sensors"):
             value = getattr(self, name)
             if not isinstance(value, Mapping):
                 raise DataError(f"StatusEvent.{name}: {value!r} must be an object")
@@ -557,5 +580,7 @@ class StatusEvent(_FromJson):
             "parameters": dict(self.parameters),
             "counters": dict(self.counters),
             "message": self.message,
+            "sensors": dict(self.sensors),
+            "consistency": self.consistency,
         }
 

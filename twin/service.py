@@ -273,7 +273,8 @@ class RigTwin(Sink):
                     **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
                     **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
-                         counters=counters, message=message)
+                         counters=counters, message=message, sensors=self.tracker.sensor_status(),
+                         consistency=str(self.drift.guard or "consistent"))
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:
