@@ -192,3 +192,14 @@ def test_estimate_from_tracker_arrays_equals_the_validated_event_and_refuses_wha
         EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, [51.0, 1e-12], [-1.0, 1e-13], units, None, "ok")
     with pytest.raises(DataError, match=r"EstimateEvent\.params\.Kleak\.value: nan must be a finite number"):
         EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, [51.0, math.nan], [1.0, 1e-13], units, None, "ok")
+
+
+def test_alarm_names_the_si_unit_of_its_values_and_reads_older_payloads_without_it():
+    from twin.events import AlarmEvent
+
+    ev = AlarmEvent(rig="r", parameter="wn", level="alarm", kind="raised", t_ns=5, t_s=0.005, estimate=190.0,
+                    std=2.0, baseline=270.0, band_lo=235.0, band_hi=310.0, statistic=11.0, seq=1)
+    assert ev.to_dict()["unit"] == "rad/s"
+    old = {k: v for k, v in ev.to_dict().items() if k != "unit"}  # journaled before units were named
+    assert AlarmEvent.from_dict(old).unit == "rad/s"
+    assert AlarmEvent.from_dict(ev.to_dict()) == ev

@@ -198,6 +198,13 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
     return f"{text} {event.message}" if event.message else text
 
 
+def _si_unit(parameter: str) -> str:
+    """The SI unit of a parameter of any model (``"1"`` if unknown)."""
+    from twin.units import _known_units
+
+    return _known_units().get(parameter, "1")
+
+
 def event_to_json(event: AlarmEvent | EstimateEvent | StatusEvent) -> str:
     """Serialise an event to compact JSON (sorted keys, no NaN/inf)."""
     return json.dumps(event.to_dict(), separators=(",", ":"), sort_keys=True, allow_nan=False)
@@ -218,7 +225,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
     "type": "object",
     "required": [
         "rig", "parameter", "level", "kind", "t_ns", "t_s", "estimate", "std",
-        "baseline", "band_lo", "band_hi", "seq", "statistic", "message",
+        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit",
     ],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
@@ -235,6 +242,8 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "seq": {"type": "integer", "minimum": 1, "description": "per-rig sequence number, 1, 2, 3, ... without gaps"},
         "statistic": _num("value of the sequential test (CUSUM/GLR) at this event"),
         "message": {"type": "string", "description": "one human-readable line"},
+        "unit": {"type": "string", "description": "SI unit of estimate, std, baseline and band, e.g. 'N', "
+                                                  "'m^2', 'rad/s', '1'"},
     },
 }
 
@@ -314,10 +323,13 @@ class AlarmEvent(_FromJson):
     statistic: float
     message: str = ""
     seq: int = 0
+    unit: str = ""
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
     def __post_init__(self) -> None:
+        if not self.unit:  # the SI unit of the parameter, named beside every value on the wire
+            object.__setattr__(self, "unit", _si_unit(self.parameter))
         data = self.to_dict()
         # seq 0 (not journaled yet) is legal in memory, never on the wire.
         _check("AlarmEvent", self.SCHEMA, {**data, "seq": self.seq or 1})
@@ -347,7 +359,16 @@ class AlarmEvent(_FromJson):
             "seq": self.seq,
             "statistic": self.statistic,
             "message": self.message,
+            "unit": self.unit,
         }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Self:
+        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's."""
+        data = _as_mapping(data, cls.__name__)
+        if "unit" not in data and isinstance(data.get("parameter"), str):
+            data = {**data, "unit": _si_unit(data["parameter"])}
+        return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]  (slots dataclass: no zero-argument super)
 
     def with_seq(self, seq: int) -> Self:
         """A copy carrying sequence number ``seq``."""
