@@ -26,3 +26,12 @@ def test_every_public_name_resolves():
     for name in replay.__all__:
         assert getattr(replay, name) is not None, name
     assert twin.TwinError is replay.TwinError  # one error tree, at the bottom layer
+
+
+def test_api_functions_survive_their_modules_being_imported():
+    import importlib
+
+    for mod in ("twin.fit", "twin.track", "twin.diagnose"):
+        importlib.import_module(mod)
+    assert callable(twin.fit) and callable(twin.track) and callable(twin.diagnose)
+    assert twin.fit.__module__ == "twin.fit" and twin.diagnose.__name__ == "diagnose"

@@ -15,6 +15,8 @@ The public API (imported on first use, so ``import twin`` stays light)::
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from typing import Any
 
 __version__ = "0.1.0"
@@ -58,3 +60,18 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     return __all__
+
+
+class _Package(types.ModuleType):
+    """``twin.fit``, ``twin.track``, ``twin.diagnose`` are functions of the API and modules of the package:
+    importing a submodule sets it as an attribute of the package, which would hide the function of the
+    same name.  The package keeps the function; the modules stay importable by name (``from twin.fit
+    import FitResult``, ``importlib.import_module("twin.fit")``)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if isinstance(value, types.ModuleType) and _EXPORTS.get(name) == f"{__name__}.{name}":
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
