@@ -12,6 +12,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from replay.mcapio import McapSink
 from twin.config import load_config
 from twin.demo import free_port
@@ -49,10 +51,13 @@ def alarms(journal: Path) -> list:
 class Service:
     """``twin serve`` in its own process; stderr lines on a queue."""
 
+    started: list[Service] = []  # every process a test starts, killed at its end whatever happened
+
     def __init__(self, config: Path) -> None:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
         self.proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config)],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+        Service.started.append(self)
         self.lines: queue.Queue[str | None] = queue.Queue()
         self.seen: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
@@ -82,6 +87,16 @@ class Service:
         while (line := self.lines.get(timeout=WAIT_S)) is not None:
             self.seen.append(line)
         return self.proc.wait(timeout=WAIT_S)
+
+
+@pytest.fixture(autouse=True)
+def no_service_left_running():
+    yield
+    while Service.started:
+        s = Service.started.pop()
+        if s.proc.poll() is None:
+            s.proc.kill()
+        s.proc.wait(timeout=WAIT_S)
 
 
 def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_uninterrupted_run(tmp_path):
