@@ -149,7 +149,7 @@ def commission_from_samples(samples, seconds: float, tracked: Sequence[str], par
     sig = {k: np.asarray(v[:n], float) for k, v in samples.signals.items()}
     rec = Record(dt, sig, "commissioning")
     model = get_model("msp25")
-    base = model.params(**dict(params or {}))
+    base = model.params((), **dict(params or {}))
     res = fit(model, [rec], tuple(tracked), base=base, timing=timing)
     noise = {}
     for o in NOISE_KEYS:

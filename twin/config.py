@@ -119,7 +119,7 @@ def default_baseline(model_name: str, params: dict[str, float] | None = None,
                      names: tuple[str, ...] | None = None) -> dict[str, Baseline]:
     """Bands around the rig configuration's values (the paper's Table 9 for the MSP25)."""
     model = get_model(model_name)
-    ps = model.params(**(params or {}))
+    ps = model.params((), **(params or {}))
     out = {}
     for n in names or model.PHENOMENOLOGICAL:
         v = ps[n]

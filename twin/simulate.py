@@ -7,6 +7,7 @@ chamber pressures with 20 kPa noise; the oscillator's displacement with 1 um.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from twin.record import Record
 DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4, "y": 1e-6, "u": 0.0, "x_ref": 0.0}
 
 #: default experiments per model: (excitation kind, driving signal, amplitude, band)
-DEFAULT_EXPERIMENT = {
+DEFAULT_EXPERIMENT: dict[str, dict[str, Any]] = {
     "msp25": {"kind": "multisine", "drive": "x_ref", "amplitude": 0.01, "f_lo": 0.2, "f_hi": 12.0},
     "oscillator": {"kind": "multisine", "drive": "u", "amplitude": 100.0, "f_lo": 1.0, "f_hi": 30.0},
 }

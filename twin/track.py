@@ -19,6 +19,7 @@ import argparse
 import os
 import sys
 from collections.abc import Iterable
+from types import SimpleNamespace
 
 from twin.cliutil import add_map_argument, add_timing_arguments, dump, kv, names, source_options, timing_of
 from twin.events import format_alarm
@@ -116,12 +117,9 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     every = max(1, int(estimate_every))
     twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
     if noise or timing is not None or commission is not None:
-        class _Rig:  # the rig configuration plus what the command line adds
-            pass
-
-        r = _Rig()
-        r.model, r.params, r.track = "msp25", dict(params or {}), tracked
-        r.noise, r.timing, r.commission = dict(noise or {}), timing, commission
+        # the rig configuration plus what the command line adds
+        r = SimpleNamespace(model="msp25", params=dict(params or {}), track=tracked,
+                            noise=dict(noise or {}), timing=timing, commission=commission)
         twin.tracker = tracker_for(r)
     try:
         for block in _blocks(source, chunk, dbc):
@@ -192,7 +190,7 @@ def run_track(args) -> int:
     if args.set:
         model = get_model("msp25")
         over = kv(args.set)
-        model.params(**over)  # checks names and ranges
+        model.params((), **over)  # checks names and ranges
         params.update(over)
     noise = kv(args.noise_levels) if args.noise_levels else None
     if noise:

@@ -110,11 +110,11 @@ class TrackBlock:
     frozen: np.ndarray          # [T, p] bool
     innovation: np.ndarray      # [T, m] SI
     states: np.ndarray          # [T, 6] SI
-    guard: np.ndarray = None    # [T] guard names (twin.ukf.GUARD); 'consistent' when the evidence counts
-    sensors: np.ndarray = None  # [T, m] sensor status names (twin.ukf.SENSOR)
-    noise: np.ndarray = None    # [T, m] learnt noise standard deviation (SI)
+    guard: np.ndarray | None = None    # [T] guard names (twin.ukf.GUARD); 'consistent' when the evidence counts
+    sensors: np.ndarray | None = None  # [T, m] sensor status names (twin.ukf.SENSOR)
+    noise: np.ndarray | None = None    # [T, m] learnt noise standard deviation (SI)
     outputs: tuple = ()
-    used: np.ndarray = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
+    used: np.ndarray | None = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
 
     @property
     def param_status(self) -> np.ndarray:
@@ -174,7 +174,7 @@ class OnlineTracker:
         if model != "msp25":
             raise ParameterError(f"the tracker follows the msp25 rig model, not {model!r}")
         self.model = get_model(model)
-        self.ps = self.model.params(**dict(params or {}))
+        self.ps = self.model.params((), **dict(params or {}))
         self.tracked = tuple(tracked)
         bad = [t for t in self.tracked if t not in ukf.TRACKABLE]
         if bad or not self.tracked:
@@ -303,6 +303,7 @@ class OnlineTracker:
         """The ``Q`` the kernel adds over ``dt`` seconds at state ``x`` (for filterpy mirrors)."""
         x = self.x if x is None else x
         P = self.P if P is None else P
+        assert self.dt is not None, "the sample time is not known yet"
         n, nm = self.n, self.nmod
         Q = np.zeros((n, n))
         Q[np.arange(6), np.arange(6)] = self.q_state * dt / self.dt
@@ -325,6 +326,7 @@ class OnlineTracker:
     def _start_from_data(self, samples: Samples) -> None:
         """The measured state at the first sample (rod position, chamber pressures) instead of rest."""
         sig = samples.signals
+        assert self.dt is not None  # process() learns it first
         if len(samples) >= 8:
             init = self.model.initial_from_data({k: v for k, v in sig.items() if k in self.outputs
                                                  and np.all(np.isfinite(v[:8]))}, self.dt)

@@ -9,12 +9,12 @@ from twin.models.base import Model, SimResult
 def get_model(name: str) -> Model:
     """The model called ``name`` (``msp25`` or ``oscillator``)."""
     if name == "msp25":
-        from twin.models.msp25 import MODEL
-    elif name == "oscillator":
-        from twin.models.oscillator import MODEL
-    else:
-        raise ParameterError(f"unknown model {name!r}; known: msp25, oscillator")
-    return MODEL
+        from twin.models import msp25
+        return msp25.MODEL
+    if name == "oscillator":
+        from twin.models import oscillator
+        return oscillator.MODEL
+    raise ParameterError(f"unknown model {name!r}; known: msp25, oscillator")
 
 
 MODELS = ("msp25", "oscillator")

@@ -135,6 +135,7 @@ class Model(abc.ABC):
     substeps: int = 3             # RK4 substeps per sample
     INIT: tuple[str, ...] = ()    # initial-state quantities
     INIT_IF_MOVING: tuple[str, ...] = ()  # estimated by default when a record does not start at rest
+    PHENOMENOLOGICAL: tuple[str, ...]  # the model's phenomenological parameters
 
     # --- parameters -----------------------------------------------------------------
     @property

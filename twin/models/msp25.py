@@ -485,7 +485,7 @@ class MSP25(Model):
         S0[:, 5] = v0
         return S0
 
-    def initial_from_data(self, signals, dt):
+    def initial_from_data(self, signals: Mapping[str, np.ndarray], dt: float) -> dict[str, float]:
         """The measured state at the first sample: rod position and both chamber pressures.
 
         Each is read through a cubic over the first 20 ms (noise averages out).
