@@ -61,7 +61,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
@@ -623,7 +623,7 @@ def fetch_latest(
     rig: str = "*",
     *,
     timeout: float = 5.0,
-) -> list[EstimateEvent] | list[StatusEvent]:
+) -> list[EstimateEvent | StatusEvent]:
     """The latest estimate or status of each matching running twin (a plain ``get``).
 
     :param what: ``"estimate"`` or ``"status"``.
@@ -632,6 +632,7 @@ def fetch_latest(
     :returns: one event per twin that has published one, sorted by rig.
     """
     keys = RigKeys(rig)
+    parse: Callable[[Any], EstimateEvent | StatusEvent]
     if what == "estimate":
         key, parse = keys.estimate, EstimateEvent.from_dict
     elif what == "status":
@@ -839,6 +840,7 @@ class AlarmSubscriber(_Declarations):
             )
             for reply in replies:
                 if reply.ok is None:
+                    assert reply.err is not None  # a reply is either ok or an error
                     log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
                     continue
                 try:
@@ -856,6 +858,7 @@ class AlarmSubscriber(_Declarations):
     def _fill(self, rig: str) -> list[AlarmEvent]:
         """Fetch what the history holds for ``rig`` from the first number not yet handed over."""
         gaps = self._gaps.get(rig)
+        since_seq: int | None
         if gaps:
             since_seq, since_t_ns = min(lo for lo, _ in gaps), None
         elif rig in self._last:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, ClassVar, Self
@@ -175,6 +175,7 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
 
     from twin.models import get_model
 
+    show: Callable[[float], str]
     try:
         show = get_model(model).params(effects=()).spec(event.parameter).show
     except Exception:  # a parameter of another model or an effect: SI with no unit rather than nothing
@@ -252,7 +253,7 @@ class _FromJson:
     """``from_dict`` shared by the event classes: validate against ``SCHEMA``, then build."""
 
     __slots__ = ()
-    SCHEMA: dict[str, Any]
+    SCHEMA: ClassVar[dict[str, Any]]
 
     @classmethod
     def from_dict(cls, data: Any) -> Self:
@@ -368,7 +369,8 @@ class AlarmEvent(_FromJson):
         data = _as_mapping(data, cls.__name__)
         if "unit" not in data and isinstance(data.get("parameter"), str):
             data = {**data, "unit": _si_unit(data["parameter"])}
-        return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]  (slots dataclass: no zero-argument super)
+        # slots dataclass: no zero-argument super
+        return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]
 
     def with_seq(self, seq: int) -> Self:
         """A copy carrying sequence number ``seq``."""
@@ -483,8 +485,9 @@ class EstimateEvent(_FromJson):
         if (not all(math.isfinite(v) for v in vals) or not all(math.isfinite(v) and v >= 0 for v in sds)
                 or not 0 <= t_ns <= INT64_MAX or not math.isfinite(t_s)
                 or (nis is not None and not (math.isfinite(nis) and nis >= 0))):
-            return cls(rig, t_ns, t_s, {n: {"value": v, "std": sd, "unit": u}
-                                        for n, v, sd, u in zip(names, vals, sds, units)}, nis, status)
+            plain: dict[str, Any] = {n: {"value": v, "std": sd, "unit": u}  # converted by __post_init__
+                                     for n, v, sd, u in zip(names, vals, sds, units)}
+            return cls(rig, t_ns, t_s, plain, nis, status)
         ev = object.__new__(cls)
         params = {}
         for n, v, sd, u in zip(names, vals, sds, units):

@@ -148,7 +148,7 @@ class RigTwin(Sink):
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
         self.last_t_ns: int | None = None
         self._t0_ns: int | None = None
-        self._last_status = None
+        self._last_status: tuple[str, str, tuple[tuple[str, str], ...]] | None = None
         self._last_status_wall = 0.0
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)

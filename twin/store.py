@@ -41,7 +41,7 @@ import zlib
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import BinaryIO, Self
 
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.events import AlarmEvent, AlarmIdentity, event_to_json
@@ -103,7 +103,7 @@ class Store:
     def __init__(self, path: str | os.PathLike[str], *, writer: bool = True, lock_wait_s: float = 5.0) -> None:
         self.path = Path(path)
         self._lock = threading.RLock()
-        self._lockfile = None
+        self._lockfile: BinaryIO | None = None
         self._db: sqlite3.Connection | None = None
         try:
             if writer:
@@ -304,7 +304,8 @@ class Store:
     def alarms(self, rig: str | None = None, since_seq: int | None = None,
                since_t_ns: int | None = None) -> list[AlarmEvent]:
         """Journaled alarms (``rig`` None or ``"*"``: all), by rig then seq; ``since_*`` inclusive."""
-        sql, args = "SELECT payload FROM alarms WHERE 1=1", []
+        sql = "SELECT payload FROM alarms WHERE 1=1"
+        args: list[str | int] = []
         if rig not in (None, "*"):
             sql += " AND rig=?"
             args.append(rig)

@@ -19,6 +19,7 @@ import json
 import threading
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 from twin.reports.units import Shown, pretty_unit
@@ -121,7 +122,7 @@ def render(snap: dict, where: str, live: bool = True):
     from rich.table import Table
     from rich.text import Text
 
-    parts = [Text(f"twin top · {len(snap)} rig(s) via {where}" + (" · Ctrl-C to quit" if live else ""), style="dim")]
+    parts: list[Text | Table] = [Text(f"twin top · {len(snap)} rig(s) via {where}" + (" · Ctrl-C to quit" if live else ""), style="dim")]
     for rig, r in snap.items():
         state = r["state"] or "?"
         title = Text.assemble(("rig ", "bold"), (rig, "bold"), "  ", (state, STATE_STYLE.get(state, "")),
@@ -198,7 +199,8 @@ def run_top(args) -> int:
     session = open_session(config, "twin top")
     subs = []
     try:
-        parse = {"estimate": EstimateEvent.from_dict, "status": StatusEvent.from_dict, "alarm": AlarmEvent.from_dict}
+        parse: dict[str, Callable[[Any], EstimateEvent | StatusEvent | AlarmEvent]] = {
+            "estimate": EstimateEvent.from_dict, "status": StatusEvent.from_dict, "alarm": AlarmEvent.from_dict}
 
         def handler(kind):
             def on_sample(sample) -> None:
