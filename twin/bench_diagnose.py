@@ -18,6 +18,7 @@ import json
 import os
 import sys
 import time
+from typing import Any
 
 from twin.diagnose import diagnose
 from twin.fit import fit
@@ -60,7 +61,7 @@ def run(duration_s: float = 20.0, quick: bool = False) -> dict:
     cases = [("product, one effect", _product_record(("viscous_friction",), duration_s, 12), ["viscous_friction"])]
     if not quick:
         cases += _reference_records(duration_s)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for label, rec, expect in cases:
         t0 = time.perf_counter()
         fit(rig, rec.slice(0, int(0.75 * len(rec))), rig.PHENOMENOLOGICAL, n_starts=8, spread=1.5, max_nfev=80)

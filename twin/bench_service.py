@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -161,12 +162,13 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
             while time.monotonic() - t0 < seconds:
                 time.sleep(5.0)
                 if proc.poll() is not None:
+                    assert proc.stderr is not None  # started with stderr=PIPE
                     raise RuntimeError(f"twin serve ended early: {proc.stderr.read()}")
-                rss = sum(_rss_kib(p) for p in _tree(proc.pid))
-                samples.append((time.monotonic() - t0, rss))
+                now_rss = sum(_rss_kib(p) for p in _tree(proc.pid))
+                samples.append((time.monotonic() - t0, now_rss))
                 for _, st in watch.drain():
                     lags.setdefault(st["rig"], []).append(st["counters"].get("lag_ms", 0) / 1000)
-                say(f"  t={samples[-1][0]:6.0f} s  RSS {rss / 1024:7.1f} MiB  rigs reporting {len(lags)}")
+                say(f"  t={samples[-1][0]:6.0f} s  RSS {now_rss / 1024:7.1f} MiB  rigs reporting {len(lags)}")
         finally:
             err = _stop(proc)
             watch.close()
@@ -212,7 +214,8 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
             t0 = time.monotonic()
             finished: set[str] = set()
             lags: dict[str, list[float]] = {}
-            cpu0 = cpu1 = None
+            cpu0: float | None = None
+            cpu1: float | None = None
             tc0 = tc1 = 0.0
             deadline = t0 + seconds + 120.0
             while len(finished) < n and time.monotonic() < deadline and proc.poll() is None:
@@ -229,12 +232,13 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
                         cpu0, tc0 = now_cpu, now_t
                     elif cpu0 is not None:
                         cpu1, tc1 = now_cpu, now_t
-            cpu = (cpu1 - cpu0) / (tc1 - tc0) if cpu0 is not None and tc1 > tc0 else float("nan")
+            # tc1 > tc0 only once cpu1 is measured too
+            cpu = (cpu1 - cpu0) / (tc1 - tc0) if cpu0 is not None and cpu1 is not None and tc1 > tc0 else float("nan")
             err = _stop(proc)
             watch.close()
             # the steady part: each rig's statuses after its first 5 s
             steady = [x for v in lags.values() for x in v[5:]]
-            row = {"rigs": n, "finished": len(finished), "lag_max_s": max(steady, default=float("nan")),
+            row: dict[str, Any] = {"rigs": n, "finished": len(finished), "lag_max_s": max(steady, default=float("nan")),
                    "lag_p95_s": float(np.percentile(steady, 95)) if steady else float("nan"),
                    "cpu_cores_busy": cpu, "errors": [line for line in err.splitlines() if "error" in line][:3]}
             row["real_time"] = row["finished"] == n and row["lag_max_s"] < 1.0

@@ -23,8 +23,12 @@ import socket
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING
 
 from twin.events import format_alarm
+
+if TYPE_CHECKING:
+    from twin.service import RigTwin
 
 
 def free_port() -> int:
@@ -99,7 +103,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
         expected = [10 ** 9]
         th = threading.Thread(target=subscriber, name="alarm-subscriber", daemon=True)
         th.start()
-        twins = {}
+        twins: dict[str, RigTwin] = {}
         stats = serve(cfg, session=srv_session, twins=twins)
         twin = twins[rig_name]
         expected[0] = len(twin.alarms)

@@ -73,6 +73,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -513,7 +514,7 @@ def _gain(before: ModelState, after: ModelState, data: _Data | None = None) -> d
     def figures(st: ModelState) -> dict:
         return {o: {k: st.holdout[o][k] for k in ("fit_pct", "nrmse")} for o in st.fit.outputs}
 
-    out = {"holdout": {"before": figures(before), "after": figures(after)},
+    out: dict[str, Any] = {"holdout": {"before": figures(before), "after": figures(after)},
            "holdout_fit_pct_gain": {o: after.holdout[o]["fit_pct"] - before.holdout[o]["fit_pct"]
                                     for o in after.fit.outputs}}
     if data is not None:
@@ -632,7 +633,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
         neutral, typical = E.neutral[prim], E.typical[prim]
         direction = 1.0 if typical > neutral else -1.0
         sec_idx = [j for j in range(len(E.params)) if j not in movers]
-        sec_grid = [{}]
+        sec_grid: list[dict[str, float]] = [{}]
         for j in sec_idx:
             s = E.params[j]
             vals = sorted({float(np.clip(E.typical[j] * f, s.lo, s.hi)) for f in SECONDARY})
@@ -664,6 +665,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
         y = np.array([rec[o][:n] / data.sigma[o] for o in data.outputs])
         raw.append(np.concatenate([(y - Y[0])[None], Y[1:] - Y[0]], axis=0))
     nm = _clean_noise_model(data, raw) or state.noise
+    assert nm is not None  # the state's model was fitted with its noise model
     _set_noise(data, state, nm)
     R, C = [], []
     for W in raw:
@@ -827,9 +829,9 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
     near = dict(cur.fit.estimate)
     for s, n, v in zip(E.params, E.neutral, E.typical):
         near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
-    t = None
+    t: Trial | None = None
     for attempt, start in enumerate(ranked[:2] + [near]):
-        if attempt == 2 and t.state.fit.cost < cur.fit.cost:
+        if attempt == 2 and t is not None and t.state.fit.cost < cur.fit.cost:
             break
         st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
         cand = _judge(data, (row.effect,), cur, st, min_share)
@@ -837,6 +839,7 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
             t = cand
         if t.accepted:
             break
+    assert t is not None  # the loop ran at least once (the start near neutral)
     return t
 
 
@@ -886,7 +889,7 @@ def _try_pair(data: _Data, cur: ModelState, a: Trial, b: Trial, seed: int, min_s
     base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured},
                    {n: a.state.fit.estimate[n] for n in cur.free}, {n: b.state.fit.estimate[n] for n in cur.free}]
     ranked = _rank_starts(data, ps, [{**bs, **ev} for bs in base_starts for ev in (eff_vals, typical)], cur.timing)
-    best = None
+    best: Trial | None = None
     for start in ranked[:2]:
         st = _fit_state(data, ps.update(start), names, start, 1, seed, cur.timing)
         t = _judge(data, effects, cur, st, min_share)
@@ -894,6 +897,7 @@ def _try_pair(data: _Data, cur: ModelState, a: Trial, b: Trial, seed: int, min_s
             best = t
         if best.accepted:
             break
+    assert best is not None, "no start to refine"
     each = all(_lr(single.state, best.state, data)[1] < data.alpha for single in (a, b))
     return best, each
 
@@ -1129,7 +1133,7 @@ def plot_report(diag: Diagnosis, out_dir: str) -> list[str]:
     paths.append(p)
     # each effect's own signature: residual before vs the regime variable, and the effect's contribution
     reg = regime_signals(diag.model, rec, nom)
-    steps = []
+    steps: list[tuple[int, str]] = []
     for i in range(1, len(diag.path)):
         new = [c for c in diag.causes if c not in diag.path[i - 1].effects and c in diag.path[i].effects]
         if diag.path[i].timing != diag.path[i - 1].timing:

@@ -48,7 +48,7 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Callable
 
 import numpy as np
@@ -60,6 +60,12 @@ from twin.events import AlarmEvent, StatusEvent, event_to_json
 from twin.journal import AlarmJournal
 from twin.service import RigStats, RigTwin, fingerprint, make_twin
 from twin.store import Checkpoint
+
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
+    from multiprocessing.queues import Queue as MpQueue
+
+    from replay.mcapio import McapSink
 
 log = logging.getLogger("twin.serve")
 
@@ -278,7 +284,7 @@ class RigRunner:
         self.summary = RigSummary(rig.name)
         self.outbox = Outbox(rig.name, journal, out)
         self.twin: RigTwin | None = None
-        self.recorder = None
+        self.recorder: McapSink | None = None
         self._fp = fingerprint(rig, cfg.estimate_every)
         self._last_cp = time.monotonic()
         self._cp_error: str | None = None
@@ -339,6 +345,7 @@ class RigRunner:
                         "(alarms journaled before are not raised twice)", self.rig.name,
                         time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cp.saved_at)))
             return
+        assert self.twin is not None  # made by _open
         try:
             state = pickle.loads(cp.state)
             self.twin.restore(state)
@@ -391,6 +398,7 @@ class RigRunner:
 
     def _run_log(self) -> None:
         twin = self.twin
+        assert twin is not None  # made by _open
         position = twin.last_t_ns
         try:
             src = open_rig_source(self.rig, self.session)
@@ -423,7 +431,7 @@ class RigRunner:
                     raise _Stopped
         report = getattr(src, "report", None)
         skipped = sum(report.skipped.values()) if report is not None else 0
-        if skipped:
+        if skipped and report is not None:
             self._notes = f"the log had {skipped} unusable record(s): {report.summary()}"
             self.summary.message = self._notes
 
@@ -527,6 +535,7 @@ class RigRunner:
         for cause, n in list(report.skipped.items()):
             name = "dropped_" + "".join(c if c.isalnum() else "_" for c in str(cause))
             self._dropped[name] = self._dropped_base.get(name, 0) + int(n)
+        assert self.twin is not None  # made by _open
         self.twin.health.counters.update(self._dropped)
 
     def _live_block(self, blocks: list[Samples], lag: LiveLag) -> None:
@@ -536,6 +545,7 @@ class RigRunner:
             return
         self._stale_since = None
         self._process(block, live=True)
+        assert self.twin is not None  # made by _open
         if self.twin.last_t_ns is not None:
             self._lag = lag.lag(self.twin.last_t_ns)
         self._tick()
@@ -554,6 +564,7 @@ class RigRunner:
         if src is not None:
             self._input_counters(src)
         twin = self.twin
+        assert twin is not None  # made by _open
         twin.health.state = "stale_input"
         twin.health.counters["stale_ms"] = int(quiet * 1000)
         twin.health.message = f"no input from {self.rig.source} for {quiet:.1f} s" + (f" ({why})" if why else "")
@@ -566,10 +577,12 @@ class RigRunner:
 
     def _process(self, block: Samples, live: bool) -> None:
         twin = self.twin
+        assert twin is not None  # made by _open
         if live:
-            block = self._clean(block)
-            if block is None:
+            cleaned = self._clean(block)
+            if cleaned is None:
                 return
+            block = cleaned
         last = twin.last_t_ns
         dt = twin.tracker.dt
         if last is not None and dt and (int(block.t_ns[0]) - last) * 1e-9 > max(GAP_S, 20 * dt):
@@ -600,6 +613,7 @@ class RigRunner:
 
     def _restart_filter(self, why: str, good: dict | None = None) -> None:
         twin = self.twin
+        assert twin is not None  # made by _open
         est = good if good is not None else twin.tracker.estimate()
         start = {n: v for n, (v, _) in est.items() if math.isfinite(v) and v > 0}
         twin.restart_filter(start)
@@ -610,6 +624,7 @@ class RigRunner:
         """A live block without samples at or before the last one processed, or without a finite drive."""
         t = block.t_ns
         keep = np.ones(len(block), dtype=bool)
+        assert self.twin is not None  # made by _open
         last = self.twin.last_t_ns
         if last is not None:
             keep &= t > last
@@ -627,6 +642,7 @@ class RigRunner:
     def _tick(self) -> None:
         """After each block: health into the status, a checkpoint when due, the batch to the bus."""
         twin = self.twin
+        assert twin is not None  # made by _open
         h = twin.health
         warn = []
         if self._lag is not None:
@@ -840,10 +856,10 @@ class Fleet:
         journals: dict[str, AlarmJournal] = {}
         histories: dict[str, Any] = {}
         front = None
-        procs: list[tuple[mp.Process, list[str]]] = []
+        procs: list[tuple[BaseProcess, list[str]]] = []
         ctx = mp.get_context("spawn")
         # One queue from every runner to the bus; a process-safe one once there are workers.
-        inbox = ctx.Queue() if self.remote else queue.Queue()
+        inbox: MpQueue[Any] | queue.Queue[Any] = ctx.Queue() if self.remote else queue.Queue()
         stop_pipes: list = []
         threads: list[threading.Thread] = []
         try:
@@ -869,8 +885,8 @@ class Fleet:
                 procs.append((p, [r.name for r in group]))
             for t in threads:
                 t.start()
-            for p, _ in procs:
-                p.start()
+            for proc, _ in procs:
+                proc.start()
             self._loop(front, inbox, procs)
         finally:
             self.stop.set()
@@ -890,7 +906,7 @@ class Fleet:
                     h.close()
             for j in journals.values():
                 j.close()
-            if self.remote:
+            if self.remote and not isinstance(inbox, queue.Queue):  # the process-safe one
                 inbox.close()
                 inbox.join_thread()
         return self.summaries

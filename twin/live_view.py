@@ -36,10 +36,13 @@ from __future__ import annotations
 import json
 import math
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
 from twin.reports.units import Shown, pretty_unit, signal_unit
+
+if TYPE_CHECKING:
+    from foxglove.websocket import WebSocketServer
 
 Z95 = 1.959963984540054
 
@@ -146,12 +149,15 @@ class LiveView:
         self._channels = {k: foxglove.Channel(topic, schema=schema, context=self._ctx)
                           for k, (topic, schema) in TOPICS.items()}
         self._subscribed: dict[str, threading.Event] = {topic: threading.Event() for topic, _ in TOPICS.values()}
-        self._server = foxglove.start_server(name=name, host=host, port=port, context=self._ctx,
-                                             server_listener=_Listener(self._subscribed))
+        # _Listener implements only on_subscribe of foxglove's ServerListener protocol, the one callback used
+        self._server: WebSocketServer | None = foxglove.start_server(
+            name=name, host=host, port=port, context=self._ctx,
+            server_listener=_Listener(self._subscribed))  # type: ignore[arg-type]
 
     # ------------------------------------------------------------------ life
     @property
     def port(self) -> int:
+        assert self._server is not None, "the live view is closed"
         return int(self._server.port)
 
     @property

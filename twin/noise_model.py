@@ -127,7 +127,7 @@ def _ar_fit(blocks: Sequence[np.ndarray], orders: Sequence[int]) -> tuple[int, n
             continue
         aic[p] = n * math.log(v) + 2.0 * p
         coefs[p] = c[:p]
-    p = min(aic, key=aic.get)
+    p = min(aic, key=lambda q: aic[q])
     return p, coefs[p], aic
 
 

@@ -73,7 +73,7 @@ def _best_start(result) -> int:
     finals = {}
     for h in result.history:
         finals[h["start"]] = h["cost"]
-    return min(finals, key=finals.get) if finals else 0
+    return min(finals, key=lambda s: finals[s]) if finals else 0
 
 
 def paper_table(rows: list[dict], out_dir: str) -> str:

@@ -220,7 +220,7 @@ def trends_figure(t: np.ndarray, params: Sequence[dict], alarms: Sequence[dict] 
                 _limits(ax, t, p)
             for a in alarms:
                 if a.get("parameter") == p.get("name"):
-                    ax.axvline(a["t_s"], color=LEVEL_COLOURS.get(a.get("level"), GREEN), lw=1.0,
+                    ax.axvline(a["t_s"], color=LEVEL_COLOURS.get(a.get("level", ""), GREEN), lw=1.0,
                                ls="-" if a.get("level") != "ok" else "--")
             if p.get("log"):
                 ax.set_yscale("log")
