@@ -16,6 +16,7 @@ import abc
 import dataclasses
 from collections import Counter
 from collections.abc import Iterator, Mapping
+from typing import Self
 
 import numpy as np
 
@@ -232,7 +233,7 @@ class Source(abc.ABC):
     path: str
     report: ReadReport
 
-    def __enter__(self) -> Source:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -261,7 +262,7 @@ class Source(abc.ABC):
 class Sink(abc.ABC):
     """Where samples are written. Use as a context manager."""
 
-    def __enter__(self) -> Sink:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:

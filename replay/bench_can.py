@@ -19,6 +19,7 @@ import json
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,7 +85,7 @@ def run(seconds: float = 60.0, repeat: int = 3, formats: bool = True, block: int
 
     t_vec = _best(vectorised, repeat)
     t_ct = _best(per_frame, max(1, repeat - 1))
-    out = {
+    out: dict[str, Any] = {
         "frames": n, "log_seconds": seconds,
         "vectorised_frames_per_s": n / t_vec,
         "cantools_frames_per_s": n / t_ct,

@@ -40,7 +40,9 @@ def main() -> None:
             sink.write(s)
         data = bytearray(p.read_bytes())
         with open(p, "rb") as f:
-            first = min(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+            summary = make_reader(f).get_summary()
+        assert summary is not None  # McapSink writes a summary
+        first = min(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
         data[first.chunk_start_offset + first.chunk_length // 2] ^= 0xFF
         bad = Path(d) / "bad.mcap"
         bad.write_bytes(bytes(data))
@@ -58,7 +60,7 @@ def main() -> None:
                 i = len(lines) // 10
                 ln = bytearray(lines[i])
                 ln[-2] = ord("Z")  # a character of the data bytes
-                lines[i] = bytes(ln)
+                lines[i] = ln
                 b = bytearray(b"\n".join(lines))
             bad = Path(d) / f"bad{suf}"
             bad.write_bytes(bytes(b))

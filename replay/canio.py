@@ -314,7 +314,11 @@ def make_plan(codec: VectorCodec, seen: dict[int, Decoded] | None, signals: Sequ
             if codec.message_of(s) is None:
                 raise DataError(f"{source}: signal {s!r} is in no message of the DBC {codec.source}; "
                                 f"available: {', '.join(codec.rig_signals)}")
-    message_of = {s: codec.message_of(s).key for s in signals}
+    message_of = {}
+    for s in signals:
+        lay = codec.message_of(s)
+        assert lay is not None  # a signal of the DBC's rig messages, or checked above
+        message_of[s] = lay.key
     keys = sorted(set(message_of.values()))
 
     def period_ns(k: int) -> int | None:
@@ -493,6 +497,7 @@ class Aligner:
                     self.buf_v[k][s] = self.buf_v[k][s][i:]
 
     def _report_warmup(self, final: bool) -> None:
+        assert self.warmup_t is not None  # set with the first grid instant dropped
         a, b = self.warmup_t
         missing = [s for s in self.plan.signals if self.buf_t[self.plan.message_of[s]].size == 0]
         what = (f"{self.warmup} grid sample(s) dropped before every signal had a first value"
@@ -1038,7 +1043,7 @@ class FrameScheduler:
         self.t0: int | None = None
         self.last_slot: dict[int, int] = {}
         self.counter: dict[int, int] = {}
-        self.skipped = Counter()
+        self.skipped: Counter[str] = Counter()
         self.frames_out = 0
         self.step = 0  # ns, median sample step seen so far
 
@@ -1133,11 +1138,12 @@ class CanLogSink(Sink):
         writer_cls = FORMATS[suf][1]
         try:
             if writer_cls is can.CanutilsLogWriter:
-                self.channel = channel if isinstance(channel, str) else f"can{channel}"
+                self.channel: str | int = channel if isinstance(channel, str) else f"can{channel}"
                 self.writer = writer_cls(str(self.path), channel=self.channel)
             else:
-                self.channel = channel if isinstance(channel, int) else 0
-                self.writer = writer_cls(str(self.path), channel=self.channel + 1)
+                number = channel if isinstance(channel, int) else 0
+                self.channel = number
+                self.writer = writer_cls(str(self.path), channel=number + 1)
         except OSError as e:
             raise SourceError(f"{self.path}: cannot write CAN log: {e}") from e
         self._closed = False

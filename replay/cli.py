@@ -51,7 +51,7 @@ try:
 except ModuleNotFoundError as exc:  # replay.play is written separately; only its absence is tolerated
     if exc.name != "replay.play":
         raise
-    _play = None
+    _play = None  # type: ignore[assignment]  # the optional-module idiom
 
 
 def version() -> str:
@@ -117,7 +117,8 @@ def info(path: str, **options: Any) -> dict[str, Any]:
                     f"/rig/signals_block): {d['messages']} messages on {len(d['topics'])} topic(s)"}
     with open_source(path, **options) as src:
         n = 0
-        t_first = t_last = None
+        t_first: int | None = None
+        t_last: int | None = None
         ranges: dict[str, list[float]] = {}
         steps: list[float] = []
         for block in src.chunks():
@@ -136,7 +137,8 @@ def info(path: str, **options: Any) -> dict[str, Any]:
                 lo, hi = float(fin.min()), float(fin.max())
                 r = ranges.setdefault(k, [lo, hi])
                 r[0], r[1] = min(r[0], lo), max(r[1], hi)
-        duration = (t_last - t_first) * 1e-9 if n else 0.0
+        # n > 0: both are set
+        duration = (t_last - t_first) * 1e-9 if n and t_first is not None and t_last is not None else 0.0
         out: dict[str, Any] = {
             "file": path,
             "kind": "samples",

@@ -349,8 +349,9 @@ class CsvSource(Source):
         t_s = table[:, self._t_col]
         if not self._time_checked:
             self._check_time_unit(t_s)
-        if self._units[self._t_col] is not None:
-            t_s = to_si(t_s, self._units[self._t_col], what=f"{self.path}: column {self._columns[self._t_col]!r}")
+        t_unit = self._units[self._t_col]
+        if t_unit is not None:
+            t_s = to_si(t_s, t_unit, what=f"{self.path}: column {self._columns[self._t_col]!r}")
         good_t = np.isfinite(t_s) & (np.abs(t_s) < 9.2e9)
         if not good_t.all():
             bad = np.flatnonzero(~good_t)

@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 from collections.abc import Mapping
+from typing import cast
 
 import cantools
 import cantools.database
@@ -137,7 +138,7 @@ class Frames:
         return Frames(np.zeros(0, np.int64), np.zeros(0, np.uint32), np.zeros(0, np.uint8),
                       np.zeros((0, 8), np.uint8), np.zeros(0, np.uint8))
 
-    def take(self, idx: np.ndarray) -> Frames:
+    def take(self, idx: np.ndarray | slice) -> Frames:
         return Frames(self.t_ns[idx], self.key[idx], self.dlc[idx], self.data[idx], self.kind[idx])
 
     @staticmethod
@@ -412,7 +413,9 @@ class VectorCodec:
         msg = self._cantools[lay.key]
         out = {s.name: np.full(len(data), np.nan) for s in lay.signals}
         for i, row in enumerate(np.asarray(data, np.uint8)):
-            for k, v in msg.decode(bytes(row[: lay.length]), decode_choices=False).items():
+            # decode_choices=False: a plain mapping of numbers
+            decoded = cast(dict[str, float], msg.decode(bytes(row[: lay.length]), decode_choices=False))
+            for k, v in decoded.items():
                 out[k][i] = float(v)
         return out
 

@@ -113,6 +113,8 @@ def python_can_classes(suffix: str) -> tuple[type, type]:
     import can
 
     fmt = FORMATS[suffix]
+    if fmt.can_reader is None or fmt.can_writer is None:  # as getattr(can, None) would
+        raise TypeError(f"{suffix} is not a CAN log format")
     return getattr(can, fmt.can_reader), getattr(can, fmt.can_writer)
 
 

@@ -535,6 +535,7 @@ class CanBusSource(_Live, Source):
         if self.plan is None and not self._probe(self.timeout_s):
             raise SourceError(f"{self.path}: no CAN frame of a rig message within {self.timeout_s} s; "
                               "the signals are not known yet (the source keeps waiting)")
+        assert self.plan is not None  # made by _probe
         return self.plan.signals
 
     def chunks(self, size: int = 65536) -> Iterator[Samples]:
@@ -549,6 +550,7 @@ class CanBusSource(_Live, Source):
                     continue
                 if stream is None:
                     stream = CanStream(self.codec, self.plan, self.report)
+                fr: Frames | None
                 if len(self._pending):
                     fr, self._pending = self._pending, Frames.empty()
                 else:
@@ -632,7 +634,7 @@ class _ZenohPublisher(Sink):
             raise SourceError(f"zenoh://{self.key}: cannot publish: {e}") from e
         self._matched = threading.Event()
         self._listener = self.publisher.declare_matching_listener(self._on_matching)
-        if self.publisher.matching_status.matching:
+        if self.publisher.matching_status.matching:  # type: ignore[attr-defined]  # a MatchingStatus, not the stub's bool
             self._matched.set()
         self._closed = False
 
@@ -884,13 +886,16 @@ class ZenohSource(_Live, Source):
                 self._first.append(item)
                 kind, obj = item
                 if kind == "samples":
+                    assert isinstance(obj, Samples)
                     self._signals = obj.names
                 else:
+                    assert isinstance(obj, Frames)
                     self._start_can(obj)
         return self._signals
 
     def _blocks(self, kind: str, obj, size: int) -> Iterator[Samples]:
         if kind == "samples":
+            assert self._signals is not None  # known before any block is decoded
             missing = [s for s in self._signals if s not in obj.signals]
             if missing:
                 self._drop("missing_signal", f"payload with {len(obj)} samples",
@@ -910,6 +915,7 @@ class ZenohSource(_Live, Source):
         else:
             if self._stream is None and not self._start_can(obj):
                 return
+            assert self._stream is not None  # made by _start_can
             try:
                 blk = self._stream.feed(obj)
             except (TwinError, ValueError, IndexError) as e:
@@ -932,10 +938,13 @@ class ZenohSource(_Live, Source):
                 self._ended = True
                 break
             self._first.append(item)
-            if item[0] == "samples":
-                self._signals = item[1].names
+            kind, obj = item
+            if kind == "samples":
+                assert isinstance(obj, Samples)
+                self._signals = obj.names
             else:
-                self._start_can(item[1])
+                assert isinstance(obj, Frames)
+                self._start_can(obj)
         items, self._first = self._first, []
         for kind, obj in items:
             yield from self._blocks(kind, obj, size)

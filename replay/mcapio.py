@@ -675,9 +675,10 @@ class McapSource(Source):
         for cid, ch in sorted(self._channels_by_id.items()):
             schema = self._schemas.get(ch.schema_id)
             sig = ch.metadata.get("signals", "")
-            span = spans.get(cid, [None, None])
+            first_last: Sequence[int | None] = spans.get(cid, (None, None))
             out.append(TopicInfo(ch.topic, schema.name if schema else "", ch.message_encoding,
-                                 counts.get(cid, 0), tuple(s for s in sig.split(",") if s), span[0], span[1]))
+                                 counts.get(cid, 0), tuple(s for s in sig.split(",") if s),
+                                 first_last[0], first_last[1]))
         return out
 
     def describe(self) -> dict:
@@ -970,7 +971,7 @@ class McapSource(Source):
                         pass
                 pos += 1
         finally:
-            if size:
+            if isinstance(data, mmap.mmap):  # a non-empty file
                 data.close()
 
     # -- decoding ----------------------------------------------------------------------------------
@@ -1002,16 +1003,16 @@ class McapSource(Source):
         step: int | None = None
         typical_n: int | None = None
 
-        def fill(until: int | None) -> Iterator[tuple[Samples, np.ndarray]]:
+        def fill(start: int, until: int | None) -> Iterator[tuple[Samples, np.ndarray]]:
             got = 0
-            for block, labels in self._recover(hole, until):
+            for block, labels in self._recover(start, until):
                 got += len(block)
                 yield block, labels
-            lost = self._lost_samples(hole_msgs, (hole, until), step, typical_n)
+            lost = self._lost_samples(hole_msgs, (start, until), step, typical_n)
             self.report.samples_lost += max(0, lost - got)
             if got and len(self.report.problems) < self.report.max_problems:
                 self.report.problems.append(Problem(
-                    self.path, f"t={hole * 1e-9:.6f} s" + (f"..{until * 1e-9:.6f} s" if until is not None else ".."),
+                    self.path, f"t={start * 1e-9:.6f} s" + (f"..{until * 1e-9:.6f} s" if until is not None else ".."),
                     f"{got} sample(s) of the damaged {BLOCK_TOPIC} chunk recovered from {SIGNALS_TOPIC}"))
 
         for channel, msg in messages:
@@ -1041,13 +1042,13 @@ class McapSource(Source):
                 step = int(np.median(np.diff(t[:64])))
             typical_n = typical_n or n
             if hole is not None:  # the samples of the damaged chunk(s) before this block
-                yield from fill(msg.log_time)
+                yield from fill(hole, msg.log_time)
                 hole = None
             typical_n = n
             labels = np.full(n, index, dtype=np.int64)
             yield Samples(t.astype(np.int64), {k: v.astype(np.float64) for k, v in cols.items()}), labels
         if hole is not None:
-            yield from fill(self._end_ns)
+            yield from fill(hole, self._end_ns)
 
     def _decode_rows(self, messages: Iterator[tuple[Channel | None, Any]], batch: int = 16384,
                      topic: str | None = None, count_lost: bool = True) -> Iterator[tuple[Samples, np.ndarray]]:

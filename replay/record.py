@@ -183,7 +183,7 @@ def _zenoh_to_can_log(uri: str, out: str, until: _Until, poll_s: float, conf, se
     stats = RecordStats(uri, out, "frames")
     report = ReadReport(uri)
     q: queue.Queue[bytes] = queue.Queue(maxsize=1024)
-    drops = Counter()
+    drops: Counter[str] = Counter()
 
     def on_sample(sample: zenoh.Sample) -> None:
         try:
