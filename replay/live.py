@@ -857,6 +857,17 @@ class ZenohSource(_Live, Source):
                 return item
         return None
 
+    def _take_first(self, item: tuple[str, object]) -> None:
+        """Keep a first payload for the stream and learn the signals from it (samples, or CAN frames)."""
+        self._first.append(item)
+        kind, obj = item
+        if kind == "samples":
+            assert isinstance(obj, Samples)
+            self._signals = obj.names
+        else:
+            assert isinstance(obj, Frames)
+            self._start_can(obj)
+
     def _start_can(self, frames: Frames) -> bool:
         """Alignment plan of a CAN payload stream: from ``signals`` or from the first frames."""
         try:
@@ -883,14 +894,7 @@ class ZenohSource(_Live, Source):
                         self._ended = True
                     raise SourceError(f"{self.path}: nothing received within {self.timeout_s} s; the signals are "
                                       "not known yet (the source keeps waiting)")
-                self._first.append(item)
-                kind, obj = item
-                if kind == "samples":
-                    assert isinstance(obj, Samples)
-                    self._signals = obj.names
-                else:
-                    assert isinstance(obj, Frames)
-                    self._start_can(obj)
+                self._take_first(item)
         return self._signals
 
     def _blocks(self, kind: str, obj, size: int) -> Iterator[Samples]:
@@ -937,14 +941,7 @@ class ZenohSource(_Live, Source):
             if item[0] == "end":
                 self._ended = True
                 break
-            self._first.append(item)
-            kind, obj = item
-            if kind == "samples":
-                assert isinstance(obj, Samples)
-                self._signals = obj.names
-            else:
-                assert isinstance(obj, Frames)
-                self._start_can(obj)
+            self._take_first(item)
         items, self._first = self._first, []
         for kind, obj in items:
             yield from self._blocks(kind, obj, size)

@@ -68,17 +68,14 @@ def load_params_file(model, path: str | None, overrides: dict[str, float] | None
     """A parameter set from a JSON file written by ``twin fit --save`` or ``twin diagnose --save``
     (``{"model", "effects", "params"[, "timing"]}``), with ``effects`` added and ``overrides`` applied;
     with ``with_timing`` also the saved loop timing (or None)."""
+    from twin.commission import read_saved
     from twin.errors import ConfigError
 
     doc: dict = {"effects": [], "params": {}}
     if path:
-        try:
-            with open(path) as f:
-                doc = json.load(f)
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read the parameter file ({exc.strerror})") from None
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{path}: not JSON ({exc})") from None
+        doc = read_saved(path, "parameter file")
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{path}: expected a JSON object written by twin fit --save or twin diagnose --save")
         if doc.get("model", model.name) != model.name:
             raise ConfigError(f"{path}: parameters of model {doc.get('model')!r}, expected {model.name!r}")
         if not isinstance(doc.get("params", {}), dict) or not isinstance(doc.get("effects", []), list):

@@ -112,16 +112,21 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     return Commission(params, fitted, noise, timing, effects, source)
 
 
-def load_fit(path: str) -> Commission:
-    """Read a ``twin fit --save`` file; errors name the file and the field."""
+def read_saved(path: str, what: str) -> Any:
+    """The JSON document of a ``twin fit --save`` / ``twin diagnose --save`` file; errors name the file and
+    say it is ``what``."""
     try:
         with open(path) as f:
-            doc = json.load(f)
+            return json.load(f)
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the commissioning fit ({exc.strerror})") from None
+        raise ConfigError(f"{path}: cannot read the {what} ({exc.strerror})") from None
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not JSON ({exc})") from None
-    return from_dict(doc, path)
+
+
+def load_fit(path: str) -> Commission:
+    """Read a ``twin fit --save`` file; errors name the file and the field."""
+    return from_dict(read_saved(path, "commissioning fit"), path)
 
 
 def tracker_params(c: Commission, tracked: Sequence[str]) -> tuple[dict[str, float], dict[str, float]]:
