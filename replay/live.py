@@ -81,7 +81,7 @@ True, one problem and one log line say so, ``stale_events`` counts it) and goes 
 waiting; the next data clears it.  While quiet, :meth:`chunks` yields an **empty**
 :class:`~replay.base.Samples` block every ``poll_s`` (default ``min(timeout_s,
 0.25)`` s), so a consumer looping ``for block in src.chunks(): ...`` gets control
-back to check its own stop flag (``twin.service.run_rig`` does; an empty block is a
+back to check its own stop flag (``twin.service.rig.run_rig`` does; an empty block is a
 no-op for a :class:`~replay.base.Sink`).  A service polls :meth:`idle` (seconds
 since the last usable data), ``stale`` and :meth:`health` (a dict: stale, idle_s,
 stale_events, samples_out, dropped counts per cause).  :meth:`close` may be called

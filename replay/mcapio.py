@@ -48,7 +48,7 @@ A metadata record ``fpdd.layout`` holds ``version``, ``signals_topic``,
 needs to know).  It is written with the first samples, so a file of other topics only
 (a twin output) has none: it never names a topic the file does not contain.
 
-Why the block topic (measured with ``python -m replay.bench``, 2 cores, mcap 1.6): the
+Why the block topic (measured with ``python -m benchmarks.replay``, 2 cores, mcap 1.6): the
 naive path -- ``mcap``'s reader plus one ``json.loads`` per message -- reads about
 80 000 samples/s, i.e. 45 s for a one-hour 1 kHz record (3.6 M samples); batching the
 ``json.loads`` helps only 1.4x.  The block topic reads the same hour in 1.7 s

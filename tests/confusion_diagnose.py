@@ -41,7 +41,7 @@ def cases(seeds: int) -> list[dict]:
 
 
 def run_case(c: dict, duration: float) -> dict:
-    from twin.diagnose import diagnose
+    from twin.estimation.diagnose import diagnose
     from twin.models.base import Timing
 
     rec, info = reference_record(tuple(c["effects"]), seed=c["seed"], duration=duration,

@@ -9,7 +9,7 @@ import numpy as np
 
 from twin.models import get_model
 from twin.record import Record
-from twin.simulate import default_noise, excite, measure
+from twin.models.simulate import default_noise, excite, measure
 
 RIG = get_model("msp25")
 OSC = get_model("oscillator")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from twin.events import AlarmEvent
+from twin.online.events import AlarmEvent
 
 T0_NS = 1_740_000_000_000_000_000
 

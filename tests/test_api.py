@@ -31,7 +31,7 @@ def test_every_public_name_resolves():
 def test_api_functions_survive_their_modules_being_imported():
     import importlib
 
-    for mod in ("twin.fit", "twin.track", "twin.diagnose"):
+    for mod in ("twin.estimation.fit", "twin.service.track", "twin.estimation.diagnose"):
         importlib.import_module(mod)
     assert callable(twin.fit) and callable(twin.track) and callable(twin.diagnose)
-    assert twin.fit.__module__ == "twin.fit" and twin.diagnose.__name__ == "diagnose"
+    assert twin.fit.__module__ == "twin.estimation.fit" and twin.diagnose.__name__ == "diagnose"

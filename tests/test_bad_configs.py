@@ -13,8 +13,8 @@ import pytest
 import zenoh
 
 from twin import cli
-from twin.bus import zenoh_config
-from twin.demo import free_port
+from twin.service.bus import zenoh_config
+from twin.commands.demo import free_port
 
 GOOD = """
 [zenoh]

@@ -19,7 +19,7 @@ import pytest
 import zenoh
 from zenoh import ext as zext
 
-from twin.bus import (
+from twin.service.bus import (
     AlarmSubscriber,
     RigKeys,
     TwinPublisher,
@@ -32,10 +32,10 @@ from twin.bus import (
     zenoh_config,
 )
 from twin.errors import ConfigError, DataError, SourceError
-from twin.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
-from twin.journal import AlarmJournal
-from twin.store import Store
-from twin.demo import free_port
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
+from twin.service.journal import AlarmJournal
+from twin.service.store import Store
+from twin.commands.demo import free_port
 from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from replay.base import RIG_SIGNALS, Samples
-from replay.bench_can import msp25_samples
+from benchmarks.can import msp25_samples
 from replay.canio import CanLogSink, CanLogSource
 from replay.dbc import DEFAULT_DBC, VectorCodec, load_dbc
 from twin.errors import DataError, LogFormatError, SourceError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from twin.config import load_config, parse_config
+from twin.service.config import load_config, parse_config
 from twin.errors import ConfigError
 
 GOOD = """
@@ -80,7 +80,7 @@ def test_commissioning_keys_bring_bands_noise_and_timing_from_a_saved_fit(tmp_pa
     import json
     import math
 
-    from twin.commission import tracker_for
+    from twin.online.commission import tracker_for
 
     fit = {"model": "msp25", "effects": [], "params": {"Ffric": 64.0, "CdAleak": 4.1e-9, "Cd": 0.23, "zeta": 0.41,
                                                        "wn": 2 * math.pi * 40},

@@ -445,7 +445,7 @@ def test_the_corpus_is_large_enough() -> None:
 # --- live payloads ---------------------------------------------------------------------------------
 
 def _good_frames() -> bytes:
-    from replay.bench_can import msp25_samples
+    from benchmarks.can import msp25_samples
     from replay.canio import FrameScheduler
     from replay.dbc import VectorCodec
 

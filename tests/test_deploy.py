@@ -21,11 +21,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from twin.bus import AlarmSubscriber, TwinPublisher, live_twins
-from twin.config import load_config
-from twin.events import AlarmEvent, event_to_json
-from twin.journal import AlarmJournal
-from twin.demo import free_port
+from twin.service.bus import AlarmSubscriber, TwinPublisher, live_twins
+from twin.service.config import load_config
+from twin.online.events import AlarmEvent, event_to_json
+from twin.service.journal import AlarmJournal
+from twin.commands.demo import free_port
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 ROUTER = DEPLOY / "zenoh-router.json5"

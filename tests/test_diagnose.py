@@ -10,8 +10,8 @@ import pytest
 
 from diag_helpers import OSC, RIG, oscillator_with_force_ripple, record, rig_with_pressure_sensor_drift
 from twin import cli
-from twin.diagnose import diagnose
-from twin.residuals import analyse, autocorrelation, cross_correlation, ljung_box, noise_level
+from twin.estimation.diagnose import diagnose
+from twin.estimation.residuals import analyse, autocorrelation, cross_correlation, ljung_box, noise_level
 
 # (model, effect, seed, excitation kind, excitation options).  The rig's catalogue is tested on the
 # independent reference simulator (test_diagnose_reference.py); here the oscillator's, and on the product's

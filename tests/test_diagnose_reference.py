@@ -16,11 +16,11 @@ import pytest
 
 from diag_reference import IN_CATALOGUE, reference_record
 from twin import cli
-from twin.cliutil import finite_or_none
-from twin.diagnose import CONTROLLER_RATE, _gain, diagnose, holm
+from twin.commands.common import finite_or_none
+from twin.estimation.diagnose import CONTROLLER_RATE, _gain, diagnose, holm
 from twin.models import get_model
 from twin.models.base import Timing
-from twin.noise_model import block_bootstrap, fit_noise_model, long_run_variance
+from twin.estimation.noise_model import block_bootstrap, fit_noise_model, long_run_variance
 
 RIG = get_model("msp25")
 DURATION = 6.0

@@ -1,4 +1,4 @@
-"""The drift test (twin.drift) on synthetic estimate streams: levels, hysteresis, returns, what the filter
+"""The drift test (twin.online.drift) on synthetic estimate streams: levels, hysteresis, returns, what the filter
 cannot resolve, frozen parameters, and baselines from the rig configuration or a commissioning fit."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import types
 import numpy as np
 import pytest
 
-from twin.config import Baseline, default_baseline
-from twin.drift import DriftMonitor, baseline_from_fit
+from twin.service.config import Baseline, default_baseline
+from twin.online.drift import DriftMonitor, baseline_from_fit
 from twin.errors import ParameterError
-from twin.events import AlarmEvent
+from twin.online.events import AlarmEvent
 from twin.models import msp25 as M
 
 FS = 1000.0

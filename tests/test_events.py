@@ -8,7 +8,7 @@ import math
 import pytest
 
 from twin.errors import DataError
-from twin.events import (
+from twin.online.events import (
     AlarmEvent,
     EstimateEvent,
     ParamEstimate,
@@ -195,7 +195,7 @@ def test_estimate_from_tracker_arrays_equals_the_validated_event_and_refuses_wha
 
 
 def test_alarm_names_the_si_unit_of_its_values_and_reads_older_payloads_without_it():
-    from twin.events import AlarmEvent
+    from twin.online.events import AlarmEvent
 
     ev = AlarmEvent(rig="r", parameter="wn", level="alarm", kind="raised", t_ns=5, t_s=0.005, estimate=190.0,
                     std=2.0, baseline=270.0, band_lo=235.0, band_hi=310.0, statistic=11.0, seq=1)

@@ -9,11 +9,11 @@ import pytest
 
 from twin import cli
 from twin.errors import DataError, ParameterError
-from twin.fit import fit, likelihood_ratio
+from twin.estimation.fit import fit, likelihood_ratio
 from twin.models import get_model
-from twin.paper import CASES, run_all
+from twin.estimation.paper import CASES, run_all
 from twin.record import Record
-from twin.simulate import default_noise, excite, measure
+from twin.models.simulate import default_noise, excite, measure
 
 RIG = get_model("msp25")
 OSC = get_model("oscillator")

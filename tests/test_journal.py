@@ -13,9 +13,9 @@ import pytest
 from event_helpers import T0_NS
 from event_helpers import alarm
 from twin.errors import DataError, LogFormatError, SourceError
-from twin.events import event_to_json
-from twin.journal import AlarmJournal
-from twin.store import Checkpoint, Store
+from twin.online.events import event_to_json
+from twin.service.journal import AlarmJournal
+from twin.service.store import Checkpoint, Store
 
 
 @pytest.fixture
@@ -107,7 +107,7 @@ def test_a_failed_write_keeps_the_alarm_publishes_it_and_retries(path: Path, cap
     with AlarmJournal(path) as journal:
         journal.append(alarm(i=1))
         read_only_disk(journal, True)
-        with caplog.at_level(logging.ERROR, logger="twin.journal"):
+        with caplog.at_level(logging.ERROR, logger="twin.service.journal"):
             kept = journal.record(alarm(i=2))
         assert kept.new and not kept.durable and kept.event.seq == 2
         assert str(path) in journal.write_error and "readonly" in journal.write_error

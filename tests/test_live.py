@@ -15,7 +15,7 @@ import pytest
 import zenoh
 
 from replay.base import Samples
-from replay.bench_can import msp25_samples
+from benchmarks.can import msp25_samples
 from replay.live import (CanBusSink, CanBusSource, ZenohCanSink, ZenohSampleSink, ZenohSource, frames_to_payload,
                          parse_can_uri, payload_to_frames, zenoh_config)
 from replay.live import samples_to_json as samples_json
@@ -183,7 +183,7 @@ def test_can_payload_round_trip():
 
 def _publish_can_in_child(endpoint: str, key: str, seconds: float, seed: int) -> None:
     """Another process: encode samples to MSP25 frames and publish them raw on Zenoh."""
-    from replay.bench_can import msp25_samples as make
+    from benchmarks.can import msp25_samples as make
     from replay.live import ZenohCanSink as Sink, zenoh_config as conf
 
     with Sink(key, config=conf(connect=[endpoint])) as sink:

@@ -22,12 +22,12 @@ import zenoh
 from websockets.sync.client import connect
 
 from replay.base import Samples
-from twin.bus import TwinPublisher, zenoh_config
-from twin.config import default_baseline
-from twin.demo import free_port
-from twin.events import EstimateEvent, StatusEvent, validate
-from twin.journal import AlarmJournal
-from twin.live_view import TOPICS, LiveView, foxglove_layout
+from twin.service.bus import TwinPublisher, zenoh_config
+from twin.service.config import default_baseline
+from twin.commands.demo import free_port
+from twin.online.events import EstimateEvent, StatusEvent, validate
+from twin.service.journal import AlarmJournal
+from twin.service.live_view import TOPICS, LiveView, foxglove_layout
 
 sys.path.insert(0, os.path.dirname(__file__))
 from event_helpers import T0_NS  # noqa: E402
@@ -207,7 +207,7 @@ def test_follows_a_twin_over_zenoh(view, tmp_path):
 
 def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_alarms():
     shipped = json.loads((ROOT / "deploy" / "foxglove-layout.json").read_text(encoding="utf-8"))
-    assert shipped == foxglove_layout(), "regenerate: python -m twin.live_view --layout deploy/foxglove-layout.json"
+    assert shipped == foxglove_layout(), "regenerate: python -m twin.service.live_view --layout deploy/foxglove-layout.json"
     fields = {topic: set(schema["properties"]) for topic, schema in TOPICS.values()}
     param_fields = set(json.loads(json.dumps(TOPICS["estimate"][1]))["properties"]["params"]
                        ["additionalProperties"]["properties"])

@@ -10,7 +10,7 @@ from twin.errors import DataError, ParameterError
 from twin.models import get_model
 from twin.models import msp25 as M
 from twin.models import oscillator as O
-from twin.simulate import excite, measure
+from twin.models.simulate import excite, measure
 
 
 # --- parameter validation: one test per kind of error -------------------------------------

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from replay.base import Samples
-from replay.bench_can import msp25_samples
+from benchmarks.can import msp25_samples
 from replay.canio import CanLogSink, CanLogSource
 from replay.live import CanBusSink, ZenohSource, zenoh_config
 from replay.play import play, register

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from twin import cli
-from twin.fit import fit
+from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.base import Timing
-from twin.paper import CASES, run_case
+from twin.estimation.paper import CASES, run_case
 from twin.record import Record
 
 RIG = get_model("msp25")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from replay import cli
-from replay.bench_can import msp25_samples
+from benchmarks.can import msp25_samples
 from replay.canio import FrameScheduler, frames_to_messages
 from replay.dbc import VectorCodec
 from replay.factory import open_source

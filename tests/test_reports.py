@@ -84,9 +84,9 @@ def check_page(path: str, tmp_path, sections: list[str], kind: str) -> str:
 # --- the data of each report: real results, small -------------------------------------------
 @pytest.fixture(scope="module")
 def osc_fit():
-    from twin.fit import fit
+    from twin.estimation.fit import fit
     from twin.models import get_model
-    from twin.simulate import default_noise, excite, measure
+    from twin.models.simulate import default_noise, excite, measure
 
     model = get_model("oscillator")
     name, drive = excite(model, 3.0, 1e-3, seed=3)
@@ -121,7 +121,7 @@ def test_fit_report_from_the_command_line(tmp_path, osc_fit):
 
 
 def test_paper_report(tmp_path):
-    from twin.paper import CASES, run_all
+    from twin.estimation.paper import CASES, run_all
 
     cases = [c for c in CASES if c.case in ("osc-A", "osc-D")]
     rows, elapsed = run_all(noisy=True, seed=1, cases=cases)
@@ -138,7 +138,7 @@ def test_paper_report(tmp_path):
 
 def test_diagnose_report_from_the_object_and_from_its_json(tmp_path):
     from diag_helpers import OSC, record
-    from twin.diagnose import diagnose
+    from twin.estimation.diagnose import diagnose
 
     rec = record(OSC, ("coulomb_friction",), seed=1, duration_s=3.0)
     diag = diagnose(OSC, [rec], seed=0, candidates=["coulomb_friction", "cubic_stiffness"])
@@ -157,11 +157,11 @@ def test_diagnose_report_from_the_object_and_from_its_json(tmp_path):
 
 
 def test_track_report(tmp_path):
-    from twin.config import Baseline
+    from twin.service.config import Baseline
     from twin.models import msp25 as M
-    from twin.scenario import Drift, simulate_wear
-    from twin.simulate import DEFAULT_NOISE, excite
-    from twin.track import track
+    from twin.models.scenario import Drift, simulate_wear
+    from twin.models.simulate import DEFAULT_NOISE, excite
+    from twin.service.track import track
 
     name, xr = excite(M.MODEL, 6.0, 1e-3, seed=0)
     noise = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}

@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 
 from replay.mcapio import McapSink
-from twin.config import load_config
-from twin.demo import free_port
+from twin.service.config import load_config
+from twin.commands.demo import free_port
 from twin.models import msp25 as M
-from twin.scenario import Drift, simulate_wear
-from twin.service import serve
-from twin.simulate import DEFAULT_NOISE, excite
-from twin.store import Store
+from twin.models.scenario import Drift, simulate_wear
+from twin.service.rig import serve
+from twin.models.simulate import DEFAULT_NOISE, excite
+from twin.service.store import Store
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 60.0

@@ -15,16 +15,16 @@ from mcap.reader import make_reader
 
 from replay.mcapio import McapSink
 from twin import cli
-from twin.bus import AlarmSubscriber, zenoh_config
-from twin.config import parse_config
-from twin.demo import free_port
-from twin.demo import run as run_demo
+from twin.service.bus import AlarmSubscriber, zenoh_config
+from twin.service.config import parse_config
+from twin.commands.demo import free_port
+from twin.commands.demo import run as run_demo
 from twin.models import msp25 as M
-from twin.scenario import Drift, simulate_wear
-from twin.events import StatusEvent
-from twin.service import serve
-from twin.store import Store
-from twin.simulate import DEFAULT_NOISE, excite
+from twin.models.scenario import Drift, simulate_wear
+from twin.online.events import StatusEvent
+from twin.service.rig import serve
+from twin.service.store import Store
+from twin.models.simulate import DEFAULT_NOISE, excite
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
 

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from twin.bus import TwinPublisher, zenoh_config
-from twin.demo import free_port
-from twin.events import AlarmEvent, EstimateEvent, StatusEvent
-from twin.journal import AlarmJournal
+from twin.service.bus import TwinPublisher, zenoh_config
+from twin.commands.demo import free_port
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
+from twin.service.journal import AlarmJournal
 
 sys.path.insert(0, os.path.dirname(__file__))
 from event_helpers import T0_NS  # noqa: E402

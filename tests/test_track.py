@@ -12,11 +12,11 @@ from mcap.reader import make_reader
 from replay.csvio import CsvSink
 from twin import cli
 from twin.errors import DataError
-from twin.events import AlarmEvent, EstimateEvent, StatusEvent
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.models import msp25 as M
-from twin.scenario import Drift, simulate_wear
-from twin.simulate import DEFAULT_NOISE, excite
-from twin.track import track
+from twin.models.scenario import Drift, simulate_wear
+from twin.models.simulate import DEFAULT_NOISE, excite
+from twin.service.track import track
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
 STEP = Drift("Ffric", 3.0, 5.0, shape="step")  # 50 -> 150 N at 5 s

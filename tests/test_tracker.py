@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from replay.base import Samples
-from twin.config import default_baseline
-from twin.drift import DriftMonitor
+from twin.service.config import default_baseline
+from twin.online.drift import DriftMonitor
 from twin.errors import DataError, ParameterError
 from twin.models import msp25 as M
-from twin.scenario import Drift, simulate_wear
-from twin.simulate import DEFAULT_NOISE, excite
-from twin.tracker import OnlineTracker
+from twin.models.scenario import Drift, simulate_wear
+from twin.models.simulate import DEFAULT_NOISE, excite
+from twin.online.tracker import OnlineTracker
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
 BASE = default_baseline("msp25")

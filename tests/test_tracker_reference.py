@@ -16,10 +16,10 @@ import pytest
 
 from replay.base import Samples
 from tests.track_reference import record, to_samples, truth_at
-from twin.config import Baseline, default_baseline
-from twin.drift import DriftMonitor
+from twin.service.config import Baseline, default_baseline
+from twin.online.drift import DriftMonitor
 from twin.models.base import Timing
-from twin.tracker import OnlineTracker
+from twin.online.tracker import OnlineTracker
 
 NOMINAL_BANDS = default_baseline("msp25")
 

@@ -1,4 +1,4 @@
-"""The compiled UKF kernel (twin.ukf): filterpy's filter as the reference on the paths test_tracker.py
+"""The compiled UKF kernel (twin.online.ukf): filterpy's filter as the reference on the paths test_tracker.py
 does not cover (missing measurements, drive from x_ref), a linear Kalman oracle for the update, the
 bounded parameter random walk across a long rest, unrepairable covariances and stale inputs."""
 
@@ -11,12 +11,12 @@ import pytest
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from replay.base import Samples
-from twin import ukf
+from twin.online import ukf
 from twin.errors import FilterError
 from twin.models import msp25 as M
-from twin.scenario import simulate_wear
-from twin.simulate import DEFAULT_NOISE, excite
-from twin.tracker import OnlineTracker
+from twin.models.scenario import simulate_wear
+from twin.models.simulate import DEFAULT_NOISE, excite
+from twin.online.tracker import OnlineTracker
 from tests.ukf_mirror import mirror, ours
 
 NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}

@@ -8,7 +8,7 @@ import math
 import pytest
 
 from twin import cli
-from twin.cliutil import kv
+from twin.commands.common import kv
 from twin.errors import ParameterError
 from twin.units import to_si
 

@@ -1,7 +1,7 @@
 """filterpy's UnscentedKalmanFilter beside the compiled tracker, following the tracker's per-sample decisions.
 
 filterpy does the unscented predict (its sigma points, weights, ``fx`` through
-the model's own :func:`twin.models.msp25.advance` via :func:`twin.ukf.fx_one`)
+the model's own :func:`twin.models.msp25.advance` via :func:`twin.online.ukf.fx_one`)
 and the update; from the tracker's output this mirror takes only *which*
 decisions were made on each sample (outputs used, gated, parameters frozen),
 never the numbers.  A frozen parameter gets no gain (Schmidt consider update,
@@ -15,12 +15,12 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import UnscentedKalmanFilter
 
-from twin import ukf
+from twin.online import ukf
 
 
 def mirror(tr, samples, out) -> np.ndarray:
     """filterpy's states ``[T, n]`` for ``samples`` given the tracker ``tr`` (fresh, before ``process``)
-    and its output ``out`` (:class:`twin.tracker.TrackBlock` of the whole record)."""
+    and its output ``out`` (:class:`twin.online.tracker.TrackBlock` of the whole record)."""
     assert tr.guard_settings["adapt"] == 0.0, "the mirror needs adapt_noise=False"
     n, nm = tr.n, tr.nmod
     q = len(tr.outputs)

@@ -15,8 +15,6 @@ The public API (imported on first use, so ``import twin`` stays light)::
 from __future__ import annotations
 
 import importlib
-import sys
-import types
 from typing import Any
 
 __version__ = "0.1.0"
@@ -28,22 +26,22 @@ _EXPORTS = {
     "ParameterSet": "twin.params",
     "Record": "twin.record",
     "load_records": "twin.record",
-    "excite": "twin.simulate",
-    "measure": "twin.simulate",
-    "fit": "twin.fit",
-    "FitResult": "twin.fit",
-    "OnlineTracker": "twin.tracker",
-    "DriftMonitor": "twin.drift",
-    "diagnose": "twin.diagnose",
-    "Diagnosis": "twin.diagnose",
-    "track": "twin.track",
-    "serve": "twin.service",
-    "load_config": "twin.config",
-    "TwinPublisher": "twin.bus",
-    "AlarmSubscriber": "twin.bus",
-    "AlarmEvent": "twin.events",
-    "EstimateEvent": "twin.events",
-    "StatusEvent": "twin.events",
+    "excite": "twin.models.simulate",
+    "measure": "twin.models.simulate",
+    "fit": "twin.estimation.fit",
+    "FitResult": "twin.estimation.fit",
+    "OnlineTracker": "twin.online.tracker",
+    "DriftMonitor": "twin.online.drift",
+    "diagnose": "twin.estimation.diagnose",
+    "Diagnosis": "twin.estimation.diagnose",
+    "track": "twin.service.track",
+    "serve": "twin.service.rig",
+    "load_config": "twin.service.config",
+    "TwinPublisher": "twin.service.bus",
+    "AlarmSubscriber": "twin.service.bus",
+    "AlarmEvent": "twin.online.events",
+    "EstimateEvent": "twin.online.events",
+    "StatusEvent": "twin.online.events",
     "TwinError": "twin.errors",
 }
 
@@ -60,18 +58,3 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     return __all__
-
-
-class _Package(types.ModuleType):
-    """``twin.fit``, ``twin.track``, ``twin.diagnose`` are functions of the API and modules of the package:
-    importing a submodule sets it as an attribute of the package, which would hide the function of the
-    same name.  The package keeps the function; the modules stay importable by name (``from twin.fit
-    import FitResult``, ``importlib.import_module("twin.fit")``)."""
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if isinstance(value, types.ModuleType) and _EXPORTS.get(name) == f"{__name__}.{name}":
-            return
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package

@@ -12,7 +12,7 @@
   frame of a foreign id 0x7FF;
 * ``msp25_short.{asc,blf,log,trc}`` — the project's own writers
   (:class:`replay.canio.CanLogSink`) on 50 ms of the benchmark's seeded signals
-  (:func:`replay.bench_can.msp25_samples`, seed 0).
+  (:func:`benchmarks.can.msp25_samples`, seed 0).
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def record_with_python_can(path: Path) -> None:
 
 
 def write_project_references() -> None:
-    from replay.bench_can import msp25_samples
+    from benchmarks.can import msp25_samples
     from replay.canio import CanLogSink
 
     samples = msp25_samples(0.05, seed=0)

@@ -7,12 +7,12 @@ import sys
 
 import numpy as np
 
-from twin.cliutil import (add_map_argument, add_timing_arguments, finite_or_none, load_params_file, source_options,
+from twin.commands.common import (add_map_argument, add_timing_arguments, finite_or_none, load_params_file, source_options,
                           timing_of)
-from twin.cliutil import dump as _dump
-from twin.cliutil import kv as _kv
-from twin.cliutil import names as _names
-from twin.cliutil import progress as _progress
+from twin.commands.common import dump as _dump
+from twin.commands.common import kv as _kv
+from twin.commands.common import names as _names
+from twin.commands.common import progress as _progress
 
 HELP = "fit free parameters to measured records (output error)"
 
@@ -43,7 +43,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.fit import fit
+    from twin.estimation.fit import fit
     from twin.models import get_model
     from twin.record import load_records
 
@@ -62,7 +62,7 @@ def run(args) -> int:
               timing=timing)
     plots = []
     if args.plot:
-        from twin.plots import fit_convergence
+        from twin.reports.plots import fit_convergence
 
         plots = fit_convergence(res, records, model, args.plot)
     report = None

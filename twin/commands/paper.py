@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from twin.cliutil import add_timing_arguments, timing_of
-from twin.cliutil import dump as _dump
-from twin.cliutil import progress as _progress
+from twin.commands.common import add_timing_arguments, timing_of
+from twin.commands.common import dump as _dump
+from twin.commands.common import progress as _progress
 
 HELP = "regenerate the paper's cases: our estimates beside the paper's"
 
@@ -22,12 +22,12 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.paper import format_rows, run_all
+    from twin.estimation.paper import format_rows, run_all
 
     rows, elapsed = run_all(noisy=args.noise, seed=args.seed, progress=None if args.json else _progress(args),
                             timing=timing_of(args))
     if args.plot:
-        from twin.plots import paper_table
+        from twin.reports.plots import paper_table
 
         p = paper_table(rows, args.plot)
         if not args.json:

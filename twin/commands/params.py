@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from twin.cliutil import dump as _dump
-from twin.cliutil import names as _names
+from twin.commands.common import dump as _dump
+from twin.commands.common import names as _names
 
 HELP = "list a model's parameters, units, bounds and effects"
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import sys
 
-from twin.cliutil import add_timing_arguments, timing_of
-from twin.cliutil import dump as _dump
-from twin.cliutil import kv as _kv
-from twin.cliutil import names as _names
+from twin.commands.common import add_timing_arguments, timing_of
+from twin.commands.common import dump as _dump
+from twin.commands.common import kv as _kv
+from twin.commands.common import names as _names
 
 HELP = "simulate an identification experiment and write CSV or MCAP"
 
@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from replay.factory import open_sink
     from twin.models import get_model
-    from twin.simulate import default_noise, excite, measure
+    from twin.models.simulate import default_noise, excite, measure
 
     model = get_model(args.model)
     ps = model.params(effects=_names(args.effects), **_kv(args.set))

@@ -26,7 +26,7 @@ VERDICT_TEXT = {
 
 
 def compare_data(diagnosis: Any) -> dict | None:
-    """The arrays of the before/after view from a :class:`twin.diagnose.Diagnosis` (first record):
+    """The arrays of the before/after view from a :class:`twin.estimation.diagnose.Diagnosis` (first record):
     ``t``, ``n_fit``, ``measured``, ``nominal``, ``extended`` (``{output: SI array}``); ``None`` from a dict."""
     try:
         rec = diagnosis.records[0]
@@ -43,7 +43,7 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
                     filename: str = "diagnose_report.html") -> str:
     """Write the HTML report of a diagnosis; returns its path.
 
-    ``diagnosis``: a :class:`twin.diagnose.Diagnosis` or its ``to_dict()`` (the
+    ``diagnosis``: a :class:`twin.estimation.diagnose.Diagnosis` or its ``to_dict()`` (the
     JSON of ``twin diagnose --json``).  The before/after plot needs the records
     and predictions: they come from the object, or from ``compare`` (see
     :func:`compare_data`); from a bare dict the plot is replaced by a note.

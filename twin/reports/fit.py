@@ -60,7 +60,7 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
                filename: str = "fit_report.html", max_lag: int = 25) -> str:
     """Write the HTML report of a fit; returns its path.
 
-    ``result``: a :class:`twin.fit.FitResult` (or its ``to_dict()`` plus a
+    ``result``: a :class:`twin.estimation.fit.FitResult` (or its ``to_dict()`` plus a
     ``"predicted"`` list of ``{output: array}`` per record); ``records``: the
     :class:`twin.record.Record` objects fitted (order as in the fit);
     ``model``: the model or its name.

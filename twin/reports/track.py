@@ -15,7 +15,7 @@ LEVEL_CLASS = {"alarm": "lvl-alarm", "warning": "lvl-warning", "ok": "lvl-ok"}
 
 
 def track_summary(twin: Any, log: str | None = None) -> dict:
-    """Plain data of a tracked log from a :class:`twin.service.RigTwin` (what :func:`track_report` reads).
+    """Plain data of a tracked log from a :class:`twin.service.rig.RigTwin` (what :func:`track_report` reads).
 
     ``{"rig", "model", "log", "samples", "t_s": [...], "params": {name: {"unit", "values", "stds",
     "band": [lo, hi], "baseline"}}, "alarms": [AlarmEvent dicts], "status": {name: word},
@@ -47,8 +47,8 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
                  filename: str = "track_report.html") -> str:
     """Write the HTML report of a tracked log; returns its path.
 
-    ``track``: :func:`track_summary`'s dict, or the :class:`twin.service.RigTwin`
-    that ``twin.track.track`` returns (converted with :func:`track_summary`).
+    ``track``: :func:`track_summary`'s dict, or the :class:`twin.service.rig.RigTwin`
+    that ``twin.service.track.track`` returns (converted with :func:`track_summary`).
     """
     s = track if isinstance(track, Mapping) else track_summary(track, log)
     model = s.get("model", "msp25")

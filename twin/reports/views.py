@@ -121,7 +121,7 @@ def resid_figure(residuals: Mapping[str, np.ndarray], inputs: Mapping[str, np.nd
     Bartlett's 99 % band.  Inputs in ``closed_loop`` are computed from the
     measurement, so their negative lags are feedback (shaded), not model error.
     """
-    from twin.residuals import autocorrelation, cross_correlation
+    from twin.estimation.residuals import autocorrelation, cross_correlation
 
     pl = plt()
     outs = list(residuals)

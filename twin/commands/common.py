@@ -1,0 +1,140 @@
+"""Small helpers shared by the command-line entry points (argument parsing, JSON output)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+
+from twin.errors import ParameterError
+
+
+def kv(text: str | None) -> dict[str, float]:
+    """``"a=1,wn=43Hz,CdAleak=3.3mm^2"`` -> SI floats; a bare number is SI, a unit is converted
+    (:func:`twin.units.to_si`)."""
+    from twin.units import to_si
+
+    out: dict[str, float] = {}
+    for part in (text or "").split(","):
+        if not part.strip():
+            continue
+        if "=" not in part:
+            raise ParameterError(f"expected NAME=VALUE, got {part!r}")
+        k, v = part.split("=", 1)
+        out[k.strip()] = to_si(k.strip(), v)
+    return out
+
+
+def names(text: str | None) -> tuple[str, ...]:
+    return tuple(p.strip() for p in (text or "").split(",") if p.strip())
+
+
+def progress(args):
+    if getattr(args, "quiet", False):
+        return None
+    return lambda msg: print(msg, file=sys.stderr, flush=True)
+
+
+def json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+def finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (strict JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_or_none(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def dump(obj) -> None:
+    """Print ``obj`` as strict JSON (NaN and infinities become null)."""
+    print(json.dumps(finite_or_none(obj), indent=2, default=json_default, allow_nan=False))
+
+
+def load_params_file(model, path: str | None, overrides: dict[str, float] | None = None,
+                     effects: tuple[str, ...] = (), with_timing: bool = False):
+    """A parameter set from a JSON file written by ``twin fit --save`` or ``twin diagnose --save``
+    (``{"model", "effects", "params"[, "timing"]}``), with ``effects`` added and ``overrides`` applied;
+    with ``with_timing`` also the saved loop timing (or None)."""
+    from twin.online.commission import read_saved
+    from twin.errors import ConfigError
+
+    doc: dict = {"effects": [], "params": {}}
+    if path:
+        doc = read_saved(path, "parameter file")
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{path}: expected a JSON object written by twin fit --save or twin diagnose --save")
+        if doc.get("model", model.name) != model.name:
+            raise ConfigError(f"{path}: parameters of model {doc.get('model')!r}, expected {model.name!r}")
+        if not isinstance(doc.get("params", {}), dict) or not isinstance(doc.get("effects", []), list):
+            raise ConfigError(f"{path}: expected 'params' (an object) and 'effects' (a list)")
+    ps = model.params(effects=tuple(doc.get("effects", [])) + tuple(effects))
+    known = {k: v for k, v in doc.get("params", {}).items() if k in ps.names}
+    ps = ps.update({**known, **(overrides or {})})
+    if not with_timing:
+        return ps
+    timing = None
+    if isinstance(doc.get("timing"), dict):
+        from twin.models.base import Timing
+
+        t = doc["timing"]
+        try:
+            timing = Timing(t.get("controller", "digital"), t.get("rate_hz"), t.get("intersample"))
+        except ParameterError as exc:
+            raise ConfigError(f"{path}: timing: {exc}") from None
+    return ps, timing
+
+
+def add_timing_arguments(p) -> None:
+    """``--controller`` and ``--intersample``: the loop's timing, a property of the rig."""
+    p.add_argument("--controller", default=None, metavar="KIND",
+                   help="the rig's controller: digital (at the log's rate, default), digital:RATE (a digital "
+                        "controller at RATE Hz, faster than the log, e.g. digital:5000) or continuous (analog)")
+    p.add_argument("--intersample", default=None, choices=("zoh", "foh", "cubic"),
+                   help="logged inputs between samples: held (zoh), linear (foh) or smooth (cubic); default zoh "
+                        "for a digital controller at the log's rate, else cubic")
+
+
+def timing_of(args, default=None):
+    """The :class:`~twin.models.base.Timing` the flags ask for (``default`` where neither is given)."""
+    from twin.models.base import Timing
+
+    controller = getattr(args, "controller", None)
+    intersample = getattr(args, "intersample", None)
+    if controller is None and intersample is None and default is not None:
+        return default
+    return Timing.parse(controller, intersample)
+
+
+def add_map_argument(p) -> None:
+    """``--map NAME=COLUMN[:UNIT]`` (repeatable): read a CSV whose columns have other names or units."""
+    p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT]",
+                   help="a CSV column under another name or unit, e.g. --map x=pos_mm:mm --map t=time:ms "
+                        "(repeatable; CSV files only)")
+
+
+def source_options(args, path: str) -> dict:
+    """Reader options for ``path`` from ``--map`` (a CSV column mapping), checked."""
+    items = getattr(args, "map", None)
+    if not items:
+        return {}
+    if not str(path).lower().endswith(".csv"):
+        from twin.errors import DataError
+
+        raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
+                        "its format)")
+    from replay.csvio import parse_map
+
+    return {"mapping": parse_map(items)}

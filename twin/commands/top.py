@@ -1,0 +1,261 @@
+"""``twin top``: the running twins at a glance, live in the terminal.
+
+Per rig: the service state, each tracked parameter's estimate ± standard
+deviation in its display unit (wn in Hz, CdAleak in mm²) with its status, and
+the last alarm; refreshed as the twins publish (``rich``).  It subscribes over
+Zenoh to ``fpdd/<rig>/{estimate,status,alarm}`` (the key space of
+:mod:`twin.service.bus`), after fetching each twin's latest estimate and status and
+its last journaled alarm, so the screen is filled at once.
+
+``--once --json`` prints one snapshot as JSON and exits (for scripts).  When
+no twin answers within ``--timeout`` it exits with status 2 and one line
+naming the endpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+from pathlib import Path
+from collections.abc import Callable
+from typing import Any
+
+from twin.reports.units import Shown, pretty_unit
+
+LEVEL_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green"}
+STATUS_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green", "frozen": "cyan",
+                "unresolved": "magenta", "inconsistent": "magenta"}
+STATE_STYLE = {"running": "green", "finished": "blue", "degraded": "yellow", "stale_input": "yellow",
+               "failed": "bold red", "stopped": "dim", "starting": "cyan"}
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{v:g} must be > 0 seconds")
+    return v
+
+
+def add_top_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable); without --connect "
+                   "or --zenoh-config, twins are found by multicast scouting")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="Zenoh session mode (default: the --zenoh-config file's, else peer)")
+    p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
+    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"),
+                   help="the rigs' model, for display units (default msp25)")
+    p.add_argument("--timeout", type=_positive, default=10.0, metavar="S",
+                   help="give up (exit status 2) when no twin answers within S seconds (default 10)")
+    p.add_argument("--once", action="store_true", help="print one snapshot and exit")
+    p.add_argument("--json", action="store_true", help="with --once: the snapshot as JSON")
+    p.add_argument("--for", dest="duration", type=_positive, metavar="S", help="exit after S seconds (default: "
+                   "until Ctrl-C)")
+
+
+class TopState:
+    """The latest estimate, status and alarm of each rig (thread-safe; callbacks of Zenoh write here)."""
+
+    def __init__(self, model: str = "msp25") -> None:
+        self.model = model
+        self.rigs: dict[str, dict[str, Any]] = {}
+        self.lock = threading.Lock()
+        self.changed = threading.Event()
+
+    def put(self, kind: str, d: dict) -> None:
+        with self.lock:
+            r = self.rigs.setdefault(d["rig"], {"estimate": None, "status": None, "alarm": None})
+            old = r[kind]
+            if kind == "alarm":
+                if old is not None and d.get("seq", 0) < old.get("seq", 0):
+                    return
+            elif old is not None and d.get("t_ns", 0) < old.get("t_ns", 0):
+                return
+            r[kind] = d
+        self.changed.set()
+
+    def _shown(self, name: str, unit: str | None) -> Shown:
+        return Shown(name, self.model, unit)
+
+    def snapshot(self) -> dict:
+        """JSON-ready: per rig its state, parameters (SI value, std, unit and the display text) and last alarm."""
+        out = {}
+        with self.lock:
+            rigs = {k: dict(v) for k, v in self.rigs.items()}
+        for rig in sorted(rigs):
+            r = rigs[rig]
+            est, st, al = r["estimate"], r["status"], r["alarm"]
+            words = (st or {}).get("parameters", {})
+            params = {}
+            for name, p in ((est or {}).get("params") or {}).items():
+                sh = self._shown(name, p.get("unit"))
+                params[name] = {"value": p["value"], "std": p["std"], "unit": p.get("unit", ""),
+                                "display_unit": pretty_unit(sh.unit), "display_value": sh(p["value"]),
+                                "display_std": sh(p["std"]),
+                                "shown": f"{sh.text(p['value'], 5, unit=False)} ± {sh.text(p['std'], 2)}",
+                                "status": words.get(name, "")}
+            for name, w in words.items():
+                params.setdefault(name, {"status": w})
+            out[rig] = {"state": (st or {}).get("state"), "message": (st or {}).get("message", ""),
+                        "t_s": (est or {}).get("t_s"), "filter": (est or {}).get("status"),
+                        "samples": ((st or {}).get("counters") or {}).get("samples"),
+                        "params": params, "last_alarm": self.alarm_text(al) if al else None,
+                        "last_alarm_event": al}
+        return out
+
+    def alarm_text(self, a: dict) -> str:
+        sh = self._shown(a["parameter"], None)
+        return (f"#{a['seq']} t={a['t_s']:.3f} s {a['level'].upper()} {a['kind']} {a['parameter']} = "
+                f"{sh.text(a['estimate'], 4, unit=False)} ± {sh.text(a['std'], 2)} (band {sh.text(a['band_lo'], 4, unit=False)}"
+                f" … {sh.text(a['band_hi'], 4)})")
+
+
+def render(snap: dict, where: str, live: bool = True):
+    """The rich renderable of a snapshot: one table per rig."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    parts: list[Text | Table] = [Text(f"twin top · {len(snap)} rig(s) via {where}" + (" · Ctrl-C to quit" if live else ""), style="dim")]
+    for rig, r in snap.items():
+        state = r["state"] or "?"
+        title = Text.assemble(("rig ", "bold"), (rig, "bold"), "  ", (state, STATE_STYLE.get(state, "")),
+                              f"  t = {r['t_s']:.2f} s" if r["t_s"] is not None else "",
+                              f"  samples {r['samples']}" if r["samples"] is not None else "",
+                              f"  filter {r['filter']}" if r["filter"] else "")
+        parts.append(title)
+        t = Table(expand=False, show_edge=True)
+        t.add_column("parameter")
+        t.add_column("estimate", justify="right")
+        t.add_column("± std", justify="right")
+        t.add_column("unit")
+        t.add_column("status")
+        for name, p in r["params"].items():
+            if "display_value" not in p:
+                t.add_row(name, "", "", "", Text(p["status"], STATUS_STYLE.get(p["status"], "")))
+                continue
+            t.add_row(name, f"{p['display_value']:.5g}", f"{p['display_std']:.2g}", p["display_unit"],
+                      Text(p["status"] or "", STATUS_STYLE.get(p["status"], "")))
+        parts.append(t)
+        al = r["last_alarm_event"]
+        if al:
+            parts.append(Text.assemble("  last alarm: ", (r["last_alarm"], LEVEL_STYLE.get(al["level"], ""))))
+        else:
+            parts.append(Text("  last alarm: none", style="dim"))
+        if r["message"]:
+            parts.append(Text(f"  {r['message']}", style="yellow"))
+    return Group(*parts)
+
+
+def _fill(session, state: TopState, rig: str, timeout: float) -> None:
+    """Latest estimate and status of every twin (queryables), and each rig's last journaled alarm."""
+    import zenoh
+
+    from twin.service.bus import RigKeys, fetch_latest
+
+    for kind in ("estimate", "status"):
+        for ev in fetch_latest(session, kind, rig, timeout=timeout):
+            state.put(kind, ev.to_dict())
+    with state.lock:
+        known = {r: (v["status"] or {}).get("counters", {}).get("alarm_seq") for r, v in state.rigs.items()}
+    for r, last in known.items():
+        if last == 0:
+            continue
+        sel = RigKeys(r).history + (f"?since_seq={last}" if last else "")
+        replies = session.get(sel, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                              timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                try:
+                    state.put("alarm", json.loads(reply.ok.payload.to_string()))
+                except (ValueError, KeyError):
+                    continue
+
+
+def run_top(args) -> int:
+    from twin.service.bus import RigKeys, check_endpoint, config_endpoints, open_session, zenoh_config
+    from twin.errors import SourceError
+    from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
+
+    for e in args.connect:
+        check_endpoint(e, "--connect")
+    if args.json and not args.once:
+        from twin.errors import ConfigError
+
+        raise ConfigError("--json needs --once (a snapshot); the live view is for a terminal")
+    scouting = True if not args.connect and args.zenoh_config is None else None
+    config = zenoh_config(mode=args.mode, connect=args.connect, multicast_scouting=scouting,
+                          config_file=args.zenoh_config)
+    _, connect = config_endpoints(config)
+    where = ", ".join(connect) if connect else "multicast scouting"
+    keys = RigKeys(args.rig)
+    state = TopState(args.model)
+    session = open_session(config, "twin top")
+    subs = []
+    try:
+        parse: dict[str, Callable[[Any], EstimateEvent | StatusEvent | AlarmEvent]] = {
+            "estimate": EstimateEvent.from_dict, "status": StatusEvent.from_dict, "alarm": AlarmEvent.from_dict}
+
+        def handler(kind):
+            def on_sample(sample) -> None:
+                try:
+                    d = parse[kind](json.loads(sample.payload.to_bytes())).to_dict()
+                except Exception:  # a malformed payload is not shown
+                    return
+                state.put(kind, d)
+            return on_sample
+
+        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm)):
+            subs.append(session.declare_subscriber(key, handler(kind)))
+        deadline = time.monotonic() + args.timeout
+        while True:
+            _fill(session, state, args.rig, timeout=max(0.2, min(2.0, deadline - time.monotonic())))
+            with state.lock:
+                have = any(v["estimate"] or v["status"] for v in state.rigs.values())
+            if have:
+                break
+            if time.monotonic() >= deadline:
+                raise SourceError(f"no twin answered through {where} within {args.timeout:g} s "
+                                  f"(nothing on {keys.estimate} or {keys.status})")
+            state.changed.wait(timeout=max(0.0, min(0.5, deadline - time.monotonic())))
+        if args.once:
+            snap = state.snapshot()
+            if args.json:
+                from twin.commands.common import finite_or_none
+
+                print(json.dumps(finite_or_none({"where": where, "rigs": snap}), indent=2, allow_nan=False))
+            else:
+                from rich.console import Console
+
+                Console().print(render(snap, where, live=False))
+            return 0
+        return _live(state, where, args.duration)
+    finally:
+        for s in subs:
+            s.undeclare()
+        session.close()
+
+
+def _live(state: TopState, where: str, duration: float | None) -> int:
+    from rich.console import Console
+    from rich.live import Live
+
+    console = Console()
+    end = None if duration is None else time.monotonic() + duration
+    try:
+        with Live(render(state.snapshot(), where), console=console, refresh_per_second=4,
+                  redirect_stderr=False) as live:
+            while end is None or time.monotonic() < end:
+                wait = 0.5 if end is None else max(0.0, min(0.5, end - time.monotonic()))
+                if state.changed.wait(timeout=wait):
+                    state.changed.clear()
+                    live.update(render(state.snapshot(), where))
+    except KeyboardInterrupt:
+        pass
+    return 0

@@ -1,0 +1,495 @@
+"""Batch grey-box fitting: output-error (simulation-error) least squares, done properly.
+
+* Free and fixed parameters by name; bounds from the parameter metadata.
+* Coordinates: a free parameter with a wide positive range (``hi/lo > 100``)
+  moves as ``log(theta)``, the others as ``theta / scale``; every coordinate is
+  of order one and finite-difference steps are explicit (never proportional to
+  a coordinate that may sit at zero).
+* The Jacobian is a batch: all finite-difference columns (and all multi-start
+  candidates) are simulated in one parallel call of the compiled model.
+* Multi-start: a seeded Latin hypercube of physically sensible starts around
+  the configured values is screened by cost in one batch; the best few are
+  refined with trust-region least squares and the best result is kept.
+* Several records share the parameters; optional initial-state estimation adds
+  per-record initial quantities (rod position, pressure difference).
+* Residuals of each output are weighted by its noise level, so x [m] and
+  pressures [Pa] can be fitted together.
+* The loop's timing (:class:`~twin.models.base.Timing`: controller rate,
+  intersample behaviour of the logged inputs) is a property of the rig that
+  every simulation of the fit honours.
+* The initial state comes from the data: each record starts where its first
+  samples say (rod position and speed, both chamber pressures, the spool where
+  the first command holds it); ``estimate_init`` refines quantities on top.
+* Standard errors are heteroskedasticity- and autocorrelation-consistent (a
+  Newey-West sandwich with Bartlett weights and Andrews' AR(1) bandwidth, per
+  output and record): output-error residuals of a closed loop fed by a noisy
+  sensor are coloured, and the textbook ``s^2 (J'J)^-1`` then understates the
+  uncertainty many times over.  ``std_white`` keeps the textbook figure.
+
+:func:`fit` returns a :class:`FitResult` and never raises on non-convergence;
+it raises :class:`~twin.errors.DataError` / :class:`~twin.errors.ParameterError`
+only for malformed input.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+from twin.errors import DataError, ParameterError
+from twin.models import Model, get_model
+from twin.models.base import DEFAULT_TIMING, Timing
+from twin.params import ParameterSet, ParamSpec, check_names
+from twin.record import Record
+from twin.models.simulate import DEFAULT_NOISE
+
+FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
+INIT_SCALE = {"x0": 1e-3, "dp0": 1e5, "v0": 1e-3}
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of a fit (``scipy.optimize.OptimizeResult`` in spirit)."""
+
+    model: str
+    params: ParameterSet                 # all parameters, free ones at their estimates
+    free: tuple[str, ...]
+    estimate: dict[str, float]
+    std: dict[str, float]                # HAC (sandwich) standard errors
+    corr: np.ndarray
+    outputs: tuple[str, ...]
+    fit_pct: dict[str, float]
+    mse: dict[str, float]
+    nrmse: dict[str, float]
+    loglik: float
+    aic: float
+    aicc: float
+    bic: float
+    fpe: float
+    n_obs: int
+    n_par: int
+    cost: float
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    history: list[dict]
+    starts: list[dict]
+    init: list[dict[str, float]]
+    time_s: float
+    predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
+    std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
+    timing: dict = dataclasses.field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        specs = {s.name: s for s in self.params.specs}
+        return {
+            "model": self.model,
+            "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
+                           "unit": specs[n].unit, "shown": specs[n].show(self.estimate[n])} for n in self.free},
+            "timing": self.timing,
+            "effects": list(self.params.effects),
+            "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
+            "outputs": list(self.outputs),
+            "fit_pct": self.fit_pct, "mse": self.mse, "nrmse": self.nrmse,
+            "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
+            "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
+            "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
+            "time_s": self.time_s, "init": self.init, "starts": self.starts,
+            "history": self.history,
+        }
+
+    def table(self) -> str:
+        specs = {s.name: s for s in self.params.specs}
+        rows = [f"{'parameter':<10} {'estimate':>16} {'std':>14} {'rel std':>9}"]
+        for n in self.free:
+            v, s = self.estimate[n], self.std[n]
+            rel = abs(s / v) * 100 if v else float("nan")
+            rows.append(f"{n:<10} {specs[n].show(v):>16} {specs[n].show(s):>14} {rel:8.3g}%")
+        rows.append("  ".join(f"Fit({k})={self.fit_pct[k]:.3f}%" for k in self.outputs))
+        rows.append(f"AIC={self.aic:.6g} AICc={self.aicc:.6g} BIC={self.bic:.6g} FPE={self.fpe:.4g} "
+                    f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
+                    f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
+        return "\n".join(rows)
+
+
+@dataclasses.dataclass
+class _Problem:
+    model: Model
+    base: ParameterSet
+    free: tuple[str, ...]
+    specs: tuple[ParamSpec, ...]
+    records: list[Record]
+    drives: list[tuple[str, np.ndarray]]
+    outputs: tuple[str, ...]
+    sigma: dict[str, float]
+    init_names: tuple[str, ...]
+    init_fixed: list[dict[str, float]]
+    substeps: int | None
+    timing: Timing
+    kidx: np.ndarray  # kernel index of each free parameter
+    scale: np.ndarray  # linear scale per free coordinate (0 for log coordinates)
+    base_vec: np.ndarray
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.free)
+
+    @property
+    def n_z(self) -> int:
+        return self.n_theta + len(self.init_names) * len(self.records)
+
+    # --- coordinates ---------------------------------------------------------------
+    def to_z(self, theta: np.ndarray, init: np.ndarray) -> np.ndarray:
+        z = np.where(self.scale == 0, np.log(np.maximum(theta, 1e-300)), theta / np.where(self.scale == 0, 1, self.scale))
+        zi = init.ravel() / np.array([INIT_SCALE[n] for n in self.init_names] * len(self.records)) if init.size else np.zeros(0)
+        return np.concatenate([z, zi])
+
+    def from_z(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        zt = z[..., : self.n_theta]
+        theta = np.where(self.scale == 0, np.exp(zt), zt * self.scale)
+        zi = z[..., self.n_theta:]
+        if self.init_names:
+            s = np.array([INIT_SCALE[n] for n in self.init_names] * len(self.records))
+            init = (zi * s).reshape(z.shape[:-1] + (len(self.records), len(self.init_names)))
+        else:
+            init = np.zeros(z.shape[:-1] + (len(self.records), 0))
+        return theta, init
+
+    def dtheta_dz(self, theta: np.ndarray) -> np.ndarray:
+        return np.where(self.scale == 0, theta, self.scale)
+
+    def bounds_z(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.array([math.log(s.lo) if sc == 0 else s.lo / sc for s, sc in zip(self.specs, self.scale)])
+        hi = np.array([math.log(s.hi) if sc == 0 else s.hi / sc for s, sc in zip(self.specs, self.scale)])
+        ni = self.n_z - self.n_theta
+        return np.concatenate([lo, np.full(ni, -np.inf)]), np.concatenate([hi, np.full(ni, np.inf)])
+
+    # --- residuals of a batch of coordinate vectors ------------------------------------
+    def residuals(self, Z: np.ndarray) -> np.ndarray:
+        """Weighted residuals ``[K, N]`` of ``K`` coordinate vectors (one batched simulation per record)."""
+        Z = np.atleast_2d(Z)
+        theta, init = self.from_z(Z)
+        P = np.repeat(self.base_vec[None, :], Z.shape[0], axis=0)
+        P[:, self.kidx] = theta
+        parts = []
+        for r, rec in enumerate(self.records):
+            S0 = np.concatenate([self.model.initial_state(P[k:k + 1], self._init_of(init[k, r], r))
+                                 for k in range(Z.shape[0])]) if (self.init_names or self.init_fixed[r]) else None
+            name, drive = self.drives[r]
+            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps, self.timing)
+            for o in self.outputs:
+                parts.append((sim.outputs[o] - rec[o][None, :]) / self.sigma[o])
+        return np.concatenate(parts, axis=1)
+
+    def block_sizes(self) -> list[tuple[int, int]]:
+        """``(n_outputs, n_samples)`` per record, in the order :meth:`residuals` concatenates them."""
+        return [(len(self.outputs), len(rec)) for rec in self.records]
+
+    def _init_of(self, vals: np.ndarray, r: int) -> dict[str, float]:
+        d = dict(self.init_fixed[r])
+        d.update({n: float(v) for n, v in zip(self.init_names, vals)})
+        return d
+
+    def predict(self, z: np.ndarray) -> list[dict[str, np.ndarray]]:
+        theta, init = self.from_z(z[None, :])
+        P = self.base_vec[None, :].copy()
+        P[:, self.kidx] = theta
+        out = []
+        for r, rec in enumerate(self.records):
+            S0 = self.model.initial_state(P, self._init_of(init[0, r], r))
+            name, drive = self.drives[r]
+            sim = self.model.simulate_batch(P, name, drive, rec.dt, S0, self.substeps, self.timing)
+            out.append({o: sim.outputs[o][0] for o in self.model.OUTPUTS} | {k: np.asarray(v)[0] if np.ndim(v) == 2 else v
+                                                                             for k, v in sim.inputs.items()})
+        return out
+
+
+def _linear_scale(model: Model, spec: ParamSpec, value: float) -> float:
+    """Order of magnitude of a linearly scaled coordinate: typical size, start value, or range."""
+    typical = spec.typical
+    effect = model.effect_of(spec.name)
+    if typical is None and effect is not None:
+        e = model.EFFECTS[effect]
+        typical = e.typical[e.names.index(spec.name)]
+    for c in (typical, value, spec.hi - spec.lo):
+        if c is not None and c != 0 and math.isfinite(c):
+            return abs(c)
+    return 1.0
+
+
+def resolve_outputs(model: Model, records: Sequence[Record], outputs: Sequence[str] | None) -> tuple[str, ...]:
+    """The outputs to fit: those asked for (checked), or every model output all records have."""
+    if outputs is None:
+        outputs = tuple(o for o in model.OUTPUTS if all(o in r for r in records))
+        if not outputs:
+            raise DataError(f"no record has any of the outputs {', '.join(model.OUTPUTS)} of {model.name}")
+    outputs = tuple(outputs)
+    check_names(model.OUTPUTS, outputs, f"output of {model.name}")
+    return outputs
+
+
+def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[str],
+                 base: ParameterSet | None = None, outputs: Sequence[str] | None = None,
+                 noise: Mapping[str, float] | None = None, drive: str = "auto",
+                 estimate_init: Sequence[str] = (), init: Sequence[Mapping[str, float]] | None = None,
+                 substeps: int | None = None, timing: Timing | None = None) -> _Problem:
+    model = get_model(model) if isinstance(model, str) else model
+    base = base or model.params()
+    if not records:
+        raise DataError("fit needs at least one record")
+    free = tuple(dict.fromkeys(free))
+    if not free:
+        raise ParameterError("fit needs at least one free parameter")
+    check_names(base.names, free, f"free parameter of {model.name} (with effects {list(base.effects)})")
+    outputs = resolve_outputs(model, records, outputs)
+    drives = []
+    for r in records:
+        r.require(outputs, f"fitting outputs {', '.join(outputs)}")
+        drives.append(model.drive_signal(r.signals, drive))
+    check_names(model.INIT, estimate_init, f"initial-state quantity of {model.name}")
+    if init is None:
+        init = [initial_from_data(model, r, base) for r in records]
+        moving = [q for q in model.INIT_IF_MOVING if any(q in i for i in init)]
+        estimate_init = tuple(dict.fromkeys((*estimate_init, *moving)))
+    sigma = {o: float((noise or {}).get(o, DEFAULT_NOISE.get(o, 1.0))) for o in outputs}
+    for o, s in sigma.items():
+        if not s > 0:
+            raise DataError(f"noise level of output {o!r} must be > 0 to weight residuals, got {s}")
+    specs = tuple(base.spec(n) for n in free)
+    kidx = np.array([model.kernel_index(n) for n in free])
+    scale = np.array([0.0 if s.log_scaled else _linear_scale(model, s, base[s.name]) for s in specs])
+    init_fixed = [dict(i) for i in init]
+    return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
+                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base))
+
+
+def initial_from_data(model: Model, rec: Record, base: ParameterSet) -> dict[str, float]:
+    """Where the record starts: its measured state, and for a loaded rig without logged pressures the
+    pressure difference that carries the load (a fit may refine it with ``estimate_init``)."""
+    init = model.initial_from_data(rec.signals, rec.dt)
+    if model.name == "msp25" and "pA0" not in init and "pB0" not in init and base["Fext"] != 0:
+        init["dp0"] = base["Fext"] / base["A"]
+    return init
+
+
+def _starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int, spread: float) -> np.ndarray:
+    """``n`` start vectors in fit coordinates: the given start, then a Latin hypercube around it."""
+    theta0 = np.array([start[f] for f in prob.free])
+    init0 = np.array([[prob.init_fixed[r].get(q, 0.0) for q in prob.init_names] for r in range(len(prob.records))])
+    z0 = prob.to_z(theta0, init0)
+    if n <= 1:
+        return z0[None, :]
+    rng = np.random.default_rng(seed)
+    d = prob.n_theta
+    u = (rng.permuted(np.tile(np.arange(n - 1), (d, 1)), axis=1).T + rng.uniform(size=(n - 1, d))) / (n - 1)
+    f = np.exp(np.log(spread) * (2 * u - 1))  # multiplicative factors in [1/spread, spread]
+    lo, hi = prob.bounds_z()
+    Z = np.repeat(z0[None, :], n, axis=0)
+    for j in range(d):
+        if prob.scale[j] == 0:
+            Z[1:, j] = z0[j] + np.log(f[:, j])
+        else:
+            Z[1:, j] = z0[j] * f[:, j] if z0[j] != 0 else (2 * u[:, j] - 1) * spread
+    fin = np.isfinite(lo)  # initial-state coordinates are unbounded
+    lo_in = np.where(fin, lo + 1e-9 * (np.abs(np.where(fin, lo, 0.0)) + 1), -np.inf)
+    fin = np.isfinite(hi)
+    hi_in = np.where(fin, hi - 1e-9 * (np.abs(np.where(fin, hi, 0.0)) + 1), np.inf)
+    return np.clip(Z, lo_in, hi_in)
+
+
+def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str],
+        base: ParameterSet | None = None, start: Mapping[str, float] | None = None,
+        outputs: Sequence[str] | None = None, noise: Mapping[str, float] | None = None,
+        drive: str = "auto", estimate_init: Sequence[str] = (),
+        init: Sequence[Mapping[str, float]] | None = None, n_starts: int = 8, n_refine: int = 2,
+        spread: float = 2.0, seed: int = 0, max_nfev: int = 60, tol: float = 1e-12,
+        substeps: int | None = None, progress: Callable[[str], None] | None = None,
+        timing: Timing | None = None) -> FitResult:
+    """Fit ``free`` parameters of ``model`` to ``records`` by output-error least squares.
+
+    ``base`` holds the known parameters (and switched-on effects); ``start`` the
+    starting values of the free ones (default: ``base``'s values).  ``n_starts``
+    candidates are screened in one batch and the best ``n_refine`` refined.
+    ``init``: initial-state quantities per record (default: read off the data);
+    ``timing``: the loop's timing (default: a digital controller at the log's
+    rate, inputs held between samples).
+    """
+    t_start = time.perf_counter()
+    if isinstance(records, Record):
+        records = [records]
+    prob = make_problem(model, records, free, base, outputs, noise, drive, estimate_init, init, substeps, timing)
+    start = {**prob.base.as_dict(), **(start or {})}
+    for n in prob.free:
+        prob.base.spec(n).check(start[n])
+    lo, hi = prob.bounds_z()
+    Z0 = _starts(prob, start, max(1, n_starts), seed, spread)
+    # screen all candidates in one batched simulation
+    R0 = prob.residuals(Z0)
+    costs0 = 0.5 * np.sum(R0 * R0, axis=1)
+    costs0 = np.where(np.isfinite(costs0), costs0, np.inf)
+    order = np.argsort(costs0)[: max(1, n_refine)]
+    starts_info = [{"theta": dict(zip(prob.free, prob.from_z(Z0[i])[0].tolist())), "cost": float(costs0[i]),
+                    "refined": bool(i in order)} for i in range(Z0.shape[0])]
+    if progress:
+        progress(f"screened {Z0.shape[0]} starts in one batch; refining the best {len(order)}")
+
+    history: list[dict] = []
+    nfev_total = 0
+    best = None
+    for rank, i in enumerate(order):
+        cache: dict = {}
+
+        def fun(z, cache=cache):
+            key = z.tobytes()
+            if key not in cache:
+                cache.clear()
+                Zb = np.vstack([z, z + FD_STEP * np.eye(prob.n_z)])
+                cache[key] = prob.residuals(Zb)
+            return cache[key][0]
+
+        def jac(z, cache=cache, rank=rank):
+            fun(z)
+            R = cache[z.tobytes()]
+            J = ((R[1:] - R[0]) / FD_STEP).T
+            th = prob.from_z(z)[0]
+            history.append({"start": rank, "iteration": len([h for h in history if h["start"] == rank]),
+                            "cost": float(0.5 * R[0] @ R[0]), "theta": dict(zip(prob.free, th.tolist()))})
+            if progress:
+                progress(f"start {rank}: iteration {history[-1]['iteration']:3d} cost {history[-1]['cost']:.6g} "
+                         + " ".join(f"{k}={v:.6g}" for k, v in history[-1]["theta"].items()))
+            return J
+
+        try:
+            res = optimize.least_squares(fun, Z0[i], jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
+                                         ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            starts_info[i]["error"] = str(exc)
+            continue
+        nfev_total += int(res.nfev)
+        starts_info[i]["final_cost"] = float(res.cost)
+        if best is None or res.cost < best.cost:
+            best = res
+        if best.cost <= 0.75 * R0.shape[1]:  # residuals at the noise floor: other starts cannot do better
+            break
+    if best is None:  # every refinement failed numerically: report the best screened start
+        z = Z0[order[0]]
+        r = prob.residuals(z[None, :])[0]
+        best = optimize.OptimizeResult(x=z, cost=0.5 * float(r @ r), fun=r, status=-1, success=False,
+                                       message="every refinement failed numerically", nfev=0)
+    return _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start)
+
+
+def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResult:
+    z = res.x
+    theta, init = prob.from_z(z)
+    R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
+    r = R[0]
+    J = ((R[1:] - r) / FD_STEP).T
+    N = r.size
+    p = prob.n_z
+    s2 = float(r @ r) / max(N - p, 1)
+    g = np.concatenate([prob.dtheta_dz(theta), np.ones(p - prob.n_theta)])
+    try:
+        H_inv = np.linalg.pinv(J.T @ J)
+        cov_white = s2 * H_inv * np.outer(g, g)
+        cov = hac_covariance(J, r, prob.block_sizes(), H_inv) * np.outer(g, g)
+    except np.linalg.LinAlgError:
+        cov_white = cov = np.full((p, p), np.nan)
+    ct = cov[: prob.n_theta, : prob.n_theta]
+    std = np.sqrt(np.clip(np.diag(ct), 0, None))
+    std_white = np.sqrt(np.clip(np.diag(cov_white)[: prob.n_theta], 0, None))
+    # a parameter held at a bound has no meaningful standard error: say so
+    lo, hi = prob.bounds_z()
+    zt = z[: prob.n_theta]
+    at_bound = [n for n, zi, a, b in zip(prob.free, zt, lo, hi) if min(zi - a, b - zi) < 1e-6]  # z is order one
+    std = np.where([n in at_bound for n in prob.free], np.nan, std)
+    std_white = np.where([n in at_bound for n in prob.free], np.nan, std_white)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = ct / np.outer(std, std)
+    ps = prob.base.update(dict(zip(prob.free, theta.tolist())))
+    pred = prob.predict(z)
+    fit_pct, mse, nrmse = {}, {}, {}
+    loglik = 0.0
+    for o in prob.outputs:
+        y = np.concatenate([rec[o] for rec in prob.records])
+        yh = np.concatenate([pr[o] for pr in pred])
+        e = y - yh
+        m = float(np.mean(e * e))
+        den = float(np.linalg.norm(y - y.mean()))
+        fit_pct[o] = 100.0 * (1.0 - float(np.linalg.norm(e)) / den) if den > 0 else float("nan")
+        nrmse[o] = float(np.sqrt(m)) / float(np.std(y)) if np.std(y) > 0 else float("nan")
+        mse[o] = m
+        loglik += -0.5 * y.size * (math.log(2 * math.pi * max(m, 1e-300)) + 1.0)
+    n_out = len(prob.outputs)
+    n_obs = N
+    aic = -2 * loglik + 2 * p
+    aicc = aic + 2 * p * (p + 1) / max(n_obs - p - 1, 1)
+    bic = -2 * loglik + p * math.log(n_obs)
+    v = float(np.prod([mse[o] for o in prob.outputs])) ** (1.0 / n_out)
+    fpe = v * (1 + p / n_obs) / (1 - p / n_obs) if n_obs > p else float("inf")
+    init_list = [prob._init_of(init[r], r) for r in range(len(prob.records))]
+    return FitResult(
+        model=prob.model.name, params=ps, free=prob.free, estimate=dict(zip(prob.free, theta.tolist())),
+        std=dict(zip(prob.free, std.tolist())), corr=corr, outputs=prob.outputs, fit_pct=fit_pct, mse=mse,
+        nrmse=nrmse, loglik=loglik, aic=aic, aicc=aicc, bic=bic, fpe=fpe, n_obs=n_obs, n_par=p,
+        cost=float(res.cost), success=bool(res.status > 0), status=int(res.status),
+        message=str(res.message) + (f"; at a bound (no standard error): {', '.join(at_bound)}" if at_bound else ""),
+        nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed, predicted=pred,
+        std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict())
+
+
+def _bartlett_lag(g: np.ndarray) -> int:
+    """Andrews' (1991) AR(1) plug-in bandwidth for Bartlett weights, from the score series ``g [n, p]``."""
+    n = g.shape[0]
+    num = den = 0.0
+    for a in range(g.shape[1]):
+        x = g[:, a]
+        v = float(x @ x)
+        if v <= 0:
+            continue
+        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
+        s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
+        num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
+        den += s4 / (1 - rho) ** 4
+    if den <= 0:
+        return 0
+    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), 0), n // 4))
+
+
+def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
+                   H_inv: np.ndarray) -> np.ndarray:
+    """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
+
+    ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
+    residuals lie output after output; the scores of all outputs at one instant
+    are summed (so cross-correlations between outputs count), and their
+    autocovariances are summed within each record with Bartlett weights up to
+    an automatic lag.
+    """
+    Sm = np.zeros((J.shape[1], J.shape[1]))
+    start = 0
+    for m, n in blocks:
+        G = (J[start:start + m * n] * r[start:start + m * n, None]).reshape(m, n, -1).sum(axis=0)
+        start += m * n
+        Sm += G.T @ G
+        L = _bartlett_lag(G)
+        for lag in range(1, L + 1):
+            w = 1.0 - lag / (L + 1.0)
+            C = G[lag:].T @ G[:-lag]
+            Sm += w * (C + C.T)
+    N, p = J.shape
+    cov = H_inv @ Sm @ H_inv * (N / max(N - p, 1))
+    return cov
+
+
+def likelihood_ratio(nested: FitResult, extended: FitResult) -> tuple[float, float, int]:
+    """LR statistic, p-value and degrees of freedom of ``extended`` against ``nested``."""
+    df = extended.n_par - nested.n_par
+    lr = max(0.0, 2.0 * (extended.loglik - nested.loglik))
+    return lr, float(stats.chi2.sf(lr, max(df, 1))), df

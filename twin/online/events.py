@@ -1,0 +1,610 @@
+"""Events the twin publishes: alarms, estimates and service status.
+
+Each event is a frozen dataclass with ``to_dict()`` / ``from_dict()`` and a
+JSON schema (draft 2020-12, a plain ``dict``) in its ``SCHEMA`` class
+attribute. The same schema drives validation: ``from_dict`` checks a decoded
+payload against it and raises :class:`~twin.errors.DataError` with a message
+that names the event, the field, the value and what was expected, e.g.::
+
+    AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm']
+
+Construction validates too (``__post_init__``), so an event that exists is a
+valid event. Unknown extra fields in a payload are ignored (a tolerant reader:
+a newer twin may add fields without breaking older subscribers).
+
+Time convention: ``t_ns`` is integer nanoseconds of the ingest clock (Unix
+epoch for a live rig, the log's own time for a replay); ``t_s`` is float
+seconds from the start of the record. JSON payloads never carry NaN or
+infinity (``to_json`` refuses them).
+
+``AlarmEvent.seq`` is the per-rig sequence number assigned by the journal
+(:class:`twin.service.journal.AlarmJournal`): 1, 2, 3, ... without gaps. ``seq=0``
+means "not yet journaled"; only the journal turns it into a real number, and
+an alarm with ``seq=0`` is never serialised for the bus (``from_dict``
+requires ``seq >= 1``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any, ClassVar, Self
+
+from twin.errors import DataError
+from datetime import UTC
+
+__all__ = [
+    "ALARM_KINDS",
+    "ALARM_LEVELS",
+    "SERVICE_STATES",
+    "AlarmEvent",
+    "AlarmIdentity",
+    "EstimateEvent",
+    "ParamEstimate",
+    "StatusEvent",
+    "event_to_json",
+    "validate",
+]
+
+ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm")
+"""Levels of a drift alarm, in increasing severity."""
+
+ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
+"""What happened: a level left ``ok`` (raised), went from warning to alarm
+(escalated), or came back down (returned, to ``warning`` or ``ok``)."""
+
+SERVICE_STATES: tuple[str, ...] = (
+    "starting", "running", "degraded", "stale_input", "finished", "failed", "stopped",
+)
+"""Life-cycle states of a twin service for one rig: ``starting``; ``running``;
+``degraded`` (running, but behind real time or unable to journal: the message
+says which); ``stale_input`` (no sample for a while: the rig waits, counter
+``stale_ms`` says how long); ``finished`` (a replayed log ended); ``failed``
+(an unrecoverable error, named in the message; the service exits non-zero);
+``stopped`` (told to stop)."""
+
+INT64_MAX = 2**63 - 1
+"""Largest ``t_ns`` (and counter): times are int64 nanoseconds everywhere (numpy, SQLite, MCAP)."""
+
+RIG_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
+"""A rig id is one Zenoh key chunk: letters, digits, ``_ . -`` (no ``/ * $ ? # @``)."""
+
+NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*$"
+"""Parameter and counter names are identifiers (``Fc``, ``Kleak``, ``omega_v``)."""
+
+STATUS_PATTERN = r"^[a-z][a-z0-9_]*$"
+"""Filter and parameter statuses are lower-case words (``ok``, ``frozen``, ``unresolved``)."""
+
+
+# --------------------------------------------------------------------------- validation
+
+_TYPE_NAMES = {
+    "object": "an object",
+    "string": "a string",
+    "integer": "an integer",
+    "number": "a finite number",
+    "null": "null",
+}
+
+
+def _is_type(value: Any, type_name: str) -> bool:
+    if type_name == "object":
+        return isinstance(value, Mapping)
+    if type_name == "string":
+        return isinstance(value, str)
+    if type_name == "integer":
+        return isinstance(value, int) and not isinstance(value, bool)
+    if type_name == "number":
+        return (
+            isinstance(value, (int, float))
+            and not isinstance(value, bool)
+            and math.isfinite(value)
+        )
+    if type_name == "null":
+        return value is None
+    raise ValueError(f"schema uses unsupported type {type_name!r}")
+
+
+def validate(value: Any, schema: Mapping[str, Any], where: str) -> None:
+    """Check ``value`` against the subset of JSON Schema the event schemas use.
+
+    Supported keywords: ``type`` (a name or a list of names), ``enum``,
+    ``minimum``, ``maximum``, ``minLength``, ``pattern``, ``properties``, ``required``,
+    ``additionalProperties`` (a schema) and ``propertyNames``. Numbers must be
+    finite; booleans are not numbers.
+
+    :param value: the decoded JSON value.
+    :param schema: the schema (or sub-schema) to check against.
+    :param where: the dotted path used in messages, e.g. ``"AlarmEvent.level"``.
+    :raises DataError: naming ``where``, the value and what was expected.
+    """
+    types = schema.get("type")
+    if types is not None:
+        names = [types] if isinstance(types, str) else list(types)
+        if not any(_is_type(value, t) for t in names):
+            expected = " or ".join(_TYPE_NAMES[t] for t in names)
+            raise DataError(f"{where}: {value!r} must be {expected}")
+    if "enum" in schema and value not in schema["enum"]:
+        raise DataError(f"{where}: {value!r} is not one of {list(schema['enum'])}")
+    if "minimum" in schema and isinstance(value, (int, float)) and value < schema["minimum"]:
+        raise DataError(f"{where}: {value!r} must be >= {schema['minimum']}")
+    if "maximum" in schema and isinstance(value, (int, float)) and value > schema["maximum"]:
+        raise DataError(f"{where}: {value!r} must be <= {schema['maximum']}")
+    if isinstance(value, str):
+        if "minLength" in schema and len(value) < schema["minLength"]:
+            raise DataError(f"{where}: {value!r} must have at least {schema['minLength']} characters")
+        if "pattern" in schema and re.search(schema["pattern"], value) is None:
+            raise DataError(f"{where}: {value!r} does not match {schema['pattern']}")
+    if isinstance(value, Mapping):
+        for name in schema.get("required", ()):
+            if name not in value:
+                raise DataError(f"{where}.{name}: missing (required field)")
+        properties = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        names_schema = schema.get("propertyNames")
+        for name, item in value.items():
+            if names_schema is not None:
+                validate(name, names_schema, f"{where} key")
+            if name in properties:
+                validate(item, properties[name], f"{where}.{name}")
+            elif isinstance(extra, Mapping):
+                validate(item, extra, f"{where}.{name}")
+
+
+def _check(cls_name: str, schema: Mapping[str, Any], data: Mapping[str, Any]) -> None:
+    validate(data, schema, cls_name)
+
+
+def _as_mapping(data: Any, cls_name: str) -> Mapping[str, Any]:
+    if not isinstance(data, Mapping):
+        raise DataError(f"{cls_name}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = True) -> str:
+    """One line a person reads: values in the parameter's display unit (``43 Hz``, ``0.0033 mm^2``).
+
+    The machine outputs (JSON, MCAP, Zenoh) stay SI; this is the one formatter of
+    every console and log line about an alarm.
+    """
+    from datetime import datetime
+
+    from twin.models import get_model
+
+    show: Callable[[float], str]
+    try:
+        show = get_model(model).params(effects=()).spec(event.parameter).show
+    except Exception:  # a parameter of another model or an effect: SI with no unit rather than nothing
+        def show(v: float) -> str:
+            return f"{v:.6g}"
+
+    def short(v: float) -> str:
+        if not math.isfinite(v):
+            return "n/a"
+        text = show(float(f"{v:.4g}"))
+        return text
+
+    when = ""
+    if wall_clock and event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: the wall-clock time too
+        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=UTC)
+        when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
+    text = (f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} {event.kind:9s} "
+            f"{event.parameter} = {short(event.estimate)} ± {short(event.std)} "
+            f"(baseline {short(event.baseline)}, band {short(event.band_lo)} .. {short(event.band_hi)}, "
+            f"statistic {event.statistic:.3g})")
+    return f"{text} {event.message}" if event.message else text
+
+
+def _si_unit(parameter: str) -> str:
+    """The SI unit of a parameter of any model (``"1"`` if unknown)."""
+    from twin.units import _known_units
+
+    return _known_units().get(parameter, "1")
+
+
+def event_to_json(event: AlarmEvent | EstimateEvent | StatusEvent) -> str:
+    """Serialise an event to compact JSON (sorted keys, no NaN/inf)."""
+    return json.dumps(event.to_dict(), separators=(",", ":"), sort_keys=True, allow_nan=False)
+
+
+def _num(description: str, **extra: Any) -> dict[str, Any]:
+    return {"type": "number", "description": description, **extra}
+
+
+# --------------------------------------------------------------------------- alarms
+
+_ALARM_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "fpdd-twin/alarm-event.schema.json",
+    "title": "AlarmEvent",
+    "description": "A drift alarm on one phenomenological parameter of one rig "
+    "(key fpdd/<rig>/alarm, and replies on fpdd/<rig>/alarm/history).",
+    "type": "object",
+    "required": [
+        "rig", "parameter", "level", "kind", "t_ns", "t_s", "estimate", "std",
+        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit",
+    ],
+    "properties": {
+        "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
+        "parameter": {"type": "string", "pattern": NAME_PATTERN, "description": "parameter name"},
+        "level": {"type": "string", "enum": list(ALARM_LEVELS), "description": "level after this event"},
+        "kind": {"type": "string", "enum": list(ALARM_KINDS), "description": "transition"},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
+        "t_s": _num("time from the start of the record [s]"),
+        "estimate": _num("parameter estimate, SI unit of the parameter"),
+        "std": _num("standard deviation of the estimate, same unit", minimum=0),
+        "baseline": _num("healthy baseline value, same unit"),
+        "band_lo": _num("lower edge of the healthy band, same unit"),
+        "band_hi": _num("upper edge of the healthy band, same unit"),
+        "seq": {"type": "integer", "minimum": 1, "description": "per-rig sequence number, 1, 2, 3, ... without gaps"},
+        "statistic": _num("value of the sequential test (CUSUM/GLR) at this event"),
+        "message": {"type": "string", "description": "one human-readable line"},
+        "unit": {"type": "string", "description": "SI unit of estimate, std, baseline and band, e.g. 'N', "
+                                                  "'m^2', 'rad/s', '1'"},
+    },
+}
+
+
+class _FromJson:
+    """``from_dict`` shared by the event classes: validate against ``SCHEMA``, then build."""
+
+    __slots__ = ()
+    SCHEMA: ClassVar[dict[str, Any]]
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Self:
+        """Build and validate an event from a decoded JSON payload.
+
+        :raises DataError: naming the field that does not validate.
+        """
+        data = _as_mapping(data, cls.__name__)
+        _check(cls.__name__, cls.SCHEMA, data)
+        import dataclasses
+
+        optional = {f.name for f in dataclasses.fields(cls)} - set(cls.SCHEMA["required"])  # type: ignore[arg-type]
+        return cls(**{name: data[name] for name in cls.SCHEMA["required"]},
+                   **{name: data[name] for name in optional if name in data})
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmIdentity:
+    """What makes an alarm the same alarm: rig, parameter, level, kind and the sample time.
+
+    The detector is deterministic, so a rig whose log is processed again (a
+    restart before the last checkpoint, a replay of the same log) raises the
+    same transitions at the same sample times; the journal keeps one alarm per
+    identity, whatever its sequence number would have been.
+    """
+
+    rig: str
+    parameter: str
+    level: str
+    kind: str
+    t_ns: int
+
+    def __str__(self) -> str:
+        return f"{self.rig}/{self.parameter} {self.kind} {self.level} at t_ns={self.t_ns}"
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmEvent(_FromJson):
+    """A change of alarm level of one parameter of one rig.
+
+    :ivar rig: rig id (one Zenoh key chunk, see :data:`RIG_PATTERN`).
+    :ivar parameter: parameter name, e.g. ``"Kleak"``.
+    :ivar level: level after the event, one of :data:`ALARM_LEVELS`.
+    :ivar kind: ``raised`` (left ok), ``escalated`` (warning to alarm) or ``returned``.
+    :ivar t_ns: ingest time of the sample that triggered the event [ns].
+    :ivar t_s: time from the start of the record [s].
+    :ivar estimate: the parameter estimate [SI unit of the parameter].
+    :ivar std: its standard deviation from the filter's covariance [same unit].
+    :ivar baseline: the healthy baseline [same unit].
+    :ivar band_lo: lower edge of the healthy band [same unit].
+    :ivar band_hi: upper edge of the healthy band [same unit].
+    :ivar statistic: value of the sequential test when the event fired [-].
+    :ivar message: one human-readable line.
+    :ivar seq: per-rig sequence number assigned by the journal; 0 = not journaled yet.
+    """
+
+    rig: str
+    parameter: str
+    level: str
+    kind: str
+    t_ns: int
+    t_s: float
+    estimate: float
+    std: float
+    baseline: float
+    band_lo: float
+    band_hi: float
+    statistic: float
+    message: str = ""
+    seq: int = 0
+    unit: str = ""
+
+    SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
+
+    def __post_init__(self) -> None:
+        if not self.unit:  # the SI unit of the parameter, named beside every value on the wire
+            object.__setattr__(self, "unit", _si_unit(self.parameter))
+        data = self.to_dict()
+        # seq 0 (not journaled yet) is legal in memory, never on the wire.
+        _check("AlarmEvent", self.SCHEMA, {**data, "seq": self.seq or 1})
+        if self.band_lo > self.band_hi:
+            raise DataError(
+                f"AlarmEvent.band_lo: {self.band_lo!r} must be <= band_hi ({self.band_hi!r})"
+            )
+        if self.kind in ("raised", "escalated") and self.level == "ok":
+            raise DataError(f"AlarmEvent.level: 'ok' is not a possible level for kind {self.kind!r}")
+        if self.kind == "escalated" and self.level != "alarm":
+            raise DataError(f"AlarmEvent.level: {self.level!r} must be 'alarm' for kind 'escalated'")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/alarm``)."""
+        return {
+            "rig": self.rig,
+            "parameter": self.parameter,
+            "level": self.level,
+            "kind": self.kind,
+            "t_ns": self.t_ns,
+            "t_s": self.t_s,
+            "estimate": self.estimate,
+            "std": self.std,
+            "baseline": self.baseline,
+            "band_lo": self.band_lo,
+            "band_hi": self.band_hi,
+            "seq": self.seq,
+            "statistic": self.statistic,
+            "message": self.message,
+            "unit": self.unit,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Self:
+        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's."""
+        data = _as_mapping(data, cls.__name__)
+        if "unit" not in data and isinstance(data.get("parameter"), str):
+            data = {**data, "unit": _si_unit(data["parameter"])}
+        # slots dataclass: no zero-argument super
+        return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]
+
+    def with_seq(self, seq: int) -> Self:
+        """A copy carrying sequence number ``seq``."""
+        return replace(self, seq=seq)
+
+    @property
+    def identity(self) -> AlarmIdentity:
+        """(rig, parameter, level, kind, t_ns): equal for the same alarm raised twice."""
+        return AlarmIdentity(self.rig, self.parameter, self.level, self.kind, self.t_ns)
+
+
+# --------------------------------------------------------------------------- estimates
+
+_PARAM_ESTIMATE_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["value", "std", "unit"],
+    "properties": {
+        "value": _num("estimate in the SI unit given by 'unit'"),
+        "std": _num("standard deviation, same unit", minimum=0),
+        "unit": {"type": "string", "description": "SI unit, e.g. 'N', 'm^3/(s*Pa)', '1', 'rad/s'"},
+    },
+}
+
+_ESTIMATE_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "fpdd-twin/estimate-event.schema.json",
+    "title": "EstimateEvent",
+    "description": "The tracked parameters of one rig at one instant (key fpdd/<rig>/estimate).",
+    "type": "object",
+    "required": ["rig", "t_ns", "t_s", "params", "nis", "status"],
+    "properties": {
+        "rig": {"type": "string", "pattern": RIG_PATTERN},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
+        "t_s": _num("time from the start of the record [s]"),
+        "params": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": _PARAM_ESTIMATE_SCHEMA,
+            "description": "parameter name -> {value, std, unit}",
+        },
+        "nis": {"type": ["number", "null"], "minimum": 0, "description": "normalised innovation squared of this step, null before the first update"},
+        "status": {"type": "string", "pattern": STATUS_PATTERN, "description": "filter status: ok, gated, repaired_covariance, stale_input, ..."},
+    },
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ParamEstimate:
+    """One tracked parameter: value and standard deviation in SI ``unit``."""
+
+    value: float
+    std: float
+    unit: str
+
+    def __post_init__(self) -> None:
+        _check("ParamEstimate", _PARAM_ESTIMATE_SCHEMA, self.to_dict())
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"value": ..., "std": ..., "unit": ...}``."""
+        return {"value": self.value, "std": self.std, "unit": self.unit}
+
+
+@dataclass(frozen=True, slots=True)
+class EstimateEvent(_FromJson):
+    """The parameter estimates of one rig at one instant.
+
+    :ivar rig: rig id.
+    :ivar t_ns: ingest time [ns].
+    :ivar t_s: time from the start of the record [s].
+    :ivar params: parameter name -> :class:`ParamEstimate` (read-only mapping;
+        plain ``{"value", "std", "unit"}`` dicts are accepted and converted).
+    :ivar nis: normalised innovation squared of the step, ``None`` before the first update.
+    :ivar status: filter status (``ok``, ``gated``, ``repaired_covariance``, ``stale_input``, ...).
+    """
+
+    rig: str
+    t_ns: int
+    t_s: float
+    params: Mapping[str, ParamEstimate]
+    nis: float | None = None
+    status: str = "ok"
+
+    SCHEMA: ClassVar[dict[str, Any]] = _ESTIMATE_SCHEMA
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.params, Mapping):
+            raise DataError(f"EstimateEvent.params: {self.params!r} must be an object")
+        converted: dict[str, ParamEstimate] = {}
+        for name, item in self.params.items():
+            if isinstance(item, ParamEstimate):
+                converted[name] = item
+            elif isinstance(item, Mapping):
+                validate(item, _PARAM_ESTIMATE_SCHEMA, f"EstimateEvent.params.{name}")
+                converted[name] = ParamEstimate(item["value"], item["std"], item["unit"])
+            else:
+                raise DataError(f"EstimateEvent.params.{name}: {item!r} must be an object")
+        object.__setattr__(self, "params", MappingProxyType(converted))
+        _check("EstimateEvent", self.SCHEMA, self.to_dict())
+
+    @classmethod
+    def of_tracker(cls, rig: str, t_ns: int, t_s: float, names: tuple[str, ...], values, stds,
+                   units: tuple[str, ...], nis: float | None, status: str) -> Self:
+        """An estimate from the tracker's arrays, built without the schema walk when every number is finite.
+
+        The service builds one per published estimate of every rig (20 per
+        second per rig by default); the full validation of ``__init__`` is kept
+        for anything unusual (a non-finite value, a negative std), which then
+        raises as usual.
+        """
+        vals = [float(v) for v in values]
+        sds = [float(v) for v in stds]
+        if (not all(math.isfinite(v) for v in vals) or not all(math.isfinite(v) and v >= 0 for v in sds)
+                or not 0 <= t_ns <= INT64_MAX or not math.isfinite(t_s)
+                or (nis is not None and not (math.isfinite(nis) and nis >= 0))):
+            plain: dict[str, Any] = {n: {"value": v, "std": sd, "unit": u}  # converted by __post_init__
+                                     for n, v, sd, u in zip(names, vals, sds, units)}
+            return cls(rig, t_ns, t_s, plain, nis, status)
+        ev = object.__new__(cls)
+        params = {}
+        for n, v, sd, u in zip(names, vals, sds, units):
+            p = object.__new__(ParamEstimate)
+            object.__setattr__(p, "value", v)
+            object.__setattr__(p, "std", sd)
+            object.__setattr__(p, "unit", u)
+            params[n] = p
+        for name, value in (("rig", rig), ("t_ns", int(t_ns)), ("t_s", float(t_s)),
+                            ("params", MappingProxyType(params)), ("nis", nis), ("status", status)):
+            object.__setattr__(ev, name, value)
+        return ev
+
+    def to_dict(self) -> dict[str, Any]:
+        """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/estimate``)."""
+        return {
+            "rig": self.rig,
+            "t_ns": self.t_ns,
+            "t_s": self.t_s,
+            "params": {name: p.to_dict() for name, p in self.params.items()},
+            "nis": self.nis,
+            "status": self.status,
+        }
+
+
+# --------------------------------------------------------------------------- status
+
+#: what the tracker says of each measured signal
+SENSOR_STATES = ("ok", "noisy", "stuck", "clipped", "offset", "wrong_unit", "missing")
+
+_STATUS_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "fpdd-twin/status-event.schema.json",
+    "title": "StatusEvent",
+    "description": "Health of the twin serving one rig (key fpdd/<rig>/status).",
+    "type": "object",
+    "required": ["rig", "t_ns", "state", "parameters", "counters", "message", "sensors", "consistency"],
+    "properties": {
+        "rig": {"type": "string", "pattern": RIG_PATTERN},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
+        "state": {"type": "string", "enum": list(SERVICE_STATES)},
+        "parameters": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "string", "pattern": STATUS_PATTERN},
+            "description": "parameter name -> status: ok, frozen (not excited), unresolved (not identifiable from recent data), warning, alarm",
+        },
+        "counters": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "integer", "minimum": 0, "maximum": INT64_MAX},
+            "description": "non-negative counters: samples, alarms, gated, repaired_covariance, bad_blocks, source_errors, ...; 'alarm_seq' is the last journaled alarm seq; gauges 'lag_ms' (how far behind real time) and 'stale_ms' (how long without input)",
+        },
+        "message": {"type": "string"},
+        "sensors": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "string", "enum": list(SENSOR_STATES)},
+            "description": "measured signal -> sensor status: ok, noisy, stuck, clipped, offset, wrong_unit, "
+                           "missing (a faulty signal is left out of the filter and parameter alarms are held)",
+        },
+        "consistency": {
+            "type": "string",
+            "description": "the filter's consistency with the data: 'consistent', or why not (the drift test "
+                           "holds its evidence meanwhile)",
+        },
+    },
+}
+
+
+@dataclass(frozen=True, slots=True)
+class StatusEvent(_FromJson):
+    """Health of the twin serving one rig.
+
+    :ivar rig: rig id.
+    :ivar t_ns: ingest time [ns].
+    :ivar state: one of :data:`SERVICE_STATES`.
+    :ivar parameters: parameter name -> status word (``ok``, ``frozen``,
+        ``unresolved``, ``warning``, ``alarm``), read-only.
+    :ivar counters: counter name -> non-negative int, read-only. The key
+        ``alarm_seq`` (last journaled alarm of the rig) is filled in by
+        :meth:`twin.service.bus.TwinPublisher.publish_status`; subscribers use it to
+        notice a lost last alarm.
+    :ivar message: one human-readable line.
+    :ivar sensors: measured signal -> sensor status (:data:`SENSOR_STATES`).
+    :ivar consistency: ``consistent`` or why the filter is not consistent with the data.
+    """
+
+    rig: str
+    t_ns: int
+    state: str
+    parameters: Mapping[str, str] = field(default_factory=dict)
+    counters: Mapping[str, int] = field(default_factory=dict)
+    message: str = ""
+    sensors: Mapping[str, str] = field(default_factory=dict)
+    consistency: str = "consistent"
+
+    SCHEMA: ClassVar[dict[str, Any]] = _STATUS_SCHEMA
+
+    def __post_init__(self) -> None:
+        for name in ("parameters", "counters", "sensors"):
+            value = getattr(self, name)
+            if not isinstance(value, Mapping):
+                raise DataError(f"StatusEvent.{name}: {value!r} must be an object")
+            object.__setattr__(self, name, MappingProxyType(dict(value)))
+        _check("StatusEvent", self.SCHEMA, self.to_dict())
+
+    def to_dict(self) -> dict[str, Any]:
+        """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/status``)."""
+        return {
+            "rig": self.rig,
+            "t_ns": self.t_ns,
+            "state": self.state,
+            "parameters": dict(self.parameters),
+            "counters": dict(self.counters),
+            "message": self.message,
+            "sensors": dict(self.sensors),
+            "consistency": self.consistency,
+        }
+

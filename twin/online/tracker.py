@@ -1,0 +1,492 @@
+"""The online tracker: the compiled UKF (:mod:`twin.online.ukf`) behind a block-by-block interface.
+
+``OnlineTracker.process(samples)`` filters a block of :class:`replay.base.Samples`
+(any length, from one sample to a whole record) in one compiled call and
+returns a :class:`TrackBlock`: per sample the tracked parameters in SI with
+their standard deviations, NIS, log-likelihood, the filter's status, the
+consistency guard's verdict (``hold``: the drift test must not count this
+sample as evidence, ``guard``: why), each sensor's status, and which
+parameters were frozen for lack of excitation.  The filter state carries over
+from block to block, so the live service and the offline replay run the same
+code.
+
+Time is read from the timestamps: the filter predicts across the real time
+between samples (dropped rows, lost frames), and re-initialises the model
+states from the measurement after a gap longer than ``gap_max`` seconds.
+
+The tracked parameters move between physical bounds (:data:`PHYSICAL_BOUNDS`)
+with a random walk whose intensity is the expected drift rate of each
+parameter (:data:`DRIFT_RATE`):
+
+=========  ==========================  =====================================================
+parameter  bounds (x the rig's value)  expected drift (log units per sqrt(s)) and why
+=========  ==========================  =====================================================
+Ffric      1/20 .. 40, <= pP A         0.3: seals pinch and lubrication fails within a second
+CdAleak    1/100 .. 1000               0.15: a seal wears through in seconds to minutes
+Cd         1/4 .. 4, <= 1              0.01: port erosion and silting are slow
+zeta       1/5 .. 5                    0.01: valve damping follows oil temperature and wear
+wn         1/3 .. 3                    0.01: a valve's first stage degrades over minutes
+=========  ==========================  =====================================================
+
+Sensor noise is a property of the rig: ``noise=`` (standard deviations, SI),
+else the commissioning fit's residual RMS, else :data:`DEFAULT_NOISE`; the
+filter learns it online (and its colour) from the innovations unless
+``adapt_noise=False``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from filterpy.kalman import JulierSigmaPoints, MerweScaledSigmaPoints
+from scipy import stats
+
+from replay.base import Samples
+from twin.online import ukf
+from twin.errors import DataError, FilterError, ParameterError
+from twin.models import get_model
+from twin.models import msp25 as M
+from twin.models.base import Timing
+
+#: physical bounds of each tracked parameter as factors of the rig's (reference) value
+PHYSICAL_BOUNDS = {"Ffric": (1 / 20, 40.0), "CdAleak": (1 / 100, 1000.0), "Cd": (1 / 4, 4.0),
+                   "zeta": (1 / 5, 5.0), "wn": (1 / 3, 3.0)}
+#: expected drift rate of each parameter: random-walk intensity in log units per sqrt(second)
+DRIFT_RATE = {"Ffric": 0.3, "CdAleak": 0.15, "Cd": 0.01, "zeta": 0.01, "wn": 0.01}
+#: kept for callers of the old name
+DEFAULT_Q_RATE = DRIFT_RATE
+#: nominal sensor noise (standard deviation, SI) when neither the rig nor a commissioning fit says
+DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4}
+#: per-step process noise of the scaled model states (filter units, variance per sample at 1 kHz)
+DEFAULT_Q_STATE = np.array([1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7])
+#: prior standard deviation of the parameters (log units): +-50 % starting errors are inside 1 sigma
+DEFAULT_PRIOR_STD = 0.7
+#: excitation thresholds: rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
+DEFAULT_EXCITE = (2e-3, 0.5, 2e4)
+#: prior standard deviation of the scaled model states (and after a re-initialisation)
+PRIOR_MODEL = np.array([0.01, 0.01, 0.1, 0.1, 0.01, 0.01])
+#: guard, noise-learning and sensor-fault settings (see twin.online.ukf); override with ``guard={...}``
+DEFAULT_GUARD = {
+    "nis_clip": 10.0,       # a sample's NIS per measurement counts at most this much in the guard's average
+    "nis_hi": 2.0,          # average NIS per measurement above which the filter is inconsistent
+    "rho_hi": 0.4,          # |lag-one autocorrelation| of normalised innovations above which it is inconsistent
+    "tau_guard": 2.0,       # s, the guard's averaging time
+    "div_nis": 200.0,       # fast-average NIS per measurement that means divergence
+    "tau_div": 0.2,         # s
+    "settle_s": 2.0,        # s the drift test holds after a re-initialisation or a recovery
+    "checkpoint_s": 1.0,    # s of uninterrupted consistency before a checkpoint is taken
+    "inflate": 4.0,         # parameter covariance factor after a re-initialisation or recovery
+    "gap_max": 0.05,        # s: a longer gap re-initialises the model states from the measurement
+    "tau_noise": 2.0,       # s, noise learning time constant
+    "adapt": 1.0,           # learn the noise online (0: keep it)
+    "noisy_factor": 5.0,    # learnt noise beyond this factor of the nominal: the sensor is 'noisy'
+    "outlier_nu": 8.0,      # one output this many sigma off while another agrees: that output is suspect
+    "offset_n": 20,         # suspect samples in a row: 'offset'
+    "stuck_n": 20,          # the same value this many times while the model moves: 'stuck'
+    "clear_n": 200,         # consistent samples in a row that clear a sensor fault
+    "z_pin": 9.0,           # |logit| beyond which a parameter is pinned at a bound (divergence)
+    "sig_lo": 0.2, "sig_hi": 50.0,  # learnt noise stays within these factors of the nominal
+    "a_max": 0.99,          # largest AR(1) coefficient of the noise
+    "warm_s": 1.0,          # s at the start during which the guard's averages fill
+}
+_GUARD_ORDER = ("nis_clip", "nis_hi", "rho_hi", "tau_guard", "div_nis", "tau_div", "settle_s", "checkpoint_s",
+                "inflate", "gap_max", "tau_noise", "adapt", "noisy_factor", "outlier_nu", "offset_n", "stuck_n",
+                "clear_n", "z_pin", "sig_lo", "sig_hi", "a_max", "stroke", "pmin", "pmax", "warm_s")
+assert len(_GUARD_ORDER) == ukf.N_CFG
+
+
+@dataclasses.dataclass
+class TrackBlock:
+    t_ns: np.ndarray            # [T]
+    estimates: np.ndarray       # [T, p] SI
+    stds: np.ndarray            # [T, p] SI (delta method on the logit coordinates)
+    log_std: np.ndarray         # [T, p] relative standard deviation
+    nis: np.ndarray             # [T]
+    loglik: np.ndarray          # [T]
+    status: np.ndarray          # [T] status names (twin.online.ukf.STATUS)
+    frozen: np.ndarray          # [T, p] bool
+    innovation: np.ndarray      # [T, m] SI
+    states: np.ndarray          # [T, 6] SI
+    guard: np.ndarray | None = None    # [T] guard names (twin.online.ukf.GUARD); 'consistent' when the evidence counts
+    sensors: np.ndarray | None = None  # [T, m] sensor status names (twin.online.ukf.SENSOR)
+    noise: np.ndarray | None = None    # [T, m] learnt noise standard deviation (SI)
+    outputs: tuple = ()
+    used: np.ndarray | None = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
+
+    @property
+    def param_status(self) -> np.ndarray:
+        """Per sample and parameter: 'frozen' or 'ok'."""
+        return np.where(self.frozen, "frozen", "ok")
+
+    @property
+    def hold(self) -> np.ndarray:
+        """[T] bool: the drift test holds its evidence on these samples (the filter is not consistent)."""
+        if self.guard is None:
+            return np.zeros(len(self.t_ns), bool)
+        return self.guard != "consistent"
+
+    def sensor_status(self, i: int = -1) -> dict[str, str]:
+        """Each output's sensor status at sample ``i`` (default the last)."""
+        if self.sensors is None or not len(self.t_ns):
+            return {}
+        return {o: str(self.sensors[i, j]) for j, o in enumerate(self.outputs)}
+
+
+def physical_bounds(ps, name: str) -> tuple[float, float]:
+    """(lo, hi) in SI of a tracked parameter for the rig ``ps`` (:data:`PHYSICAL_BOUNDS`)."""
+    v = ps[name]
+    f_lo, f_hi = PHYSICAL_BOUNDS[name]
+    lo, hi = v * f_lo, v * f_hi
+    if name == "Ffric":
+        hi = min(hi, ps["pP"] * ps["A"])  # friction cannot exceed the actuator's stall force
+    if name == "Cd":
+        hi = min(hi, 1.0)
+    spec = ps.spec(name)
+    return max(lo, spec.lo if spec.lo > 0 else lo), min(hi, spec.hi)
+
+
+class OnlineTracker:
+    """Augmented-state UKF of one rig; see the module docstring.
+
+    ``params``: known parameter overrides (the rig configuration); ``start``:
+    starting values of the tracked parameters (default: the configuration's);
+    ``outputs``: which of x, pA, pB to use when present; ``noise``: sensor noise
+    standard deviations (SI) per output; ``timing``: the loop's
+    :class:`~twin.models.base.Timing` (or its spelling ``"continuous"``,
+    ``"digital:5000"``); ``guard``: overrides of :data:`DEFAULT_GUARD`.
+    ``points``: a filterpy sigma-point object (``MerweScaledSigmaPoints`` from
+    ``alpha, beta, kappa`` by default, or ``JulierSigmaPoints``).
+    """
+
+    def __init__(self, model: str = "msp25", params: Mapping[str, float] | None = None,
+                 tracked: Sequence[str] = M.PHENOMENOLOGICAL, dt: float | None = None,
+                 start: Mapping[str, float] | None = None, outputs: Sequence[str] = ("x", "pA", "pB"),
+                 q_rate: Mapping[str, float] | None = None, q_state: np.ndarray | None = None,
+                 prior_std: float = DEFAULT_PRIOR_STD, alpha: float = 0.3, beta: float = 2.0,
+                 kappa: float = 0.0, points=None, substeps: int = 2, excite: Sequence[float] = DEFAULT_EXCITE,
+                 tau_excite: float = 0.5, gate_p: float = 1e-9, max_gated: int = 5,
+                 noise: Mapping[str, float] | None = None, timing=None, adapt_noise: bool = True,
+                 guard: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+                 noise_colour: Mapping[str, float] | None = None):
+        if model != "msp25":
+            raise ParameterError(f"the tracker follows the msp25 rig model, not {model!r}")
+        self.model = get_model(model)
+        self.ps = self.model.params((), **dict(params or {}))
+        self.tracked = tuple(tracked)
+        bad = [t for t in self.tracked if t not in ukf.TRACKABLE]
+        if bad or not self.tracked:
+            raise ParameterError(f"cannot track {bad or 'nothing'}; trackable: {', '.join(ukf.TRACKABLE)}")
+        self.outputs = tuple(o for o in outputs)
+        for o in self.outputs:
+            if o not in ukf.MEAS_INDEX:
+                raise ParameterError(f"unknown measurement {o!r}; known: x, pA, pB")
+        self.units = tuple(self.ps.spec(t).unit for t in self.tracked)
+        if isinstance(timing, str):
+            timing = Timing.parse(timing)
+        self.timing = timing or Timing()
+        start = {**{t: self.ps[t] for t in self.tracked}, **dict(start or {})}
+        self.ref = np.array([self.ps[t] for t in self.tracked])
+        bnd = {t: physical_bounds(self.ps, t) for t in self.tracked}
+        for t, (lo, hi) in dict(bounds or {}).items():
+            if t not in bnd:
+                raise ParameterError(f"bounds for {t!r}, which is not tracked ({', '.join(self.tracked)})")
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ParameterError(f"bounds of {t}: need 0 < lo < hi, got ({lo}, {hi})")
+            bnd[t] = (float(lo), float(hi))
+        self.bounds = bnd
+        for t in self.tracked:
+            self.ps.spec(t).check(start[t])
+            lo, hi = bnd[t]
+            if not lo < start[t] < hi:
+                raise ParameterError(f"start value of {t} ({start[t]:g}) is outside its physical bounds "
+                                     f"{lo:g} .. {hi:g}")
+        self.lo_log = np.array([math.log(bnd[t][0]) for t in self.tracked])
+        self.width = np.array([math.log(bnd[t][1] / bnd[t][0]) for t in self.tracked])
+        self.idx = np.array([self.model.kernel_index(t) for t in self.tracked], dtype=np.int64)
+        self.pvec = self.model.vector(self.ps)
+        self.scale = ukf.STATE_SCALE.copy()
+        self.dt = dt
+        self.substeps = int(substeps)
+        p, q = len(self.tracked), len(self.outputs)
+        self.nmod = 6 + p
+        self.n = n = 6 + p + q
+        self.alpha, self.beta, self.kappa = alpha, beta, kappa
+        self.points = points if points is not None else MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+        if isinstance(self.points, MerweScaledSigmaPoints):
+            spread = self.points.alpha**2 * (n + self.points.kappa)
+        elif isinstance(self.points, JulierSigmaPoints):
+            spread = n + self.points.kappa
+        else:
+            raise ParameterError(f"sigma points {type(self.points).__name__}: the compiled filter takes "
+                                 "filterpy's MerweScaledSigmaPoints or JulierSigmaPoints")
+        if self.points.n != n:
+            raise ParameterError(f"sigma points for n={self.points.n}, the filter has n={n} states "
+                                 f"(6 model states, {p} parameters, {q} sensor-noise states)")
+        self.lam = spread - n
+        self.Wm = np.ascontiguousarray(self.points.Wm, dtype=float)
+        self.Wc = np.ascontiguousarray(self.points.Wc, dtype=float)
+        rates = {**DRIFT_RATE, **dict(q_rate or {})}
+        self.q_rate = np.array([rates[t] for t in self.tracked], dtype=float)
+        self.q_state = np.array(DEFAULT_Q_STATE if q_state is None else q_state, dtype=float)
+        self.meas_idx = np.array([ukf.MEAS_INDEX[o] for o in self.outputs], dtype=np.int64)
+        self.x_col = self.outputs.index("x") if "x" in self.outputs else -1
+        noise = {**DEFAULT_NOISE, **dict(noise or {})}
+        for o in self.outputs:
+            v = noise[o]
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ParameterError(f"noise level of {o} must be a positive number (SI), got {v!r}")
+        self.noise_nominal = {o: float(noise[o]) for o in self.outputs}
+        self.chan = np.array([ukf.EXCITE_CHANNEL[t] for t in self.tracked], dtype=np.int64)
+        self.excite_thresh = np.array(excite, dtype=float)
+        self.tau_excite = tau_excite
+        self.gate = float(stats.chi2.isf(gate_p, len(self.outputs)))
+        self.max_gated = int(max_gated)
+        g = {**DEFAULT_GUARD, **{"adapt": 1.0 if adapt_noise else 0.0}, **dict(guard or {})}
+        unknown = set(g) - set(_GUARD_ORDER)
+        if unknown:
+            raise ParameterError(f"unknown guard setting(s) {sorted(unknown)}; known: {', '.join(DEFAULT_GUARD)}")
+        g.setdefault("stroke", float(self.ps["stroke"]))
+        g.setdefault("pmin", float(self.ps["pT"]) - 2e6)
+        g.setdefault("pmax", float(self.ps["pP"]) + 5e6)
+        self.guard_settings = g
+        self.cfg = np.array([float(g[k]) for k in _GUARD_ORDER])
+        # state
+        s0 = self.model.initial_state(self.pvec[None])[0] / self.scale
+        z0 = np.array([self._z_of(j, start[t]) for j, t in enumerate(self.tracked)])
+        self.x = np.concatenate([s0, z0, np.zeros(q)])
+        zstd = np.array([prior_std / ukf.dlog_dz(z0[j], self.width[j]) for j in range(p)])
+        sig = np.array([self.noise_nominal[o] / self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
+        self.P = np.diag(np.concatenate([PRIOR_MODEL, zstd, sig]) ** 2)
+        self.floor = np.concatenate([np.full(6, 1e-12), np.full(p, 1e-10), (1e-3 * sig) ** 2])
+        self.fs = np.zeros(ukf.N_FS)
+        self.fs[ukf.F_NIS_EMA] = 1.0
+        self.fs[ukf.F_NIS_FAST] = 1.0
+        self.fs[ukf.F_U1] = np.nan
+        self.fs[ukf.F_U2] = np.nan
+        self.ch = np.zeros((q, ukf.N_CH))
+        self.ch[:, ukf.H_SIG] = sig
+        self.ch[:, ukf.H_SIG_NOM] = sig
+        self.ch[:, ukf.H_R_FLOOR] = (0.05 * sig) ** 2
+        self.ch[:, ukf.H_C] = 1.0
+        self.ch[:, ukf.H_LAST_RAW] = np.nan
+        for o, a in dict(noise_colour or {}).items():
+            if o in self.outputs:
+                self.ch[self.outputs.index(o), ukf.H_A] = float(a)
+        self.x_ck = self.x.copy()  # the first checkpoint: the prior (a divergence before any consistent
+        self.P_ck = self.P.copy()  # stretch goes back to it)
+        self.fs[ukf.F_CK_OK] = 1.0
+        self.samples = 0
+        self.counters = {s: 0 for s in ukf.STATUS}
+        self._last_t_ns: int | None = None
+        self._pending = None
+        self._started = False
+        self.closed_fast = True
+
+    # --- coordinates ---------------------------------------------------------------------
+    def _z_of(self, j: int, value: float) -> float:
+        s = (math.log(value) - self.lo_log[j]) / self.width[j]
+        return math.log(s / (1.0 - s))
+
+    def values_of(self, z: np.ndarray) -> np.ndarray:
+        """SI values of logit coordinates ``z [..., p]``."""
+        s = 1.0 / (1.0 + np.exp(-np.asarray(z)))
+        return np.exp(self.lo_log + self.width * s)
+
+    def dlog_dz(self, z: np.ndarray) -> np.ndarray:
+        s = 1.0 / (1.0 + np.exp(-np.asarray(z)))
+        return self.width * s * (1.0 - s)
+
+    def process_noise(self, dt: float, x: np.ndarray | None = None, P: np.ndarray | None = None) -> np.ndarray:
+        """The ``Q`` the kernel adds over ``dt`` seconds at state ``x`` (for filterpy mirrors)."""
+        x = self.x if x is None else x
+        P = self.P if P is None else P
+        assert self.dt is not None, "the sample time is not known yet"
+        n, nm = self.n, self.nmod
+        Q = np.zeros((n, n))
+        Q[np.arange(6), np.arange(6)] = self.q_state * dt / self.dt
+        for j in range(len(self.tracked)):
+            g = 1.0 / max(float(ukf.dlog_dz(x[6 + j], self.width[j])), 1e-12)
+            add = self.q_rate[j] ** 2 * dt * g * g
+            cap = ukf.PARAM_STD_CAP ** 2 * g * g
+            if P[6 + j, 6 + j] + add > cap:
+                add = max(0.0, cap - P[6 + j, 6 + j])
+            Q[6 + j, 6 + j] = add
+        for j in range(len(self.outputs)):
+            a = self.ch[j, ukf.H_A]
+            Q[nm + j, nm + j] = self.ch[j, ukf.H_SIG] ** 2 * (1 - a * a)
+        return Q
+
+    @property
+    def R_floor(self) -> np.ndarray:
+        return self.ch[:, ukf.H_R_FLOOR].copy()
+
+    def _start_from_data(self, samples: Samples) -> None:
+        """The measured state at the first sample (rod position, chamber pressures) instead of rest."""
+        sig = samples.signals
+        assert self.dt is not None  # process() learns it first
+        if len(samples) >= 8:
+            init = self.model.initial_from_data({k: v for k, v in sig.items() if k in self.outputs
+                                                 and np.all(np.isfinite(v[:8]))}, self.dt)
+        else:
+            init = {f"{k}0": float(sig[k][0]) for k in self.outputs if k in sig and np.isfinite(sig[k][0])}
+        for key, i in (("x0", 4), ("pA0", 2), ("pB0", 3)):
+            if key in init and np.isfinite(init[key]):
+                v = init[key]
+                if i == 4 and abs(v) > self.ps["stroke"]:
+                    continue
+                if i != 4 and not (self.cfg[ukf.C_PMIN] < v < self.cfg[ukf.C_PMAX]):
+                    continue
+                self.x[i] = v / self.scale[i]
+        self.x_ck = self.x.copy()
+
+    def process(self, samples) -> TrackBlock:
+        """Filter a block of samples (signals in SI; ``u`` or ``x_ref`` drive, x/pA/pB measure)."""
+        T = len(samples)
+        sig = samples.signals
+        if "u" not in sig and "x_ref" not in sig:
+            raise DataError("the tracker needs the controller output 'u' or the demand 'x_ref'; "
+                            f"the block has {', '.join(sig) or 'no signals'}")
+        if "u" not in sig and (self.ps["KI"] != 0 or self.ps["KD"] != 0):
+            raise DataError("without a logged 'u' the tracker drives the rig from 'x_ref' through a P controller, "
+                            f"but this rig has KI={self.ps['KI']:g}, KD={self.ps['KD']:g}; log the controller "
+                            "output u")
+        if not any(o in sig for o in self.outputs):
+            raise DataError(f"the tracker needs at least one of {', '.join(self.outputs)}; "
+                            f"the block has {', '.join(sig)}")
+        if self.dt is None:  # the sample time is learnt from the first samples: wait for two
+            if self._pending is not None:
+                samples = Samples.concat([self._pending, samples])
+                self._pending = None
+                T, sig = len(samples), samples.signals
+            if T < 2:
+                self._pending = samples
+                return self._empty()
+        t_ns = np.asarray(samples.t_ns, dtype=np.int64)
+        if self.dt is None:
+            steps = np.diff(t_ns)
+            steps = steps[steps > 0]
+            self.dt = float(np.median(steps)) * 1e-9 if steps.size else math.nan
+            if not self.dt > 0:
+                raise DataError(f"sample times do not increase (median step {self.dt} s)")
+        ticks = self.timing.ticks(self.dt)
+        mode = self.timing.intersample_code(self.dt)
+        if not self._started:
+            self._start_from_data(samples)
+            self._started = True
+        # seconds since the previous sample (NaN before the first one ever)
+        DT = np.empty(T)
+        if T:
+            prev = self._last_t_ns
+            DT[0] = (t_ns[0] - prev) * 1e-9 if prev is not None else np.nan
+            DT[1:] = np.diff(t_ns) * 1e-9
+            self._last_t_ns = int(t_ns[-1])
+        nan = np.full(T, np.nan)
+        # a digital controller faster than the log: its output between samples is a staircase the logged u
+        # cannot show, so the controller itself drives the model from x_ref (when it is the paper's P controller)
+        closed = "u" not in sig or (ticks > 1 and "x_ref" in sig and self.ps["KI"] == 0 and self.ps["KD"] == 0
+                                    and self.closed_fast)
+        U = np.ascontiguousarray(sig.get("u", nan), dtype=float)
+        XREF = np.ascontiguousarray(sig.get("x_ref", nan), dtype=float)
+        Z = np.empty((T, len(self.outputs)))
+        for a, o in enumerate(self.outputs):
+            Z[:, a] = np.asarray(sig[o], dtype=float) / self.scale[ukf.MEAS_INDEX[o]] if o in sig else np.nan
+        Z[~np.isfinite(Z)] = np.nan
+        U = np.where(np.isfinite(U), U, np.nan)
+        XREF = np.where(np.isfinite(XREF), XREF, np.nan)
+        n, p, m = self.n, len(self.tracked), len(self.outputs)
+        X = np.empty((T, n))
+        Pd = np.empty((T, n))
+        nis = np.empty(T)
+        ll = np.empty(T)
+        st = np.empty(T, dtype=np.int64)
+        innov = np.empty((T, m))
+        Sd = np.empty((T, m))
+        frozen = np.empty((T, p), dtype=np.bool_)
+        guard = np.empty(T, dtype=np.int64)
+        sens = np.empty((T, m), dtype=np.int64)
+        noise = np.empty((T, m))
+        used = np.empty((T, m), dtype=np.bool_)
+        q_param = self.q_rate ** 2
+        bad = ukf.run_kernel(
+            self.x, self.P, self.fs, self.ch, self.x_ck, self.P_ck, U, XREF, Z, DT, self.meas_idx, closed, ticks,
+            mode, self.dt, self.pvec, self.idx, self.lo_log, self.width, self.scale, self.substeps, self.q_state,
+            q_param, PRIOR_MODEL, self.Wm, self.Wc, self.lam, self.floor, self.gate, self.max_gated, self.chan,
+            self.excite_thresh, self.tau_excite, self.x_col, self.cfg,
+            X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used)
+        if bad >= 0:
+            raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
+                              "has no checkpoint to go back to: state or covariance not finite")
+        self.samples += T
+        codes, counts = np.unique(st, return_counts=True)
+        for c, k in zip(codes, counts):
+            self.counters[ukf.STATUS[c]] += int(k)
+        z = X[:, 6:6 + p]
+        dz = np.sqrt(np.maximum(Pd[:, 6:6 + p], 0.0))
+        est = self.values_of(z)
+        log_std = dz * self.dlog_dz(z)
+        states = X[:, :6] * self.scale
+        msc = np.array([self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
+        return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
+                          status=np.array(ukf.STATUS)[st], frozen=frozen, innovation=innov * msc, states=states,
+                          guard=np.array(ukf.GUARD)[guard], sensors=np.array(ukf.SENSOR)[sens],
+                          noise=noise * msc, outputs=self.outputs, used=used)
+
+    def _empty(self) -> TrackBlock:
+        p, m = len(self.tracked), len(self.outputs)
+        z = np.zeros((0, p))
+        return TrackBlock(np.zeros(0, np.int64), z, z, z, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U19"),
+                          np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, 6)),
+                          np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs,
+                          np.zeros((0, m), bool))
+
+    def estimate(self) -> dict[str, tuple[float, float]]:
+        """Current (value, std) of every tracked parameter (SI)."""
+        p = len(self.tracked)
+        z = self.x[6:6 + p]
+        s = np.sqrt(np.maximum(np.diag(self.P)[6:6 + p], 0.0)) * self.dlog_dz(z)
+        v = self.values_of(z)
+        return {t: (float(v[j]), float(v[j] * s[j])) for j, t in enumerate(self.tracked)}
+
+    def noise_levels(self) -> dict[str, dict[str, float]]:
+        """Learnt sensor noise per output: standard deviation (SI), AR(1) coefficient, nominal."""
+        out = {}
+        for j, o in enumerate(self.outputs):
+            sc = self.scale[ukf.MEAS_INDEX[o]]
+            out[o] = {"std": float(self.ch[j, ukf.H_SIG] * sc), "ar1": float(self.ch[j, ukf.H_A]),
+                      "nominal": float(self.ch[j, ukf.H_SIG_NOM] * sc)}
+        return out
+
+    def sensor_status(self) -> dict[str, str]:
+        return {o: ukf.SENSOR[int(self.ch[j, ukf.H_STATUS])] for j, o in enumerate(self.outputs)}
+
+    def break_covariance(self) -> None:
+        """Make the covariance indefinite (what round-off does to long runs); for tests and drills."""
+        w, V = np.linalg.eigh(self.P)
+        w[0] = -abs(w[-1])
+        self.P[:, :] = (V * w) @ V.T
+
+    @property
+    def rel_std(self) -> np.ndarray:
+        p = len(self.tracked)
+        return np.sqrt(np.maximum(np.diag(self.P)[6:6 + p], 0.0)) * self.dlog_dz(self.x[6:6 + p])
+
+    def __repr__(self) -> str:
+        return (f"OnlineTracker(tracked={self.tracked}, outputs={self.outputs}, dt={self.dt}, "
+                f"timing={self.timing.label}, samples={self.samples})")
+
+
+def fmt_estimate(name: str, value: float, std: float) -> str:
+    spec = M.MODEL.params().spec(name)
+    return f"{name} = {spec.show(value)} +- {spec.show(std)}" if math.isfinite(std) else f"{name} = {spec.show(value)}"
+
+
+def consistency_note(tracker: OnlineTracker, drift=None) -> str:
+    """One line for the rig's status message: faulty sensors and why the drift test holds ("" when all is well)."""
+    parts = [f"sensor {o}: {s}" for o, s in tracker.sensor_status().items() if s not in ("ok", "missing")]
+    guard = getattr(drift, "guard", "consistent")
+    if guard and guard != "consistent":
+        parts.append(f"drift test holds: {guard.replace('_', ' ')}")
+    return "; ".join(parts)

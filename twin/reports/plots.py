@@ -1,0 +1,146 @@
+"""Plots people would rather look at than tables (PNG, matplotlib's Agg backend)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def fit_convergence(result, records, model, out_dir: str) -> list[str]:
+    """The paper's Fig. 3 (model response at chosen iterations vs measured) and Fig. 4
+    (parameter trends over the iterations) for a :class:`twin.estimation.fit.FitResult`."""
+    plt = _plt()
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    best_start = _best_start(result)
+    hist = [h for h in result.history if h["start"] == best_start]
+    # Fig. 4: parameter trends
+    if hist:
+        fig, axes = plt.subplots(len(result.free), 1, figsize=(7, 2.2 * len(result.free) + 0.6), squeeze=False)
+        it = [h["iteration"] for h in hist]
+        for ax, name in zip(axes[:, 0], result.free):
+            spec = result.params.spec(name)
+            vals = np.array([h["theta"][name] for h in hist]) * spec.display_scale
+            ax.plot(it, vals, "o-", color="0.25")
+            ax.axhline(result.estimate[name] * spec.display_scale, color="C3", lw=0.8, ls="--")
+            ax.set_ylabel(f"{name} [{spec.display_unit or spec.unit}]")
+        axes[-1, 0].set_xlabel("iteration")
+        axes[0, 0].set_title("Parameter trends during the fit (cf. paper Fig. 4)")
+        fig.tight_layout()
+        p = os.path.join(out_dir, "fit_parameter_trends.png")
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    # Fig. 3: response at a few iterations
+    rec = records[0]
+    out = result.outputs[0]
+    picks = [h for h in hist if h["iteration"] in (0, 3, 10, 20)] or hist[:1]
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    t = rec.t_s
+    n = min(len(t), int(3.0 / rec.dt))
+    ax.plot(t[:n], rec[out][:n], color="0.6", lw=2.0, label="measured")
+    base = result.params
+    drive_name, drive = model.drive_signal(rec.signals)
+    for h in picks:
+        ps = base.update(h["theta"])
+        sim = model.simulate(ps, drive_name, drive[:n], rec.dt, init=result.init[0])
+        ax.plot(t[:n], sim.outputs[out], lw=1.0, label=f"iteration {h['iteration']}")
+    sim = model.simulate(base, drive_name, drive[:n], rec.dt, init=result.init[0])
+    ax.plot(t[:n], sim.outputs[out], color="k", lw=0.8, ls="--", label="final")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(out)
+    ax.legend(fontsize=7, ncol=3)
+    ax.set_title("Convergence of the model response (cf. paper Fig. 3)")
+    fig.tight_layout()
+    p = os.path.join(out_dir, "fit_convergence.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def _best_start(result) -> int:
+    finals = {}
+    for h in result.history:
+        finals[h["start"]] = h["cost"]
+    return min(finals, key=lambda s: finals[s]) if finals else 0
+
+
+def paper_table(rows: list[dict], out_dir: str) -> str:
+    """Bar chart of our errors beside the paper's, per case and parameter (log scale)."""
+    plt = _plt()
+    os.makedirs(out_dir, exist_ok=True)
+    labels = [f"{r['case']}\n{r['parameter']}" for r in rows]
+    ours = np.array([max(r["error_pct"], 1e-14) for r in rows])
+    paper = np.array([max(r["paper_error_pct"], 1e-14) for r in rows])
+    x = np.arange(len(rows))
+    fig, ax = plt.subplots(figsize=(max(7, 0.7 * len(rows)), 4))
+    ax.bar(x - 0.2, paper, 0.4, label="paper", color="0.6")
+    ax.bar(x + 0.2, ours, 0.4, label="fpdd-twin", color="C0")
+    ax.set_yscale("log")
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_ylabel("error [%] (0 shown as 1e-14)")
+    ax.legend()
+    ax.set_title("Parameter errors: the paper's tables and ours")
+    fig.tight_layout()
+    p = os.path.join(out_dir, "paper_errors.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
+                     title: str = "Tracked parameters (cf. paper Fig. 4)") -> str:
+    """Estimates with +-2 sigma (log-normal), the healthy band, alarm events and optionally the truth
+    (kernel vectors ``truth [T, NP]`` at ``t_truth``) of a :class:`twin.service.rig.RigTwin`."""
+    plt = _plt()
+    from twin.models import msp25 as M
+
+    hist = twin.history_arrays()
+    names = twin.tracker.tracked
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.0 * len(names) + 0.8), sharex=True, squeeze=False)
+    for ax, j, name in zip(axes[:, 0], range(len(names)), names):
+        spec = M.MODEL.params().spec(name)
+        sc = spec.display_scale
+        b = baseline[name]
+        ax.axhspan(b.lo * sc, b.hi * sc, color="C2", alpha=0.12, label="healthy band")
+        if truth is not None:
+            ax.plot(t_truth, truth[:, M.MODEL.kernel_index(name)] * sc, color="0.3", lw=1.0, ls="--", label="truth")
+        if hist["t_s"].size:
+            v = hist["values"][:, j] * sc
+            rel = hist["stds"][:, j] / np.maximum(hist["values"][:, j], 1e-300)  # std of log(theta)
+            ax.plot(hist["t_s"], v, color="C0", lw=1.2, label="estimate")
+            ax.fill_between(hist["t_s"], v * np.exp(-2 * rel), v * np.exp(2 * rel), color="C0", alpha=0.2, lw=0,
+                            label="±2σ")
+            settled = hist["t_s"] > 2.0
+            if settled.any():  # scale to the settled estimates, the band and the truth, not the start
+                true_max = np.max(truth[:, M.MODEL.kernel_index(name)]) * sc if truth is not None else 0.0
+                top = max(np.max(v[settled]), b.hi * sc, true_max)
+                bot = min(np.min(v[settled]), b.lo * sc)
+                if name == "CdAleak":
+                    ax.set_ylim(bot / 1.5, top * 1.5)
+                else:
+                    ax.set_ylim(bot - 0.2 * (top - bot), top + 0.2 * (top - bot))
+        for a in twin.alarms:
+            if a.parameter == name:
+                ax.axvline(a.t_s, color={"alarm": "C3", "warning": "C1"}.get(a.level, "C2"), lw=1.0)
+        if name == "CdAleak":
+            ax.set_yscale("log")
+        ax.set_ylabel(f"{name}\n[{spec.display_unit or spec.unit}]")
+    axes[0, 0].legend(fontsize=7, ncol=4, loc="upper left")
+    axes[-1, 0].set_xlabel("t [s]  (vertical lines: alarm events, red = alarm, orange = warning, green = returned)")
+    axes[0, 0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,1165 @@
+"""The Zenoh layer: publishing the twin's events and subscribing to its alarms.
+
+Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
+:data:`twin.online.events.RIG_PATTERN`)::
+
+    fpdd/<rig>/estimate        put    EstimateEvent JSON, every published tracker step
+                               get    latest EstimateEvent (latest-value queryable)
+    fpdd/<rig>/status          put    StatusEvent JSON, on change and periodically
+                               get    latest StatusEvent (latest-value queryable)
+    fpdd/<rig>/alarm           put    AlarmEvent JSON, live alarms (reliable, blocking, high priority)
+    fpdd/<rig>/alarm/history   get    every journaled AlarmEvent of the rig, one reply per alarm,
+                                      in seq order; selector parameters (``;``-separated):
+                                      ``since_seq=N`` (seq >= N), ``since_t_ns=T`` (t_ns >= T)
+    fpdd/<rig>/twin            liveliness token, present while the twin serves the rig
+
+Payloads are UTF-8 JSON (encoding ``application/json``) following the schemas in
+:mod:`twin.online.events` (``AlarmEvent.SCHEMA``, ``EstimateEvent.SCHEMA``,
+``StatusEvent.SCHEMA``). Every alarm carries ``seq``, a per-rig number 1, 2,
+3, ... without gaps, assigned by the durable journal (:mod:`twin.service.journal`).
+
+Delivery guarantees and how they are obtained:
+
+* An alarm is appended to the journal and ``fsync``-ed *before* it is put
+  (:meth:`TwinPublisher.publish_alarm`), so whatever reached a subscriber is on
+  disk, and whatever is on disk is served by ``fpdd/<rig>/alarm/history``.
+* Alarms are put reliably, with ``CongestionControl.BLOCK`` (never dropped
+  by a full queue) and ``Priority.INTERACTIVE_HIGH``, ``express``.
+* Zenoh still loses what is published while a link or router is down, and a
+  plain subscriber receives nothing published before it joined. The
+  :class:`AlarmSubscriber` therefore (1) subscribes first, then fetches the
+  history, (2) de-duplicates by ``(rig, seq)``, (3) fills a gap in ``seq``
+  from the history, (4) re-syncs from the history when a twin's liveliness
+  token (re)appears (a twin or a router came back), and (5) catches a lost
+  *last* alarm through the ``alarm_seq`` counter that every status carries.
+* Estimates and statuses go through ``zenoh.ext`` advanced publishers with a
+  one-sample cache (late ``zenoh.ext.AdvancedSubscriber`` with a
+  ``HistoryConfig`` gets the current value), and the latest value is also
+  served by a plain queryable on the same key, so a plain ``get`` (any Zenoh
+  client, ``z_get``) works too. Measured with eclipse-zenoh 1.10.2: the
+  advanced publisher's cache answers only advanced subscribers (a plain ``get``
+  on the key returns nothing), and an advanced publisher with a cache needs
+  either ``sample_miss_detection`` or ``timestamping`` enabled in the config
+  (otherwise ``ZError: ... Sequencing::Timestamp``); we enable miss detection.
+  History replies of many alarms on one key need ``ConsolidationMode.NONE``:
+  the default consolidation keeps only the last reply per key.
+
+Resources: every declaration is undeclared by ``close()``/``__exit__``; the
+session itself belongs to the caller and must be closed too (a session with
+callback subscribers or queryables left open hangs the interpreter at exit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import queue
+import re
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
+from datetime import datetime
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Protocol, Self
+
+import zenoh
+from zenoh import ext as zext
+
+from twin.errors import ConfigError, DataError, SourceError
+from twin.online.events import (
+    RIG_PATTERN,
+    AlarmEvent,
+    EstimateEvent,
+    StatusEvent,
+    event_to_json,
+    format_alarm,
+)
+from twin.service.journal import AlarmJournal
+
+__all__ = [
+    "KEY_PREFIX",
+    "AlarmSubscriber",
+    "RigKeys",
+    "TwinPublisher",
+    "add_alarms_arguments",
+    "fetch_latest",
+    "format_alarm",
+    "live_twins",
+    "parse_since",
+    "run_alarms_cli",
+    "zenoh_config",
+]
+
+log = logging.getLogger(__name__)
+
+KEY_PREFIX = "fpdd"
+"""First chunk of every key of the service."""
+
+_JSON = zenoh.Encoding.APPLICATION_JSON
+_RIG_RE = re.compile(RIG_PATTERN)
+
+
+def _check_rig(rig: str, *, wildcard: bool) -> str:
+    if wildcard and rig == "*":
+        return rig
+    if not isinstance(rig, str) or _RIG_RE.match(rig) is None:
+        allowed = f"'*' or {RIG_PATTERN}" if wildcard else RIG_PATTERN
+        raise ConfigError(f"rig: {rig!r} is not a valid rig id (must match {allowed})")
+    return rig
+
+
+class RigKeys:
+    """The key expressions of one rig (or of all rigs with ``rig="*"``).
+
+    :ivar estimate: ``fpdd/<rig>/estimate``
+    :ivar status: ``fpdd/<rig>/status``
+    :ivar alarm: ``fpdd/<rig>/alarm``
+    :ivar history: ``fpdd/<rig>/alarm/history``
+    :ivar twin: ``fpdd/<rig>/twin`` (liveliness)
+    """
+
+    __slots__ = ("rig", "estimate", "status", "alarm", "history", "twin")
+
+    def __init__(self, rig: str) -> None:
+        self.rig = _check_rig(rig, wildcard=True)
+        base = f"{KEY_PREFIX}/{rig}"
+        self.estimate = f"{base}/estimate"
+        self.status = f"{base}/status"
+        self.alarm = f"{base}/alarm"
+        self.history = f"{base}/alarm/history"
+        self.twin = f"{base}/twin"
+
+    @staticmethod
+    def rig_of(key_expr: str | zenoh.KeyExpr) -> str:
+        """The rig chunk of a concrete key ``fpdd/<rig>/...``.
+
+        :raises DataError: the key is not in the service's key space.
+        """
+        parts = str(key_expr).split("/")
+        if len(parts) < 3 or parts[0] != KEY_PREFIX:
+            raise DataError(f"key {str(key_expr)!r} is not of the form {KEY_PREFIX}/<rig>/...")
+        return parts[1]
+
+
+# --------------------------------------------------------------------------- config
+
+
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+"""Link protocols of Zenoh 1.x endpoints; those before ``unixsock-stream`` need ``HOST:PORT``."""
+
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[A-Za-z][A-Za-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
+
+
+def check_endpoint(endpoint: Any, where: str, *, listen: bool = False) -> str:
+    """``endpoint`` if it is a Zenoh endpoint ``PROTOCOL/HOST:PORT``, else a one-line ConfigError.
+
+    :param where: what names the value in the message (file and key, or a CLI option).
+    :param listen: a listening endpoint may use port 0 (any free port).
+    """
+    example = "expected PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447"
+    if not isinstance(endpoint, str):
+        raise ConfigError(f"{where}: {endpoint!r} is not an endpoint string ({example})")
+    m = _ENDPOINT_RE.match(endpoint)
+    if m is None:
+        raise ConfigError(f"{where}: {endpoint!r} is not an endpoint ({example})")
+    proto, addr = m.group("proto"), m.group("addr")
+    if proto not in ENDPOINT_PROTOCOLS:
+        raise ConfigError(f"{where}: {endpoint!r}: unknown protocol {proto!r} "
+                          f"(one of {', '.join(ENDPOINT_PROTOCOLS)})")
+    if proto in ("tcp", "udp", "tls", "quic", "ws"):
+        host, sep, port = addr.rpartition(":")
+        if not sep or not host or host in ("[", "[]"):
+            raise ConfigError(f"{where}: {endpoint!r} has no HOST:PORT ({example})")
+        if not port.isdigit() or not (0 if listen else 1) <= int(port) <= 65535:
+            raise ConfigError(f"{where}: {endpoint!r}: port {port!r} is not in "
+                              f"{0 if listen else 1}..65535 ({example})")
+    return endpoint
+
+
+def zenoh_config(
+    mode: str | None = None,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast_scouting: bool | None = None,
+    *,
+    config_file: str | Path | None = None,
+) -> zenoh.Config:
+    """The project's one Zenoh configuration builder.
+
+    Without ``config_file``: a session in ``mode`` (default ``peer``) with
+    exactly these endpoints and multicast scouting off unless asked for.
+    With ``config_file`` (JSON5: TLS, access control, ...): the file as it is,
+    and only what the caller gives explicitly overrides it: ``mode`` when not
+    ``None``, ``listen``/``connect`` when non-empty, ``multicast_scouting``
+    when not ``None``. A default never overrides the file.
+
+    :raises ConfigError: an unknown mode, a client asked to listen, an endpoint
+        that is not ``PROTOCOL/HOST:PORT``, or a file Zenoh cannot read (named).
+    """
+    if mode is not None and mode not in ("peer", "client", "router"):
+        raise ConfigError(f"mode: {mode!r} is not one of ['peer', 'client', 'router']")
+    for e in listen:
+        check_endpoint(e, "listen", listen=True)
+    for e in connect:
+        check_endpoint(e, "connect")
+    if config_file:
+        path = Path(config_file)
+        if not path.is_file():
+            what = "is a directory" if path.is_dir() else "does not exist"
+            raise ConfigError(f"{config_file}: cannot read the Zenoh configuration: {what}")
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except (zenoh.ZError, ValueError) as exc:
+            raise ConfigError(f"{config_file}: invalid Zenoh configuration: {_zenoh_text(exc)}") from exc
+    else:
+        config = zenoh.Config()
+        mode = mode or "peer"
+        multicast_scouting = bool(multicast_scouting)
+    effective = mode or json.loads(config.get_json("mode") or '"peer"') or "peer"
+    if effective == "client" and listen:
+        raise ConfigError(f"listen: a client cannot listen (got {list(listen)!r}); use mode 'peer'")
+    try:
+        if mode is not None:
+            config.insert_json5("mode", json.dumps(mode))
+        if listen or not config_file:
+            config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect or not config_file:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if multicast_scouting is not None:
+            config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    except zenoh.ZError as exc:
+        where = f"{config_file}: " if config_file else ""
+        raise ConfigError(f"{where}invalid Zenoh configuration: {_zenoh_text(exc)}") from exc
+    return config
+
+
+def config_endpoints(config: zenoh.Config) -> tuple[list[str], list[str]]:
+    """``(listen, connect)`` endpoints of a Zenoh configuration (for messages)."""
+    try:
+        mode = json.loads(config.get_json("mode")) or "peer"
+    except (zenoh.ZError, ValueError):
+        mode = "peer"
+
+    def endpoints(key: str) -> list[str]:
+        try:
+            value = json.loads(config.get_json(key))
+        except (zenoh.ZError, ValueError):
+            return []
+        if isinstance(value, dict):  # per-mode endpoints: {"router": [...], "peer": [...], "client": [...]}
+            value = value.get(mode) or []
+        return [str(e) for e in value or []]
+
+    return endpoints("listen/endpoints"), endpoints("connect/endpoints")
+
+
+_RUST_LOCATION = re.compile(r"\s*at /\S+?\.rs:\d+\.?")
+
+
+def _zenoh_text(exc: BaseException) -> str:
+    """A Zenoh (Rust) error message without its source locations, on one line."""
+    text = _RUST_LOCATION.sub("", str(exc)).replace("\n", " ").strip()
+    return re.sub(r"\s+", " ", text).strip(" .[]")
+
+
+def open_session(config: zenoh.Config, who: str = "twin") -> zenoh.Session:
+    """``zenoh.open(config)``; a failure becomes one line naming the endpoint and the cause.
+
+    :raises SourceError: a listen endpoint in use or not local, a router
+        unreachable, a host name that does not resolve, a certificate missing.
+    """
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise SourceError(f"{who}: {describe_open_error(config, exc)}") from None
+
+
+def describe_open_error(config: zenoh.Config, exc: BaseException) -> str:
+    text = _zenoh_text(exc)
+    listen, connect = config_endpoints(config)
+    m = re.search(r"bound to (\S+?):? ", text)
+    if "Address already in use" in text:
+        ep = m.group(1) if m else ", ".join(listen)
+        return f"cannot listen on {ep}: the address is already in use (another twin serve or zenohd?)"
+    if "Cannot assign requested address" in text or "not available" in text:
+        ep = m.group(1) if m else ", ".join(listen)
+        return f"cannot listen on {ep}: not an address of this host"
+    if "Unable to connect to any of" in text:
+        return (f"cannot reach {', '.join(connect) or 'any Zenoh router'}: nothing answers there "
+                "(is the router or the twin running, and the address right?)")
+    if "lookup address" in text or "Name or service not known" in text:
+        return f"cannot resolve the host name of {', '.join(listen + connect)}: {text}"
+    return f"cannot open a Zenoh session (listen {listen or 'none'}, connect {connect or 'none'}): {text}"
+
+
+def _open_error(exc: zenoh.ZError, what: str) -> SourceError:
+    return SourceError(f"{what}: {_zenoh_text(exc)}")
+
+
+# --------------------------------------------------------------------------- history
+
+
+class History(Protocol):
+    """What the history queryable answers from: an :class:`AlarmJournal` or a :class:`StoreHistory`."""
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]: ...
+
+    def last_seq(self, rig: str) -> int: ...
+
+
+class StoreHistory:
+    """A rig's journal read from another process (no writer lock), plus alarms its writer could not write.
+
+    The service's main process answers history queries with it while the
+    rig's worker process owns the journal. ``add_pending`` keeps an alarm the
+    worker published without a durable write, until the file has it.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        from twin.service.store import Store
+
+        self._store = Store(path, writer=False)
+        self._pending: dict[tuple[str, int], AlarmEvent] = {}
+        self._lock = threading.Lock()
+
+    def add_pending(self, event: AlarmEvent) -> None:
+        with self._lock:
+            self._pending[(event.rig, event.seq)] = event
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]:
+        events = self._store.alarms(rig, since_seq, since_t_ns)
+        have = {(e.rig, e.seq) for e in events}
+        with self._lock:
+            for key in [k for k in self._pending if k in have]:
+                del self._pending[key]
+            extra = [e for e in self._pending.values() if (rig in (None, "*") or e.rig == rig)
+                     and (since_seq is None or e.seq >= since_seq) and (since_t_ns is None or e.t_ns >= since_t_ns)]
+        return sorted(events + extra, key=lambda e: (e.rig, e.seq))
+
+    def last_seq(self, rig: str) -> int:
+        with self._lock:
+            mine = [seq for (r, seq) in self._pending if r == rig]
+        return max([self._store.last_seq(rig), *mine])
+
+    def close(self) -> None:
+        self._store.close()
+
+
+# --------------------------------------------------------------------------- publisher
+
+
+class _Declarations:
+    """Zenoh entities declared by one object, undeclared in reverse order on close (idempotent)."""
+
+    _declared: list[Any]
+
+    def _keep(self, entity: Any) -> Any:
+        self._declared.append(entity)
+        return entity
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything, the last declared (the liveliness token) first."""
+        while self._declared:
+            entity = self._declared.pop()
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                # Undeclaring on a session already closed is harmless; say so and go on.
+                log.debug("%s: undeclare %r: %s", type(self).__name__, entity, exc)
+
+
+class TwinPublisher(_Declarations):
+    """Everything one rig's twin declares on the bus.
+
+    Declares, for ``rig``: the alarm publisher (reliable,
+    ``CongestionControl.BLOCK``, ``Priority.INTERACTIVE_HIGH``, express), the
+    estimate publisher (``CongestionControl.DROP``: at high rate a newer estimate
+    replaces a dropped one) and the status publisher (``BLOCK``), both
+    ``zenoh.ext`` advanced publishers with a one-sample cache; latest-value
+    queryables on the estimate and status keys; the alarm-history queryable
+    answering from ``history`` (default: ``journal``); and the liveliness
+    token ``fpdd/<rig>/twin``.
+
+    ``journal`` is needed by :meth:`publish_alarm` (journal, then put). The
+    service's main process, whose rigs journal in their worker, passes only a
+    ``history`` (:class:`StoreHistory`) and puts already journaled alarms with
+    :meth:`put_alarm`.
+
+    Use as a context manager (or call :meth:`close`); the session stays open.
+    Several publishers (one per rig) may share one session and one journal.
+
+    :param session: an open Zenoh session.
+    :param rig: the rig id.
+    :param journal: the durable journal alarms are written to before publishing.
+    :param heartbeat_s: period of the advanced publishers' sporadic heartbeat [s]
+        (lets advanced subscribers notice a missed last estimate/status).
+    :raises ConfigError: ``rig`` is not a valid rig id.
+    :raises SourceError: a declaration failed (session closed, access denied).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str,
+        journal: AlarmJournal | None = None,
+        *,
+        history: History | None = None,
+        heartbeat_s: float = 1.0,
+    ) -> None:
+        self.rig = _check_rig(rig, wildcard=False)
+        self.keys = RigKeys(rig)
+        self._session = session
+        self._journal = journal
+        if history is None and journal is None:
+            raise ConfigError(f"rig {rig!r}: a twin publisher needs a journal or a history to answer from")
+        self._history: History = history if history is not None else journal  # type: ignore[assignment]
+        self._latest: dict[str, str] = {}
+        self._latest_lock = threading.Lock()
+        self._declared: list[Any] = []
+        try:
+            self._alarm_pub = self._keep(
+                session.declare_publisher(
+                    self.keys.alarm,
+                    encoding=_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.INTERACTIVE_HIGH,
+                    express=True,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+            )
+            miss = zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat_s)
+
+            def latest_value_publisher(key: str, congestion: zenoh.CongestionControl, priority: zenoh.Priority):
+                """An advanced publisher whose one-sample cache serves late advanced subscribers."""
+                return self._keep(zext.declare_advanced_publisher(
+                    session, key, encoding=_JSON, congestion_control=congestion, priority=priority,
+                    cache=zext.CacheConfig(1), sample_miss_detection=miss, publisher_detection=True))
+
+            self._estimate_pub = latest_value_publisher(
+                self.keys.estimate, zenoh.CongestionControl.DROP, zenoh.Priority.DATA)
+            self._status_pub = latest_value_publisher(
+                self.keys.status, zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_HIGH)
+            self._keep(session.declare_queryable(self.keys.history, self._on_history))
+            self._keep(
+                session.declare_queryable(self.keys.estimate, lambda q: self._on_latest(q, "estimate"))
+            )
+            self._keep(
+                session.declare_queryable(self.keys.status, lambda q: self._on_latest(q, "status"))
+            )
+            # The token last: a subscriber seeing the twin alive can query its history at once.
+            self._keep(session.liveliness().declare_token(self.keys.twin))
+        except zenoh.ZError as exc:
+            self.close()
+            raise _open_error(exc, f"rig {rig!r}: cannot declare the twin on the bus") from exc
+
+    def wait_for_alarm_subscribers(self, timeout: float) -> bool:
+        """Wait until at least one subscriber matches ``fpdd/<rig>/alarm``.
+
+        Not needed for correctness (late subscribers read the history); useful
+        for a demo or a test that wants to see alarms arrive live.
+
+        :returns: ``True`` if a subscriber matched within ``timeout`` seconds.
+        """
+        matched = threading.Event()
+        listener = self._alarm_pub.declare_matching_listener(
+            lambda status: matched.set() if status.matching else None
+        )
+        try:
+            # In eclipse-zenoh 1.10.2 the property is a MatchingStatus (always
+            # truthy), not the bool its stub announces: read .matching.
+            return self._alarm_pub.matching_status.matching or matched.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    # ------------------------------------------------------------------ publishing
+
+    def _check_event_rig(self, event: AlarmEvent | EstimateEvent | StatusEvent) -> None:
+        if event.rig != self.rig:
+            raise DataError(
+                f"{type(event).__name__}.rig: {event.rig!r} published through the twin of rig {self.rig!r}"
+            )
+
+    def publish_alarm(self, event: AlarmEvent) -> AlarmEvent:
+        """Journal the alarm durably, then put it on ``fpdd/<rig>/alarm``.
+
+        :param event: the alarm; ``seq=0`` lets the journal number it.
+        :returns: the journaled event with its ``seq``.
+        :raises DataError: wrong rig or wrong ``seq``.
+        :raises SourceError: the journal write failed (nothing was published),
+            or the put failed (the alarm is journaled and subscribers get it
+            from the history).
+        """
+        self._check_event_rig(event)
+        if self._journal is None:
+            raise ConfigError(f"rig {self.rig!r}: this publisher has no journal; use put_alarm for journaled alarms")
+        recorded = self._journal.record(event)
+        if recorded.new:  # the same alarm raised again (re-processed data) is not published twice
+            self.put_alarm(recorded.event)
+        return recorded.event
+
+    def put_alarm(self, event: AlarmEvent) -> None:
+        """Put an alarm that is already journaled (it has its ``seq``) on ``fpdd/<rig>/alarm``.
+
+        :raises SourceError: the put failed; the alarm is journaled and
+            subscribers get it from the history.
+        """
+        self._check_event_rig(event)
+        try:
+            self._alarm_pub.put(event_to_json(event))
+        except zenoh.ZError as exc:
+            raise SourceError(
+                f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({_zenoh_text(exc)}); "
+                f"subscribers will get it from {self.keys.history}"
+            ) from exc
+
+    def put_payload(self, what: str, payload: str) -> None:
+        """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value."""
+        pub = {"estimate": self._estimate_pub, "status": self._status_pub}[what]
+        with self._latest_lock:
+            self._latest[what] = payload
+        try:
+            pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish {what}: {_zenoh_text(exc)}") from exc
+
+    def publish_estimate(self, event: EstimateEvent) -> None:
+        """Put an estimate on ``fpdd/<rig>/estimate`` (may be dropped under congestion)."""
+        self._check_event_rig(event)
+        payload = event_to_json(event)
+        with self._latest_lock:
+            self._latest["estimate"] = payload
+        try:
+            self._estimate_pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish estimate: {exc}") from exc
+
+    def publish_status(self, event: StatusEvent) -> StatusEvent:
+        """Put a status on ``fpdd/<rig>/status`` with ``counters["alarm_seq"]`` filled in.
+
+        ``alarm_seq`` is the last journaled alarm of the rig; a subscriber that
+        sees it ahead of what it received fetches the missing alarms.
+
+        :returns: the event as published.
+        """
+        self._check_event_rig(event)
+        counters = dict(event.counters)
+        if "alarm_seq" not in counters:  # a rig's worker fills it in from its own journal
+            counters["alarm_seq"] = self._history.last_seq(self.rig)
+        event = replace(event, counters=counters)
+        payload = event_to_json(event)
+        with self._latest_lock:
+            self._latest["status"] = payload
+        try:
+            self._status_pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish status: {exc}") from exc
+        return event
+
+    # ------------------------------------------------------------------ queryables
+
+    def _on_latest(self, query: zenoh.Query, what: str) -> None:
+        with query:
+            with self._latest_lock:
+                payload = self._latest.get(what)
+            if payload is not None:
+                key = self.keys.estimate if what == "estimate" else self.keys.status
+                query.reply(key, payload, encoding=_JSON)
+
+    def _on_history(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                since_seq = _int_parameter(query.parameters, "since_seq")
+                since_t_ns = _int_parameter(query.parameters, "since_t_ns")
+            except DataError as exc:
+                query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
+                return
+            try:
+                events = self._history.read(since_seq=since_seq, since_t_ns=since_t_ns, rig=self.rig)
+            except (SourceError, DataError) as exc:
+                log.error("rig %s: history query failed: %s", self.rig, exc)
+                query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
+                return
+            for event in events:
+                query.reply(self.keys.history, event_to_json(event), encoding=_JSON)
+
+
+def _int_parameter(parameters: zenoh.Parameters, name: str) -> int | None:
+    text = parameters.get(name)
+    if text is None or text == "":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise DataError(f"selector parameter {name}: {text!r} must be an integer") from None
+    if value < 0:
+        raise DataError(f"selector parameter {name}: {value} must be >= 0")
+    return value
+
+
+# --------------------------------------------------------------------------- queries
+
+
+def fetch_latest(
+    session: zenoh.Session,
+    what: str,
+    rig: str = "*",
+    *,
+    timeout: float = 5.0,
+) -> list[EstimateEvent | StatusEvent]:
+    """The latest estimate or status of each matching running twin (a plain ``get``).
+
+    :param what: ``"estimate"`` or ``"status"``.
+    :param rig: a rig id or ``"*"``.
+    :param timeout: how long to wait for replies [s].
+    :returns: one event per twin that has published one, sorted by rig.
+    """
+    keys = RigKeys(rig)
+    parse: Callable[[Any], EstimateEvent | StatusEvent]
+    if what == "estimate":
+        key, parse = keys.estimate, EstimateEvent.from_dict
+    elif what == "status":
+        key, parse = keys.status, StatusEvent.from_dict
+    else:
+        raise ConfigError(f"what: {what!r} is not one of ['estimate', 'status']")
+    events = []
+    for reply in session.get(key, target=zenoh.QueryTarget.ALL, timeout=timeout):
+        if reply.ok is not None:
+            events.append(parse(json.loads(reply.ok.payload.to_string())))
+    return sorted(events, key=lambda e: e.rig)
+
+
+def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[str]:
+    """The rigs whose twin is currently alive (liveliness tokens ``fpdd/<rig>/twin``), sorted."""
+    rigs = set()
+    for reply in session.liveliness().get(RigKeys(rig).twin, timeout=timeout):
+        if reply.ok is not None:
+            rigs.add(RigKeys.rig_of(reply.ok.key_expr))
+    return sorted(rigs)
+
+
+# --------------------------------------------------------------------------- subscriber
+
+
+class AlarmSubscriber(_Declarations):
+    """Every alarm of one rig (or all rigs), history first, then live; nothing forged, nothing dropped.
+
+    On construction it subscribes to ``fpdd/<rig>/alarm``, to the status key
+    (for ``alarm_seq``) and to the twins' liveliness, and only then fetches
+    the history, so nothing published in between is lost. Each ``(rig, seq)``
+    is handed out once, in ``seq`` order per rig as far as the history allows.
+
+    The twin's journal (its history queryable) is the authority on what a
+    sequence number holds:
+
+    * a live alarm whose ``seq`` jumps ahead triggers a history query for the
+      numbers in between *before* anything is declared lost; the history's
+      version of an alarm wins over a live payload claiming the same number;
+    * while the rig's twin is alive (its liveliness token is present), a live
+      alarm or a status ``alarm_seq`` that its history does not hold is
+      rejected (:attr:`rejected`, logged): it was not journaled by the twin,
+      so it is forged or corrupt, and it moves no sequence number;
+    * with no twin alive nothing can be checked: the alarm is delivered (a
+      real alarm is never dropped) and the numbers in between are recorded in
+      :attr:`missed`; when a twin appears (liveliness), the history is
+      fetched again from the first missed number, and every alarm found
+      there is delivered, even below numbers already seen
+      (:attr:`recovered` counts them).
+
+    :param session: an open Zenoh session (stays open after :meth:`close`).
+    :param rig: a rig id or ``"*"`` for all rigs.
+    :param since_seq: deliver only ``seq >= since_seq`` (per rig).
+    :param since_t_ns: deliver only alarms with ``t_ns >= since_t_ns`` from the history.
+    :param history: fetch the history first (default). With ``False`` only live
+        alarms are delivered; gaps between them are still filled.
+    :param query_timeout: timeout of each history query [s].
+    :raises ConfigError: ``rig`` is not a rig id or ``"*"``.
+    :raises SourceError: the subscription failed (session closed, access denied).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str = "*",
+        since_seq: int | None = None,
+        since_t_ns: int | None = None,
+        *,
+        history: bool = True,
+        query_timeout: float = 5.0,
+    ) -> None:
+        self.keys = RigKeys(rig)
+        self.rig = rig
+        self.since_seq = since_seq
+        self.since_t_ns = since_t_ns
+        self._session = session
+        self._history = history
+        self._query_timeout = query_timeout
+        self._inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._ready: deque[AlarmEvent] = deque()
+        self._last: dict[str, int] = {}
+        self._gaps: dict[str, list[list[int]]] = {}
+        self._alive: set[str] = set()
+        self._status_seq: dict[str, int] = {}
+        self._declared: list[Any] = []
+        self.missed: list[tuple[str, int, int]] = []
+        """Alarm numbers not recoverable when noticed: ``(rig, first_seq, last_seq)``."""
+        self.recovered = 0
+        """Alarms of a range recorded in :attr:`missed` that the history delivered later."""
+        self.rejected = 0
+        """Payloads rejected: not a valid alarm, or a number the live twin's history does not hold."""
+        self.history_queries = 0
+        """History queries sent (initial fetch, gap fills, re-syncs, checks)."""
+        try:
+            # Declarations reach a remote twin in this order: once a live alarm
+            # arrives, the status and liveliness subscriptions are in place too.
+            self._keep(session.declare_subscriber(self.keys.status, self._on_status))
+            self._keep(session.liveliness().declare_subscriber(self.keys.twin, self._on_twin, history=True))
+            self._keep(session.declare_subscriber(self.keys.alarm, self._on_alarm))
+        except zenoh.ZError as exc:
+            self.close()
+            raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
+        if history:
+            for event in sorted(self._query(rig, since_seq, since_t_ns), key=lambda e: (e.rig, e.seq)):
+                self._accept(event)
+
+    # ------------------------------------------------------------------ life cycle
+
+    def close(self) -> None:
+        """Undeclare the subscriptions (idempotent); received events stay readable."""
+        super().close()
+
+    def last_seq(self, rig: str) -> int | None:
+        """The highest ``seq`` of ``rig`` up to which every number was handed over or recorded missed."""
+        return self._last.get(rig)
+
+    # ------------------------------------------------------------------ zenoh callbacks
+    # They run on Zenoh threads: parse, then hand over to the consumer's thread.
+
+    def _on_alarm(self, sample: zenoh.Sample) -> None:
+        try:
+            event = AlarmEvent.from_dict(json.loads(sample.payload.to_string()))
+            if event.rig != RigKeys.rig_of(sample.key_expr):
+                raise DataError(f"AlarmEvent.rig: {event.rig!r} published on {sample.key_expr}")
+        except (DataError, ValueError) as exc:
+            self._inbox.put(("rejected", f"{sample.key_expr}: rejected alarm payload: {exc}"))
+            return
+        self._inbox.put(("alarm", event))
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            status = StatusEvent.from_dict(json.loads(sample.payload.to_string()))
+        except (DataError, ValueError) as exc:
+            log.warning("%s: rejected status payload: %s", sample.key_expr, exc)
+            return
+        if "alarm_seq" in status.counters:
+            self._inbox.put(("status", (status.rig, status.counters["alarm_seq"])))
+
+    def _on_twin(self, sample: zenoh.Sample) -> None:
+        try:
+            rig = RigKeys.rig_of(sample.key_expr)
+        except DataError as exc:
+            log.warning("liveliness: %s", exc)
+            return
+        self._inbox.put(("twin" if sample.kind == zenoh.SampleKind.PUT else "twin-gone", rig))
+
+    # ------------------------------------------------------------------ ordering logic
+
+    def _expected(self, rig: str) -> int | None:
+        """The next ``seq`` owed for ``rig``, ``None`` when any number is acceptable."""
+        if rig in self._last:
+            return self._last[rig] + 1
+        if not self._history:
+            return None
+        if self.since_seq is not None:
+            return self.since_seq
+        return 1 if self.since_t_ns is None else None
+
+    def _in_gap(self, rig: str, seq: int) -> bool:
+        return any(lo <= seq <= hi for lo, hi in self._gaps.get(rig, ()))
+
+    def _close_gap(self, rig: str, seq: int) -> None:
+        out = []
+        for lo, hi in self._gaps.get(rig, ()):
+            if lo <= seq <= hi:
+                out += [r for r in ([lo, seq - 1], [seq + 1, hi]) if r[0] <= r[1]]
+            else:
+                out.append([lo, hi])
+        self._gaps[rig] = out
+
+    def _accept(self, event: AlarmEvent) -> bool:
+        """Hand ``event`` over unless its number was handed over already."""
+        rig, seq = event.rig, event.seq
+        if self.since_seq is not None and seq < self.since_seq:
+            return False
+        last = self._last.get(rig)
+        if last is not None and seq <= last:
+            if not self._in_gap(rig, seq):
+                return False
+            self._close_gap(rig, seq)  # a number recorded missed, found in the history after all
+            self.recovered += 1
+            self._ready.append(event)
+            return True
+        if last is not None and seq > last + 1:
+            self._record_missed(rig, last + 1, seq - 1)
+        self._last[rig] = seq
+        self._ready.append(event)
+        return True
+
+    def _query(self, rig: str, since_seq: int | None, since_t_ns: int | None) -> list[AlarmEvent]:
+        parameters = {}
+        if since_seq is not None:
+            parameters["since_seq"] = str(since_seq)
+        if since_t_ns is not None:
+            parameters["since_t_ns"] = str(since_t_ns)
+        selector = zenoh.Selector(RigKeys(rig).history, parameters)
+        self.history_queries += 1
+        events = []
+        try:
+            replies = self._session.get(
+                selector,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=self._query_timeout,
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    assert reply.err is not None  # a reply is either ok or an error
+                    log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
+                    continue
+                try:
+                    event = AlarmEvent.from_dict(json.loads(reply.ok.payload.to_string()))
+                    if event.rig != RigKeys.rig_of(reply.ok.key_expr):
+                        raise DataError(f"AlarmEvent.rig: {event.rig!r} in a reply on {reply.ok.key_expr}")
+                    events.append(event)
+                except (DataError, ValueError) as exc:
+                    self.rejected += 1
+                    log.warning("%s: rejected history reply: %s", selector, exc)
+        except zenoh.ZError as exc:
+            log.warning("%s: history query failed: %s", selector, _zenoh_text(exc))
+        return events
+
+    def _fill(self, rig: str) -> list[AlarmEvent]:
+        """Fetch what the history holds for ``rig`` from the first number not yet handed over."""
+        gaps = self._gaps.get(rig)
+        since_seq: int | None
+        if gaps:
+            since_seq, since_t_ns = min(lo for lo, _ in gaps), None
+        elif rig in self._last:
+            since_seq, since_t_ns = self._last[rig] + 1, None
+        else:
+            since_seq, since_t_ns = self.since_seq, self.since_t_ns
+        found = sorted((e for e in self._query(rig, since_seq, since_t_ns) if e.rig == rig), key=lambda e: e.seq)
+        for event in found:
+            self._accept(event)
+        return found
+
+    def _twin_alive(self, rig: str) -> bool:
+        """Whether the rig's twin holds its liveliness token (asked again when not known alive)."""
+        if rig in self._alive:
+            return True
+        try:
+            replies = list(self._session.liveliness().get(RigKeys(rig).twin, timeout=min(self._query_timeout, 1.0)))
+        except zenoh.ZError:
+            return False
+        if any(r.ok is not None for r in replies):
+            self._alive.add(rig)
+        return rig in self._alive
+
+    def _record_missed(self, rig: str, first: int, last: int) -> None:
+        self.missed.append((rig, first, last))
+        self._gaps.setdefault(rig, []).append([first, last])
+        log.warning(
+            "rig %s: alarms seq %d..%d were lost in transit and the twin's history could not supply them "
+            "(no twin reachable); they are fetched when the twin is back",
+            rig, first, last,
+        )
+
+    def _reject(self, message: str) -> None:
+        self.rejected += 1
+        log.warning("%s", message)
+
+    def _on_live(self, event: AlarmEvent) -> None:
+        rig, seq = event.rig, event.seq
+        last = self._last.get(rig)
+        if last is not None and seq <= last and not self._in_gap(rig, seq):
+            return  # a duplicate (live after history, or twice)
+        expected = self._expected(rig)
+        if expected is not None and seq < expected and last is None:
+            return  # below --since-seq
+        if expected is None or seq == expected:
+            self._accept(event)
+            return
+        # A jump (or a number inside a recorded gap): ask the history before believing anything.
+        found = {e.seq: e for e in self._fill(rig)}
+        if seq in found:
+            if found[seq] != event:
+                self._reject(f"rig {rig}: live alarm seq {seq} differs from the twin's journaled one; "
+                             "the journaled one was delivered")
+            return
+        if self._twin_alive(rig):
+            self._reject(f"rig {rig}: alarm seq {seq} on {RigKeys(rig).alarm} is not in the twin's history "
+                         "(not journaled by the twin: forged or corrupt); rejected")
+            return
+        expected = self._expected(rig)
+        if rig not in self._last and expected is not None and seq > expected:
+            self._record_missed(rig, expected, seq - 1)
+            self._last[rig] = seq - 1
+        self._accept(event)  # unverifiable: never drop what may be a real alarm
+
+    def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
+        if self._status_seq.get(rig) == alarm_seq:
+            return
+        self._status_seq[rig] = alarm_seq
+        last = self._last.get(rig)
+        if last is not None and alarm_seq <= last and not self._gaps.get(rig):
+            return
+        if last is None and not self._history:
+            return
+        expected = self._expected(rig)
+        if expected is not None and alarm_seq < expected and not self._gaps.get(rig):
+            return
+        self._fill(rig)
+        expected = self._expected(rig)
+        if expected is None or alarm_seq < expected:
+            return
+        if self._twin_alive(rig):
+            self._reject(f"rig {rig}: a status claims alarm seq {alarm_seq}, the twin's history ends at "
+                         f"{expected - 1}; claim ignored")
+            return
+        self._record_missed(rig, expected, alarm_seq)
+        self._last[rig] = alarm_seq
+
+    def _process(self, kind: str, value: Any) -> None:
+        if kind == "alarm":
+            self._on_live(value)
+        elif kind == "status":
+            self._on_alarm_seq(*value)
+        elif kind == "rejected":
+            self._reject(value)
+        elif kind == "twin-gone":
+            self._alive.discard(value)
+        elif kind == "twin":
+            self._alive.add(value)
+            if self._history or value in self._last:
+                self._fill(value)
+
+    # ------------------------------------------------------------------ consuming
+
+    def recv(self, timeout: float | None = None) -> AlarmEvent:
+        """The next alarm, blocking up to ``timeout`` seconds (``None``: forever).
+
+        :raises TimeoutError: no alarm within ``timeout``.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._ready:
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s")
+            try:
+                kind, value = self._inbox.get(timeout=remaining)
+            except queue.Empty:
+                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s") from None
+            self._process(kind, value)
+        return self._ready.popleft()
+
+    def events(self, timeout: float | None = None) -> Iterator[AlarmEvent]:
+        """Iterate over alarms; stops when none arrives within ``timeout`` seconds."""
+        while True:
+            try:
+                yield self.recv(timeout)
+            except TimeoutError:
+                return
+
+    def __iter__(self) -> Iterator[AlarmEvent]:
+        return self.events(None)
+
+
+# --------------------------------------------------------------------------- CLI
+
+_DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")
+_UNIT_S = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+def parse_since(text: str, *, now_ns: int | None = None) -> int:
+    """Parse ``--since``: an ISO 8601 time, a duration back from now, or integer ns.
+
+    ``"2025-03-01T08:00:00+01:00"`` (naive times are local), ``"90s"``,
+    ``"15m"``, ``"2h"``, ``"1d"``, ``"500ms"``, or ``"1740812400000000000"``
+    (``t_ns`` as in the events). Durations count back from the wall clock, so
+    they are meaningful for live rigs, not for replays of old logs.
+
+    :returns: ``t_ns`` [ns].
+    :raises ValueError: none of these forms.
+    """
+    text = text.strip()
+    if text.isdigit():
+        return int(text)
+    match = _DURATION_RE.match(text)
+    if match:
+        now = time.time_ns() if now_ns is None else now_ns
+        return max(0, now - int(float(match.group(1)) * _UNIT_S[match.group(2)] * 1e9))
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(
+            f"--since: {text!r} is not an ISO 8601 time, a duration like 15m/2h/1d, or integer ns"
+        ) from None
+    if moment.tzinfo is None:
+        moment = moment.astimezone()
+    return int(round(moment.timestamp() * 1e9))
+
+
+def _since_argument(text: str) -> int:
+    try:
+        return parse_since(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{value} must be a positive number of seconds")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{value} must be a number of seconds >= 0")
+    return value
+
+
+def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the options of ``twin alarms`` to ``parser`` (a sub-command parser)."""
+    parser.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
+    parser.add_argument(
+        "--since", type=_since_argument, metavar="T",
+        help="history from time T: ISO 8601, a duration back from now (15m, 2h, 1d), or t_ns",
+    )
+    parser.add_argument(
+        "--since-seq", type=_positive_int, metavar="N", help="history from sequence number N (per rig)"
+    )
+    parser.add_argument(
+        "--no-history", action="store_true", help="live alarms only, do not fetch the history first"
+    )
+    parser.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable); "
+        "without --connect or --zenoh-config, peers are discovered by multicast scouting",
+    )
+    parser.add_argument(
+        "--mode", choices=("peer", "client"), default=None,
+        help="Zenoh session mode (default: the --zenoh-config file's, else peer)",
+    )
+    parser.add_argument(
+        "--zenoh-config", type=Path, metavar="FILE",
+        help="Zenoh JSON5 configuration (TLS, credentials), e.g. deploy/twin-peer.json5",
+    )
+    parser.add_argument("--json", action="store_true", help="print one AlarmEvent JSON object per line")
+    parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N alarms")
+    parser.add_argument(
+        "--timeout", type=_positive_float, metavar="S", help="exit after S seconds (default: run until stopped)"
+    )
+    parser.add_argument(
+        "--wait", type=_non_negative_float, default=10.0, metavar="S",
+        help="give up (exit status 2) when no twin of --rig is reachable within S seconds "
+        "(default 10; 0: wait for ever)",
+    )
+    return parser
+
+
+def wait_for_twin(session: zenoh.Session, rig: str, wait_s: float, where: str) -> list[str]:
+    """The rigs whose twin is alive, waiting up to ``wait_s``; SourceError naming ``where`` if none."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        remaining = deadline - time.monotonic()
+        rigs = live_twins(session, rig, timeout=max(0.2, min(1.0, remaining)))
+        if rigs:
+            return rigs
+        if time.monotonic() >= deadline:
+            raise SourceError(f"no twin reachable through {where} within {wait_s:g} s "
+                              f"(no liveliness token on {RigKeys(rig).twin})")
+
+
+def run_alarms_cli(args: argparse.Namespace) -> int:
+    """``twin alarms``: print alarms as they come, the history first.
+
+    :param args: parsed by a parser set up with :func:`add_alarms_arguments`.
+    :returns: exit status: 0, or 1 when ``--count`` alarms did not arrive within ``--timeout``.
+    :raises ConfigError: a bad option or Zenoh file (one line naming it).
+    :raises SourceError: the session cannot be opened, or no twin is reachable within ``--wait``.
+    """
+    scouting = True if not args.connect and args.zenoh_config is None else None
+    for e in args.connect:
+        check_endpoint(e, "--connect")
+    config = zenoh_config(
+        mode=args.mode,
+        connect=args.connect,
+        multicast_scouting=scouting,
+        config_file=args.zenoh_config,
+    )
+    _, connect = config_endpoints(config)
+    where = ", ".join(connect) if connect else "multicast scouting"
+    deadline = None if args.timeout is None else time.monotonic() + args.timeout
+    printed = 0
+    session = open_session(config, "twin alarms")
+    with session:
+        if args.wait > 0:
+            wait_for_twin(session, args.rig, args.wait, where)
+        with AlarmSubscriber(
+            session,
+            rig=args.rig,
+            since_seq=args.since_seq,
+            since_t_ns=args.since,
+            history=not args.no_history,
+        ) as subscriber:
+            reported = 0
+            while args.count is None or printed < args.count:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    break
+                try:
+                    event = subscriber.recv(timeout=remaining)
+                except TimeoutError:
+                    break
+                for rig, first, last in subscriber.missed[reported:]:
+                    print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
+                reported = len(subscriber.missed)
+                line = event_to_json(event) if args.json else format_alarm(event)
+                print(line, flush=True)
+                printed += 1
+    return 1 if args.count is not None and printed < args.count else 0

@@ -1,0 +1,379 @@
+"""Rig configuration (``rigs.toml``) for ``twin serve``: which rigs, where their data come from,
+which parameters to track, their healthy baselines, and how to reach Zenoh.
+
+Example (every key but ``rig.name`` and ``rig.source`` has a default)::
+
+    [zenoh]                             # optional; with ZENOH_CONFIG=FILE set, only the keys
+    mode = "peer"                       #   given here override that file
+    listen = ["tcp/127.0.0.1:7447"]     # "client" mode goes through a site router (connect)
+    connect = []
+
+    [service]
+    journal_dir = "/var/lib/fpdd/journal"  # one SQLite journal per rig: alarms and checkpoints
+    out_dir = "/var/lib/fpdd/records"   # MCAP of estimates and alarms (optional)
+    estimate_every = 50                 # publish an estimate every N samples
+    workers = "auto"                    # worker processes: "auto", 0 = threads in this process, N
+    checkpoint_s = 1.0                  # checkpoint each rig's state this often (wall clock)
+    block_s = 0.1                       # samples are filtered in blocks of this much time (latency)
+    lag_warn_s = 1.0                    # status 'degraded' when a rig is this far behind real time
+    stale_s = 1.0                       # a live input quiet this long is 'stale_input'
+
+    [[rig]]
+    name = "msp25-a"
+    model = "msp25"
+    source = "can://socketcan/can0"     # or zenoh://KEYEXPR, or a log file (replayed)
+    dbc = ""                            # default: the MSP25 DBC shipped with replay
+    speed = 1.0                         # replay speed for log sources (0 = as fast as possible)
+    track = ["Ffric", "CdAleak", "Cd", "zeta", "wn"]
+    commission = "commissioning.json"   # a `twin fit --save` file (relative to this file): bands
+                                        # centred on the fit, its noise levels and its timing
+    controller = "digital"              # the loop's timing: digital, digital:5000, continuous
+    intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
+    noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
+    [rig.params]                        # known parameters that differ from the nominal MSP25
+    KP = 400.0
+    [rig.baseline.Ffric]                # healthy band (default: nominal value, DEFAULT_REL_BAND)
+    value = 50.0
+    rel_band = 0.3                      # or lo = ..., hi = ...
+
+Every error is one line naming the file, the key and what was expected; an
+unknown key is an error that suggests the closest known one
+(``rig 'a': unknown key 'trak' (did you mean 'track'?)``); numbers must be
+finite (TOML's ``nan`` and ``inf`` are refused).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import tomllib
+from typing import Any
+
+from twin.errors import ConfigError, ParameterError
+from twin.online.events import RIG_PATTERN
+from twin.models import MODELS, get_model
+from twin.models.base import Timing
+
+DEFAULT_REL_BAND = {"Ffric": 0.5, "CdAleak": 2.0, "Cd": 0.15, "zeta": 0.3, "wn": 0.15}
+
+
+@dataclasses.dataclass(frozen=True)
+class Baseline:
+    """Healthy value of one parameter and its band [lo, hi] (SI units)."""
+
+    value: float
+    lo: float
+    hi: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RigConfig:
+    name: str
+    model: str
+    source: str
+    dbc: str | None
+    speed: float
+    track: tuple[str, ...]
+    params: dict[str, float]
+    baseline: dict[str, Baseline]
+    noise: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Sensor noise standard deviations (SI) per output; learnt online on top."""
+    timing: Timing | None = None
+    """The loop's timing (``controller``, ``intersample``); None: digital at the log's rate, or the fit's."""
+    commission: str | None = None
+    """A ``twin fit --save`` file: known values, bands centred on the fit, noise levels and timing."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ServiceConfig:
+    path: str
+    zenoh_mode: str | None
+    """``None``: not given (the ZENOH_CONFIG file's mode, else peer)."""
+    listen: tuple[str, ...]
+    connect: tuple[str, ...]
+    journal_dir: str
+    out_dir: str | None
+    estimate_every: int
+    rigs: tuple[RigConfig, ...]
+    workers: int | None = 0
+    """Worker processes: 0 = rigs in threads of the service's process, ``None`` = auto."""
+    checkpoint_s: float = 1.0
+    block_s: float = 0.1
+    lag_warn_s: float = 1.0
+    stale_s: float = 1.0
+
+
+TOP_KEYS = ("zenoh", "service", "rig")
+ZENOH_KEYS = ("mode", "listen", "connect")
+SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
+                "stale_s")
+RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
+            "intersample", "commission")
+NOISE_KEYS = ("x", "pA", "pB")
+BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
+
+
+def default_baseline(model_name: str, params: dict[str, float] | None = None,
+                     names: tuple[str, ...] | None = None) -> dict[str, Baseline]:
+    """Bands around the rig configuration's values (the paper's Table 9 for the MSP25)."""
+    model = get_model(model_name)
+    ps = model.params((), **(params or {}))
+    out = {}
+    for n in names or model.PHENOMENOLOGICAL:
+        v = ps[n]
+        r = DEFAULT_REL_BAND.get(n, 0.3)
+        out[n] = Baseline(v, v / (1 + r), v * (1 + r))
+    return out
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+_TYPE_TEXT = {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table",
+              bool: "true or false"}
+
+
+def suggest(key: str, known: tuple[str, ...] | list[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest known key, else the list of known keys."""
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else f" (known: {', '.join(known)})"
+
+
+def _check_keys(d: dict, known: tuple[str, ...], where: str) -> None:
+    for key in d:
+        if key not in known:
+            raise ConfigError(f"{where}: unknown key {key!r}{suggest(key, known)}")
+
+
+def _get(d: dict, key: str, typ, where: str, default: Any = ...) -> Any:
+    """``d[key]`` of type ``typ`` (int accepted for float; numbers finite), or ``default``."""
+    if key not in d:
+        if default is ...:
+            raise ConfigError(f"{where}: missing key {key!r}")
+        return default
+    v = d[key]
+    if typ is float and isinstance(v, int) and not isinstance(v, bool):
+        v = float(v)
+    if not isinstance(v, typ) or (typ is int and isinstance(v, bool)):
+        raise ConfigError(f"{where}.{key}: expected {_TYPE_TEXT.get(typ, typ.__name__)}, got {v!r}")
+    if typ is float and not math.isfinite(v):
+        raise ConfigError(f"{where}.{key}: expected a finite number, got {v!r}")
+    return v
+
+
+def _number(d: dict, key: str, where: str, default: Any = ..., *, lo: float | None = None,
+            lo_open: bool = False, what: str = "") -> float:
+    v = _get(d, key, float, where, default)
+    if v is None or lo is None:
+        return v
+    if (lo_open and not v > lo) or (not lo_open and not v >= lo):
+        op = ">" if lo_open else ">="
+        raise ConfigError(f"{where}.{key}: must be {op} {lo:g}{what}, got {v:g}")
+    return v
+
+
+def _strings(d: dict, key: str, where: str) -> list[str]:
+    items = _get(d, key, list, where, [])
+    for i, item in enumerate(items):
+        if not isinstance(item, str):
+            raise ConfigError(f"{where}.{key}[{i}]: expected a string, got {item!r}")
+    return items
+
+
+def _endpoints(z: dict, key: str, where: str) -> tuple[str, ...]:
+    from twin.service.bus import check_endpoint
+
+    items = _strings(z, key, where)
+    for i, item in enumerate(items):
+        check_endpoint(item, f"{where}.{key}[{i}]", listen=key == "listen")
+    return tuple(items)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_config(path: str) -> ServiceConfig:
+    """Read and validate a rig configuration; errors name the file and the key."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the configuration ({exc.strerror or exc})") from None
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")) or (len(raw) > 1 and (raw[0] == 0 or raw[1] == 0)):
+        raise ConfigError(f"{path}: the configuration is UTF-16 text; TOML must be UTF-8 (save it as UTF-8)")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}: {raw[exc.start:exc.start + 1]!r}); "
+                          "TOML must be UTF-8") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    return parse_config(doc, path)
+
+
+def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
+    _check_keys(doc, TOP_KEYS, path)
+    z = _get(doc, "zenoh", dict, path, {})
+    s = _get(doc, "service", dict, path, {})
+    zw, sw = f"{path}: zenoh", f"{path}: service"
+    _check_keys(z, ZENOH_KEYS, zw)
+    _check_keys(s, SERVICE_KEYS, sw)
+    mode = _get(z, "mode", str, zw, None)
+    if mode is not None and mode not in ("peer", "client", "router"):
+        raise ConfigError(f"{path}: zenoh.mode must be peer, client or router, got {mode!r}")
+    listen = _endpoints(z, "listen", zw)
+    connect = _endpoints(z, "connect", zw)
+    if mode == "client" and listen:
+        raise ConfigError(f"{path}: zenoh.listen: a client cannot listen (got {list(listen)}); "
+                          "use mode = \"peer\" or remove listen")
+    if "rig" not in doc:
+        raise ConfigError(f"{path}: no [[rig]]: at least one rig is needed")
+    rigs_doc = doc["rig"]
+    if isinstance(rigs_doc, dict):
+        raise ConfigError(f"{path}: rig: write [[rig]] (an array of tables), not [rig]")
+    if not isinstance(rigs_doc, list):
+        raise ConfigError(f"{path}: rig: expected [[rig]] tables, got {rigs_doc!r}")
+    if not rigs_doc:
+        raise ConfigError(f"{path}: at least one [[rig]] is needed")
+    rigs = []
+    seen: set[str] = set()
+    for i, r in enumerate(rigs_doc):
+        rigs.append(_parse_rig(r, i, path, seen))
+    every = _get(s, "estimate_every", int, sw, 50)
+    if every < 1:
+        raise ConfigError(f"{path}: service.estimate_every must be >= 1, got {every}")
+    workers_raw = s.get("workers", "auto")
+    if workers_raw == "auto":
+        workers = None
+    elif isinstance(workers_raw, int) and not isinstance(workers_raw, bool) and 0 <= workers_raw <= 256:
+        workers = workers_raw
+    else:
+        raise ConfigError(f"{path}: service.workers: expected \"auto\" or an integer 0..256 "
+                          f"(0 = threads in the service's process), got {workers_raw!r}")
+    journal_dir = _get(s, "journal_dir", str, sw, os.path.join(".", "fpdd-journal"))
+    if not journal_dir.strip():
+        raise ConfigError(f"{path}: service.journal_dir: expected a directory path, got an empty string")
+    return ServiceConfig(
+        path=path, zenoh_mode=mode, listen=listen, connect=connect,
+        journal_dir=journal_dir,
+        out_dir=_get(s, "out_dir", str, sw, "") or None,
+        estimate_every=every, rigs=tuple(rigs), workers=workers,
+        checkpoint_s=_number(s, "checkpoint_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
+        block_s=_number(s, "block_s", sw, 0.1, lo=0.001, what=" seconds"),
+        lag_warn_s=_number(s, "lag_warn_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
+        stale_s=_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"),
+    )
+
+
+def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
+    import re
+
+    from replay.factory import FILE_SUFFIXES, URI_SCHEMES
+
+    where = f"{path}: rig[{i}]"
+    if not isinstance(r, dict):
+        raise ConfigError(f"{where}: expected a table")
+    name = _get(r, "name", str, where)
+    if re.match(RIG_PATTERN, name) is None or name in seen:
+        raise ConfigError(f"{where}.name: {name!r} must be unique, non-empty, without '/' or '*' "
+                          "(letters, digits, _ . -)")
+    seen.add(name)
+    where = f"{path}: rig {name!r}"
+    _check_keys(r, RIG_KEYS, where)
+    model_name = _get(r, "model", str, where, "msp25")
+    if model_name not in MODELS:
+        raise ConfigError(f"{where}.model: {model_name!r} is not one of {', '.join(MODELS)}")
+    model = get_model(model_name)
+    params_doc = _get(r, "params", dict, where, {})
+    names = model.params().names
+    params = {}
+    for k in params_doc:
+        if k not in names:
+            raise ConfigError(f"{where}.params: unknown parameter {k!r} of model {model_name}{suggest(k, names)}")
+        params[k] = _get(params_doc, k, float, f"{where}.params")
+    try:
+        model.params(**params)
+    except ParameterError as exc:
+        raise ConfigError(f"{where}.params: {exc}") from None
+    track = tuple(_strings(r, "track", where) or list(model.PHENOMENOLOGICAL))
+    if "track" in r and not r["track"]:
+        raise ConfigError(f"{where}.track: the list is empty; name at least one of "
+                          f"{', '.join(model.PHENOMENOLOGICAL)}")
+    bad = [t for t in track if t not in model.PHENOMENOLOGICAL]
+    if bad:
+        raise ConfigError(f"{where}.track: {bad} not among the trackable {', '.join(model.PHENOMENOLOGICAL)}"
+                          f"{suggest(bad[0], model.PHENOMENOLOGICAL) if len(bad) == 1 else ''}")
+    if len(set(track)) != len(track):
+        raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
+    commission = _get(r, "commission", str, where, "") or None
+    if commission is not None:
+        from twin.online.commission import load_fit
+
+        if not os.path.isabs(commission):
+            commission = os.path.join(os.path.dirname(os.path.abspath(path)), commission)
+        com = load_fit(commission)
+        baseline = com.baseline(track)
+    else:
+        baseline = default_baseline(model_name, params, track)
+    noise: dict[str, float] = {}
+    for k, v in _get(r, "noise", dict, where, {}).items():
+        if k not in NOISE_KEYS:
+            raise ConfigError(f"{where}.noise: unknown output {k!r}; known: {', '.join(NOISE_KEYS)}"
+                              f"{suggest(k, NOISE_KEYS)}")
+        if isinstance(v, str):
+            from twin.units import to_si
+
+            try:
+                noise[k] = to_si(k, v)
+            except ParameterError as exc:
+                raise ConfigError(f"{where}.noise.{k}: {exc}") from None
+        else:
+            noise[k] = _number(r["noise"], k, f"{where}.noise")
+        if not noise[k] > 0:
+            raise ConfigError(f"{where}.noise.{k}: expected a positive standard deviation (SI or with a unit, "
+                              f"e.g. \"2um\"), got {v!r}")
+    timing = None
+    if "controller" in r or "intersample" in r:
+        try:
+            timing = Timing.parse(_get(r, "controller", str, where, "digital"),
+                                  _get(r, "intersample", str, where, "") or None)
+        except ParameterError as exc:
+            raise ConfigError(f"{where}.controller: {exc}") from None
+    for pname, b in _get(r, "baseline", dict, where, {}).items():
+        if pname not in track:
+            raise ConfigError(f"{where}.baseline.{pname}: not a tracked parameter ({', '.join(track)})"
+                              f"{suggest(pname, track) if pname not in model.PHENOMENOLOGICAL else ''}")
+        bw = f"{where}.baseline.{pname}"
+        if not isinstance(b, dict):
+            raise ConfigError(f"{bw}: expected a table with value and rel_band, or lo and hi")
+        _check_keys(b, BASELINE_KEYS, bw)
+        v = _number(b, "value", bw, baseline[pname].value, lo=0.0, lo_open=True)
+        if "lo" in b or "hi" in b:
+            if "rel_band" in b:
+                raise ConfigError(f"{bw}: give either rel_band or lo and hi, not both")
+            lo = _number(b, "lo", bw, lo=0.0, lo_open=True)
+            hi = _number(b, "hi", bw, lo=0.0, lo_open=True)
+        else:
+            rb = _number(b, "rel_band", bw, DEFAULT_REL_BAND.get(pname, 0.3), lo=0.0, lo_open=True,
+                         what=" (the band is value/(1+rel_band) .. value*(1+rel_band))")
+            lo, hi = v / (1 + rb), v * (1 + rb)
+        if not lo < v < hi:
+            raise ConfigError(f"{bw}: the band [{lo:g}, {hi:g}] must contain the value {v:g}")
+        baseline[pname] = Baseline(v, lo, hi)
+    speed = _number(r, "speed", where, 1.0, lo=0.0, what=" (0 = as fast as possible)")
+    dbc = _get(r, "dbc", str, where, "") or None
+    source = _get(r, "source", str, where)
+    if not source.strip():
+        raise ConfigError(f"{where}.source: expected a log file, can://INTERFACE/CHANNEL or zenoh://KEYEXPR, "
+                          "got an empty string")
+    if "://" in source:
+        scheme = source.split("://", 1)[0].lower()
+        if scheme not in URI_SCHEMES or not source.split("://", 1)[1].strip("/"):
+            raise ConfigError(f"{where}.source: {source!r} is not can://INTERFACE/CHANNEL or zenoh://KEYEXPR")
+    elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
+        raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
+                          f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
+    return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission)

@@ -1,0 +1,995 @@
+"""Running rigs: one :class:`RigRunner` per rig, in threads or spread over spawned worker processes.
+
+A rig never stops silently:
+
+* a **live** input (``can://``, ``zenoh://``) that goes quiet or is lost is a
+  status (``stale_input``, counter ``stale_ms``: for how long) while the rig
+  waits and re-opens its input; a message that breaks the source or a block
+  the tracker cannot use is counted (``source_errors``, ``bad_blocks``,
+  ``bad_samples``), logged and skipped;
+* a **replayed log** is paced in blocks of ``block_s`` and ends normally
+  (state ``finished``);
+* an unrecoverable error (a log that cannot be read, a filter that diverged,
+  a bug) is state ``failed`` with the cause, on the bus and on the console;
+  the service then stops the other rigs (each checkpoints) and exits non-zero
+  naming the rig, so systemd restarts it.
+
+Resume, don't replay: every ``checkpoint_s`` (and when it stops) a runner
+saves its twin's state (tracker and detector objects, pickled whole) with the
+time of the last sample processed, in one SQLite transaction of the rig's
+journal. A restart restores it: a log continues after that sample; a live
+input keeps the detector's state, so an ongoing alarm is not raised again.
+Alarms raised between the last checkpoint and a crash are raised again by
+the re-processing and recognised by their identity (not journaled or
+published twice).
+
+Real time: a runner measures its lag (how far the processing of the last
+block is behind the moment its samples were due: the replay schedule for a
+log, the best observed arrival for a live input) and publishes it in its
+status (``lag_ms``; state ``degraded`` with a message above ``lag_warn_s``).
+With ``workers`` > 0 the rigs whose input is not ``zenoh://`` run in spawned
+worker processes, so the Python around the compiled filter of one process
+does not hold up the others; a worker dies with the service (``PR_SET_PDEATHSIG``).
+Events travel to the service's process through a queue (JSON payloads, one
+batch per block) and are published there on the service's one Zenoh session.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import logging
+import math
+import multiprocessing as mp
+import os
+import pickle
+import queue
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+
+import numpy as np
+
+from replay.base import Samples
+from twin.service.config import RigConfig, ServiceConfig
+from twin.errors import ConfigError, DataError, FilterError, SourceError, TwinError
+from twin.online.events import AlarmEvent, StatusEvent, event_to_json
+from twin.service.journal import AlarmJournal
+from twin.service.rig import RigStats, RigTwin, fingerprint, make_twin
+from twin.service.store import Checkpoint
+
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
+    from multiprocessing.queues import Queue as MpQueue
+
+    from replay.mcapio import McapSink
+
+log = logging.getLogger("twin.serve")
+
+#: Samples read from a log per chunk before it is cut into paced blocks.
+READ_CHUNK = 20000
+#: A runner's bus messages are flushed at least this often [s] even without samples.
+FLUSH_S = 0.25
+#: A jump in sample time longer than this (or 20 sample periods) restarts the filter's model states [s].
+GAP_S = 0.5
+#: A filter that diverges again within this long of a restart is a failure of the rig [s].
+RESET_WINDOW_S = 10.0
+
+
+def is_live(uri: str) -> bool:
+    return uri.startswith(("can://", "zenoh://"))
+
+
+def journal_path(cfg: ServiceConfig, rig: str) -> Path:
+    """The rig's SQLite journal."""
+    return Path(cfg.journal_dir) / f"{rig}.db"
+
+
+def legacy_journal_path(cfg: ServiceConfig, rig: str) -> Path:
+    """Where earlier versions kept the rig's JSON-lines journal (imported once)."""
+    return Path(cfg.journal_dir) / f"{rig}.alarms.jsonl"
+
+
+def open_rig_source(rig: RigConfig, session=None, timeout_s: float | None = None):
+    """The rig's source; a ``zenoh://`` input rides on the service's own Zenoh session."""
+    from replay.factory import open_source
+
+    opts: dict[str, Any] = {"dbc": rig.dbc} if rig.dbc else {}
+    if rig.source.startswith("zenoh://") and session is not None:
+        opts["session"] = session
+    if is_live(rig.source) and timeout_s is not None:
+        opts["timeout_s"] = timeout_s
+    return open_source(rig.source, **opts)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclasses.dataclass
+class RigSummary:
+    """What one rig did in this run of the service."""
+
+    rig: str
+    state: str = "starting"
+    message: str = ""
+    samples: int = 0
+    """Samples processed in this run."""
+    alarms: int = 0
+    """Alarms journaled and published in this run."""
+    duplicates: int = 0
+    resumed_samples: int | None = None
+    """Samples already processed according to the checkpoint restored (None: fresh start)."""
+    lag_max_s: float | None = None
+    source_errors: int = 0
+    bad_blocks: int = 0
+    bad_samples: int = 0
+    input_gaps: int = 0
+    filter_resets: int = 0
+    input_dropped: int = 0
+    """Messages or samples the live source dropped (its counts per cause are in the status)."""
+    busy_s: float = 0.0
+    stats: RigStats = dataclasses.field(default_factory=RigStats)
+
+    def line(self) -> str:
+        parts = [f"{self.rig}: {self.state}", f"{self.samples} samples", f"{self.alarms} alarm(s)"]
+        if self.resumed_samples is not None:
+            parts.append(f"resumed after {self.resumed_samples} samples")
+        if self.duplicates:
+            parts.append(f"{self.duplicates} alarm(s) already journaled")
+        if self.lag_max_s is not None:
+            parts.append(f"lag max {self.lag_max_s:.3f} s")
+        for name in ("source_errors", "bad_blocks", "bad_samples", "input_gaps", "filter_resets", "input_dropped"):
+            if getattr(self, name):
+                parts.append(f"{name} {getattr(self, name)}")
+        text = ", ".join(parts)
+        return f"{text}: {self.message}" if self.message else text
+
+
+class RigFailure(TwinError):
+    """An unrecoverable error of one rig (named in the message)."""
+
+
+class _Stopped(Exception):
+    pass
+
+
+# --------------------------------------------------------------------------- the runner's publisher
+
+
+class Outbox:
+    """A runner's publisher for its :class:`RigTwin`: journals alarms, batches bus messages.
+
+    Messages (put on ``out`` as ``("batch", rig, [...])`` after each block):
+    ``("alarm", AlarmEvent, durable)``, ``("estimate", json)``,
+    ``("status", json, state, message)``.
+    """
+
+    def __init__(self, rig: str, journal: AlarmJournal, out) -> None:
+        self.rig = rig
+        self.journal = journal
+        self.out = out
+        self._batch: list[tuple] = []
+        self._last_flush = time.monotonic()
+
+    def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
+        recorded = self.journal.record(event)
+        if not recorded.new:
+            return None
+        self._batch.append(("alarm", recorded.event, recorded.durable))
+        self.flush()  # alarms go out at once
+        return recorded.event
+
+    def publish_estimate(self, event) -> None:
+        self._batch.append(("estimate", event_to_json(event)))
+
+    def publish_status(self, event: StatusEvent) -> StatusEvent:
+        counters = dict(event.counters)
+        counters["alarm_seq"] = self.journal.last_seq(self.rig)
+        event = dataclasses.replace(event, counters=counters)
+        self._batch.append(("status", event_to_json(event), event.state, event.message))
+        return event
+
+    def flush(self, force: bool = True) -> None:
+        if self._batch and (force or time.monotonic() - self._last_flush >= FLUSH_S):
+            batch, self._batch = self._batch, []
+            self.out.put(("batch", self.rig, batch))
+            self._last_flush = time.monotonic()
+
+
+# --------------------------------------------------------------------------- timing
+
+
+class Pacer:
+    """When each sample of a replayed log is due: ``wall0 + (t_ns - t_first) / speed`` (0: never waits)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+        self._t0: int | None = None
+        self._w0 = 0.0
+
+    def due(self, t_ns: int) -> float:
+        if self.speed <= 0:
+            return -math.inf
+        if self._t0 is None:
+            self._t0, self._w0 = int(t_ns), time.monotonic()
+        return self._w0 + (int(t_ns) - self._t0) * 1e-9 / self.speed
+
+    def wait(self, t_ns: int, stop) -> bool:
+        """Sleep until ``t_ns`` is due; ``False`` if ``stop`` was set meanwhile."""
+        delay = self.due(t_ns) - time.monotonic()
+        if delay > 0:
+            return not stop.wait(delay)
+        return not stop.is_set()
+
+    def lag(self, t_ns: int) -> float | None:
+        if self.speed <= 0:
+            return None
+        return max(0.0, time.monotonic() - self.due(t_ns))
+
+
+class LiveLag:
+    """Lag of a live input: the arrival delay of the latest sample beyond the smallest one seen.
+
+    The rig's clock and ours need not agree: ``wall - t`` is their offset plus
+    the delay; its minimum over the run is the offset plus the best delay.
+    """
+
+    def __init__(self) -> None:
+        self._best: float | None = None
+
+    def lag(self, t_ns: int) -> float:
+        d = time.time() - int(t_ns) * 1e-9
+        self._best = d if self._best is None else min(self._best, d)
+        return d - self._best
+
+
+def blocks_by_time(block: Samples, span_s: float):
+    """``block`` cut into consecutive pieces spanning at most ``span_s`` of sample time."""
+    t = block.t_ns
+    i, n = 0, len(block)
+    while i < n:
+        j = int(np.searchsorted(t, t[i] + int(span_s * 1e9), side="left"))
+        j = max(j, i + 1)
+        yield block if (i == 0 and j >= n) else block.slice(i, j)
+        i = j
+
+
+# --------------------------------------------------------------------------- one rig
+
+
+class RigRunner:
+    """Runs one rig from its source to its publisher until its log ends, it fails or ``stop`` is set.
+
+    :param rig: the rig's configuration.
+    :param cfg: the service configuration (timing, estimate rate, MCAP directory).
+    :param journal: the rig's open journal (alarms and checkpoints).
+    :param out: where bus messages go (a ``queue.Queue`` or a multiprocessing queue).
+    :param stop: ``threading.Event`` or multiprocessing event.
+    :param session: the service's Zenoh session (for a ``zenoh://`` input).
+    :param keep: a dict that receives the rig's :class:`RigTwin` (reports, tests).
+    """
+
+    def __init__(self, rig: RigConfig, cfg: ServiceConfig, journal: AlarmJournal, out, stop, *,
+                 session=None, keep: dict | None = None) -> None:
+        self.rig = rig
+        self.cfg = cfg
+        self.journal = journal
+        self.out = out
+        self.stop = stop
+        self.session = session
+        self.keep = keep
+        self.summary = RigSummary(rig.name)
+        self.outbox = Outbox(rig.name, journal, out)
+        self.twin: RigTwin | None = None
+        self.recorder: McapSink | None = None
+        self._fp = fingerprint(rig, cfg.estimate_every)
+        self._last_cp = time.monotonic()
+        self._cp_error: str | None = None
+        self._lag: float | None = None
+        self._stale_since: float | None = None
+        self._notes: str = ""
+        self._start_samples = 0
+        self._last_data = time.monotonic()
+        self._last_reset: float | None = None
+        self._last_quiet_status = 0.0
+        self._dropped: dict[str, int] = {}
+        self._dropped_base: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ life
+
+    def run(self) -> RigSummary:
+        """Never raises: the outcome is in the summary, on the bus and in the log."""
+        try:
+            self._open()
+            if is_live(self.rig.source):
+                self._run_live()
+            else:
+                self._run_log()
+            self._set_state("finished" if not is_live(self.rig.source) else "stopped")
+        except _Stopped:
+            self._set_state("stopped")
+        except RigFailure as exc:
+            self._fail(str(exc))
+        except TwinError as exc:
+            self._fail(str(exc))
+        except Exception as exc:  # a bug: one line on the console, the traceback in the debug log
+            log.debug("rig %s: unexpected error", self.rig.name, exc_info=True)
+            self._fail(f"internal error {type(exc).__name__}: {exc}")
+        finally:
+            self._close()
+        return self.summary
+
+    def _open(self) -> None:
+        if self.cfg.out_dir:
+            from replay.mcapio import McapSink
+
+            self.recorder = McapSink(_free_name(Path(self.cfg.out_dir), f"{self.rig.name}.twin", ".mcap"))
+        self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
+        if self.keep is not None:
+            self.keep[self.rig.name] = self.twin
+        self._resume()
+        self._start_samples = self.twin.stats.samples
+        self.twin.health.state = "starting"
+        self.twin.publish_status(force=True)
+        self.outbox.flush()
+
+    def _resume(self) -> None:
+        cp = self.journal.load_checkpoint(self.rig.name)
+        if cp is None:
+            return
+        if cp.fingerprint != self._fp:
+            log.warning("rig %s: its configuration changed since the checkpoint of %s; starting afresh "
+                        "(alarms journaled before are not raised twice)", self.rig.name,
+                        time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cp.saved_at)))
+            return
+        assert self.twin is not None  # made by _open
+        try:
+            state = pickle.loads(cp.state)
+            self.twin.restore(state)
+        except Exception as exc:  # a checkpoint of another program version
+            log.warning("rig %s: the checkpoint cannot be restored (%s: %s); starting afresh "
+                        "(alarms journaled before are not raised twice)", self.rig.name, type(exc).__name__, exc)
+            self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
+            if self.keep is not None:
+                self.keep[self.rig.name] = self.twin
+            return
+        self.summary.resumed_samples = cp.samples
+        log.info("rig %s: resumed from its checkpoint after %d samples (t_ns=%d)", self.rig.name, cp.samples,
+                 cp.t_ns)
+
+    def _close(self) -> None:
+        twin = self.twin
+        if twin is not None:
+            if self.summary.state != "failed":
+                self._checkpoint()
+            twin.health.state = self.summary.state
+            twin.health.message = self.summary.message
+            try:
+                twin.publish_status(force=True)
+            except TwinError as exc:
+                log.debug("rig %s: last status: %s", self.rig.name, exc)
+            s = twin.stats
+            self.summary.samples = s.samples - self._start_samples
+            self.summary.alarms = s.alarms
+            self.summary.duplicates = s.duplicates
+            self.summary.busy_s = s.busy_s
+            self.summary.input_dropped = sum(self._dropped.values())
+            self.summary.stats = dataclasses.replace(s)
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except Exception as exc:  # noqa: BLE001 - reported, the rig's outcome stands
+                log.error("rig %s: closing its MCAP record: %s", self.rig.name, exc)
+        self.outbox.flush()
+        self.out.put(("done", self.rig.name, self.summary))
+
+    def _set_state(self, state: str, message: str = "") -> None:
+        self.summary.state = state
+        self.summary.message = message
+
+    def _fail(self, message: str) -> None:
+        self._set_state("failed", message)
+        log.error("rig %s failed: %s", self.rig.name, message)
+
+    # ------------------------------------------------------------------ a replayed log
+
+    def _run_log(self) -> None:
+        twin = self.twin
+        assert twin is not None  # made by _open
+        position = twin.last_t_ns
+        try:
+            src = open_rig_source(self.rig, self.session)
+        except (TwinError, OSError) as exc:
+            raise RigFailure(f"cannot open its log: {exc}") from None
+        pacer = Pacer(self.rig.speed)
+        span = self.cfg.block_s * self.rig.speed if self.rig.speed > 0 else math.inf
+        with src:
+            chunks = src.chunks(READ_CHUNK)
+            while True:
+                try:
+                    chunk = next(chunks)
+                except StopIteration:
+                    break
+                except (TwinError, OSError, ValueError) as exc:
+                    raise RigFailure(f"{self.rig.source}: cannot read on: {exc}") from None
+                if position is not None:
+                    k = int(np.searchsorted(chunk.t_ns, position, side="right"))
+                    if k >= len(chunk):
+                        continue
+                    if k:
+                        chunk = chunk.slice(k, len(chunk))
+                for block in (blocks_by_time(chunk, span) if math.isfinite(span) else (chunk,)):
+                    if not pacer.wait(int(block.t_ns[-1]), self.stop):
+                        raise _Stopped
+                    self._process(block, live=False)
+                    self._lag = pacer.lag(int(block.t_ns[-1]))
+                    self._tick()
+                if self.stop.is_set():
+                    raise _Stopped
+        report = getattr(src, "report", None)
+        skipped = sum(report.skipped.values()) if report is not None else 0
+        if skipped and report is not None:
+            self._notes = f"the log had {skipped} unusable record(s): {report.summary()}"
+            self.summary.message = self._notes
+
+    # ------------------------------------------------------------------ a live input
+
+    def _run_live(self) -> None:
+        """Until ``stop``: open the input (again when it ends or keeps breaking), process what comes.
+
+        Works with sources that end when quiet (a fresh subscription is then
+        opened) and with sources that stay open and yield empty blocks while
+        quiet (their ``idle()`` says for how long).
+        """
+        stale_s = self.cfg.stale_s
+        self._last_data = time.monotonic()
+        lag = LiveLag()
+        backoff = 0.0
+        while not self.stop.is_set():
+            try:
+                src = open_rig_source(self.rig, self.session, timeout_s=stale_s)
+            except (TwinError, OSError, ValueError) as exc:
+                self._quiet(None, f"cannot open {self.rig.source}: {exc}")
+                backoff = min(5.0, max(stale_s, backoff * 2))
+                self.stop.wait(backoff)
+                continue
+            backoff = 0.0
+            try:
+                with src:
+                    errors_in_row = 0
+                    while not self.stop.is_set():
+                        outcome = self._consume(src, lag)
+                        if outcome == "ended":
+                            break  # the sender's end marker, or a source that ends when quiet: subscribe afresh
+                        if outcome == "error":
+                            errors_in_row += 1
+                            if errors_in_row >= 20:  # the source keeps breaking: open it afresh
+                                break
+                        else:
+                            errors_in_row = 0
+                        if outcome == "quiet":
+                            self._quiet(src, self._notes)
+                    self._input_counters(src)
+                    self._dropped_base = dict(self._dropped)
+            except (_Stopped, RigFailure):
+                raise
+            except (TwinError, OSError) as exc:
+                self._notes = f"input: {exc}"
+            if not self.stop.is_set():
+                self._quiet(None, self._notes)
+
+    def _consume(self, src, lag: LiveLag) -> str:
+        """Process what ``src.chunks()`` yields; ``"ended"``, ``"quiet"``, ``"error"`` or ``"stopped"``."""
+        it = src.chunks(READ_CHUNK)
+        pending: list[Samples] = []
+        first_wall = 0.0
+        try:
+            while not self.stop.is_set():
+                try:
+                    block = next(it)
+                except StopIteration:
+                    return "ended"
+                except SourceError as exc:  # e.g. nothing received yet to learn the signals from
+                    self._notes = str(exc)
+                    return "quiet"
+                except Exception as exc:  # a message that broke the source: count it, go on
+                    self.summary.source_errors += 1
+                    self._notes = f"{self.summary.source_errors} input error(s), the last: {type(exc).__name__}: {exc}"
+                    if self.summary.source_errors <= 3 or self.summary.source_errors % 100 == 0:
+                        log.warning("rig %s: %s", self.rig.name, self._notes)
+                    return "error"
+                if len(block) == 0:  # a quiet source's heartbeat
+                    if pending:
+                        self._live_block(pending, lag)
+                        pending = []
+                    if self._idle(src) >= self.cfg.stale_s:
+                        self._quiet(src, "")
+                    continue
+                self._last_data = time.monotonic()
+                if not pending:
+                    first_wall = self._last_data
+                pending.append(block)
+                span = (int(block.t_ns[-1]) - int(pending[0].t_ns[0])) * 1e-9
+                if span >= self.cfg.block_s or self._last_data - first_wall >= self.cfg.block_s:
+                    self._live_block(pending, lag)
+                    self._input_counters(src)
+                    pending = []
+            return "stopped"
+        finally:
+            if pending:
+                self._live_block(pending, lag)
+
+    def _idle(self, src) -> float:
+        idle = getattr(src, "idle", None)
+        mine = time.monotonic() - self._last_data
+        return min(mine, idle()) if callable(idle) else mine
+
+    def _input_counters(self, src) -> None:
+        """What the source dropped, per cause, into the status counters (``dropped_<cause>``)."""
+        report = getattr(src, "report", None)
+        if report is None:
+            return
+        for cause, n in list(report.skipped.items()):
+            name = "dropped_" + "".join(c if c.isalnum() else "_" for c in str(cause))
+            self._dropped[name] = self._dropped_base.get(name, 0) + int(n)
+        assert self.twin is not None  # made by _open
+        self.twin.health.counters.update(self._dropped)
+
+    def _live_block(self, blocks: list[Samples], lag: LiveLag) -> None:
+        block = blocks[0] if len(blocks) == 1 else _concat(blocks)
+        if block is None:
+            self.summary.bad_blocks += 1
+            return
+        self._stale_since = None
+        self._process(block, live=True)
+        assert self.twin is not None  # made by _open
+        if self.twin.last_t_ns is not None:
+            self._lag = lag.lag(self.twin.last_t_ns)
+        self._tick()
+
+    def _quiet(self, src, why: str) -> None:
+        """Status ``stale_input`` (for how long, and why) while the rig waits for its input (at most 1/s)."""
+        now = time.monotonic()
+        quiet = self._idle(src) if src is not None else now - self._last_data
+        if self._stale_since is None:
+            self._stale_since = now
+            log.warning("rig %s: no input from %s for %.1f s; waiting for it%s", self.rig.name, self.rig.source,
+                        quiet, f" ({why})" if why else "")
+        elif now - self._last_quiet_status < 1.0:
+            return
+        self._last_quiet_status = now
+        if src is not None:
+            self._input_counters(src)
+        twin = self.twin
+        assert twin is not None  # made by _open
+        twin.health.state = "stale_input"
+        twin.health.counters["stale_ms"] = int(quiet * 1000)
+        twin.health.message = f"no input from {self.rig.source} for {quiet:.1f} s" + (f" ({why})" if why else "")
+        twin.publish_status(force=True)
+        self.outbox.flush()
+        if now - self._last_cp >= self.cfg.checkpoint_s:
+            self._checkpoint()
+
+    # ------------------------------------------------------------------ per block
+
+    def _process(self, block: Samples, live: bool) -> None:
+        twin = self.twin
+        assert twin is not None  # made by _open
+        if live:
+            cleaned = self._clean(block)
+            if cleaned is None:
+                return
+            block = cleaned
+        last = twin.last_t_ns
+        dt = twin.tracker.dt
+        if last is not None and dt and (int(block.t_ns[0]) - last) * 1e-9 > max(GAP_S, 20 * dt):
+            gap = (int(block.t_ns[0]) - last) * 1e-9
+            self.summary.input_gaps += 1
+            self._restart_filter(f"{gap:.1f} s without samples before t_ns={int(block.t_ns[0])}")
+        good = twin.tracker.estimate()
+        try:
+            twin.write(block)
+        except FilterError as exc:
+            now = time.monotonic()
+            if self._last_reset is not None and now - self._last_reset < RESET_WINDOW_S:
+                raise RigFailure(f"{exc}; it diverged again {now - self._last_reset:.1f} s after a restart") from None
+            self.summary.filter_resets += 1
+            self._restart_filter(str(exc), good)
+            self._last_reset = now
+            try:
+                twin.write(block)
+            except FilterError as again:
+                raise RigFailure(f"{again} (also right after a restart of the filter)") from None
+        except DataError as exc:
+            if not live:
+                raise RigFailure(f"{self.rig.source}: {exc}") from None
+            self.summary.bad_blocks += 1
+            self._notes = f"block of {len(block)} samples not usable: {exc}"
+            if self.summary.bad_blocks <= 3 or self.summary.bad_blocks % 100 == 0:
+                log.warning("rig %s: %s (%d so far)", self.rig.name, self._notes, self.summary.bad_blocks)
+
+    def _restart_filter(self, why: str, good: dict | None = None) -> None:
+        twin = self.twin
+        assert twin is not None  # made by _open
+        est = good if good is not None else twin.tracker.estimate()
+        start = {n: v for n, (v, _) in est.items() if math.isfinite(v) and v > 0}
+        twin.restart_filter(start)
+        self._notes = f"filter restarted from the last estimates: {why}"
+        log.warning("rig %s: %s", self.rig.name, self._notes)
+
+    def _clean(self, block: Samples) -> Samples | None:
+        """A live block without samples at or before the last one processed, or without a finite drive."""
+        t = block.t_ns
+        keep = np.ones(len(block), dtype=bool)
+        assert self.twin is not None  # made by _open
+        last = self.twin.last_t_ns
+        if last is not None:
+            keep &= t > last
+        keep[1:] &= np.diff(t) > 0
+        drive = [block.signals[k] for k in ("u", "x_ref") if k in block.signals]
+        if drive:
+            keep &= np.any(np.isfinite(np.stack(drive)), axis=0)
+        dropped = int(len(block) - keep.sum())
+        if dropped:
+            self.summary.bad_samples += dropped
+            self._notes = f"{self.summary.bad_samples} sample(s) dropped (time not increasing or no finite drive)"
+            block = Samples(t[keep], {k: v[keep] for k, v in block.signals.items()})
+        return block if len(block) else None
+
+    def _tick(self) -> None:
+        """After each block: health into the status, a checkpoint when due, the batch to the bus."""
+        twin = self.twin
+        assert twin is not None  # made by _open
+        h = twin.health
+        warn = []
+        if self._lag is not None:
+            h.counters["lag_ms"] = int(self._lag * 1000)
+            self.summary.lag_max_s = max(self.summary.lag_max_s or 0.0, self._lag)
+            if self._lag > self.cfg.lag_warn_s:
+                warn.append(f"{self._lag:.1f} s behind real time (warning above {self.cfg.lag_warn_s:g} s)")
+        h.counters.pop("stale_ms", None)
+        for name in ("source_errors", "bad_blocks", "bad_samples", "input_gaps", "filter_resets"):
+            if getattr(self.summary, name):
+                h.counters[name] = getattr(self.summary, name)
+        pending = self.journal.pending
+        if pending:
+            h.counters["journal_pending"] = pending
+            warn.append(f"{pending} alarm(s) not written: {self.journal.write_error}")
+        else:
+            h.counters.pop("journal_pending", None)
+        if self._cp_error:
+            warn.append(f"checkpoint failed: {self._cp_error}")
+        state = "degraded" if warn else "running"
+        if state != h.state and state == "degraded":
+            log.warning("rig %s: %s", self.rig.name, "; ".join(warn))
+        h.state = state
+        h.message = "; ".join(warn) or self._notes
+        twin.publish_status()
+        if time.monotonic() - self._last_cp >= self.cfg.checkpoint_s:
+            self._checkpoint()
+        self.outbox.flush(force=False)
+
+    def _checkpoint(self) -> None:
+        self._last_cp = time.monotonic()
+        twin = self.twin
+        self.journal.retry()
+        if twin is None or twin.last_t_ns is None:
+            return
+        try:
+            blob = pickle.dumps(twin.state(), protocol=pickle.HIGHEST_PROTOCOL)
+            self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples, self._fp,
+                                                    blob, time.time()))
+            if self._cp_error:
+                log.warning("rig %s: checkpoints are written again", self.rig.name)
+            self._cp_error = None
+        except SourceError as exc:
+            if self._cp_error is None:
+                log.error("rig %s: %s", self.rig.name, exc)
+            self._cp_error = str(exc)
+
+
+def _concat(blocks: list[Samples]) -> Samples | None:
+    names = blocks[0].names
+    if any(b.names != names for b in blocks):  # the signals changed between payloads: keep the last set
+        blocks = [b for b in blocks if b.names == blocks[-1].names]
+    return Samples.concat(blocks) if blocks else None
+
+
+def _free_name(directory: Path, stem: str, suffix: str) -> str:
+    """``stem.suffix``, or ``stem.1.suffix``, ... : an earlier run's record is never overwritten."""
+    path = directory / f"{stem}{suffix}"
+    n = 0
+    while path.exists():
+        n += 1
+        path = directory / f"{stem}.{n}{suffix}"
+    return str(path)
+
+
+# --------------------------------------------------------------------------- worker processes
+
+
+def _die_with_parent() -> None:
+    """Linux: the kernel kills this worker when the service's process dies (even by SIGKILL)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    parent = mp.parent_process()
+    if parent is not None and not parent.is_alive():
+        os._exit(1)
+
+
+def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_level: int) -> None:
+    """A spawned worker: its rigs in threads; results and bus messages go to ``out``.
+
+    ``stop_conn``: the reading end of a pipe from the service; a message or
+    its end (the service's process gone) stops the rigs. Not a
+    ``multiprocessing.Event``: a process that exits while one of its threads
+    waits on it leaves the event's condition blocked for whoever sets it, and
+    many threads waiting on it serialise on its process-shared semaphores.
+    """
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service's process decides when to stop
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logging.basicConfig(level=log_level, format="twin serve: %(message)s")
+    local = threading.Event()
+
+    def relay() -> None:
+        try:
+            stop_conn.recv()
+        except (EOFError, OSError):
+            pass
+        local.set()
+
+    threading.Thread(target=relay, name="stop-relay", daemon=True).start()
+    threads = []
+    for rig in rigs:
+        threads.append(threading.Thread(target=_run_one, args=(rig, cfg, out, local), name=f"rig-{rig.name}",
+                                        daemon=True))
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
+def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
+    try:
+        journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0)
+    except TwinError as exc:
+        out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
+        return
+    with journal:
+        RigRunner(rig, cfg, journal, out, stop).run()
+
+
+# --------------------------------------------------------------------------- the service's process
+
+
+class BusFront:
+    """The service's side of the bus: a :class:`~twin.service.bus.TwinPublisher` per rig, fed by the runners."""
+
+    def __init__(self, session, histories: dict[str, Any],
+                 on_alarm: Callable[[AlarmEvent], None] | None = None) -> None:
+        from twin.service.bus import StoreHistory, TwinPublisher
+
+        self._pubs: dict[str, TwinPublisher] = {}
+        self._histories = histories
+        self._store_history = StoreHistory
+        self.on_alarm = on_alarm
+        self.state: dict[str, tuple[str, str]] = {}
+        try:
+            for rig, history in histories.items():
+                self._pubs[rig] = TwinPublisher(session, rig, history=history)
+        except BaseException:
+            self.close()
+            raise
+
+    def handle(self, rig: str, batch: list[tuple]) -> None:
+        pub = self._pubs[rig]
+        for item in batch:
+            kind = item[0]
+            try:
+                if kind == "estimate":
+                    pub.put_payload("estimate", item[1])
+                elif kind == "status":
+                    pub.put_payload("status", item[1])
+                    self.state[rig] = (item[2], item[3])
+                elif kind == "alarm":
+                    event, durable = item[1], item[2]
+                    history = self._histories[rig]
+                    if not durable and isinstance(history, self._store_history):
+                        history.add_pending(event)
+                    pub.put_alarm(event)
+                    if self.on_alarm is not None:
+                        self.on_alarm(event)
+            except TwinError as exc:
+                log.warning("rig %s: %s", rig, exc)
+
+    def close(self) -> None:
+        for pub in self._pubs.values():
+            pub.close()
+        self._pubs.clear()
+
+
+class Fleet:
+    """Every rig of a configuration, run until their logs end, one fails, or ``stop`` is set.
+
+    :param keep: a dict that receives each rig's :class:`RigTwin`; forces threads (objects stay here).
+    """
+
+    def __init__(self, cfg: ServiceConfig, session, stop: threading.Event, *,
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, keep: dict | None = None) -> None:
+        self.cfg = cfg
+        self.session = session
+        self.stop = stop
+        self.on_alarm = on_alarm
+        self.keep = keep
+        self.summaries: dict[str, RigSummary] = {}
+        self.local, self.remote = self._place()
+
+    def _place(self) -> tuple[list[RigConfig], list[list[RigConfig]]]:
+        """Rigs run here (threads) or in worker processes: ``(local, [rigs of worker 1, ...])``."""
+        rigs = list(self.cfg.rigs)
+        local = [r for r in rigs if r.source.startswith("zenoh://")]  # they ride on this process's session
+        others = [r for r in rigs if not r.source.startswith("zenoh://")]
+        n = self.cfg.workers
+        if n is None:  # auto: processes once there are more rigs than a few threads handle well
+            n = 0 if len(others) <= 4 else min(os.cpu_count() or 1, len(others))
+        if self.keep is not None or n == 0 or not others:
+            return local + others, []
+        n = min(n, len(others))
+        groups = [others[i::n] for i in range(n)]
+        return local, groups
+
+    @property
+    def worker_count(self) -> int:
+        return len(self.remote)
+
+    def run(self) -> dict[str, RigSummary]:
+        from twin.service.bus import StoreHistory
+
+        cfg = self.cfg
+        journals: dict[str, AlarmJournal] = {}
+        histories: dict[str, Any] = {}
+        front = None
+        procs: list[tuple[BaseProcess, list[str]]] = []
+        ctx = mp.get_context("spawn")
+        # One queue from every runner to the bus; a process-safe one once there are workers.
+        inbox: MpQueue[Any] | queue.Queue[Any] = ctx.Queue() if self.remote else queue.Queue()
+        stop_pipes: list = []
+        threads: list[threading.Thread] = []
+        try:
+            # Every journal is opened here first: integrity, migration and locks are checked before any rig runs.
+            for rig in cfg.rigs:
+                journals[rig.name] = AlarmJournal(journal_path(cfg, rig.name), legacy=legacy_journal_path(cfg, rig.name))
+            for group in self.remote:
+                for rig in group:
+                    journals.pop(rig.name).close()
+                    histories[rig.name] = StoreHistory(journal_path(cfg, rig.name))
+            histories.update(journals)
+            front = BusFront(self.session, histories, self.on_alarm)
+            for rig in self.local:
+                runner = RigRunner(rig, cfg, journals[rig.name], inbox, self.stop, session=self.session,
+                                   keep=self.keep)
+                threads.append(threading.Thread(target=runner.run, name=f"rig-{rig.name}", daemon=True))
+            for i, group in enumerate(self.remote):
+                reader, writer = ctx.Pipe(duplex=False)
+                stop_pipes.append((reader, writer))
+                p = ctx.Process(target=worker_main, args=(group, cfg, inbox, reader,
+                                                          logging.getLogger().getEffectiveLevel()),
+                                name=f"twin-worker-{i}", daemon=True)
+                procs.append((p, [r.name for r in group]))
+            for t in threads:
+                t.start()
+            for proc, _ in procs:
+                proc.start()
+            self._loop(front, inbox, procs)
+        finally:
+            self.stop.set()
+            for _reader, writer in stop_pipes:
+                try:
+                    writer.send("stop")
+                except OSError:  # that worker is gone already
+                    pass
+            self._drain_until_done(front, inbox, procs, threads)
+            for reader, writer in stop_pipes:
+                reader.close()
+                writer.close()
+            if front is not None:
+                front.close()
+            for h in histories.values():
+                if isinstance(h, StoreHistory):
+                    h.close()
+            for j in journals.values():
+                j.close()
+            if self.remote and not isinstance(inbox, queue.Queue):  # the process-safe one
+                inbox.close()
+                inbox.join_thread()
+        return self.summaries
+
+    def _receive(self, front, inbox, timeout: float) -> bool:
+        """Handle the messages waiting (up to ``timeout`` for the first); ``True`` if any."""
+        got = False
+        wait = timeout
+        while True:
+            try:
+                msg = inbox.get(timeout=wait) if wait > 0 else inbox.get_nowait()
+            except queue.Empty:
+                return got
+            wait = 0.0
+            got = True
+            kind, rig = msg[0], msg[1]
+            if kind == "batch":
+                if front is not None:
+                    front.handle(rig, msg[2])
+            elif kind == "done":
+                self.summaries[rig] = msg[2]
+                if msg[2].state == "failed":
+                    self.stop.set()
+
+    def _loop(self, front, inbox, procs) -> None:
+        names = {r.name for r in self.cfg.rigs}
+        while True:
+            self._receive(front, inbox, 0.1)
+            if names <= set(self.summaries) or self.stop.is_set():
+                return
+            for p, rigs in procs:
+                if p.exitcode is not None and not set(rigs) <= set(self.summaries):
+                    self._receive(front, inbox, 0.5)  # its last messages may still be in the pipe
+                    for rig in rigs:
+                        if rig not in self.summaries:
+                            self.summaries[rig] = RigSummary(rig, "failed",
+                                                             f"its worker process died (exit code {p.exitcode})")
+                    self.stop.set()
+
+    def _drain_until_done(self, front, inbox, procs, threads, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        names = {r.name for r in self.cfg.rigs}
+        while time.monotonic() < deadline:
+            self._receive(front, inbox, 0.05)
+            alive = any(t.is_alive() for t in threads) or any(p.is_alive() for p, _ in procs)
+            if not alive and (names <= set(self.summaries) or not self._receive(front, inbox, 0.2)):
+                break
+        for p, rigs in procs:
+            p.join(timeout=max(0.1, deadline - time.monotonic()))
+            if p.is_alive():
+                log.error("worker process of %s did not stop; terminating it", ", ".join(rigs))
+                p.terminate()
+                p.join(5.0)
+        for rig in names - set(self.summaries):
+            self.summaries[rig] = RigSummary(rig, "failed", "did not report before the service stopped")
+
+
+def check_journal_dir(cfg: ServiceConfig) -> None:
+    """``journal_dir`` (and ``out_dir``) exist or can be made, are directories and writable; else ConfigError."""
+    for key, value in (("journal_dir", cfg.journal_dir), ("out_dir", cfg.out_dir)):
+        if not value:
+            continue
+        where = f"{cfg.path}: service.{key}"
+        p = Path(value)
+        for parent in [p, *p.parents]:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise ConfigError(f"{where}: {value!r} cannot be a directory: {str(parent)!r} is a file")
+                break
+        try:
+            p.mkdir(parents=True, exist_ok=True)
+            probe = p / f".write-test-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise ConfigError(f"{where}: {value!r} is not a writable directory ({exc.strerror or exc})") from None
+
+
+def check_sources(cfg: ServiceConfig) -> None:
+    """Every log source exists (a missing log is a configuration error, before anything starts)."""
+    for rig in cfg.rigs:
+        if not is_live(rig.source):
+            p = Path(rig.source)
+            if not p.is_file():
+                what = "is a directory" if p.is_dir() else "does not exist"
+                raise ConfigError(f"{cfg.path}: rig {rig.name!r}.source: {rig.source!r} {what}")

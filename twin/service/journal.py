@@ -1,0 +1,270 @@
+"""The durable alarm journal of a twin: an SQLite database (:mod:`twin.service.store`) with a memory of last resort.
+
+Every alarm the twin publishes is journaled first (committed with
+``synchronous=FULL``), so the bus's history queryable (which answers from the
+journal) has every alarm that was ever published. The journal numbers the
+alarms of each rig 1, 2, 3, ... and keeps one alarm per identity
+(:attr:`twin.online.events.AlarmEvent.identity`): re-processing the same data after a
+restart raises the same alarms, which are recognised and neither journaled
+nor published again.
+
+When a write fails (disk full, file system remounted read-only, I/O error)
+the alarm is *not* lost: it gets the next number, stays in memory as
+*pending*, is published and served by the history like any other, and every
+later :meth:`AlarmJournal.record` (and :meth:`AlarmJournal.retry`) tries to
+write the pending alarms again, in order. :attr:`AlarmJournal.write_error`
+names the file and the cause while writes fail; the service reports it in
+the rig's status. Only a crash while alarms are pending loses them (logged
+loudly when they are first kept in memory).
+
+Migration: the journal of earlier versions was a JSON-lines file
+(``<rig>.alarms.jsonl``). Given ``legacy=PATH``, an existing file is imported
+once, in one transaction, and renamed ``PATH.imported``; a file that is not a
+clean journal (a bad line other than a torn last one, or sequence numbers
+that jump) is refused with the file and line, and nothing is imported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from twin.errors import DataError, LogFormatError, SourceError
+from twin.online.events import AlarmEvent
+from twin.service.store import Checkpoint, Store
+
+__all__ = ["AlarmJournal", "Recorded", "read_legacy_journal"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class Recorded:
+    """What :meth:`AlarmJournal.record` did with an alarm."""
+
+    event: AlarmEvent
+    """The alarm with its sequence number (for a duplicate: the one journaled before)."""
+    new: bool
+    """False: an alarm of the same identity was journaled before (do not publish it again)."""
+    durable: bool
+    """False: the write failed; the alarm is pending in memory and retried."""
+
+
+class AlarmJournal:
+    """Alarms and checkpoints of one or more rigs in one SQLite file (one writer).
+
+    :param path: the database file (created with its directory if missing).
+    :param legacy: an old JSON-lines journal to import once if it exists.
+    :raises SourceError: the file cannot be opened or is locked by another writer.
+    :raises LogFormatError: the file (or the legacy journal) is corrupt; nothing is changed.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, legacy: str | os.PathLike[str] | None = None,
+                 lock_wait_s: float = 5.0) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SourceError(f"{self.path.parent}: cannot create the journal directory "
+                              f"({exc.strerror or exc})") from None
+        self.store = Store(self.path, lock_wait_s=lock_wait_s)
+        self._lock = threading.Lock()
+        self._pending: list[AlarmEvent] = []
+        self.write_error: str | None = None
+        """While writes fail: one line naming the file and the cause; ``None`` when all is on disk."""
+        self.imported = 0
+        """Alarms imported from the legacy journal by this open."""
+        if legacy is not None:
+            try:
+                self._import(Path(legacy))
+            except BaseException:
+                self.store.close()
+                raise
+
+    # ------------------------------------------------------------------ life cycle
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Try the pending alarms one last time, then close (idempotent)."""
+        if not self.store.closed:
+            self.retry()
+            if self._pending:
+                log.error("%s: closing with %d alarm(s) not written (%s); they were published but are lost "
+                          "from the journal", self.path, len(self._pending), self.write_error)
+        self.store.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.store.closed
+
+    # ------------------------------------------------------------------ writing
+
+    def record(self, event: AlarmEvent) -> Recorded:
+        """Journal ``event`` (see the module docstring); never loses it on a write failure.
+
+        :raises DataError: ``event.seq`` is not 0 and not the rig's next number.
+        :raises SourceError: the journal is closed.
+        """
+        with self._lock:
+            if self.store.closed:
+                raise SourceError(f"{self.path}: alarm journal is closed")
+            self._retry_locked()
+            for p in self._pending:
+                if p.identity == event.identity:
+                    return Recorded(p, False, False)
+            if not self._pending:
+                try:
+                    ev, new = self.store.insert_alarm(event)
+                    return Recorded(ev, new, True)
+                except SourceError as exc:
+                    self._failed(exc)
+            try:
+                found = self.store.find(event.identity)
+            except SourceError:
+                found = None
+            if found is not None:
+                return Recorded(found, False, True)
+            nxt = self._last_seq_locked(event.rig) + 1
+            if event.seq not in (0, nxt):
+                raise DataError(f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {nxt} "
+                                f"(the next journal number) or 0 (assign) was expected")
+            event = event.with_seq(nxt)
+            self._pending.append(event)
+            log.error("rig %s: alarm seq %d kept in memory, not on disk: %s; retrying with every alarm and "
+                      "every checkpoint", event.rig, event.seq, self.write_error)
+            return Recorded(event, True, False)
+
+    def append(self, event: AlarmEvent) -> AlarmEvent:
+        """:meth:`record` returning just the journaled event (with its ``seq``)."""
+        return self.record(event).event
+
+    def retry(self) -> bool:
+        """Write the pending alarms; ``True`` when nothing is pending any more."""
+        with self._lock:
+            return self._retry_locked()
+
+    def _retry_locked(self) -> bool:
+        while self._pending:
+            try:
+                self.store.insert_alarm(self._pending[0])
+            except SourceError as exc:
+                self._failed(exc)
+                return False
+            done = self._pending.pop(0)
+            log.warning("rig %s: pending alarm seq %d is now on disk in %s", done.rig, done.seq, self.path)
+        if self.write_error is not None:
+            log.warning("%s: journal writes work again", self.path)
+        self.write_error = None
+        return True
+
+    def _failed(self, exc: SourceError) -> None:
+        self.write_error = str(exc)
+
+    @property
+    def pending(self) -> int:
+        """Alarms kept in memory because their write failed."""
+        with self._lock:
+            return len(self._pending)
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def save_checkpoint(self, cp: Checkpoint) -> None:
+        """Save a rig's checkpoint (raises SourceError naming the file if the write fails)."""
+        self.store.save_checkpoint(cp)
+
+    def load_checkpoint(self, rig: str) -> Checkpoint | None:
+        return self.store.load_checkpoint(rig)
+
+    # ------------------------------------------------------------------ reading
+
+    def _last_seq_locked(self, rig: str) -> int:
+        mine = [p.seq for p in self._pending if p.rig == rig]
+        return max(mine) if mine else self.store.last_seq(rig)
+
+    def last_seq(self, rig: str) -> int:
+        """The last number given to an alarm of ``rig`` (journaled or pending; 0 if none)."""
+        with self._lock:
+            return self._last_seq_locked(rig)
+
+    def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
+             rig: str | None = None) -> list[AlarmEvent]:
+        """Journaled and pending alarms, by rig then seq, filtered (``since_*`` inclusive)."""
+        with self._lock:
+            pending = list(self._pending)
+        events = self.store.alarms(rig, since_seq, since_t_ns)
+        have = {(e.rig, e.seq) for e in events}
+        events += [p for p in pending if (p.rig, p.seq) not in have
+                   and (rig in (None, "*") or p.rig == rig)
+                   and (since_seq is None or p.seq >= since_seq)
+                   and (since_t_ns is None or p.t_ns >= since_t_ns)]
+        return sorted(events, key=lambda e: (e.rig, e.seq))
+
+    def __iter__(self) -> Iterator[AlarmEvent]:
+        return iter(self.read())
+
+    def __len__(self) -> int:
+        return len(self.read())
+
+    def rigs(self) -> list[str]:
+        """The rigs that have at least one alarm, sorted."""
+        return sorted({e.rig for e in self.read()})
+
+    # ------------------------------------------------------------------ migration
+
+    def _import(self, legacy: Path) -> None:
+        if not legacy.exists():
+            return
+        data = legacy.read_bytes()
+        digest = hashlib.sha256(data).hexdigest()
+        if self.store.meta(f"imported:{legacy.name}") == digest:
+            log.warning("%s: already imported into %s; rename or remove it", legacy, self.path)
+            return
+        events, torn = read_legacy_journal(legacy, data)
+        n = self.store.insert_many(events, {f"imported:{legacy.name}": digest})
+        self.imported = n
+        target = legacy.with_name(legacy.name + ".imported")
+        os.replace(legacy, target)
+        log.warning("%s: imported %d alarm(s) of the old JSON-lines journal%s; the old file is now %s",
+                    self.path, n, f" (a torn last line of {torn} bytes was left out)" if torn else "", target)
+
+
+def read_legacy_journal(path: Path, data: bytes | None = None) -> tuple[list[AlarmEvent], int]:
+    """Alarms of an old JSON-lines journal, and the bytes of a torn last line left out.
+
+    Only an *incomplete* last line (no newline: a write interrupted by a crash)
+    is left out. Any complete line that does not parse, or a jump in a rig's
+    numbers, raises :class:`LogFormatError` naming the file and line: it is
+    damage, not a crash artefact, and a damaged journal is not imported.
+    """
+    data = path.read_bytes() if data is None else data
+    lines = data.split(b"\n")
+    tail = lines.pop()
+    events: list[AlarmEvent] = []
+    last: dict[str, int] = {}
+    for number, raw in enumerate(lines, start=1):
+        try:
+            ev = AlarmEvent.from_dict(json.loads(raw))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise LogFormatError(f"{path}:{number}: corrupt journal line ({exc}); not imported: fix or move "
+                                 "the file aside") from None
+        expected = last.get(ev.rig, 0) + 1
+        if ev.seq != expected:
+            raise LogFormatError(f"{path}:{number}: rig {ev.rig!r} seq {ev.seq} where {expected} was expected; "
+                                 "not imported")
+        last[ev.rig] = ev.seq
+        events.append(ev)
+    return events, len(tail)

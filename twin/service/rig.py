@@ -1,0 +1,426 @@
+"""The online twin service: per rig, samples in, tracked parameters and drift alarms out over Zenoh.
+
+``twin serve --config rigs.toml`` opens one Zenoh session and runs every rig
+of the configuration (:mod:`twin.service.fleet`: a :class:`~twin.service.fleet.RigRunner` per
+rig, in threads of this process or spread over spawned worker processes).
+Each rig's computing part is a :class:`RigTwin`: the tracker, the drift
+detector, estimates in a bounded ring, and the events it hands to a publisher.
+
+Per block of samples the rig twin
+
+1. filters the block (``twin.online.tracker.OnlineTracker``);
+2. feeds every published estimate to the drift detector (``twin.online.drift``);
+3. hands each alarm event to its publisher (which journals it, then puts it
+   on the bus; an alarm journaled before is recognised and not repeated);
+4. publishes the latest estimate every ``estimate_every`` samples and a status
+   on every change of the filter's or a parameter's status, and at least once
+   a second;
+5. optionally records estimates, alarms and statuses to MCAP.
+
+Its state (tracker and detector objects, whole) is what the runner
+checkpoints (:meth:`RigTwin.state` / :meth:`RigTwin.restore`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import hashlib
+import logging
+import sys
+import threading
+import time
+from typing import Any
+from collections.abc import Callable
+
+import numpy as np
+
+from replay.base import Samples, Sink
+from twin.service.config import RigConfig, ServiceConfig, load_config
+from twin.errors import TwinError
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, format_alarm
+
+log = logging.getLogger(__name__)
+
+#: Estimates kept per rig by the service (at 20 per second: about 3 minutes); ``twin track`` keeps all.
+SERVICE_HISTORY = 4096
+#: Alarm events kept in memory per rig (the journal has them all).
+ALARMS_KEPT = 10000
+
+
+@dataclasses.dataclass
+class RigStats:
+    samples: int = 0
+    blocks: int = 0
+    alarms: int = 0
+    estimates: int = 0
+    statuses: int = 0
+    busy_s: float = 0.0
+    duplicates: int = 0
+    """Alarms raised again on data processed before (journaled already: not published again)."""
+
+
+@dataclasses.dataclass
+class Health:
+    """What a rig's runner says about it; goes into every status the twin publishes."""
+
+    state: str = "running"
+    message: str = ""
+    counters: dict[str, int] = dataclasses.field(default_factory=dict)
+
+
+class Ring:
+    """The last ``capacity`` rows of (t, values[p], stds[p]) in preallocated arrays; ``None``: unbounded."""
+
+    def __init__(self, p: int, capacity: int | None) -> None:
+        self.p = p
+        self.capacity = capacity
+        size = capacity if capacity is not None else 256
+        self._t = np.empty(size)
+        self._v = np.empty((size, p))
+        self._s = np.empty((size, p))
+        self._n = 0  # rows ever added
+
+    def add(self, t: float, v: np.ndarray, s: np.ndarray) -> None:
+        if self.capacity is None and self._n == len(self._t):  # unbounded: grow
+            self._t = np.concatenate([self._t, np.empty_like(self._t)])
+            self._v = np.concatenate([self._v, np.empty_like(self._v)])
+            self._s = np.concatenate([self._s, np.empty_like(self._s)])
+        i = self._n % len(self._t)
+        self._t[i], self._v[i], self._s[i] = t, v, s
+        self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, len(self._t))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows in time order (copies)."""
+        n, size = len(self), len(self._t)
+        idx = np.arange(self._n - n, self._n) % size
+        return self._t[idx].copy(), self._v[idx].copy(), self._s[idx].copy()
+
+    def last(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        if self._n == 0:
+            return None
+        i = (self._n - 1) % len(self._t)
+        return float(self._t[i]), self._v[i].copy(), self._s[i].copy()
+
+
+def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
+              history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
+    """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
+    return RigTwin(rig, publisher, recorder, estimate_every, dt=dt, history=history)
+
+
+def fingerprint(rig: RigConfig, estimate_every: int) -> str:
+    """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
+    d = dataclasses.asdict(rig)
+    d.pop("speed")
+    d["estimate_every"] = estimate_every
+    return hashlib.sha256(repr(sorted(d.items())).encode()).hexdigest()[:16]
+
+
+class RigTwin(Sink):
+    """One rig's twin: a :class:`~replay.base.Sink` that samples are written to.
+
+    ``publisher``: ``publish_alarm(ev)`` returns the journaled event (or
+    ``None`` for an alarm journaled before), ``publish_estimate(ev)``,
+    ``publish_status(ev)``. ``history``: how many published estimates to keep
+    (``None``: all, for offline tracks of finite logs).
+    """
+
+    def __init__(self, rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50,
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None,
+                 history: int | None = None):
+        from twin.online.commission import tracker_for
+        from twin.online.drift import DriftMonitor
+
+        self.rig = rig
+        self.publisher = publisher
+        self.recorder = recorder
+        self.estimate_every = int(estimate_every)
+        self.on_alarm = on_alarm
+        self.tracker = tracker_for(rig, dt=dt)
+        self.drift = DriftMonitor(rig.name, rig.baseline)
+        self.stats = RigStats()
+        self.health = Health()
+        self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
+        self.last_t_ns: int | None = None
+        self._t0_ns: int | None = None
+        self._last_status: tuple[str, str, tuple[tuple[str, str], ...]] | None = None
+        self._last_status_wall = 0.0
+        self._since_estimate = 0
+        self._ring = Ring(len(self.tracker.tracked), history)
+
+    # -- checkpoints ------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Everything the twin's future output depends on (tracker and detector objects whole)."""
+        return {"tracker": self.tracker, "drift": self.drift, "t0_ns": self._t0_ns, "last_t_ns": self.last_t_ns,
+                "since_estimate": self._since_estimate, "samples": self.stats.samples}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state` of an earlier twin of the same rig."""
+        self.tracker = state["tracker"]
+        self.drift = state["drift"]
+        self._t0_ns = state["t0_ns"]
+        self.last_t_ns = state["last_t_ns"]
+        self._since_estimate = state["since_estimate"]
+        self.stats.samples = state["samples"]
+
+    def restart_filter(self, start: dict[str, float] | None = None) -> None:
+        """A fresh tracker starting from ``start`` (e.g. the last good estimates); the detector carries on.
+
+        After an input gap or a diverged filter the model states cannot be
+        carried over; the parameters restart from their last estimates with
+        the prior's uncertainty (the detector calls them ``unresolved`` until
+        the data resolve them again, so nothing is raised on a guess).
+        """
+        from twin.online.commission import tracker_for
+
+        old = self.tracker
+        self.tracker = tracker_for(self.rig, dt=old.dt, start=start or None)
+        for k, v in old.counters.items():
+            self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
+
+    # -- Sink ---------------------------------------------------------------------------
+    def write(self, samples: Samples) -> None:
+        if len(samples) == 0:
+            return
+        t_start = time.perf_counter()
+        if self._t0_ns is None:
+            self._t0_ns = int(samples.t_ns[0])
+        out = self.tracker.process(samples)
+        self.last_t_ns = int(samples.t_ns[-1])
+        t_s = (out.t_ns - self._t0_ns) * 1e-9
+        for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
+                                          out.frozen, out.hold, out.guard):
+            self._alarm(ev)
+        # an estimate every estimate_every samples, wherever the block boundaries fall
+        n = len(out.t_ns)
+        first = self.estimate_every - 1 - self._since_estimate
+        for i in range(first, n, self.estimate_every):
+            self._estimate(out, t_s, i)
+        self._since_estimate = (self._since_estimate + n) % self.estimate_every
+        self.stats.samples += len(samples)
+        self.stats.blocks += 1
+        self._status(out)
+        self.stats.busy_s += time.perf_counter() - t_start
+
+    def close(self) -> None:
+        self._status(None, force=True, state="stopped")
+
+    # -- what the twin has seen -----------------------------------------------------------------
+    def history_arrays(self) -> dict[str, np.ndarray]:
+        """Published estimates kept (the last ``history``): ``t_s [n]``, ``values [n, p]``, ``stds [n, p]`` (SI)."""
+        t, v, s = self._ring.arrays()
+        return {"t_s": t, "values": v, "stds": s}
+
+    def final_estimates(self) -> dict[str, dict]:
+        last = self._ring.last()
+        if last is None:
+            return {}
+        _, v, s = last
+        return {n: {"value": float(v[j]), "std": float(s[j]), "unit": self.tracker.units[j]}
+                for j, n in enumerate(self.tracker.tracked)}
+
+    # -- publishing ---------------------------------------------------------------------------
+    def _alarm(self, ev: AlarmEvent) -> None:
+        if self.publisher is not None:
+            ev = self.publisher.publish_alarm(ev)
+            if ev is None:  # journaled before (data processed again after a restart)
+                self.stats.duplicates += 1
+                return
+        self.alarms.append(ev)
+        self.stats.alarms += 1
+        if self.recorder is not None:
+            self.recorder.write_message("/twin/alarm", ev.t_ns, ev.to_dict())
+        if self.on_alarm is not None:
+            self.on_alarm(ev)
+
+    def _estimate(self, out, t_s, i: int) -> None:
+        self._ring.add(float(t_s[i]), out.estimates[i], out.stds[i])
+        if self.publisher is None and self.recorder is None:
+            self.stats.estimates += 1
+            return
+        ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
+                                      out.estimates[i], out.stds[i], self.tracker.units,
+                                      float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
+        if self.publisher is not None:
+            self.publisher.publish_estimate(ev)
+        if self.recorder is not None:
+            self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict())
+        self.stats.estimates += 1
+
+    def publish_status(self, force: bool = False) -> None:
+        """Publish a status now if it changed or a second has passed (``force``: now)."""
+        self._status(None, force=force)
+
+    def _status(self, out, force: bool = False, state: str | None = None) -> None:
+        now = time.monotonic()
+        from twin.online.tracker import consistency_note
+
+        per_param = self.drift.statuses()
+        state = state or self.health.state
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        key = (state, message, tuple(sorted(per_param.items())))
+        if not force and key == self._last_status and now - self._last_status_wall < 1.0:
+            return
+        self._last_status = key
+        self._last_status_wall = now
+        t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
+        counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
+                    **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
+                    **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
+        ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
+                         counters=counters, message=message, sensors=self.tracker.sensor_status(),
+                         consistency=str(self.drift.guard or "consistent"))
+        if self.publisher is not None:
+            ev = self.publisher.publish_status(ev) or ev
+        if self.recorder is not None:
+            self.recorder.write_message("/twin/status", ev.t_ns, ev.to_dict())
+        self.stats.statuses += 1
+
+
+def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
+          on_alarm: Callable[[AlarmEvent], None] | None = None, session=None,
+          twins: dict[str, RigTwin] | None = None, *, summaries: dict | None = None) -> dict[str, RigStats]:
+    """Run every rig of ``cfg`` until their logs end or ``stop`` is set; returns per-rig stats.
+
+    A live rig runs until ``stop``. ``session``: an open Zenoh session to use
+    (default: open one from ``cfg`` and ``ZENOH_CONFIG``); ``twins``: a dict
+    that receives each rig's :class:`RigTwin` (rigs then run in threads of this
+    process); ``summaries``: a dict that receives each rig's
+    :class:`twin.service.fleet.RigSummary`, failures included.
+
+    :raises ConfigError: the configuration cannot run (journal directory, a log missing).
+    :raises SourceError: the Zenoh session cannot be opened (one line naming the endpoint).
+    :raises TwinError: a rig failed (``rig NAME failed: cause``) after the others stopped.
+    """
+    from twin.service.fleet import Fleet, check_journal_dir, check_sources
+
+    stop = stop or threading.Event()
+    check_journal_dir(cfg)
+    check_sources(cfg)
+    own_session = session is None
+    if own_session:
+        session = open_service_session(cfg)
+    try:
+        fleet = Fleet(cfg, session, stop, on_alarm=on_alarm, keep=twins)
+        result = fleet.run()
+    finally:
+        if own_session:
+            session.close()
+    if summaries is not None:
+        summaries.update(result)
+    failed = [s for s in result.values() if s.state == "failed"]
+    if failed:
+        raise TwinError("; ".join(f"rig {s.rig} failed: {s.message}" for s in failed))
+    return {name: s.stats for name, s in result.items()}
+
+
+def zenoh_settings(cfg: ServiceConfig):
+    """The service's Zenoh configuration: ``ZENOH_CONFIG`` (if set), then what ``[zenoh]`` gives explicitly."""
+    import os
+
+    from twin.service.bus import zenoh_config
+    from twin.errors import ConfigError
+
+    file = os.environ.get("ZENOH_CONFIG") or None
+    try:
+        return zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect, None, config_file=file)
+    except ConfigError as exc:
+        text = str(exc)
+        raise ConfigError(f"ZENOH_CONFIG={text}" if file and text.startswith(file) else f"{cfg.path}: zenoh: {text}") \
+            from None
+
+
+def open_service_session(cfg: ServiceConfig):
+    from twin.service.bus import open_session
+
+    return open_session(zenoh_settings(cfg), "twin serve")
+
+
+def add_serve_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/service/config.py)")
+    p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
+                   help="console messages from this level up (default info)")
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
+                   "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
+
+
+def startup_line(cfg: ServiceConfig, workers: int) -> str:
+    from twin.service.bus import config_endpoints
+
+    from twin.service.fleet import journal_path
+
+    conf = zenoh_settings(cfg)
+    import json as _json
+
+    mode = _json.loads(conf.get_json("mode") or '"peer"')
+    listen, connect = config_endpoints(conf)
+    rigs = ", ".join(f"{r.name} <- {r.source}" for r in cfg.rigs)
+    where = "in this process" if workers == 0 else f"over {workers} worker process(es)"
+    return (f"{len(cfg.rigs)} rig(s) {where}: {rigs}; zenoh {mode}, listen {listen or 'none'}, "
+            f"connect {connect or 'none'}; journal {journal_path(cfg, '<rig>').parent}/<rig>.db")
+
+
+def run_serve(args) -> int:
+    import json
+    import signal
+
+    from twin.service.fleet import Fleet, check_journal_dir, check_sources
+
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
+                        stream=sys.stderr)
+    cfg = load_config(args.config)
+    check_journal_dir(cfg)
+    check_sources(cfg)
+    stop = threading.Event()
+
+    def on_signal(signum, frame) -> None:  # noqa: ARG001
+        if not stop.is_set():
+            print(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)",
+                  file=sys.stderr, flush=True)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def show(ev: AlarmEvent) -> None:
+        print(f"twin serve: {format_alarm(ev, wall_clock=False)}", file=sys.stderr, flush=True)
+
+    session = open_service_session(cfg)
+    summaries: dict = {}
+    view = None
+    try:
+        if args.foxglove is not None:
+            from twin.service.live_view import LiveView
+
+            view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
+                            model=cfg.rigs[0].model)
+            view.follow(session)  # every rig's estimate, status and alarm as published, workers included
+            print(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}", file=sys.stderr,
+                  flush=True)
+        workers = Fleet(cfg, session, stop).worker_count
+        print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
+        error = None
+        try:
+            stats = serve(cfg, stop, on_alarm=show, session=session, summaries=summaries)
+        except TwinError as exc:
+            error, stats = exc, {k: v.stats for k, v in summaries.items()}
+    finally:
+        if view is not None:
+            view.close()
+        session.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for name in (r.name for r in cfg.rigs):
+        if name in summaries:
+            print(f"twin serve: summary {summaries[name].line()}", file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
+    if error is not None:
+        raise error
+    return 0
