@@ -112,6 +112,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
+from replay import jsonio
 from replay.base import SIGNALS, Problem, ReadReport, Samples, Sink, Source
 from replay.quality import QualityGate, QualityOptions, require_signals
 from replay.errors import DataError, LogFormatError, SourceError
@@ -214,36 +215,9 @@ def _generic_schema(title: str, payload: Mapping[str, Any]) -> dict:
             "properties": {k: {"type": [kind(v), "null"]} for k, v in payload.items() if k != TIME_FIELD}}
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f"cannot write {type(obj).__name__} as JSON")
-
-
-def _finite(obj: Any) -> Any:
-    """Replace non-finite floats by None (JSON has no NaN), recursively."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
 def encode_json(payload: Mapping[str, Any]) -> bytes:
-    """Compact JSON bytes; non-finite numbers become ``null``."""
-    try:
-        text = json.dumps(payload, separators=(",", ":"), allow_nan=False, default=_json_default)
-    except ValueError:
-        text = json.dumps(_finite(payload), separators=(",", ":"), allow_nan=False, default=_json_default)
-    return text.encode()
+    """Compact JSON bytes; non-finite numbers become ``null`` (:func:`replay.jsonio.compact`)."""
+    return jsonio.compact(payload)
 
 
 # --- writing ------------------------------------------------------------------------------

@@ -42,6 +42,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
+from replay.argtypes import positive_int
 from replay import formats
 from replay.base import ReadReport
 from replay.errors import DataError, SourceError
@@ -270,16 +271,6 @@ def _to_samples(uri: str, out: str, until: _Until, dbc, poll_s: float, conf, ses
 
 # --- command line --------------------------------------------------------------------------
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
 def _duration(text: str) -> float:
     try:
         v = float(text)
@@ -344,7 +335,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help=f"log to write ({', '.join(formats.FILE_SUFFIXES)}): CAN logs get the raw frames, "
                         ".mcap/.csv the decoded samples")
     p.add_argument("--duration", type=_duration, metavar="S", help="stop after S seconds (wall time)")
-    p.add_argument("--limit", type=_positive_int, metavar="N", help="stop after N frames (CAN log) or samples")
+    p.add_argument("--limit", type=positive_int, metavar="N", help="stop after N frames (CAN log) or samples")
     p.add_argument("--dbc", metavar="FILE", help="DBC to decode CAN frames to samples (default: the MSP25 DBC)")
     p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")

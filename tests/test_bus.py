@@ -23,14 +23,14 @@ from twin.service.bus import (
     AlarmSubscriber,
     RigKeys,
     TwinPublisher,
-    add_alarms_arguments,
     fetch_latest,
     format_alarm,
     live_twins,
-    parse_since,
-    run_alarms_cli,
     zenoh_config,
 )
+from twin.commands.alarms import add_arguments as add_alarms_arguments
+from twin.commands.alarms import parse_since
+from twin.commands.alarms import run as run_alarms_cli
 from twin.errors import ConfigError, DataError, SourceError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.service.journal import AlarmJournal

@@ -16,7 +16,7 @@ import pytest
 
 from diag_reference import IN_CATALOGUE, reference_record
 from twin import cli
-from twin.commands.common import finite_or_none
+from replay.jsonio import finite_or_none
 from twin.estimation.diagnose import CONTROLLER_RATE, _gain, diagnose, holm
 from twin.models import get_model
 from twin.models.base import Timing

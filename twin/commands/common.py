@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import json
-import math
 import sys
 
-import numpy as np
 
+from replay import jsonio
 from twin.errors import ParameterError
 
 
@@ -37,30 +35,9 @@ def progress(args):
     return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
-def json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    raise TypeError(type(o).__name__)
-
-
-def finite_or_none(obj):
-    """``obj`` with every non-finite float replaced by None (strict JSON has no NaN)."""
-    if isinstance(obj, dict):
-        return {k: finite_or_none(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite_or_none(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return finite_or_none(obj.tolist())
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
 def dump(obj) -> None:
     """Print ``obj`` as strict JSON (NaN and infinities become null)."""
-    print(json.dumps(finite_or_none(obj), indent=2, default=json_default, allow_nan=False))
+    print(jsonio.dumps(obj))
 
 
 def load_params_file(model, path: str | None, overrides: dict[str, float] | None = None,

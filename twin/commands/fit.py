@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import sys
 
 import numpy as np
 
-from twin.commands.common import (add_map_argument, add_timing_arguments, finite_or_none, load_params_file, source_options,
+from replay import jsonio
+from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, source_options,
                           timing_of)
 from twin.commands.common import dump as _dump
 from twin.commands.common import kv as _kv
@@ -71,11 +71,9 @@ def run(args) -> int:
 
         report = fit_report(res, records, model, args.report)
     if args.save:
-        with open(args.save, "w") as f:
-            json.dump(finite_or_none({"model": model.name, "effects": list(res.params.effects),
-                                      "params": res.params.as_dict(), "std": res.std, "timing": res.timing,
-                                      "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs}}),
-                      f, indent=2, allow_nan=False)
+        jsonio.write(args.save, {"model": model.name, "effects": list(res.params.effects),
+                                 "params": res.params.as_dict(), "std": res.std, "timing": res.timing,
+                                 "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs}})
     if args.json:
         d = res.to_dict()
         d["plots"] = plots

@@ -22,6 +22,8 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
+from replay.argtypes import positive_seconds
+from replay import jsonio
 from twin.reports.units import Shown, pretty_unit
 
 LEVEL_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green"}
@@ -29,16 +31,6 @@ STATUS_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green", "f
                 "unresolved": "magenta", "inconsistent": "magenta"}
 STATE_STYLE = {"running": "green", "finished": "blue", "degraded": "yellow", "stale_input": "yellow",
                "failed": "bold red", "stopped": "dim", "starting": "cyan"}
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{v:g} must be > 0 seconds")
-    return v
 
 
 def add_top_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,11 +43,11 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
     p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"),
                    help="the rigs' model, for display units (default msp25)")
-    p.add_argument("--timeout", type=_positive, default=10.0, metavar="S",
+    p.add_argument("--timeout", type=positive_seconds, default=10.0, metavar="S",
                    help="give up (exit status 2) when no twin answers within S seconds (default 10)")
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--json", action="store_true", help="with --once: the snapshot as JSON")
-    p.add_argument("--for", dest="duration", type=_positive, metavar="S", help="exit after S seconds (default: "
+    p.add_argument("--for", dest="duration", type=positive_seconds, metavar="S", help="exit after S seconds (default: "
                    "until Ctrl-C)")
 
 
@@ -227,9 +219,8 @@ def run_top(args) -> int:
         if args.once:
             snap = state.snapshot()
             if args.json:
-                from twin.commands.common import finite_or_none
 
-                print(json.dumps(finite_or_none({"where": where, "rigs": snap}), indent=2, allow_nan=False))
+                print(jsonio.dumps({"where": where, "rigs": snap}))
             else:
                 from rich.console import Console
 

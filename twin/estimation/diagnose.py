@@ -59,18 +59,14 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    when the final model is not adequate (step 4): the residual signature is
    shown instead of a forced name.
 
-:func:`diagnose` returns a :class:`Diagnosis`; :func:`add_diagnose_arguments`
-and :func:`run_diagnose` are the command line.
+:func:`diagnose` returns a :class:`Diagnosis`; the command line is
+:mod:`twin.commands.diagnose`, the plots :func:`twin.reports.plots.diagnosis_plots`.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
-import os
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -78,10 +74,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from twin.commands.common import add_map_argument, add_timing_arguments, dump, finite_or_none, source_options, timing_of
-from twin.commands.common import json_default as _json_default
-from twin.commands.common import kv as _kv
-from twin.commands.common import names as _names
+from replay.jsonio import finite_or_none
 from twin.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, resolve_outputs
 from twin.models import Model, get_model
@@ -1065,204 +1058,3 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     unexplained = not cur.adequate
     return Diagnosis(model.name, causes, unexplained, nominal, cur, path, screens, trials_all, gains, outputs,
                      holdout, time.perf_counter() - t0, records, n_fit, timing=timing, alpha=alpha)
-
-
-# --- plots ------------------------------------------------------------------------------------
-def _binned(x: np.ndarray, y: np.ndarray, n: int = 30) -> tuple[np.ndarray, np.ndarray]:
-    edges = np.quantile(x, np.linspace(0, 1, n + 1))
-    edges = np.unique(edges)
-    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
-    cx, cy = [], []
-    for j in range(max(edges.size - 1, 1)):
-        m = idx == j
-        if m.sum() >= 5:
-            cx.append(float(np.mean(x[m])))
-            cy.append(float(np.mean(y[m])))
-    return np.array(cx), np.array(cy)
-
-
-def plot_report(diag: Diagnosis, out_dir: str) -> list[str]:
-    """PNG plots of a diagnosis in ``out_dir`` (matplotlib Agg); returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from twin.estimation.residuals import regime_signals
-
-    os.makedirs(out_dir, exist_ok=True)
-    paths = []
-    rec = diag.records[0]
-    n_fit = diag.n_fit[0]
-    t = rec.t_s
-    nom = diag.nominal.predicted[0]
-    fin = diag.final.predicted[0]
-    outs = diag.outputs
-    # measured vs nominal vs extended (held-out part)
-    fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
-    sl = slice(n_fit, len(rec))
-    for ax, o in zip(axes[:, 0], outs):
-        ax.plot(t[sl], rec[o][sl], color="0.6", lw=1.6, label="measured")
-        ax.plot(t[sl], nom[o][sl], color="C0", lw=0.9, label="nominal")
-        if diag.causes:
-            ax.plot(t[sl], fin[o][sl], color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
-        ax.set_ylabel(f"{o} [{UNITS.get(o, '-')}]")
-    axes[0, 0].legend(fontsize=7, ncol=3)
-    axes[0, 0].set_title("Held-out part: measured vs nominal vs extended")
-    axes[-1, 0].set_xlabel("t [s]")
-    fig.tight_layout()
-    p = os.path.join(out_dir, "diagnose_response.png")
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    paths.append(p)
-    # residuals before and after
-    fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
-    for ax, o in zip(axes[:, 0], outs):
-        ax.plot(t, rec[o] - nom[o], color="C0", lw=0.6, label="nominal")
-        if diag.causes:
-            ax.plot(t, rec[o] - fin[o], color="C3", lw=0.6, label="extended")
-        ax.axvline(t[n_fit], color="k", lw=0.8, ls=":")
-        ax.set_ylabel(f"residual {o} [{UNITS.get(o, '-')}]")
-    axes[0, 0].legend(fontsize=7)
-    axes[0, 0].set_title("Residuals before and after (dotted: start of the held-out part)")
-    axes[-1, 0].set_xlabel("t [s]")
-    fig.tight_layout()
-    p = os.path.join(out_dir, "diagnose_residuals.png")
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    paths.append(p)
-    # each effect's own signature: residual before vs the regime variable, and the effect's contribution
-    reg = regime_signals(diag.model, rec, nom)
-    steps: list[tuple[int, str]] = []
-    for i in range(1, len(diag.path)):
-        new = [c for c in diag.causes if c not in diag.path[i - 1].effects and c in diag.path[i].effects]
-        if diag.path[i].timing != diag.path[i - 1].timing:
-            new.append(CONTROLLER_RATE)
-        steps.extend((i, c) for c in new)
-    for i, c in steps:
-        before = diag.path[i - 1].predicted[0]
-        after = diag.path[i].predicted[0]
-        var = SIGNATURE_AXIS.get(c, "velocity")
-        xv = reg.get(var, reg["velocity"])
-        # (residual before, the effect's contribution, noise level) per signal shown
-        shown = {o: (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0)) for o in outs}
-        if diag.model == "msp25" and {"pA", "pB"} <= set(outs):
-            area = diag.final.params["A"]
-            dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
-            shown["force [N]"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
-                                  area * math.sqrt(2.0) * DEFAULT_NOISE["pA"])
-        if c in FORCE_EFFECTS and "force [N]" in shown:
-            o = "force [N]"
-        else:
-            o = max(shown, key=lambda k: float(np.std(shown[k][1])) / shown[k][2])
-        res_o, contrib, _ = shown[o]
-        fig, ax = plt.subplots(figsize=(7, 4))
-        ax.plot(xv, res_o, ",", color="0.7", label="residual before (samples)")
-        bx, by = _binned(xv, res_o)
-        ax.plot(bx, by, "o", color="C0", ms=3, label="residual before (binned mean)")
-        cx, cy = _binned(xv, contrib)
-        ax.plot(cx, cy, "-", color="C3", label=f"{c} (extended - before)")
-        ax.set_xlabel(var)
-        ax.set_ylabel(f"residual {o}")
-        ax.set_title(f"Signature of {c}")
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        p = os.path.join(out_dir, f"diagnose_signature_{c}.png")
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
-    # the residual signature of the final model (what is left), always: regimes, spectrum, correlation
-    an = diag.final.analysis
-    if an is not None:
-        fin_reg = {k: v[:n_fit] for k, v in regime_signals(diag.model, rec, fin).items()}
-        keys = [k for k in ("velocity", "position", "dp", "spool_opening", "force") if k in fin_reg]
-        fig, axes = plt.subplots(len(outs), len(keys) + 1, figsize=(3.2 * (len(keys) + 1), 2.6 * len(outs)),
-                                 squeeze=False)
-        for row, o in enumerate(outs):
-            r = an.residuals[o]
-            for col, k in enumerate(keys):
-                bx, by = _binned(fin_reg[k], r)
-                axes[row, col].plot(bx, by, "o-", ms=2, color="C2")
-                axes[row, col].set_xlabel(k, fontsize=8)
-                axes[row, col].set_ylabel(f"mean residual {o}", fontsize=8)
-            ax = axes[row, -1]
-            ax.bar(np.arange(1, an.max_lag + 1), an.acf[o][1:], color="C1")
-            ax.axhline(an.acf_band, color="k", ls="--", lw=0.7)
-            ax.axhline(-an.acf_band, color="k", ls="--", lw=0.7)
-            ax.set_xlabel("lag [samples]", fontsize=8)
-            ax.set_ylabel(f"acf {o} (LB p={an.ljung_box[o]['p']:.2g})", fontsize=8)
-        fig.suptitle(("UNEXPLAINED residual signature" if diag.unexplained else "Final residuals")
-                     + " (fitting data)")
-        fig.tight_layout()
-        p = os.path.join(out_dir, "diagnose_residual_signature.png")
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
-    return paths
-
-
-# --- command line ----------------------------------------------------------------------------
-def add_diagnose_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
-    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
-    p.add_argument("--outputs", help="outputs used, e.g. x or x,pA,pB (default: all present)")
-    p.add_argument("--free", help="nominal free parameters (default: the phenomenological ones)")
-    p.add_argument("--set", help="known parameter values NAME=VALUE,...")
-    p.add_argument("--effects", help="effects known to be present (switched on, not screened)")
-    p.add_argument("--candidates", help="restrict the screened catalogue to these effects")
-    p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"))
-    p.add_argument("--noise-levels", help="noise std per output used as residual weights, NAME=STD,...")
-    p.add_argument("--holdout", type=float, default=0.25, help="held-out tail of each record (default 0.25)")
-    p.add_argument("--alpha", type=float, default=ALPHA, help=f"significance level (default {ALPHA:g})")
-    p.add_argument("--max-effects", type=int, default=3, help="most effects named (default 3)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--save", metavar="FILE", help="save the extended parameter set (JSON for twin fit / tracker)")
-    p.add_argument("--report", metavar="DIR", help="write plots (PNG), diagnosis.json and extended_params.json")
-    p.add_argument("--no-timing-test", action="store_true",
-                   help="do not test other loop timings (the controller_rate candidate)")
-    add_timing_arguments(p)
-    add_map_argument(p)
-    p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
-
-
-def _write_json(path: str, obj) -> None:
-    """Strict JSON (non-finite numbers as null); an unwritable path is a one-line error."""
-    text = json.dumps(finite_or_none(obj), indent=2, default=_json_default, allow_nan=False)
-    try:
-        with open(path, "w") as f:
-            f.write(text)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot write ({exc.strerror})") from None
-
-
-def run_diagnose(args) -> int:
-    from twin.record import load_records
-
-    model = get_model(args.model)
-    records: list[Record] = []
-    for path in args.data:
-        records.extend(load_records(path, model=model.name, **source_options(args, path)))
-    base = model.params(effects=_names(args.effects), **_kv(args.set))
-    quiet = getattr(args, "quiet", False)
-    progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    diag = diagnose(model, records, outputs=_names(args.outputs) or None, free=_names(args.free) or None,
-                    base=base, candidates=_names(args.candidates) or None, holdout=args.holdout,
-                    alpha=args.alpha, max_effects=args.max_effects, noise=_kv(args.noise_levels),
-                    drive=args.drive, seed=args.seed, progress=progress, timing=timing_of(args, DEFAULT_TIMING),
-                    test_timing=not args.no_timing_test)
-    if args.report:
-        diag.plots = plot_report(diag, args.report)
-        _write_json(os.path.join(args.report, "extended_params.json"), diag.extended_params())
-        _write_json(os.path.join(args.report, "diagnosis.json"), diag.to_dict())
-        from twin.reports import diagnose_report
-
-        html = diagnose_report(diag, args.report)
-        if not args.json:
-            print(f"report: {html}", file=sys.stderr)
-    if args.save:
-        _write_json(args.save, diag.extended_params())
-    if args.json:
-        dump(diag.to_dict())
-    else:
-        print(diag.text())
-    return 0

@@ -26,7 +26,6 @@ requires ``seq >= 1``).
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from collections.abc import Callable, Mapping
@@ -34,6 +33,7 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, ClassVar, Self
 
+from replay import jsonio
 from twin.errors import DataError
 from datetime import UTC
 
@@ -208,7 +208,7 @@ def _si_unit(parameter: str) -> str:
 
 def event_to_json(event: AlarmEvent | EstimateEvent | StatusEvent) -> str:
     """Serialise an event to compact JSON (sorted keys, no NaN/inf)."""
-    return json.dumps(event.to_dict(), separators=(",", ":"), sort_keys=True, allow_nan=False)
+    return jsonio.dumps(event.to_dict(), indent=None, sort_keys=True)
 
 
 def _num(description: str, **extra: Any) -> dict[str, Any]:

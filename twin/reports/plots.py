@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import math
+from typing import TYPE_CHECKING
+
 import os
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from twin.estimation.diagnose import Diagnosis
 
 
 def _plt():
@@ -144,3 +150,138 @@ def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# --- plots ------------------------------------------------------------------------------------
+def _binned(x: np.ndarray, y: np.ndarray, n: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    edges = np.quantile(x, np.linspace(0, 1, n + 1))
+    edges = np.unique(edges)
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
+    cx, cy = [], []
+    for j in range(max(edges.size - 1, 1)):
+        m = idx == j
+        if m.sum() >= 5:
+            cx.append(float(np.mean(x[m])))
+            cy.append(float(np.mean(y[m])))
+    return np.array(cx), np.array(cy)
+
+
+def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
+    """PNG plots of a diagnosis in ``out_dir`` (matplotlib Agg); returns the paths."""
+    from twin.estimation.diagnose import CONTROLLER_RATE, DEFAULT_NOISE, FORCE_EFFECTS, SIGNATURE_AXIS, UNITS
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from twin.estimation.residuals import regime_signals
+
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    rec = diag.records[0]
+    n_fit = diag.n_fit[0]
+    t = rec.t_s
+    nom = diag.nominal.predicted[0]
+    fin = diag.final.predicted[0]
+    outs = diag.outputs
+    # measured vs nominal vs extended (held-out part)
+    fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
+    sl = slice(n_fit, len(rec))
+    for ax, o in zip(axes[:, 0], outs):
+        ax.plot(t[sl], rec[o][sl], color="0.6", lw=1.6, label="measured")
+        ax.plot(t[sl], nom[o][sl], color="C0", lw=0.9, label="nominal")
+        if diag.causes:
+            ax.plot(t[sl], fin[o][sl], color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
+        ax.set_ylabel(f"{o} [{UNITS.get(o, '-')}]")
+    axes[0, 0].legend(fontsize=7, ncol=3)
+    axes[0, 0].set_title("Held-out part: measured vs nominal vs extended")
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    p = os.path.join(out_dir, "diagnose_response.png")
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    paths.append(p)
+    # residuals before and after
+    fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
+    for ax, o in zip(axes[:, 0], outs):
+        ax.plot(t, rec[o] - nom[o], color="C0", lw=0.6, label="nominal")
+        if diag.causes:
+            ax.plot(t, rec[o] - fin[o], color="C3", lw=0.6, label="extended")
+        ax.axvline(t[n_fit], color="k", lw=0.8, ls=":")
+        ax.set_ylabel(f"residual {o} [{UNITS.get(o, '-')}]")
+    axes[0, 0].legend(fontsize=7)
+    axes[0, 0].set_title("Residuals before and after (dotted: start of the held-out part)")
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    p = os.path.join(out_dir, "diagnose_residuals.png")
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    paths.append(p)
+    # each effect's own signature: residual before vs the regime variable, and the effect's contribution
+    reg = regime_signals(diag.model, rec, nom)
+    steps: list[tuple[int, str]] = []
+    for i in range(1, len(diag.path)):
+        new = [c for c in diag.causes if c not in diag.path[i - 1].effects and c in diag.path[i].effects]
+        if diag.path[i].timing != diag.path[i - 1].timing:
+            new.append(CONTROLLER_RATE)
+        steps.extend((i, c) for c in new)
+    for i, c in steps:
+        before = diag.path[i - 1].predicted[0]
+        after = diag.path[i].predicted[0]
+        var = SIGNATURE_AXIS.get(c, "velocity")
+        xv = reg.get(var, reg["velocity"])
+        # (residual before, the effect's contribution, noise level) per signal shown
+        shown = {o: (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0)) for o in outs}
+        if diag.model == "msp25" and {"pA", "pB"} <= set(outs):
+            area = diag.final.params["A"]
+            dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
+            shown["force [N]"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
+                                  area * math.sqrt(2.0) * DEFAULT_NOISE["pA"])
+        if c in FORCE_EFFECTS and "force [N]" in shown:
+            o = "force [N]"
+        else:
+            o = max(shown, key=lambda k: float(np.std(shown[k][1])) / shown[k][2])
+        res_o, contrib, _ = shown[o]
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ax.plot(xv, res_o, ",", color="0.7", label="residual before (samples)")
+        bx, by = _binned(xv, res_o)
+        ax.plot(bx, by, "o", color="C0", ms=3, label="residual before (binned mean)")
+        cx, cy = _binned(xv, contrib)
+        ax.plot(cx, cy, "-", color="C3", label=f"{c} (extended - before)")
+        ax.set_xlabel(var)
+        ax.set_ylabel(f"residual {o}")
+        ax.set_title(f"Signature of {c}")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        p = os.path.join(out_dir, f"diagnose_signature_{c}.png")
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        paths.append(p)
+    # the residual signature of the final model (what is left), always: regimes, spectrum, correlation
+    an = diag.final.analysis
+    if an is not None:
+        fin_reg = {k: v[:n_fit] for k, v in regime_signals(diag.model, rec, fin).items()}
+        keys = [k for k in ("velocity", "position", "dp", "spool_opening", "force") if k in fin_reg]
+        fig, axes = plt.subplots(len(outs), len(keys) + 1, figsize=(3.2 * (len(keys) + 1), 2.6 * len(outs)),
+                                 squeeze=False)
+        for row, o in enumerate(outs):
+            r = an.residuals[o]
+            for col, k in enumerate(keys):
+                bx, by = _binned(fin_reg[k], r)
+                axes[row, col].plot(bx, by, "o-", ms=2, color="C2")
+                axes[row, col].set_xlabel(k, fontsize=8)
+                axes[row, col].set_ylabel(f"mean residual {o}", fontsize=8)
+            ax = axes[row, -1]
+            ax.bar(np.arange(1, an.max_lag + 1), an.acf[o][1:], color="C1")
+            ax.axhline(an.acf_band, color="k", ls="--", lw=0.7)
+            ax.axhline(-an.acf_band, color="k", ls="--", lw=0.7)
+            ax.set_xlabel("lag [samples]", fontsize=8)
+            ax.set_ylabel(f"acf {o} (LB p={an.ljung_box[o]['p']:.2g})", fontsize=8)
+        fig.suptitle(("UNEXPLAINED residual signature" if diag.unexplained else "Final residuals")
+                     + " (fitting data)")
+        fig.tight_layout()
+        p = os.path.join(out_dir, "diagnose_residual_signature.png")
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        paths.append(p)
+    return paths

@@ -51,19 +51,15 @@ callback subscribers or queryables left open hangs the interpreter at exit).
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
-import math
 import queue
 import re
-import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
-from datetime import datetime
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol, Self
@@ -87,12 +83,9 @@ __all__ = [
     "AlarmSubscriber",
     "RigKeys",
     "TwinPublisher",
-    "add_alarms_arguments",
     "fetch_latest",
     "format_alarm",
     "live_twins",
-    "parse_since",
-    "run_alarms_cli",
     "zenoh_config",
 ]
 
@@ -992,174 +985,3 @@ class AlarmSubscriber(_Declarations):
 
 
 # --------------------------------------------------------------------------- CLI
-
-_DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")
-_UNIT_S = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
-
-
-def parse_since(text: str, *, now_ns: int | None = None) -> int:
-    """Parse ``--since``: an ISO 8601 time, a duration back from now, or integer ns.
-
-    ``"2025-03-01T08:00:00+01:00"`` (naive times are local), ``"90s"``,
-    ``"15m"``, ``"2h"``, ``"1d"``, ``"500ms"``, or ``"1740812400000000000"``
-    (``t_ns`` as in the events). Durations count back from the wall clock, so
-    they are meaningful for live rigs, not for replays of old logs.
-
-    :returns: ``t_ns`` [ns].
-    :raises ValueError: none of these forms.
-    """
-    text = text.strip()
-    if text.isdigit():
-        return int(text)
-    match = _DURATION_RE.match(text)
-    if match:
-        now = time.time_ns() if now_ns is None else now_ns
-        return max(0, now - int(float(match.group(1)) * _UNIT_S[match.group(2)] * 1e9))
-    try:
-        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
-    except ValueError:
-        raise ValueError(
-            f"--since: {text!r} is not an ISO 8601 time, a duration like 15m/2h/1d, or integer ns"
-        ) from None
-    if moment.tzinfo is None:
-        moment = moment.astimezone()
-    return int(round(moment.timestamp() * 1e9))
-
-
-def _since_argument(text: str) -> int:
-    try:
-        return parse_since(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"{value} must be a positive number of seconds")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (value >= 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"{value} must be a number of seconds >= 0")
-    return value
-
-
-def add_alarms_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the options of ``twin alarms`` to ``parser`` (a sub-command parser)."""
-    parser.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
-    parser.add_argument(
-        "--since", type=_since_argument, metavar="T",
-        help="history from time T: ISO 8601, a duration back from now (15m, 2h, 1d), or t_ns",
-    )
-    parser.add_argument(
-        "--since-seq", type=_positive_int, metavar="N", help="history from sequence number N (per rig)"
-    )
-    parser.add_argument(
-        "--no-history", action="store_true", help="live alarms only, do not fetch the history first"
-    )
-    parser.add_argument(
-        "--connect", action="append", default=[], metavar="ENDPOINT",
-        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable); "
-        "without --connect or --zenoh-config, peers are discovered by multicast scouting",
-    )
-    parser.add_argument(
-        "--mode", choices=("peer", "client"), default=None,
-        help="Zenoh session mode (default: the --zenoh-config file's, else peer)",
-    )
-    parser.add_argument(
-        "--zenoh-config", type=Path, metavar="FILE",
-        help="Zenoh JSON5 configuration (TLS, credentials), e.g. deploy/twin-peer.json5",
-    )
-    parser.add_argument("--json", action="store_true", help="print one AlarmEvent JSON object per line")
-    parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N alarms")
-    parser.add_argument(
-        "--timeout", type=_positive_float, metavar="S", help="exit after S seconds (default: run until stopped)"
-    )
-    parser.add_argument(
-        "--wait", type=_non_negative_float, default=10.0, metavar="S",
-        help="give up (exit status 2) when no twin of --rig is reachable within S seconds "
-        "(default 10; 0: wait for ever)",
-    )
-    return parser
-
-
-def wait_for_twin(session: zenoh.Session, rig: str, wait_s: float, where: str) -> list[str]:
-    """The rigs whose twin is alive, waiting up to ``wait_s``; SourceError naming ``where`` if none."""
-    deadline = time.monotonic() + wait_s
-    while True:
-        remaining = deadline - time.monotonic()
-        rigs = live_twins(session, rig, timeout=max(0.2, min(1.0, remaining)))
-        if rigs:
-            return rigs
-        if time.monotonic() >= deadline:
-            raise SourceError(f"no twin reachable through {where} within {wait_s:g} s "
-                              f"(no liveliness token on {RigKeys(rig).twin})")
-
-
-def run_alarms_cli(args: argparse.Namespace) -> int:
-    """``twin alarms``: print alarms as they come, the history first.
-
-    :param args: parsed by a parser set up with :func:`add_alarms_arguments`.
-    :returns: exit status: 0, or 1 when ``--count`` alarms did not arrive within ``--timeout``.
-    :raises ConfigError: a bad option or Zenoh file (one line naming it).
-    :raises SourceError: the session cannot be opened, or no twin is reachable within ``--wait``.
-    """
-    scouting = True if not args.connect and args.zenoh_config is None else None
-    for e in args.connect:
-        check_endpoint(e, "--connect")
-    config = zenoh_config(
-        mode=args.mode,
-        connect=args.connect,
-        multicast_scouting=scouting,
-        config_file=args.zenoh_config,
-    )
-    _, connect = config_endpoints(config)
-    where = ", ".join(connect) if connect else "multicast scouting"
-    deadline = None if args.timeout is None else time.monotonic() + args.timeout
-    printed = 0
-    session = open_session(config, "twin alarms")
-    with session:
-        if args.wait > 0:
-            wait_for_twin(session, args.rig, args.wait, where)
-        with AlarmSubscriber(
-            session,
-            rig=args.rig,
-            since_seq=args.since_seq,
-            since_t_ns=args.since,
-            history=not args.no_history,
-        ) as subscriber:
-            reported = 0
-            while args.count is None or printed < args.count:
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    break
-                try:
-                    event = subscriber.recv(timeout=remaining)
-                except TimeoutError:
-                    break
-                for rig, first, last in subscriber.missed[reported:]:
-                    print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
-                reported = len(subscriber.missed)
-                line = event_to_json(event) if args.json else format_alarm(event)
-                print(line, flush=True)
-                printed += 1
-    return 1 if args.count is not None and printed < args.count else 0

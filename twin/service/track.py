@@ -1,4 +1,5 @@
-"""``twin track LOG``: a recorded log through the online twin, offline and as fast as it goes.
+"""A recorded log through the online twin, offline and as fast as it goes (the library of ``twin track``,
+whose command line is :mod:`twin.commands.track`).
 
 The same :class:`twin.service.rig.RigTwin` as the live service (tracker, drift
 test), without Zenoh: estimates, alarms and statuses go to an MCAP file that
@@ -15,14 +16,10 @@ would: the ``/twin/alarm`` messages carry the same ``seq`` field as on the bus
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 from collections.abc import Iterable
 from types import SimpleNamespace
 
-from twin.commands.common import add_map_argument, add_timing_arguments, dump, kv, names, source_options, timing_of
-from twin.online.events import format_alarm
 
 
 class SequenceNumbers:
@@ -131,116 +128,3 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         if rec is not None:
             rec.close()
     return twin
-
-
-def add_track_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
-    p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
-    p.add_argument("--track", help="parameters to track (default Ffric,CdAleak,Cd,zeta,wn)")
-    p.add_argument("--params", metavar="FIT.json",
-                   help="commissioning fit (JSON of twin fit --save): known values, healthy bands around the fitted "
-                        "ones, sensor noise, loop timing")
-    p.add_argument("--noise-levels", metavar="x=2e-6,pA=2e4,...",
-                   help="sensor noise standard deviations (SI) per output; default the fit's, else "
-                        "x=2e-6,pA=2e4,pB=2e4 (the filter goes on learning them online)")
-    p.add_argument("--set", help="known parameter values NAME=VALUE,...")
-    p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
-    p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")
-    p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
-    p.add_argument("--json", action="store_true", help="print alarms and final estimates as JSON")
-    add_timing_arguments(p)
-    add_map_argument(p)
-
-
-def _check_rig_log(path: str) -> None:
-    """A CSV of the oscillator (columns u, y, no x) is not a rig log: say so before reading it."""
-    if not str(path).lower().endswith(".csv"):
-        return
-    try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            header = [c.strip() for c in f.readline().split(",")]
-    except OSError:
-        return  # the reader names the problem
-    if "y" in header and not {"x", "pA", "pB"} & set(header):
-        from twin.errors import DataError
-
-        raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the msp25 "
-                        "rig model (it needs u or x_ref and at least one of x, pA, pB)")
-
-
-def run_track(args) -> int:
-    from twin.service.config import load_config
-    from twin.models import get_model
-    from twin.reports.plots import parameter_trends
-
-    _check_rig_log(args.log)
-    params = {}
-    baseline = None
-    tracked = names(args.track) or None
-    if args.config:
-        cfg = load_config(args.config)
-        rig = next((r for r in cfg.rigs if r.name == args.rig), cfg.rigs[0])
-        params, baseline, tracked = dict(rig.params), rig.baseline, tracked or rig.track
-    commission = None
-    if args.params:
-        from twin.online.commission import load_fit, tracker_params
-
-        commission = load_fit(args.params)
-        tracker_params(commission, tracked or get_model("msp25").PHENOMENOLOGICAL)  # refuses effects
-    if args.set:
-        model = get_model("msp25")
-        over = kv(args.set)
-        model.params((), **over)  # checks names and ranges
-        params.update(over)
-    noise = kv(args.noise_levels) if args.noise_levels else None
-    if noise:
-        bad = [k for k in noise if k not in ("x", "pA", "pB")]
-        if bad or any(not v > 0 for v in noise.values()):
-            from twin.errors import ParameterError
-
-            raise ParameterError(f"--noise-levels: expected positive standard deviations of x, pA, pB (SI), got "
-                                 f"{args.noise_levels!r}")
-    timing = timing_of(args) if (args.controller or args.intersample) else None
-    say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
-    log = args.log
-    if getattr(args, "map", None):
-        log = _mapped(args.log, source_options(args, args.log))
-    twin = track(log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
-                 timing=timing, commission=commission)
-    if say:
-        print(file=sys.stderr)
-    png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
-                           title=f"Tracked parameters of {args.rig} ({os.path.basename(args.log)})")
-    result = {
-        "log": args.log, "rig": args.rig, "samples": twin.stats.samples,
-        "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
-        "final": twin.final_estimates(),
-        "status": twin.drift.statuses(),
-        "counters": twin.tracker.counters,
-        "consistency": twin.drift.guard,
-        "sensors": twin.tracker.sensor_status(),
-        "noise": twin.tracker.noise_levels(),
-        "timing": twin.tracker.timing.label,
-        "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
-    }
-    from twin.reports import track_report
-
-    result["files"]["report"] = track_report(twin, args.out, log=args.log)
-    if args.json:
-        dump(result)
-        return 0
-    for a in twin.alarms:
-        print(format_alarm(a, wall_clock=False))
-    print(f"{twin.stats.samples} samples, {len(twin.alarms)} alarm event(s); timing {result['timing']}")
-    note = ", ".join(f"{o} {s}" for o, s in result["sensors"].items() if s != "ok")
-    if note:
-        print(f"  sensors: {note}")
-    if result["consistency"] != "consistent":
-        print(f"  filter not consistent with the data at the end: {result['consistency']}")
-    specs = twin.tracker.ps
-    for n, d in result["final"].items():  # display units (JSON above stays SI)
-        show = specs.spec(n).show
-        value, std = float(f"{d['value']:.5g}"), float(f"{d['std']:.2g}")
-        print(f"  {n:8s} {show(value)} +- {show(std)}  [{result['status'][n]}]")
-    print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
-    return 0

@@ -1,0 +1,73 @@
+"""``twin diagnose DATA``: what the simulation gets wrong, the named cause, the gain (library: :mod:`twin.estimation.diagnose`)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from replay import jsonio
+from twin.commands.common import add_map_argument, add_timing_arguments, dump, source_options, timing_of
+from twin.commands.common import kv as _kv
+from twin.commands.common import names as _names
+from twin.estimation.diagnose import ALPHA, diagnose
+from twin.models import get_model
+from twin.models.base import DEFAULT_TIMING
+from twin.record import Record
+from twin.reports.plots import diagnosis_plots
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
+    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
+    p.add_argument("--outputs", help="outputs used, e.g. x or x,pA,pB (default: all present)")
+    p.add_argument("--free", help="nominal free parameters (default: the phenomenological ones)")
+    p.add_argument("--set", help="known parameter values NAME=VALUE,...")
+    p.add_argument("--effects", help="effects known to be present (switched on, not screened)")
+    p.add_argument("--candidates", help="restrict the screened catalogue to these effects")
+    p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"))
+    p.add_argument("--noise-levels", help="noise std per output used as residual weights, NAME=STD,...")
+    p.add_argument("--holdout", type=float, default=0.25, help="held-out tail of each record (default 0.25)")
+    p.add_argument("--alpha", type=float, default=ALPHA, help=f"significance level (default {ALPHA:g})")
+    p.add_argument("--max-effects", type=int, default=3, help="most effects named (default 3)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save", metavar="FILE", help="save the extended parameter set (JSON for twin fit / tracker)")
+    p.add_argument("--report", metavar="DIR", help="write plots (PNG), diagnosis.json and extended_params.json")
+    p.add_argument("--no-timing-test", action="store_true",
+                   help="do not test other loop timings (the controller_rate candidate)")
+    add_timing_arguments(p)
+    add_map_argument(p)
+    p.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
+
+
+def run(args) -> int:
+    from twin.record import load_records
+
+    model = get_model(args.model)
+    records: list[Record] = []
+    for path in args.data:
+        records.extend(load_records(path, model=model.name, **source_options(args, path)))
+    base = model.params(effects=_names(args.effects), **_kv(args.set))
+    quiet = getattr(args, "quiet", False)
+    progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    diag = diagnose(model, records, outputs=_names(args.outputs) or None, free=_names(args.free) or None,
+                    base=base, candidates=_names(args.candidates) or None, holdout=args.holdout,
+                    alpha=args.alpha, max_effects=args.max_effects, noise=_kv(args.noise_levels),
+                    drive=args.drive, seed=args.seed, progress=progress, timing=timing_of(args, DEFAULT_TIMING),
+                    test_timing=not args.no_timing_test)
+    if args.report:
+        diag.plots = diagnosis_plots(diag, args.report)
+        jsonio.write(os.path.join(args.report, "extended_params.json"), diag.extended_params())
+        jsonio.write(os.path.join(args.report, "diagnosis.json"), diag.to_dict())
+        from twin.reports import diagnose_report
+
+        html = diagnose_report(diag, args.report)
+        if not args.json:
+            print(f"report: {html}", file=sys.stderr)
+    if args.save:
+        jsonio.write(args.save, diag.extended_params())
+    if args.json:
+        dump(diag.to_dict())
+    else:
+        print(diag.text())
+    return 0
