@@ -9,7 +9,7 @@ import types
 import numpy as np
 import pytest
 
-from twin.service.config import Baseline, default_baseline
+from twin.online.drift import Baseline, default_baseline
 from twin.online.drift import DriftMonitor, baseline_from_fit
 from twin.errors import ParameterError
 from twin.online.events import AlarmEvent
@@ -176,7 +176,9 @@ def test_block_size_does_not_change_the_events():
 
 
 def _fit(estimate, std):
-    return types.SimpleNamespace(free=tuple(estimate), estimate=estimate, std=std)
+    """What baseline_from_fit reads of a FitResult: the free names, estimates, standard errors, the model."""
+    return types.SimpleNamespace(free=tuple(estimate), estimate=estimate, std=std,
+                                 params=types.SimpleNamespace(model="msp25"))
 
 
 def test_baseline_from_a_commissioning_fit():

@@ -23,7 +23,7 @@ from websockets.sync.client import connect
 
 from replay.base import Samples
 from twin.service.bus import TwinPublisher, zenoh_config
-from twin.service.config import default_baseline
+from twin.online.drift import default_baseline
 from twin.commands.demo import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate
 from twin.service.journal import AlarmJournal

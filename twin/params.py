@@ -3,7 +3,10 @@
 A :class:`ParamSpec` carries everything a fit, a filter or a report needs to
 know about one parameter: SI unit, bounds, category (geometric, physical,
 phenomenological, or the extension it belongs to), a one-line meaning and the
-unit people read it in (``wn`` lives in rad/s and is shown in Hz).
+unit people read it in (``wn`` lives in rad/s and is shown in Hz), and, for
+a parameter the online twin tracks, its :class:`Tracking`: the healthy band,
+the expected drift rate, the physical range and the signal that excites it.
+That is the one home of what the product knows of a parameter.
 
 A :class:`ParameterSet` is an immutable, validated assignment of values to the
 specs of one model with a set of switched-on effects.  It is converted to the
@@ -18,11 +21,35 @@ import dataclasses
 import math
 from collections.abc import Iterable, Mapping
 
-import numpy as np
 
 from twin.errors import ParameterError
 
 CATEGORIES = ("geometric", "physical", "phenomenological", "extension", "initial")
+#: what can excite a tracked parameter (the filter freezes it while its signal is quiet)
+EXCITATION = ("rod_motion", "valve_command", "pressure_difference")
+
+
+@dataclasses.dataclass(frozen=True)
+class Tracking:
+    """What the online twin needs of a parameter it tracks.
+
+    ``band``: the healthy band by default, a relative half-width: ``value / (1 + band)`` to
+    ``value * (1 + band)``.  ``drift_rate``: the expected drift, a random-walk intensity in log units per
+    sqrt(second) (the filter's process noise on the parameter).  ``bounds``: the physical range of the
+    tracked value as factors of the rig's value (the filter moves the parameter through a logit between
+    them).  ``excited_by``: the signal whose excitation makes the parameter observable (:data:`EXCITATION`).
+    """
+
+    band: float
+    drift_rate: float
+    bounds: tuple[float, float]
+    excited_by: str
+
+    def __post_init__(self) -> None:
+        if not (self.band > 0 and self.drift_rate > 0 and 0 < self.bounds[0] < 1 < self.bounds[1]):
+            raise ValueError(f"tracking {self}: band and drift rate > 0, bounds (lo < 1 < hi) expected")
+        if self.excited_by not in EXCITATION:
+            raise ValueError(f"tracking: excited_by {self.excited_by!r} not in {EXCITATION}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +65,7 @@ class ParamSpec:
     display_unit: str | None = None
     display_scale: float = 1.0  # value_in_display_unit = value * display_scale
     typical: float | None = None  # a physically sensible magnitude (starts, screening)
+    tracking: Tracking | None = None  # what the online twin needs, for a parameter it can track
 
     def __post_init__(self) -> None:
         if self.category not in CATEGORIES:
@@ -160,7 +188,3 @@ def check_names(known: Iterable[str], asked: Iterable[str], what: str) -> None:
     bad = [a for a in asked if a not in known]
     if bad:
         raise ParameterError(f"unknown {what} {', '.join(map(repr, bad))}; known: {', '.join(known)}")
-
-
-def as_vector(values: Iterable[float]) -> np.ndarray:
-    return np.ascontiguousarray(np.fromiter(values, dtype=np.float64))

@@ -55,7 +55,8 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
 
     from replay.mcapio import McapSink
     from twin.service.bus import AlarmSubscriber, zenoh_config
-    from twin.service.config import ServiceConfig, RigConfig, default_baseline
+    from twin.online.drift import default_baseline
+    from twin.service.config import RigConfig, ServiceConfig
     from twin.models import msp25 as M
     from twin.service.rig import serve
 

@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from replay import jsonio
+from twin.models import MODELS
 from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, source_options,
                           timing_of)
 from twin.commands.common import dump as _dump
@@ -19,7 +20,7 @@ HELP = "fit free parameters to measured records (output error)"
 
 def add_arguments(p) -> None:
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
-    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"))
+    p.add_argument("--model", default="msp25", choices=MODELS)
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
     p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
     p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")

@@ -24,6 +24,7 @@ from typing import Any
 
 from replay.argtypes import positive_seconds
 from replay import jsonio
+from twin.models import MODELS
 from twin.reports.units import Shown, pretty_unit
 
 LEVEL_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green"}
@@ -41,7 +42,7 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=("peer", "client"), default=None,
                    help="Zenoh session mode (default: the --zenoh-config file's, else peer)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
-    p.add_argument("--model", default="msp25", choices=("msp25", "oscillator"),
+    p.add_argument("--model", default="msp25", choices=MODELS,
                    help="the rigs' model, for display units (default msp25)")
     p.add_argument("--timeout", type=positive_seconds, default=10.0, metavar="S",
                    help="give up (exit status 2) when no twin answers within S seconds (default 10)")

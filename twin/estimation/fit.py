@@ -273,7 +273,7 @@ def initial_from_data(model: Model, rec: Record, base: ParameterSet) -> dict[str
     """Where the record starts: its measured state, and for a loaded rig without logged pressures the
     pressure difference that carries the load (a fit may refine it with ``estimate_init``)."""
     init = model.initial_from_data(rec.signals, rec.dt)
-    if model.name == "msp25" and "pA0" not in init and "pB0" not in init and base["Fext"] != 0:
+    if "pA0" in model.INIT and "pA0" not in init and "pB0" not in init and base["Fext"] != 0:
         init["dp0"] = base["Fext"] / base["A"]
     return init
 

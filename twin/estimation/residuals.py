@@ -38,6 +38,8 @@ import numpy as np
 from scipy import signal as sps
 from scipy import stats
 
+from twin.models import get_model
+
 #: two-sided 99 % normal quantile used for every correlation band
 Z99 = 2.5758293035489004
 #: default significance level of the whiteness and correlation verdicts
@@ -116,7 +118,7 @@ def regime_signals(model_name: str, record, predicted: Mapping[str, np.ndarray])
     """The operating-regime variables of a record, from the (noise-free) prediction where possible."""
     dt = record.dt
     out: dict[str, np.ndarray] = {}
-    if model_name == "msp25":
+    if {"x", "pA", "pB"} <= set(predicted):  # a hydraulic actuator's regime: stroke, speed, load pressure
         x = np.asarray(predicted["x"])
         out["position"] = x
         out["velocity"] = np.gradient(x, dt)
@@ -274,7 +276,7 @@ def analyse(model_name: str, record, predicted: Mapping[str, np.ndarray], output
     sl = slice(start, stop)
     regimes = {k: v[sl] for k, v in regime_signals(model_name, record, predicted).items()}
     if closed_loop is None:
-        closed_loop = model_name == "msp25" and "x_ref" in record
+        closed_loop = get_model(model_name).CLOSED_LOOP and "x_ref" in record
     res, noise, rms, excess, acf, lb, reg, bands, xc = {}, {}, {}, {}, {}, {}, {}, {}, {}
     n = stop - start
     max_lag = int(max(1, min(max_lag, n // 4)))

@@ -1,21 +1,32 @@
-"""The first-principle models, one module each; :func:`get_model` picks one by name."""
+"""The first-principle models, one module each, and the registry that names them.
+
+:data:`MODELS` lists every model by name; :func:`get_model` imports one on first use.  What a model can do
+(closed loop, tracked online) is declared on the model (:attr:`Model.CLOSED_LOOP`, :attr:`Model.TRACKABLE`),
+never tested by name elsewhere.
+"""
 
 from __future__ import annotations
+
+import importlib
 
 from twin.errors import ParameterError
 from twin.models.base import Model, SimResult
 
+#: model name -> module defining ``MODEL`` (the registry)
+REGISTRY = {"msp25": "twin.models.msp25", "oscillator": "twin.models.oscillator"}
+MODELS = tuple(REGISTRY)
+
 
 def get_model(name: str) -> Model:
-    """The model called ``name`` (``msp25`` or ``oscillator``)."""
-    if name == "msp25":
-        from twin.models import msp25
-        return msp25.MODEL
-    if name == "oscillator":
-        from twin.models import oscillator
-        return oscillator.MODEL
-    raise ParameterError(f"unknown model {name!r}; known: msp25, oscillator")
+    """The model called ``name`` (one of :data:`MODELS`)."""
+    if name not in REGISTRY:
+        raise ParameterError(f"unknown model {name!r}; known: {', '.join(MODELS)}")
+    return importlib.import_module(REGISTRY[name]).MODEL
 
 
-MODELS = ("msp25", "oscillator")
-__all__ = ["Model", "SimResult", "get_model", "MODELS"]
+def trackable_models() -> tuple[str, ...]:
+    """The models the online twin runs (``twin track``, ``twin serve``)."""
+    return tuple(n for n in MODELS if get_model(n).TRACKABLE)
+
+
+__all__ = ["Model", "SimResult", "get_model", "MODELS", "REGISTRY", "trackable_models"]

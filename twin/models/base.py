@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 from twin.errors import DataError, ParameterError
-from twin.params import Effect, ParameterSet, ParamSpec, check_names
+from twin.params import Effect, ParameterSet, ParamSpec, Tracking, check_names
 
 
 @dataclasses.dataclass
@@ -136,8 +136,34 @@ class Model(abc.ABC):
     INIT: tuple[str, ...] = ()    # initial-state quantities
     INIT_IF_MOVING: tuple[str, ...] = ()  # estimated by default when a record does not start at rest
     PHENOMENOLOGICAL: tuple[str, ...]  # the model's phenomenological parameters
+    # --- capabilities (what the rest of the product may ask of this model) -------------
+    CLOSED_LOOP: bool = False     # has a controller: driven by a demand (x_ref) as well as open loop
+    TRACKABLE: bool = False       # the online twin's compiled filter runs this model (twin track / serve)
 
     # --- parameters -----------------------------------------------------------------
+    def tracking(self, name: str) -> Tracking:
+        """What the online twin needs of parameter ``name`` (its spec's :class:`~twin.params.Tracking`)."""
+        for s in self.kernel_specs:
+            if s.name == name:
+                if s.tracking is None:
+                    raise ParameterError(f"{self.name}: {name} is not a parameter the online twin tracks; "
+                                         f"trackable: {', '.join(self.trackable)}")
+                return s.tracking
+        raise ParameterError(f"{self.name} has no parameter {name!r}; known: {', '.join(self.kernel_names)}")
+
+    @property
+    def trackable(self) -> tuple[str, ...]:
+        """The parameters the online twin can track (those whose spec has a tracking entry)."""
+        return tuple(s.name for s in self.kernel_specs if s.tracking is not None)
+
+    def tracking_bounds(self, ps: ParameterSet, name: str) -> tuple[float, float]:
+        """(lo, hi) in SI between which the online twin moves ``name`` on the rig ``ps``: the tracking
+        factors around the rig's value, within the spec's bounds (a model adds its physical limits)."""
+        v = ps[name]
+        f_lo, f_hi = self.tracking(name).bounds
+        spec = ps.spec(name)
+        return max(v * f_lo, spec.lo if spec.lo > 0 else v * f_lo), min(v * f_hi, spec.hi)
+
     @property
     def kernel_specs(self) -> tuple[ParamSpec, ...]:
         specs = list(self.BASE)

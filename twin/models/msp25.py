@@ -43,7 +43,7 @@ import numpy as np
 from twin.errors import DataError
 from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at, slope_at
-from twin.params import Effect, ParamSpec
+from twin.params import Effect, ParamSpec, Tracking
 
 TWO_PI = 2.0 * math.pi
 
@@ -70,13 +70,21 @@ BASE = (
               1e-3),
     ParamSpec("Fext", "N", -1e6, 1e6, PH, "constant external force on the rod"),
     ParamSpec("stroke", "m", 1e-3, 10.0, G, "full stroke (+/- half about mid stroke)", "mm", 1e3),
-    ParamSpec("Ffric", "N", 0.0, 1e5, PN, "maximal dry friction force", typical=50.0),
+    # the phenomenological parameters drift as the rig wears; their Tracking says how the online twin follows
+    # them: healthy band (relative), expected drift (log units per sqrt(s)), physical range (factors of the
+    # rig's value) and the signal that makes each observable
+    ParamSpec("Ffric", "N", 0.0, 1e5, PN, "maximal dry friction force", typical=50.0,
+              tracking=Tracking(band=0.5, drift_rate=0.3, bounds=(1 / 20, 40.0), excited_by="rod_motion")),
     ParamSpec("CdAleak", "m^2", 1e-14, 1e-5, PN, "discharge coefficient times bypass area", "mm^2", 1e6,
-              typical=3.2863e-9),
-    ParamSpec("Cd", "1", 1e-3, 1.0, PN, "valve discharge coefficient", typical=0.2191),
-    ParamSpec("zeta", "1", 1e-3, 10.0, PN, "valve damping ratio", typical=0.3701),
+              typical=3.2863e-9,
+              tracking=Tracking(band=2.0, drift_rate=0.15, bounds=(1 / 100, 1000.0), excited_by="pressure_difference")),
+    ParamSpec("Cd", "1", 1e-3, 1.0, PN, "valve discharge coefficient", typical=0.2191,
+              tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 4, 4.0), excited_by="valve_command")),
+    ParamSpec("zeta", "1", 1e-3, 10.0, PN, "valve damping ratio", typical=0.3701,
+              tracking=Tracking(band=0.3, drift_rate=0.01, bounds=(1 / 5, 5.0), excited_by="valve_command")),
     ParamSpec("wn", "rad/s", TWO_PI * 1.0, TWO_PI * 1000.0, PN, "valve natural frequency", "Hz",
-              1.0 / TWO_PI, typical=TWO_PI * 43.0),
+              1.0 / TWO_PI, typical=TWO_PI * 43.0,
+              tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 3, 3.0), excited_by="valve_command")),
 )
 
 NOMINAL = {
@@ -452,11 +460,20 @@ class MSP25(Model):
     NOMINAL = NOMINAL
     EFFECTS = EFFECTS
     PHENOMENOLOGICAL = PHENOMENOLOGICAL
+    CLOSED_LOOP = True
+    TRACKABLE = True
     substeps = 3
     #: initial-state quantities: rod position and velocity, pressure difference or each chamber, spool
     INIT = ("x0", "dp0", "v0", "pA0", "pB0", "u0")
     #: the ones a fit may estimate per record
     INIT_FREE = ("x0", "dp0", "v0")
+
+    def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
+        """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""
+        lo, hi = super().tracking_bounds(ps, name)
+        if name == "Ffric":
+            hi = min(hi, ps["pP"] * ps["A"])
+        return lo, hi
 
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
         """Rod at ``x0`` moving at ``v0``, chambers at ``pA0``/``pB0``, spool where the command ``u0`` holds it.

@@ -6,7 +6,7 @@ A commissioning fit (``twin fit --save FIT.json``:
 * the rig's parameter values (known and fitted), which become the tracker's
   reference values and starting point;
 * the healthy bands of the tracked parameters: centred on the fitted values,
-  ``twin.service.config.DEFAULT_REL_BAND`` wide, widened to 3 standard errors of the fit;
+  as wide as each parameter's tracking band in the model, widened to 3 standard errors of the fit;
 * the sensor noise per output (the fit's residual RMS), the tracker's
   nominal noise (which it goes on learning online);
 * the loop's timing (controller rate, intersample).
@@ -26,7 +26,7 @@ from typing import Any
 from collections.abc import Mapping, Sequence
 
 from twin.errors import ConfigError, ParameterError
-from twin.models import get_model
+from twin.models import MODELS, get_model, trackable_models
 from twin.models.base import Timing
 
 NOISE_KEYS = ("x", "pA", "pB")
@@ -42,18 +42,19 @@ class Commission:
     timing: Timing | None
     effects: tuple[str, ...] = ()
     source: str = ""
+    model: str = "msp25"
 
     def baseline(self, names: Sequence[str], rel_band: Mapping[str, float] | None = None, k_sigma: float = 3.0):
         """Healthy bands of ``names`` centred on the fitted (or known) values."""
-        from twin.service.config import DEFAULT_REL_BAND, Baseline
+        from twin.online.drift import Baseline, default_band
 
-        bands = {**DEFAULT_REL_BAND, **dict(rel_band or {})}
+        bands = {**{n: default_band(self.model, n) for n in names}, **dict(rel_band or {})}
         out = {}
         for n in names:
             v, sd = self.fitted.get(n, (self.params.get(n, math.nan), math.nan))
             if not (v > 0 and math.isfinite(v)):
                 raise ConfigError(f"{self.source}: params.{n} (={v}) is not a positive number; no band around it")
-            r = float(bands.get(n, 0.3))
+            r = float(bands[n])
             if math.isfinite(sd):
                 r = max(r, k_sigma * sd / v)
             out[n] = Baseline(v, v / (1.0 + r), v * (1.0 + r))
@@ -71,15 +72,16 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{source}: expected a JSON object written by twin fit --save")
     model = doc.get("model", "msp25")
-    if model != "msp25":
-        raise ConfigError(f"{source}: model: a fit of {model!r}; the tracker follows the msp25")
+    if model not in MODELS or not get_model(model).TRACKABLE:
+        raise ConfigError(f"{source}: model: a fit of {model!r}; the online twin runs "
+                          f"{', '.join(trackable_models())}")
     params_in = doc.get("params", {})
     if not isinstance(params_in, Mapping) or not params_in:
         raise ConfigError(f"{source}: params must be an object of parameter values")
     std_in = doc.get("std", {}) or {}
     if not isinstance(std_in, Mapping):
         raise ConfigError(f"{source}: std must be an object of standard errors")
-    known = get_model("msp25").params().names
+    known = get_model(model).params().names
     params, fitted = {}, {}
     for n, v in params_in.items():
         if isinstance(v, Mapping):  # FitResult.to_dict(): {"value", "std", ...}
@@ -109,7 +111,7 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
         except ParameterError as exc:
             raise ConfigError(f"{source}: timing: {exc}") from None
     effects = tuple(doc.get("effects") or ())
-    return Commission(params, fitted, noise, timing, effects, source)
+    return Commission(params, fitted, noise, timing, effects, source, model)
 
 
 def read_saved(path: str, what: str) -> Any:
@@ -166,7 +168,7 @@ def commission_from_samples(samples, seconds: float, tracked: Sequence[str], par
     allp = base.as_dict()
     allp.update({k: float(v) for k, v in res.estimate.items()})
     fitted = {k: (float(res.estimate[k]), float(res.std.get(k, math.nan))) for k in tracked}
-    return Commission(allp, fitted, noise, timing, (), "commissioning fit")
+    return Commission(allp, fitted, noise, timing, (), "commissioning fit", model.name)
 
 
 def tracker_for(rig, dt: float | None = None, start: Mapping[str, float] | None = None):

@@ -17,7 +17,7 @@ already does.  The statistic is evaluated at ``rate_hz`` (20 Hz by default), and
 increment is weighted by ``1 / sqrt(g)`` with ``g`` the number of evaluation
 steps per independent sample of the estimate: a parameter tracked as a random
 walk of intensity ``q`` (log units^2 per s, the tracker's
-:data:`twin.online.tracker.DRIFT_RATE` squared) and known to ``sigma`` forgets with the
+the spec's tracking ``drift_rate`` squared) and known to ``sigma`` forgets with the
 time constant ``tau = sigma^2 / q`` (the Kalman-Bucy filter's memory), so its
 estimates at step ``1/rate`` are AR(1) with ``r = exp(-1 / (rate tau))`` and
 ``g = (1 + r) / (1 - r)`` (capped at ``max_ess_factor``).  With the weight the
@@ -44,10 +44,10 @@ at the band's edge within its own uncertainty accumulates nothing.  The
 statistic is capped at ``3 h_alarm`` so a parameter that comes back is
 declared returned within a bounded time.
 
-Baselines come from the rig configuration (:func:`twin.service.config.default_baseline`:
-the paper's Table 9 for the MSP25, with the bands of
-``twin.service.config.DEFAULT_REL_BAND``) or from a commissioning fit
-(:func:`baseline_from_fit`).
+Baselines (:class:`Baseline`) come from the rig's values (:func:`default_baseline`:
+the paper's Table 9 for the MSP25, with each parameter's healthy band declared
+beside its spec in the model, :class:`twin.params.Tracking`), the rig
+configuration, or a commissioning fit (:func:`baseline_from_fit`).
 """
 
 from __future__ import annotations
@@ -58,11 +58,42 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from twin.service.config import DEFAULT_REL_BAND, Baseline
 from twin.errors import ParameterError
+from twin.models import get_model
 from twin.online.events import AlarmEvent
 
-LEVELS = ("ok", "warning", "alarm")
+#: relative band of a parameter whose spec declares none (not tracked online)
+FALLBACK_BAND = 0.3
+
+
+@dataclasses.dataclass(frozen=True)
+class Baseline:
+    """Healthy value of one parameter and its band [lo, hi] (SI units)."""
+
+    value: float
+    lo: float
+    hi: float
+
+
+def default_band(model_name: str, name: str) -> float:
+    """The healthy band (relative half-width) of ``name``: its spec's tracking band, else
+    :data:`FALLBACK_BAND`."""
+    spec = get_model(model_name).params().spec(name) if name in get_model(model_name).kernel_names else None
+    return spec.tracking.band if spec is not None and spec.tracking is not None else FALLBACK_BAND
+
+
+def default_baseline(model_name: str, params: Mapping[str, float] | None = None,
+                     names: Sequence[str] | None = None) -> dict[str, Baseline]:
+    """Bands around the rig's values (the paper's Table 9 for the MSP25), each as wide as its spec's
+    tracking band."""
+    model = get_model(model_name)
+    ps = model.params((), **dict(params or {}))
+    out = {}
+    for n in names or model.PHENOMENOLOGICAL:
+        v = ps[n]
+        r = default_band(model_name, n)
+        out[n] = Baseline(v, v / (1 + r), v * (1 + r))
+    return out
 
 
 def baseline_from_fit(fit, names: Sequence[str] | None = None, rel_band: Mapping[str, float] | None = None,
@@ -70,8 +101,8 @@ def baseline_from_fit(fit, names: Sequence[str] | None = None, rel_band: Mapping
     """Healthy bands centred on a commissioning fit (:class:`twin.estimation.fit.FitResult`).
 
     Each band is ``[v / (1 + r), v (1 + r)]`` around the fitted value ``v`` with
-    ``r`` the configured relative band (``rel_band``, default
-    ``twin.service.config.DEFAULT_REL_BAND``), widened to ``k_sigma`` standard errors of
+    ``r`` the configured relative band (``rel_band``, default each parameter's
+    tracking band in the model), widened to ``k_sigma`` standard errors of
     the fit when the fit itself is less certain than that.  ``names``: the
     parameters to take (default: all free parameters of the fit).
     """
@@ -80,14 +111,15 @@ def baseline_from_fit(fit, names: Sequence[str] | None = None, rel_band: Mapping
     if missing:
         raise ParameterError(f"the commissioning fit did not estimate {', '.join(missing)}; "
                              f"it estimated {', '.join(fit.free)}")
-    bands = {**DEFAULT_REL_BAND, **dict(rel_band or {})}
+    model_name = fit.params.model
+    bands = {**{n: default_band(model_name, n) for n in names}, **dict(rel_band or {})}
     out = {}
     for n in names:
         v = float(fit.estimate[n])
         if not (v > 0 and math.isfinite(v)):
             raise ParameterError(f"the commissioning fit's {n} (={v}) is not a positive number; no band around it")
         sd = float(fit.std.get(n, math.nan))
-        r = float(bands.get(n, 0.3))
+        r = float(bands.get(n, FALLBACK_BAND))
         if math.isfinite(sd):
             r = max(r, k_sigma * sd / v)
         out[n] = Baseline(v, v / (1.0 + r), v * (1.0 + r))
@@ -110,7 +142,7 @@ class DriftMonitor:
     """Per-rig drift test; feed it the tracker's blocks with :meth:`update_block`.
 
     ``drift_rate``: each parameter's random-walk intensity in the filter (log
-    units per sqrt(s), default :data:`twin.online.tracker.DRIFT_RATE`), from which the
+    units per sqrt(s), default the ``drift_rate`` of its spec's tracking in ``model``), from which the
     estimate's correlation time is derived (see the module docstring);
     ``max_ess_factor`` caps the autocorrelation correction.
     """
@@ -118,14 +150,14 @@ class DriftMonitor:
     def __init__(self, rig: str, baseline: Mapping[str, Baseline], kappa: float = 1.0, h_warn: float = 4.0,
                  h_alarm: float = 10.0, rate_hz: float = 20.0, hold_s: float = 1.0, resolve: float = 0.5,
                  settle_s: float = 2.0, drift_rate: Mapping[str, float] | None = None,
-                 max_ess_factor: float = 1000.0):
-        from twin.online.tracker import DRIFT_RATE
-
+                 max_ess_factor: float = 1000.0, model: str = "msp25"):
+        m = get_model(model)
         self.rig = rig
         self.kappa, self.h_warn, self.h_alarm = kappa, h_warn, h_alarm
         self.rate_hz, self.hold_s, self.resolve, self.settle_s = rate_hz, hold_s, resolve, settle_s
         self.params = {n: _ParamState(n, b) for n, b in baseline.items()}
-        self.drift_rate = {**DRIFT_RATE, **dict(drift_rate or {})}
+        self.drift_rate = {**{n: m.tracking(n).drift_rate for n in baseline if n in m.trackable},
+                           **dict(drift_rate or {})}
         self.max_ess_factor = float(max_ess_factor)
         self.guard = "consistent"
         self._next_t: float | None = None

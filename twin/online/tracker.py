@@ -14,9 +14,11 @@ Time is read from the timestamps: the filter predicts across the real time
 between samples (dropped rows, lost frames), and re-initialises the model
 states from the measurement after a gap longer than ``gap_max`` seconds.
 
-The tracked parameters move between physical bounds (:data:`PHYSICAL_BOUNDS`)
-with a random walk whose intensity is the expected drift rate of each
-parameter (:data:`DRIFT_RATE`):
+The tracked parameters move between physical bounds with a random walk whose
+intensity is the expected drift rate of each parameter; both are declared
+beside the parameter's spec in the model (:class:`twin.params.Tracking`, for the
+MSP25 in ``twin/models/msp25.py``; the stall-force cap is
+:meth:`MSP25.tracking_bounds`):
 
 =========  ==========================  =====================================================
 parameter  bounds (x the rig's value)  expected drift (log units per sqrt(s)) and why
@@ -47,17 +49,11 @@ from scipy import stats
 from replay.base import Samples
 from twin.online import ukf
 from twin.errors import DataError, FilterError, ParameterError
-from twin.models import get_model
+from twin.models import get_model, trackable_models
 from twin.models import msp25 as M
 from twin.models.base import Timing
+from twin.params import EXCITATION
 
-#: physical bounds of each tracked parameter as factors of the rig's (reference) value
-PHYSICAL_BOUNDS = {"Ffric": (1 / 20, 40.0), "CdAleak": (1 / 100, 1000.0), "Cd": (1 / 4, 4.0),
-                   "zeta": (1 / 5, 5.0), "wn": (1 / 3, 3.0)}
-#: expected drift rate of each parameter: random-walk intensity in log units per sqrt(second)
-DRIFT_RATE = {"Ffric": 0.3, "CdAleak": 0.15, "Cd": 0.01, "zeta": 0.01, "wn": 0.01}
-#: kept for callers of the old name
-DEFAULT_Q_RATE = DRIFT_RATE
 #: nominal sensor noise (standard deviation, SI) when neither the rig nor a commissioning fit says
 DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4}
 #: per-step process noise of the scaled model states (filter units, variance per sample at 1 kHz)
@@ -117,11 +113,6 @@ class TrackBlock:
     used: np.ndarray | None = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
 
     @property
-    def param_status(self) -> np.ndarray:
-        """Per sample and parameter: 'frozen' or 'ok'."""
-        return np.where(self.frozen, "frozen", "ok")
-
-    @property
     def hold(self) -> np.ndarray:
         """[T] bool: the drift test holds its evidence on these samples (the filter is not consistent)."""
         if self.guard is None:
@@ -133,19 +124,6 @@ class TrackBlock:
         if self.sensors is None or not len(self.t_ns):
             return {}
         return {o: str(self.sensors[i, j]) for j, o in enumerate(self.outputs)}
-
-
-def physical_bounds(ps, name: str) -> tuple[float, float]:
-    """(lo, hi) in SI of a tracked parameter for the rig ``ps`` (:data:`PHYSICAL_BOUNDS`)."""
-    v = ps[name]
-    f_lo, f_hi = PHYSICAL_BOUNDS[name]
-    lo, hi = v * f_lo, v * f_hi
-    if name == "Ffric":
-        hi = min(hi, ps["pP"] * ps["A"])  # friction cannot exceed the actuator's stall force
-    if name == "Cd":
-        hi = min(hi, 1.0)
-    spec = ps.spec(name)
-    return max(lo, spec.lo if spec.lo > 0 else lo), min(hi, spec.hi)
 
 
 class OnlineTracker:
@@ -171,14 +149,15 @@ class OnlineTracker:
                  noise: Mapping[str, float] | None = None, timing=None, adapt_noise: bool = True,
                  guard: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
                  noise_colour: Mapping[str, float] | None = None):
-        if model != "msp25":
-            raise ParameterError(f"the tracker follows the msp25 rig model, not {model!r}")
         self.model = get_model(model)
+        if not self.model.TRACKABLE:
+            raise ParameterError(f"the online twin does not run the {model} model; it runs: "
+                                 f"{', '.join(trackable_models())}")
         self.ps = self.model.params((), **dict(params or {}))
         self.tracked = tuple(tracked)
-        bad = [t for t in self.tracked if t not in ukf.TRACKABLE]
+        bad = [t for t in self.tracked if t not in self.model.trackable]
         if bad or not self.tracked:
-            raise ParameterError(f"cannot track {bad or 'nothing'}; trackable: {', '.join(ukf.TRACKABLE)}")
+            raise ParameterError(f"cannot track {bad or 'nothing'}; trackable: {', '.join(self.model.trackable)}")
         self.outputs = tuple(o for o in outputs)
         for o in self.outputs:
             if o not in ukf.MEAS_INDEX:
@@ -189,7 +168,7 @@ class OnlineTracker:
         self.timing = timing or Timing()
         start = {**{t: self.ps[t] for t in self.tracked}, **dict(start or {})}
         self.ref = np.array([self.ps[t] for t in self.tracked])
-        bnd = {t: physical_bounds(self.ps, t) for t in self.tracked}
+        bnd = {t: self.model.tracking_bounds(self.ps, t) for t in self.tracked}
         for t, (lo, hi) in dict(bounds or {}).items():
             if t not in bnd:
                 raise ParameterError(f"bounds for {t!r}, which is not tracked ({', '.join(self.tracked)})")
@@ -228,7 +207,7 @@ class OnlineTracker:
         self.lam = spread - n
         self.Wm = np.ascontiguousarray(self.points.Wm, dtype=float)
         self.Wc = np.ascontiguousarray(self.points.Wc, dtype=float)
-        rates = {**DRIFT_RATE, **dict(q_rate or {})}
+        rates = {**{t: self.model.tracking(t).drift_rate for t in self.tracked}, **dict(q_rate or {})}
         self.q_rate = np.array([rates[t] for t in self.tracked], dtype=float)
         self.q_state = np.array(DEFAULT_Q_STATE if q_state is None else q_state, dtype=float)
         self.meas_idx = np.array([ukf.MEAS_INDEX[o] for o in self.outputs], dtype=np.int64)
@@ -239,7 +218,8 @@ class OnlineTracker:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ParameterError(f"noise level of {o} must be a positive number (SI), got {v!r}")
         self.noise_nominal = {o: float(noise[o]) for o in self.outputs}
-        self.chan = np.array([ukf.EXCITE_CHANNEL[t] for t in self.tracked], dtype=np.int64)
+        self.chan = np.array([EXCITATION.index(self.model.tracking(t).excited_by) for t in self.tracked],
+                             dtype=np.int64)
         self.excite_thresh = np.array(excite, dtype=float)
         self.tau_excite = tau_excite
         self.gate = float(stats.chi2.isf(gate_p, len(self.outputs)))
@@ -467,11 +447,6 @@ class OnlineTracker:
         w, V = np.linalg.eigh(self.P)
         w[0] = -abs(w[-1])
         self.P[:, :] = (V * w) @ V.T
-
-    @property
-    def rel_std(self) -> np.ndarray:
-        p = len(self.tracked)
-        return np.sqrt(np.maximum(np.diag(self.P)[6:6 + p], 0.0)) * self.dlog_dz(self.x[6:6 + p])
 
     def __repr__(self) -> str:
         return (f"OnlineTracker(tracked={self.tracked}, outputs={self.outputs}, dt={self.dt}, "

@@ -8,7 +8,7 @@ State (``n = 6 + p + q``):
 * ``p`` tracked phenomenological parameters, each as a *logit between its
   physical bounds*: ``theta = lo * (hi/lo) ** sigmoid(z)``.  An estimate can
   never leave ``[lo, hi]`` (the bounds are a property of the physics, see
-  :data:`twin.online.tracker.PHYSICAL_BOUNDS`), and no sigma point can either;
+  :meth:`twin.models.base.Model.tracking_bounds`), and no sigma point can either;
 * ``q`` sensor-noise states, one per measured output: an AR(1) process
   ``eta' = a eta + w``, ``var(eta) = sigma^2`` (scaled units).  ``a = 0`` is
   white noise; ``a > 0`` is coloured noise, which the filter then separates
@@ -81,9 +81,8 @@ from twin.models.intersample import input_at
 STATE_SCALE = np.array([1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1])
 #: measured outputs and their state index
 MEAS_INDEX = {"x": 4, "pA": 2, "pB": 3}
-TRACKABLE = M.PHENOMENOLOGICAL
-#: which excitation channel each parameter needs: 0 rod motion, 1 valve command, 2 pressure difference
-EXCITE_CHANNEL = {"Ffric": 0, "CdAleak": 2, "Cd": 1, "zeta": 1, "wn": 1}
+#: excitation channels (``chan`` of the kernel) follow :data:`twin.params.EXCITATION`: 0 rod motion,
+#: 1 valve command, 2 pressure difference; each parameter's is declared in its spec's Tracking
 #: largest standard deviation (log units) the parameter random walk grows a parameter's uncertainty to
 PARAM_STD_CAP = 1.0
 STATUS = ("ok", "gated", "repaired_covariance", "stale_input", "frozen", "gap", "reinitialised", "recovered",

@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from twin.models import get_model
 from twin.reports import page as P
 from twin.reports import views
 from twin.reports.units import Shown, fmt, pct, signal_unit
@@ -108,7 +109,7 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
         for name in ("x_ref", "u"):
             if all(name in rec for rec in records):
                 ins[name] = np.concatenate([rec[name] for rec in records])
-        closed = ("u",) if model_name == "msp25" else ()
+        closed = ("u",) if get_model(model_name).CLOSED_LOOP else ()
         dt = float(records[0].dt)
         fig = views.resid_figure(res, ins, dt, max_lag=max_lag, closed_loop=closed)
         cap = (f"Residual analysis over {len(records)} record(s), lags up to {max_lag} samples: autocorrelation "

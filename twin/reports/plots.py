@@ -232,7 +232,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
         xv = reg.get(var, reg["velocity"])
         # (residual before, the effect's contribution, noise level) per signal shown
         shown = {o: (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0)) for o in outs}
-        if diag.model == "msp25" and {"pA", "pB"} <= set(outs):
+        if {"pA", "pB"} <= set(outs):
             area = diag.final.params["A"]
             dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
             shown["force [N]"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),

@@ -32,7 +32,7 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
     [rig.params]                        # known parameters that differ from the nominal MSP25
     KP = 400.0
-    [rig.baseline.Ffric]                # healthy band (default: nominal value, DEFAULT_REL_BAND)
+    [rig.baseline.Ffric]                # healthy band (default: nominal value, the parameter's tracking band)
     value = 50.0
     rel_band = 0.3                      # or lo = ..., hi = ...
 
@@ -52,21 +52,10 @@ import tomllib
 from typing import Any
 
 from twin.errors import ConfigError, ParameterError
+from twin.online.drift import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
-from twin.models import MODELS, get_model
+from twin.models import MODELS, get_model, trackable_models
 from twin.models.base import Timing
-
-DEFAULT_REL_BAND = {"Ffric": 0.5, "CdAleak": 2.0, "Cd": 0.15, "zeta": 0.3, "wn": 0.15}
-
-
-@dataclasses.dataclass(frozen=True)
-class Baseline:
-    """Healthy value of one parameter and its band [lo, hi] (SI units)."""
-
-    value: float
-    lo: float
-    hi: float
-
 
 @dataclasses.dataclass(frozen=True)
 class RigConfig:
@@ -113,19 +102,6 @@ RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "basel
             "intersample", "commission")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
-
-
-def default_baseline(model_name: str, params: dict[str, float] | None = None,
-                     names: tuple[str, ...] | None = None) -> dict[str, Baseline]:
-    """Bands around the rig configuration's values (the paper's Table 9 for the MSP25)."""
-    model = get_model(model_name)
-    ps = model.params((), **(params or {}))
-    out = {}
-    for n in names or model.PHENOMENOLOGICAL:
-        v = ps[n]
-        r = DEFAULT_REL_BAND.get(n, 0.3)
-        out[n] = Baseline(v, v / (1 + r), v * (1 + r))
-    return out
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -284,8 +260,9 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     where = f"{path}: rig {name!r}"
     _check_keys(r, RIG_KEYS, where)
     model_name = _get(r, "model", str, where, "msp25")
-    if model_name not in MODELS:
-        raise ConfigError(f"{where}.model: {model_name!r} is not one of {', '.join(MODELS)}")
+    if model_name not in MODELS or not get_model(model_name).TRACKABLE:
+        raise ConfigError(f"{where}.model: {model_name!r} is not a model the online twin runs; it runs "
+                          f"{', '.join(trackable_models())}")
     model = get_model(model_name)
     params_doc = _get(r, "params", dict, where, {})
     names = model.params().names
@@ -357,7 +334,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
             lo = _number(b, "lo", bw, lo=0.0, lo_open=True)
             hi = _number(b, "hi", bw, lo=0.0, lo_open=True)
         else:
-            rb = _number(b, "rel_band", bw, DEFAULT_REL_BAND.get(pname, 0.3), lo=0.0, lo_open=True,
+            rb = _number(b, "rel_band", bw, default_band(model_name, pname), lo=0.0, lo_open=True,
                          what=" (the band is value/(1+rel_band) .. value*(1+rel_band))")
             lo, hi = v / (1 + rb), v * (1 + rb)
         if not lo < v < hi:

@@ -142,7 +142,7 @@ class RigTwin(Sink):
         self.estimate_every = int(estimate_every)
         self.on_alarm = on_alarm
         self.tracker = tracker_for(rig, dt=dt)
-        self.drift = DriftMonitor(rig.name, rig.baseline)
+        self.drift = DriftMonitor(rig.name, rig.baseline, model=rig.model)
         self.stats = RigStats()
         self.health = Health()
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)

@@ -92,7 +92,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``tracker.counters``.
     """
     from replay.mcapio import McapSink
-    from twin.service.config import RigConfig, default_baseline
+    from twin.online.drift import default_baseline
+    from twin.service.config import RigConfig
     from twin.models import msp25 as M
     from twin.service.rig import RigTwin
 
