@@ -106,7 +106,7 @@ class _Statuses:
     def __init__(self, endpoint: str) -> None:
         import zenoh
 
-        from twin.service.bus import zenoh_config
+        from replay.zenohconf import zenoh_config
 
         self.q: queue.Queue = queue.Queue()
         self.session = zenoh.open(zenoh_config("peer", connect=[endpoint]))

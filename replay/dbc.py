@@ -344,8 +344,8 @@ class VectorCodec:
 
     ``decode_raw(key, data)`` returns, for every signal of the message, the physical
     value in the DBC unit (float64, what ``cantools`` returns with
-    ``decode_choices=False``); ``decode_rig(key, data)`` returns the mapped rig signals
-    in SI units.  ``encode(key, values)`` is the inverse (DBC units in, (n, 8) bytes out).
+    ``decode_choices=False``; the rig signals in SI come from each signal's ``si_factor`` and
+    ``si_offset``).  ``encode(key, values)`` is the inverse (DBC units in, (n, 8) bytes out).
     """
 
     def __init__(self, db: cantools.database.can.Database | str | Path | None = None) -> None:
@@ -417,18 +417,6 @@ class VectorCodec:
             decoded = cast(dict[str, float], msg.decode(bytes(row[: lay.length]), decode_choices=False))
             for k, v in decoded.items():
                 out[k][i] = float(v)
-        return out
-
-    def decode_rig(self, key: int, data: np.ndarray) -> dict[str, np.ndarray]:
-        """Rig signals (SI units) and the rolling counter (key ``"counter"``) of message ``key``."""
-        lay = self.messages[int(key)]
-        phys = self.decode_raw(key, data)
-        out = {}
-        for s in lay.signals:
-            if s.rig is None:
-                continue
-            v = phys[s.name]
-            out[s.rig] = v if s.rig == COUNTER else v * s.si_factor + s.si_offset
         return out
 
     def out_of_range(self, key: int, phys: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -99,11 +99,9 @@ import json
 import logging
 import math
 import queue
-import re
 import threading
 import time
 from collections import Counter
-from pathlib import Path
 from collections.abc import Iterator, Sequence
 from urllib.parse import urlparse
 
@@ -111,6 +109,7 @@ import can
 import numpy as np
 import zenoh
 
+from replay.zenohconf import open_session, zenoh_config
 from replay.base import Problem, ReadReport, Samples, Sink, Source
 from replay.canio import (BLOCK_FRAMES, CanStream, FrameScheduler, _split, frames_to_messages, make_plan,
                           probe_plan)
@@ -171,47 +170,11 @@ def open_bus(uri_or_bus: str | can.BusABC, **kwargs) -> tuple[can.BusABC, bool]:
         raise SourceError(f"{uri_or_bus}: cannot open CAN bus: {type(e).__name__}: {e}{hint}") from e
 
 
-_ENDPOINT = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<addr>.+)$")
-
-
-def check_endpoint(endpoint: str) -> str:
-    """``proto/host:port`` as Zenoh takes it; SourceError naming it if the form or port is wrong."""
-    m = _ENDPOINT.match(endpoint.strip())
-    if not m:
-        raise SourceError(f"Zenoh endpoint {endpoint!r}: expected PROTO/HOST:PORT, e.g. tcp/127.0.0.1:7447")
-    addr = m.group("addr").split("#", 1)[0]
-    if m.group("proto") in ("tcp", "udp", "tls", "quic", "ws"):
-        host, sep, port = addr.rpartition(":")
-        if not sep or not host:
-            raise SourceError(f"Zenoh endpoint {endpoint!r}: no port; expected PROTO/HOST:PORT, "
-                              "e.g. tcp/127.0.0.1:7447")
-        if not port.isdigit() or not 0 <= int(port) <= 65535:
-            raise SourceError(f"Zenoh endpoint {endpoint!r}: port {port!r} is not a port number in 0..65535")
-    return endpoint.strip()
-
-
-def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (), *, multicast_scouting: bool = False,
-                 config_file: str | Path | None = None) -> zenoh.Config:
-    """A Zenoh config: optional json5 file, explicit endpoints (e.g. ``tcp/127.0.0.1:7447``), scouting."""
-    listen = [check_endpoint(e) for e in listen]
-    connect = [check_endpoint(e) for e in connect]
-    try:
-        conf = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
-    except Exception as e:  # zenoh raises ZError for a bad file
-        raise SourceError(f"{config_file}: cannot load Zenoh config: {e}") from e
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    conf.insert_json5("scouting/multicast/enabled", "true" if multicast_scouting else "false")
-    return conf
 
 
 def _open_session(conf: zenoh.Config | None, what: str) -> zenoh.Session:
-    try:
-        return zenoh.open(conf if conf is not None else zenoh_config(multicast_scouting=True))
-    except Exception as e:  # ZError: endpoint in use, unreachable
-        raise SourceError(f"{what}: cannot open Zenoh session: {e}") from e
+    """A session from ``conf`` (default: peer, scouting on, to find the rig's publisher on the LAN)."""
+    return open_session(conf if conf is not None else zenoh_config(multicast_scouting=True), what)
 
 
 # --- payloads ------------------------------------------------------------------------------------
@@ -695,7 +658,7 @@ class ZenohCanSink(_ZenohPublisher):
 
     ``write(samples)`` encodes samples into the rig's frames with the DBC (like
     :class:`~replay.canio.CanLogSink`); ``write_frames(frames)`` forwards frames as they
-    are (a bus or a log bridged to Zenoh); ``write_messages`` takes python-can messages.
+    are (a bus or a log bridged to Zenoh).
     """
 
     def __init__(self, key: str, dbc=None, config: zenoh.Config | None = None, *,
@@ -711,12 +674,6 @@ class ZenohCanSink(_ZenohPublisher):
     def write_frames(self, frames: Frames) -> None:
         if len(frames):
             self._put(frames_to_payload(frames))
-
-    def write_messages(self, messages) -> None:
-        coll = FrameCollector()
-        for m in messages:
-            coll.add(m)
-        self.write_frames(coll.take())
 
     def _send_end(self) -> None:
         if self.end_marker:

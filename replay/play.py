@@ -128,10 +128,11 @@ def _open_sink(args: argparse.Namespace) -> Sink:
         from replay.live import CanBusSink
 
         return CanBusSink(args.channel, dbc=args.dbc)
-    from replay.live import ZenohCanSink, ZenohSampleSink, zenoh_config
+    from replay.live import ZenohCanSink, ZenohSampleSink
+    from replay.zenohconf import zenoh_config
 
     conf = zenoh_config(listen=args.zenoh_listen or (), connect=args.zenoh_connect or (),
-                        multicast_scouting=not (args.zenoh_listen or args.zenoh_connect),
+                        multicast_scouting=None if args.zenoh_config else not (args.zenoh_listen or args.zenoh_connect),
                         config_file=args.zenoh_config)
     if args.payload == "can":
         return ZenohCanSink(args.key, dbc=args.dbc, config=conf)

@@ -283,12 +283,12 @@ def _duration(text: str) -> float:
 
 def cmd_record(args: argparse.Namespace) -> int:
     from replay.cli import loss_warning
-    from replay.live import zenoh_config
+    from replay.zenohconf import zenoh_config
 
     conf = None
     if args.input.startswith("zenoh://"):
         conf = zenoh_config(listen=args.zenoh_listen or (), connect=args.zenoh_connect or (),
-                            multicast_scouting=not (args.zenoh_listen or args.zenoh_connect),
+                            multicast_scouting=None if args.zenoh_config else not (args.zenoh_listen or args.zenoh_connect),
                             config_file=args.zenoh_config)
     stop = threading.Event()
 

@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from twin import cli
-from twin.service.bus import zenoh_config
+from replay.zenohconf import zenoh_config
 from twin.commands.demo import free_port
 
 GOOD = """

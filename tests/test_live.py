@@ -17,7 +17,8 @@ import zenoh
 from replay.base import Samples
 from benchmarks.can import msp25_samples
 from replay.live import (CanBusSink, CanBusSource, ZenohCanSink, ZenohSampleSink, ZenohSource, frames_to_payload,
-                         parse_can_uri, payload_to_frames, zenoh_config)
+                         parse_can_uri, payload_to_frames)
+from replay.zenohconf import zenoh_config
 from replay.live import samples_to_json as samples_json
 from replay.canio import FrameScheduler
 from replay.dbc import VectorCodec
@@ -184,7 +185,8 @@ def test_can_payload_round_trip():
 def _publish_can_in_child(endpoint: str, key: str, seconds: float, seed: int) -> None:
     """Another process: encode samples to MSP25 frames and publish them raw on Zenoh."""
     from benchmarks.can import msp25_samples as make
-    from replay.live import ZenohCanSink as Sink, zenoh_config as conf
+    from replay.live import ZenohCanSink as Sink
+    from replay.zenohconf import zenoh_config as conf
 
     with Sink(key, config=conf(connect=[endpoint])) as sink:
         if not sink.wait_for_subscriber(10.0):

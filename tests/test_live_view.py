@@ -22,7 +22,8 @@ import zenoh
 from websockets.sync.client import connect
 
 from replay.base import Samples
-from twin.service.bus import TwinPublisher, zenoh_config
+from twin.service.bus import TwinPublisher
+from replay.zenohconf import zenoh_config
 from twin.online.drift import default_baseline
 from twin.commands.demo import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate

@@ -21,7 +21,8 @@ import pytest
 from replay.base import Samples
 from benchmarks.can import msp25_samples
 from replay.canio import CanLogSink, CanLogSource
-from replay.live import CanBusSink, ZenohSource, zenoh_config
+from replay.live import CanBusSink, ZenohSource
+from replay.zenohconf import zenoh_config
 from replay.play import play, register
 
 class JitterProbe:

@@ -20,7 +20,8 @@ from benchmarks.can import msp25_samples
 from replay.canio import FrameScheduler, frames_to_messages
 from replay.dbc import VectorCodec
 from replay.factory import open_source
-from replay.live import ZenohCanSink, ZenohSampleSink, zenoh_config
+from replay.live import ZenohCanSink, ZenohSampleSink
+from replay.zenohconf import zenoh_config
 from replay.record import record
 
 LSB_X = 1e-7

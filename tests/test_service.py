@@ -15,7 +15,8 @@ from mcap.reader import make_reader
 
 from replay.mcapio import McapSink
 from twin import cli
-from twin.service.bus import AlarmSubscriber, zenoh_config
+from twin.service.bus import AlarmSubscriber
+from replay.zenohconf import zenoh_config
 from twin.service.config import parse_config
 from twin.commands.demo import free_port
 from twin.commands.demo import run as run_demo

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from twin.service.bus import TwinPublisher, zenoh_config
+from twin.service.bus import TwinPublisher
+from replay.zenohconf import zenoh_config
 from twin.commands.demo import free_port
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.service.journal import AlarmJournal

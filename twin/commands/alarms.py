@@ -14,8 +14,8 @@ import zenoh
 from replay.argtypes import non_negative_seconds, positive_int, positive_seconds
 from twin.errors import SourceError
 from twin.online.events import event_to_json, format_alarm
-from twin.service.bus import (AlarmSubscriber, RigKeys, check_endpoint, config_endpoints, live_twins, open_session,
-                              zenoh_config)
+from twin.service.bus import AlarmSubscriber, RigKeys, live_twins
+from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
 
 _DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")
 _UNIT_S = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}

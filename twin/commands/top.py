@@ -172,7 +172,8 @@ def _fill(session, state: TopState, rig: str, timeout: float) -> None:
 
 
 def run_top(args) -> int:
-    from twin.service.bus import RigKeys, check_endpoint, config_endpoints, open_session, zenoh_config
+    from twin.service.bus import RigKeys
+    from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
     from twin.errors import SourceError
     from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 

@@ -158,7 +158,7 @@ def _strings(d: dict, key: str, where: str) -> list[str]:
 
 
 def _endpoints(z: dict, key: str, where: str) -> tuple[str, ...]:
-    from twin.service.bus import check_endpoint
+    from replay.zenohconf import check_endpoint
 
     items = _strings(z, key, where)
     for i, item in enumerate(items):

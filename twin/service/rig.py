@@ -323,7 +323,7 @@ def zenoh_settings(cfg: ServiceConfig):
     """The service's Zenoh configuration: ``ZENOH_CONFIG`` (if set), then what ``[zenoh]`` gives explicitly."""
     import os
 
-    from twin.service.bus import zenoh_config
+    from replay.zenohconf import zenoh_config
     from twin.errors import ConfigError
 
     file = os.environ.get("ZENOH_CONFIG") or None
@@ -336,7 +336,7 @@ def zenoh_settings(cfg: ServiceConfig):
 
 
 def open_service_session(cfg: ServiceConfig):
-    from twin.service.bus import open_session
+    from replay.zenohconf import open_session
 
     return open_session(zenoh_settings(cfg), "twin serve")
 
@@ -352,7 +352,7 @@ def add_serve_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def startup_line(cfg: ServiceConfig, workers: int) -> str:
-    from twin.service.bus import config_endpoints
+    from replay.zenohconf import config_endpoints
 
     from twin.service.fleet import journal_path
 

@@ -15,7 +15,7 @@ import threading
 
 
 def main(argv=None) -> int:
-    from twin.service.bus import config_endpoints, open_session, zenoh_config
+    from replay.zenohconf import config_endpoints, open_session, zenoh_config
     from twin.errors import TwinError
 
     ap = argparse.ArgumentParser(prog="python -m twin.service.router", description=__doc__.split("\n")[0])
