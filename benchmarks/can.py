@@ -2,8 +2,8 @@
 
 ``run()`` builds MSP25 traffic (seeded), then, in one run on the same frames, times
 
-* ``vectorised``: :class:`replay.canio.FrameDecoder` (checks + DBC-driven numpy decode)
-  and :class:`replay.canio.Aligner` over numpy frame blocks, in frames/s;
+* ``vectorised``: :class:`replay.can.decode.FrameDecoder` (checks + DBC-driven numpy decode)
+  and :class:`replay.can.decode.Aligner` over numpy frame blocks, in frames/s;
 * ``cantools``: a plain loop ``db.decode_message(id, data)`` per frame (decode only,
   no checks, no alignment), in frames/s;
 
@@ -24,8 +24,11 @@ from typing import Any
 import numpy as np
 
 from replay.base import ReadReport, Samples
-from replay.canio import FORMATS, CanLogSink, CanLogSource, CanStream, FrameScheduler, make_plan
-from replay.dbc import Frames, VectorCodec
+from replay.can.decode import CanStream, make_plan
+from replay.can.logs import FORMATS
+from replay.can.encode import FrameScheduler
+from replay.can.logs import CanLogSink, CanLogSource
+from replay.can.codec import Frames, VectorCodec
 
 
 def msp25_samples(seconds: float, seed: int = 0, rate_hz: float = 1000.0,

@@ -19,7 +19,7 @@ from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 
 from benchmarks.can import msp25_samples
-from replay.canio import CanLogSink
+from replay.can.logs import CanLogSink
 from replay.factory import open_source
 from replay.mcapio import McapSink
 

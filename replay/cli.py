@@ -40,11 +40,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from replay import formats
+from replay.options import add_input_options, loss_warning, source_options
 from replay.factory import open_sink, open_source
 from replay.errors import TwinError
 
-#: Exit status of a command that completed but lost input on the way.
-EXIT_LOSS = 3
 
 try:
     from replay import play as _play
@@ -59,45 +58,6 @@ def version() -> str:
         return metadata.version("fpdd-twin")
     except metadata.PackageNotFoundError:  # running from a source tree
         return "0+unknown"
-
-
-def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
-    """Constructor options for the input's source; each option only where its format takes it.
-
-    Raises :class:`argparse.ArgumentTypeError` for an option its input does not take and
-    :class:`~twin.errors.DataError` for a malformed ``--map``.
-    """
-    from replay.csvio import parse_map
-
-    suffix = formats.suffix_of(path)
-    options: dict[str, Any] = {}
-    if getattr(args, "dbc", None):
-        if suffix not in formats.CAN_LOG_SUFFIXES:
-            raise argparse.ArgumentTypeError(f"--dbc applies to CAN logs ({', '.join(formats.CAN_LOG_SUFFIXES)}), "
-                                             f"not to {path}")
-        options["dbc"] = args.dbc
-    if getattr(args, "map", None):
-        if suffix != ".csv":
-            raise argparse.ArgumentTypeError(f"--map applies to CSV input, not to {path}")
-        try:
-            options["mapping"] = parse_map(args.map)
-        except TwinError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
-    if getattr(args, "topic", None):
-        if suffix != ".mcap":
-            raise argparse.ArgumentTypeError(f"--topic applies to MCAP input, not to {path}")
-        options["topic"] = args.topic
-    return options
-
-
-def add_input_options(p: argparse.ArgumentParser) -> None:
-    """``--dbc``, ``--map``, ``--topic``: the options of a command that reads a record."""
-    p.add_argument("--dbc", metavar="FILE", help="DBC file for CAN logs (default: the MSP25 DBC shipped)")
-    p.add_argument("--map", metavar="NAME=COLUMN[:UNIT]", action="append", default=[],
-                   help="CSV input: signal NAME is in column COLUMN, in UNIT (converted to SI), e.g. x=pos_mm:mm, "
-                        "t=time:ms (repeatable)")
-    p.add_argument("--topic", metavar="TOPIC", help="MCAP input: the samples topic (default: "
-                   "/rig/signals_block if present, else /rig/signals)")
 
 
 def info(path: str, **options: Any) -> dict[str, Any]:
@@ -205,14 +165,6 @@ def convert(src_path: str, dst_path: str, **options: Any) -> dict[str, Any]:
             for block in src.chunks():
                 sink.write(block)
         return {"input": src.report.to_dict(), "summary": src.report.summary(), "output": dst_path}
-
-
-def loss_warning(report: dict[str, Any] | None) -> int:
-    """Print the loss line of a read report (``ReadReport.to_dict()``); EXIT_LOSS if input was lost."""
-    if not report or not report.get("lossy"):
-        return 0
-    print(f"replay: warning: {report['loss_line']}", file=sys.stderr)
-    return EXIT_LOSS
 
 
 class _Parser(argparse.ArgumentParser):

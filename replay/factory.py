@@ -5,9 +5,9 @@ path or URI                 source / sink
 ==========================  ==============================================================
 ``*.csv``                   :class:`replay.csvio.CsvSource` / :class:`~replay.csvio.CsvSink`
 ``*.mcap``                  :class:`replay.mcapio.McapSource` / :class:`~replay.mcapio.McapSink`
-``*.asc .blf .log .trc``    ``replay.canio.CanLogSource(path, dbc=..., **options)`` /
-                            ``replay.canio.CanLogSink(path, **options)``
-``can://INTERFACE/CHANNEL`` ``replay.live.CanBusSource(uri, **options)``
+``*.asc .blf .log .trc``    ``replay.can.logs.CanLogSource(path, dbc=..., **options)`` /
+                            ``replay.can.logs.CanLogSink(path, **options)``
+``can://INTERFACE/CHANNEL`` ``replay.can.bus.CanBusSource(uri, **options)``
 ``zenoh://KEYEXPR``         ``replay.live.ZenohSource(uri, **options)``
 ==========================  ==============================================================
 

@@ -9,10 +9,10 @@ suffix      kind        source / sink                        python-can reader /
 ==========  ==========  ===================================  ============================
 ``.csv``    samples     ``replay.csvio.CsvSource/CsvSink``   -
 ``.mcap``   samples     ``replay.mcapio.McapSource/McapSink``  -
-``.asc``    can (text)  ``replay.canio.CanLogSource/Sink``   ``ASCReader`` / ``ASCWriter``
-``.blf``    can         ``replay.canio.CanLogSource/Sink``   ``BLFReader`` / ``BLFWriter``
-``.log``    can (text)  ``replay.canio.CanLogSource/Sink``   ``CanutilsLogReader`` / ``...Writer``
-``.trc``    can (text)  ``replay.canio.CanLogSource/Sink``   ``TRCReader`` / ``TRCWriter``
+``.asc``    can (text)  ``replay.can.logs.CanLogSource/Sink``   ``ASCReader`` / ``ASCWriter``
+``.blf``    can         ``replay.can.logs.CanLogSource/Sink``   ``BLFReader`` / ``BLFWriter``
+``.log``    can (text)  ``replay.can.logs.CanLogSource/Sink``   ``CanutilsLogReader`` / ``...Writer``
+``.trc``    can (text)  ``replay.can.logs.CanLogSource/Sink``   ``TRCReader`` / ``TRCWriter``
 ==========  ==========  ===================================  ============================
 
 Classes are named as ``"module:Class"`` strings and imported only when asked for
@@ -31,7 +31,7 @@ from replay.errors import LogFormatError
 
 #: URI schemes of live inputs (``can://INTERFACE/CHANNEL``, ``zenoh://KEYEXPR``).
 URI_SCHEMES: dict[str, str] = {
-    "can": "replay.live:CanBusSource",
+    "can": "replay.can.bus:CanBusSource",
     "zenoh": "replay.live:ZenohSource",
 }
 
@@ -59,13 +59,13 @@ FORMATS: dict[str, Format] = {f.suffix: f for f in (
            "CSV file (header row t,<signals>, one row per sample)", text=True),
     Format(".mcap", "samples", "replay.mcapio:McapSource", "replay.mcapio:McapSink",
            "MCAP file"),
-    Format(".asc", "can", "replay.canio:CanLogSource", "replay.canio:CanLogSink",
+    Format(".asc", "can", "replay.can.logs:CanLogSource", "replay.can.logs:CanLogSink",
            "Vector ASC CAN log", text=True, can_reader="ASCReader", can_writer="ASCWriter"),
-    Format(".blf", "can", "replay.canio:CanLogSource", "replay.canio:CanLogSink",
+    Format(".blf", "can", "replay.can.logs:CanLogSource", "replay.can.logs:CanLogSink",
            "Vector BLF binary CAN log", can_reader="BLFReader", can_writer="BLFWriter"),
-    Format(".log", "can", "replay.canio:CanLogSource", "replay.canio:CanLogSink",
+    Format(".log", "can", "replay.can.logs:CanLogSource", "replay.can.logs:CanLogSink",
            "candump -l CAN log", text=True, can_reader="CanutilsLogReader", can_writer="CanutilsLogWriter"),
-    Format(".trc", "can", "replay.canio:CanLogSource", "replay.canio:CanLogSink",
+    Format(".trc", "can", "replay.can.logs:CanLogSource", "replay.can.logs:CanLogSink",
            "PEAK TRC CAN log", text=True, can_reader="TRCReader", can_writer="TRCWriter"),
 )}
 

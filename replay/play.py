@@ -125,7 +125,7 @@ def _finish(stats: PlayStats, lat: _Lateness, wall_s: float) -> PlayStats:
 
 def _open_sink(args: argparse.Namespace) -> Sink:
     if args.to == "can":
-        from replay.live import CanBusSink
+        from replay.can.bus import CanBusSink
 
         return CanBusSink(args.channel, dbc=args.dbc)
     from replay.live import ZenohCanSink, ZenohSampleSink
@@ -150,7 +150,7 @@ def _print_progress(total_s: float) -> Callable[[PlayStats, float], None]:
 
 def cmd_play(args: argparse.Namespace) -> int:
     """``replay play``: open LOG and the target, replay, print the pacing statistics."""
-    from replay.cli import loss_warning, source_options
+    from replay.options import loss_warning, source_options
     from replay.factory import open_source
 
     if args.to == "can" and not args.channel:
@@ -199,7 +199,7 @@ def _speed(text: str) -> float:
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``play`` to the ``replay`` command's subparsers."""
     from replay import formats
-    from replay.cli import add_input_options
+    from replay.options import add_input_options
 
     p = subparsers.add_parser("play", help="replay a log in real time to a CAN bus or Zenoh",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -13,7 +13,7 @@ What is written depends on the output's suffix (:mod:`replay.formats`):
   python-can's writer for the suffix -- from a CAN bus (every frame, any id, nothing
   decoded), or from Zenoh ``fpdd.can/1`` payloads (:mod:`replay.live`);
 * ``.mcap`` or ``.csv``: decoded rig samples in SI -- from a CAN bus through the DBC
-  (:class:`~replay.live.CanBusSource`) or from Zenoh (either payload,
+  (:class:`~replay.can.bus.CanBusSource`) or from Zenoh (either payload,
   :class:`~replay.live.ZenohSource`).
 
 The recording ends after ``--duration`` seconds (wall time, at most a week), after
@@ -150,7 +150,7 @@ def record(input_uri: str, out: str, *, duration_s: float | None = None, limit: 
 
 
 def _bus_to_can_log(uri: str, out: str, until: _Until, poll_s: float) -> RecordStats:
-    from replay.live import open_bus
+    from replay.can.bus import open_bus
 
     writer = _can_log_writer(out)  # before the bus: an unwritable output is said first
     stats = RecordStats(uri, out, "frames")
@@ -176,7 +176,7 @@ def _bus_to_can_log(uri: str, out: str, until: _Until, poll_s: float) -> RecordS
 def _zenoh_to_can_log(uri: str, out: str, until: _Until, poll_s: float, conf, session) -> RecordStats:
     import zenoh
 
-    from replay.canio import frames_to_messages
+    from replay.can.encode import frames_to_messages
     from replay.live import PayloadError, _open_session, parse_zenoh_uri, payload_to_frames
 
     key = parse_zenoh_uri(uri)
@@ -282,7 +282,7 @@ def _duration(text: str) -> float:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from replay.cli import loss_warning
+    from replay.options import loss_warning
     from replay.zenohconf import zenoh_config
 
     conf = None

@@ -446,8 +446,8 @@ def test_the_corpus_is_large_enough() -> None:
 
 def _good_frames() -> bytes:
     from benchmarks.can import msp25_samples
-    from replay.canio import FrameScheduler
-    from replay.dbc import VectorCodec
+    from replay.can.encode import FrameScheduler
+    from replay.can.codec import VectorCodec
 
     return frames_to_payload(FrameScheduler(VectorCodec()).frames(msp25_samples(0.01, seed=1)))
 

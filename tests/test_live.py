@@ -16,12 +16,12 @@ import zenoh
 
 from replay.base import Samples
 from benchmarks.can import msp25_samples
-from replay.live import (CanBusSink, CanBusSource, ZenohCanSink, ZenohSampleSink, ZenohSource, frames_to_payload,
-                         parse_can_uri, payload_to_frames)
+from replay.can.bus import CanBusSink, CanBusSource, parse_can_uri
+from replay.live import ZenohCanSink, ZenohSampleSink, ZenohSource, frames_to_payload, payload_to_frames
 from replay.zenohconf import zenoh_config
 from replay.live import samples_to_json as samples_json
-from replay.canio import FrameScheduler
-from replay.dbc import VectorCodec
+from replay.can.encode import FrameScheduler
+from replay.can.codec import VectorCodec
 from twin.errors import SourceError
 
 LSB_X = 1e-7

@@ -20,8 +20,9 @@ import pytest
 
 from replay.base import Samples
 from benchmarks.can import msp25_samples
-from replay.canio import CanLogSink, CanLogSource
-from replay.live import CanBusSink, ZenohSource
+from replay.can.logs import CanLogSink, CanLogSource
+from replay.can.bus import CanBusSink
+from replay.live import ZenohSource
 from replay.zenohconf import zenoh_config
 from replay.play import play, register
 

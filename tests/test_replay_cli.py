@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from replay import cli
+from replay.options import EXIT_LOSS
 from replay.factory import open_source
 from roundtrip_base import DATA
 
@@ -41,7 +42,7 @@ def test_info_text_reports_gaps_and_bad_rows(capsys: pytest.CaptureFixture, tmp_
     rows += [f"{0.5 + i * 1e-3!r},0.0" for i in range(40)]
     path.write_text("t,x\n" + "\n".join(rows) + "\n")
     code, out, err = run(capsys, "info", str(path))
-    assert code == cli.EXIT_LOSS  # it completed, but a row was lost: the exit status says so
+    assert code == EXIT_LOSS  # it completed, but a row was lost: the exit status says so
     assert "samples: 80" in out and "gaps: 1" in out and "bad_row=1" in out
     assert "line 42: field 'x' = 'oops' is not a number" in out
     assert err == (f"replay: warning: {path}: input lost (bad_row=1); 80 samples kept; first: line 42: "

@@ -17,8 +17,8 @@ import pytest
 
 from replay import cli
 from benchmarks.can import msp25_samples
-from replay.canio import FrameScheduler, frames_to_messages
-from replay.dbc import VectorCodec
+from replay.can.encode import FrameScheduler, frames_to_messages
+from replay.can.codec import VectorCodec
 from replay.factory import open_source
 from replay.live import ZenohCanSink, ZenohSampleSink
 from replay.zenohconf import zenoh_config

@@ -11,7 +11,7 @@
   pB = 5000 kPa, pP = 21000 kPa, T_oil = 45.0 degC for control cycle k) plus one
   frame of a foreign id 0x7FF;
 * ``msp25_short.{asc,blf,log,trc}`` — the project's own writers
-  (:class:`replay.canio.CanLogSink`) on 50 ms of the benchmark's seeded signals
+  (:class:`replay.can.logs.CanLogSink`) on 50 ms of the benchmark's seeded signals
   (:func:`benchmarks.can.msp25_samples`, seed 0).
 """
 
@@ -85,7 +85,7 @@ def record_with_python_can(path: Path) -> None:
 
 def write_project_references() -> None:
     from benchmarks.can import msp25_samples
-    from replay.canio import CanLogSink
+    from replay.can.logs import CanLogSink
 
     samples = msp25_samples(0.05, seed=0)
     for suf in (".asc", ".blf", ".log", ".trc"):

@@ -21,7 +21,6 @@ from collections.abc import Iterable
 from types import SimpleNamespace
 
 
-
 class SequenceNumbers:
     """The publisher interface of :class:`twin.service.rig.RigTwin` without a bus: numbers alarms 1, 2, 3, ..."""
 

@@ -58,7 +58,7 @@ from replay.quality import UNITS
 from replay.errors import LogFormatError, SourceError
 
 #: The DBC shipped for the MSP25 rig.
-DEFAULT_DBC: Path = Path(__file__).with_name("data") / "msp25.dbc"
+DEFAULT_DBC: Path = Path(__file__).parent.parent / "data" / "msp25.dbc"
 
 #: DBC unit -> (factor, offset) so that ``si = value * factor + offset``, and the SI unit.
 #: DBC units and their conversion to SI: the one unit table of :mod:`replay.quality`.
