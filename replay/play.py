@@ -48,14 +48,33 @@ class PlayStats:
 
 
 class _Lateness:
+    """Lateness statistics in bounded memory, however long the replay: exact max, min and mean; the 99th
+    percentile from a histogram of 20 bins per decade from 1 us to 1000 s (within 12 % of the exact value;
+    lateness below 1 us counts as 0)."""
+
+    EDGES = np.concatenate(([-np.inf, 1e-6], np.logspace(-6, 3, 9 * 20 + 1)[1:], [np.inf]))
+
     def __init__(self) -> None:
-        self.parts: list[np.ndarray] = []
+        self.n = 0
+        self.total = 0.0
+        self.max = -np.inf
+        self.min = np.inf
+        self.counts = np.zeros(self.EDGES.size - 1, dtype=np.int64)
 
     def add(self, late: np.ndarray) -> None:
-        self.parts.append(late)
+        if late.size == 0:
+            return
+        self.n += late.size
+        self.total += float(late.sum())
+        self.max = max(self.max, float(late.max()))
+        self.min = min(self.min, float(late.min()))
+        self.counts += np.histogram(late, self.EDGES)[0]
 
-    def all(self) -> np.ndarray:
-        return np.concatenate(self.parts) if self.parts else np.zeros(0)
+    def p99(self) -> float:
+        k = int(np.searchsorted(np.cumsum(self.counts), 0.99 * self.n))
+        if k == 0:
+            return 0.0
+        return float(min(self.EDGES[k + 1], self.max))
 
 
 def play(source: Source, sink: Sink, speed: float = 1.0, *, chunk: int = 4096,
@@ -111,13 +130,12 @@ def play(source: Source, sink: Sink, speed: float = 1.0, *, chunk: int = 4096,
 
 
 def _finish(stats: PlayStats, lat: _Lateness, wall_s: float) -> PlayStats:
-    late = lat.all()
     stats.wall_s = float(wall_s)
-    if late.size:
-        stats.late_max_s = float(max(late.max(), 0.0))
-        stats.late_mean_s = float(late.mean())
-        stats.late_p99_s = float(np.percentile(late, 99))
-        stats.early_max_s = float(max(-late.min(), 0.0))
+    if lat.n:
+        stats.late_max_s = max(lat.max, 0.0)
+        stats.late_mean_s = lat.total / lat.n
+        stats.late_p99_s = lat.p99()
+        stats.early_max_s = max(-lat.min, 0.0)
     return stats
 
 

@@ -171,3 +171,21 @@ def test_cli_play_to_a_bus_that_cannot_open_is_one_line(log, capsys):
     assert cli.main(["play", str(log), "--to", "can", "--channel", "can://socketcan/fpddnone0", "--quiet"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("replay: error: can://socketcan/fpddnone0: cannot open CAN bus: ")
+
+
+def test_lateness_statistics_take_bounded_memory_and_stay_accurate():
+    """The pacer's lateness record is a fixed-size histogram, not a list that grows with the replay."""
+    from replay.play import _Lateness
+
+    rng = np.random.default_rng(7)
+    lat = _Lateness()
+    size0 = lat.counts.nbytes
+    parts = [rng.exponential(2e-4, 5000) for _ in range(200)]  # one million writes' lateness
+    for p in parts:
+        lat.add(p)
+    allv = np.concatenate(parts)
+    assert lat.counts.nbytes == size0 and lat.n == allv.size
+    assert lat.max == allv.max() and lat.min == allv.min()
+    assert lat.total / lat.n == pytest.approx(allv.mean(), rel=1e-9)
+    exact = np.percentile(allv, 99)
+    assert exact <= lat.p99() <= exact * 10 ** (1 / 20) * 1.0001  # the bin holding the 99th percentile
