@@ -85,6 +85,13 @@ def test_cli_on_a_csv_log_writes_mcap_png_and_json(friction_step, tmp_path, caps
     estimates = [p for t, p in msgs if t == "/twin/estimate"]
     assert len(estimates) >= 200 and set(estimates[-1]["params"]) == {"Ffric", "Cd", "wn"}
     assert {t for t, _ in msgs} == set(kinds)
+    with open(doc["files"]["mcap"], "rb") as f:  # each channel carries its event's schema, for Foxglove
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    for ch in summary.channels.values():
+        schema = json.loads(summary.schemas[ch.schema_id].data)
+        assert schema["title"] == kinds[ch.topic].SCHEMA["title"]
+        assert set(kinds[ch.topic].SCHEMA["required"]) <= set(schema["required"])
 
 
 def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys):

@@ -234,7 +234,7 @@ class RigTwin(Sink):
         self.alarms.append(ev)
         self.stats.alarms += 1
         if self.recorder is not None:
-            self.recorder.write_message("/twin/alarm", ev.t_ns, ev.to_dict())
+            self.recorder.write_message("/twin/alarm", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         if self.on_alarm is not None:
             self.on_alarm(ev)
 
@@ -249,7 +249,7 @@ class RigTwin(Sink):
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
         if self.recorder is not None:
-            self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict())
+            self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         self.stats.estimates += 1
 
     def publish_status(self, force: bool = False) -> None:
@@ -278,7 +278,7 @@ class RigTwin(Sink):
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:
-            self.recorder.write_message("/twin/status", ev.t_ns, ev.to_dict())
+            self.recorder.write_message("/twin/status", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         self.stats.statuses += 1
 
 
