@@ -11,11 +11,6 @@ from twin.models import MODELS
 from twin.commands.common import add_map_argument, add_timing_arguments, dump, source_options, timing_of
 from twin.commands.common import kv as _kv
 from twin.commands.common import names as _names
-from twin.estimation.diagnose import ALPHA, diagnose
-from twin.models import get_model
-from twin.models.base import DEFAULT_TIMING
-from twin.record import Record
-from twin.reports.plots import diagnosis_plots
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,7 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"))
     p.add_argument("--noise-levels", help="noise std per output used as residual weights, NAME=STD,...")
     p.add_argument("--holdout", type=float, default=0.25, help="held-out tail of each record (default 0.25)")
-    p.add_argument("--alpha", type=float, default=ALPHA, help=f"significance level (default {ALPHA:g})")
+    p.add_argument("--alpha", type=float, default=None,
+                   help="family-wise significance level of the tests (default: twin.estimation.diagnose.ALPHA, 1e-3)")
     p.add_argument("--max-effects", type=int, default=3, help="most effects named (default 3)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", metavar="FILE", help="save the extended parameter set (JSON for twin fit / tracker)")
@@ -42,7 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from twin.record import load_records
+    from twin.estimation.diagnose import ALPHA, diagnose
+    from twin.models import get_model
+    from twin.models.base import DEFAULT_TIMING
+    from twin.record import Record, load_records
+    from twin.reports.plots import diagnosis_plots
 
     model = get_model(args.model)
     records: list[Record] = []
@@ -53,7 +53,8 @@ def run(args) -> int:
     progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     diag = diagnose(model, records, outputs=_names(args.outputs) or None, free=_names(args.free) or None,
                     base=base, candidates=_names(args.candidates) or None, holdout=args.holdout,
-                    alpha=args.alpha, max_effects=args.max_effects, noise=_kv(args.noise_levels),
+                    alpha=ALPHA if args.alpha is None else args.alpha, max_effects=args.max_effects,
+                    noise=_kv(args.noise_levels),
                     drive=args.drive, seed=args.seed, progress=progress, timing=timing_of(args, DEFAULT_TIMING),
                     test_timing=not args.no_timing_test)
     if args.report:
