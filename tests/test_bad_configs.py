@@ -14,7 +14,7 @@ import zenoh
 
 from twin import cli
 from replay.zenohconf import zenoh_config
-from twin.commands.demo import free_port
+from net_helpers import free_port
 
 GOOD = """
 [zenoh]

@@ -28,7 +28,7 @@ from twin.errors import ConfigError, DataError, SourceError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.service.journal import AlarmJournal
 from twin.service.store import Store
-from twin.commands.demo import free_port
+from net_helpers import free_port
 from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
 

@@ -25,7 +25,7 @@ from twin.service.bus import AlarmSubscriber, TwinPublisher, live_twins
 from twin.service.config import load_config
 from twin.online.events import AlarmEvent, event_to_json
 from twin.service.journal import AlarmJournal
-from twin.commands.demo import free_port
+from net_helpers import free_port
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 ROUTER = DEPLOY / "zenoh-router.json5"

@@ -25,7 +25,7 @@ from replay.base import Samples
 from twin.service.bus import TwinPublisher
 from replay.zenohconf import zenoh_config
 from twin.online.drift import default_baseline
-from twin.commands.demo import free_port
+from net_helpers import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate
 from twin.service.journal import AlarmJournal
 from twin.service.live_view import TOPICS, LiveView, foxglove_layout

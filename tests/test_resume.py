@@ -16,7 +16,7 @@ import pytest
 
 from replay.mcapio import McapSink
 from twin.service.config import load_config
-from twin.commands.demo import free_port
+from net_helpers import free_port
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
 from twin.service.rig import serve

@@ -18,7 +18,7 @@ from twin import cli
 from twin.service.bus import AlarmSubscriber
 from replay.zenohconf import zenoh_config
 from twin.service.config import parse_config
-from twin.commands.demo import free_port
+from net_helpers import free_port
 from twin.commands.demo import run as run_demo
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear

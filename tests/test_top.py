@@ -21,7 +21,7 @@ import zenoh
 
 from twin.service.bus import TwinPublisher
 from replay.zenohconf import zenoh_config
-from twin.commands.demo import free_port
+from net_helpers import free_port
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.service.journal import AlarmJournal
 
