@@ -88,6 +88,11 @@ def journal_path(cfg: ServiceConfig, rig: str) -> Path:
     return Path(cfg.journal_dir) / f"{rig}.db"
 
 
+def commission_path(cfg: ServiceConfig, rig: str) -> Path:
+    """Where a rig's commissioning in service (``commission_s``) is saved, next to its journal."""
+    return Path(cfg.journal_dir) / f"{rig}.commission.json"
+
+
 def legacy_journal_path(cfg: ServiceConfig, rig: str) -> Path:
     """Where earlier versions kept the rig's JSON-lines journal (imported once)."""
     return Path(cfg.journal_dir) / f"{rig}.alarms.jsonl"
@@ -257,6 +262,55 @@ def blocks_by_time(block: Samples, span_s: float):
         i = j
 
 
+# --------------------------------------------------------------------------- commissioning
+
+
+def _fit_job(conn, samples: Samples, tracked: tuple[str, ...], params: dict, timing, rig: str) -> None:
+    """A spawned process: the commissioning fit of one rig's window, its outcome sent on ``conn``."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from twin.commission import fit_window
+
+    try:
+        out = fit_window(samples, tracked, params, timing, rig)
+    except Exception as exc:  # noqa: BLE001 - a bug of the fit is a failed commissioning, not a dead rig
+        out = (None, f"internal error of the fit {type(exc).__name__}: {exc}")
+    conn.send(out)
+    conn.close()
+
+
+class FitJob:
+    """A rig's commissioning fit in its own spawned process (the other rigs go on meanwhile)."""
+
+    def __init__(self, rig: RigConfig, samples: Samples) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=False)
+        timing = rig.timing
+        self.proc = ctx.Process(target=_fit_job, args=(child, samples, tuple(rig.track), dict(rig.params), timing,
+                                                       rig.name), name=f"twin-commission-{rig.name}")
+        self.proc.start()
+        child.close()
+
+    def done(self) -> bool:
+        return self._conn.poll() or not self.proc.is_alive()
+
+    def result(self) -> tuple[dict | None, str]:
+        try:
+            if self._conn.poll(1.0):
+                return self._conn.recv()
+        except (EOFError, OSError):
+            pass
+        finally:
+            self.proc.join(5.0)
+        return None, f"the fit's process ended without a result (exit code {self.proc.exitcode})"
+
+    def cancel(self) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+        self.proc.join(5.0)
+        self._conn.close()
+
+
 # --------------------------------------------------------------------------- one rig
 
 
@@ -297,6 +351,7 @@ class RigRunner:
         self._last_quiet_status = 0.0
         self._dropped: dict[str, int] = {}
         self._dropped_base: dict[str, int] = {}
+        self._fit: FitJob | None = None
 
     # ------------------------------------------------------------------ life
 
@@ -327,14 +382,97 @@ class RigRunner:
             from replay.mcapio import McapSink
 
             self.recorder = McapSink(_free_name(Path(self.cfg.out_dir), f"{self.rig.name}.twin", ".mcap"))
+        saved = self._saved_commission()
         self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
         if self.keep is not None:
             self.keep[self.rig.name] = self.twin
         self._resume()
+        if self.rig.commission_s and saved is None and self.summary.resumed_samples is None:
+            from twin.service import Commissioning
+
+            self.twin.commissioning = Commissioning(self.rig.commission_s)
+            log.info("rig %s: commissioning on its first %g s (no alarms before it ends)", self.rig.name,
+                     self.rig.commission_s)
         self._start_samples = self.twin.stats.samples
         self.twin.health.state = "starting"
+        self.twin.health.message = self._notes
         self.twin.publish_status(force=True)
         self.outbox.flush()
+
+    def _saved_commission(self):
+        """A commissioning saved by an earlier run (``commission_s``): it wins over commissioning again."""
+        if not self.rig.commission_s:
+            return None
+        path = commission_path(self.cfg, self.rig.name)
+        if not path.exists():
+            return None
+        from twin.commission import apply_commission, describe, load_fit
+
+        try:
+            com = load_fit(str(path))
+            self.rig = apply_commission(self.rig, com)
+        except TwinError as exc:
+            log.warning("rig %s: its saved commissioning cannot be used (%s); commissioning again", self.rig.name,
+                        exc)
+            return None
+        self._fp = fingerprint(self.rig, self.cfg.estimate_every)
+        self._notes = f"commissioned by an earlier run ({path.name}): {describe(com, self.rig.track)}"
+        log.info("rig %s: %s", self.rig.name, self._notes)
+        return com
+
+    def _commission(self, wait: bool) -> None:
+        """Start the commissioning fit once the window is gathered; finish the commissioning once it is done
+        (``wait``: until then, the rig's status going on; a replayed log waits, a live input does not)."""
+        twin = self.twin
+        assert twin is not None  # made by _open
+        c = twin.commissioning
+        if c is None or not c.window.full:
+            return
+        if self._fit is None:
+            self._fit = FitJob(self.rig, c.window.samples())
+            c.fitting = True
+            log.info("rig %s: %s", self.rig.name, c.note())
+            twin.publish_status(force=True)
+            self.outbox.flush()
+        while not self._fit.done():
+            if not wait:
+                return
+            if self.stop.wait(0.5):
+                raise _Stopped
+            twin.publish_status()
+            self.outbox.flush(force=False)
+        doc, problem = self._fit.result()
+        self._fit = None
+        com = None
+        if doc is not None:
+            com = self._save_commission(doc)
+        try:
+            line = twin.finish_commissioning(com, problem)
+        except FilterError as exc:
+            raise RigFailure(f"{exc} (right after its commissioning)") from None
+        self.rig = twin.rig
+        self._fp = fingerprint(self.rig, self.cfg.estimate_every)
+        self._notes = line
+        (log.info if com is not None else log.warning)("rig %s: %s", self.rig.name, line)
+        self._checkpoint()
+        self.outbox.flush()
+
+    def _save_commission(self, doc: dict):
+        """Save a commissioning next to the journal (atomically) and read it back; unsaved, it is used all the same."""
+        import json
+
+        from twin.commission import from_dict, load_fit
+
+        path = commission_path(self.cfg, self.rig.name)
+        tmp = path.with_name(path.name + ".tmp")
+        try:
+            tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
+            os.replace(tmp, path)
+            return load_fit(str(path))
+        except (OSError, ValueError, TwinError) as exc:
+            log.error("rig %s: its commissioning cannot be saved to %s (%s); it is used but a restart "
+                      "commissions again", self.rig.name, path, exc)
+            return from_dict(doc, f"commissioning of {self.rig.name} (not saved)")
 
     def _resume(self) -> None:
         cp = self.journal.load_checkpoint(self.rig.name)
@@ -361,6 +499,9 @@ class RigRunner:
                  cp.t_ns)
 
     def _close(self) -> None:
+        if self._fit is not None:
+            self._fit.cancel()
+            self._fit = None
         twin = self.twin
         if twin is not None:
             if self.summary.state != "failed":
@@ -425,10 +566,14 @@ class RigRunner:
                     if not pacer.wait(int(block.t_ns[-1]), self.stop):
                         raise _Stopped
                     self._process(block, live=False)
+                    self._commission(wait=True)
                     self._lag = pacer.lag(int(block.t_ns[-1]))
                     self._tick()
                 if self.stop.is_set():
                     raise _Stopped
+        if twin.commissioning is not None:  # the log ended before the window did: fit what it gave
+            twin.commissioning.window.full = True
+            self._commission(wait=True)
         report = getattr(src, "report", None)
         skipped = sum(report.skipped.values()) if report is not None else 0
         if skipped and report is not None:
@@ -545,6 +690,7 @@ class RigRunner:
             return
         self._stale_since = None
         self._process(block, live=True)
+        self._commission(wait=False)
         assert self.twin is not None  # made by _open
         if self.twin.last_t_ns is not None:
             self._lag = lag.lag(self.twin.last_t_ns)
@@ -570,6 +716,7 @@ class RigRunner:
         twin.health.message = f"no input from {self.rig.source} for {quiet:.1f} s" + (f" ({why})" if why else "")
         twin.publish_status(force=True)
         self.outbox.flush()
+        self._commission(wait=False)
         if now - self._last_cp >= self.cfg.checkpoint_s:
             self._checkpoint()
 
@@ -676,8 +823,8 @@ class RigRunner:
         self._last_cp = time.monotonic()
         twin = self.twin
         self.journal.retry()
-        if twin is None or twin.last_t_ns is None:
-            return
+        if twin is None or twin.last_t_ns is None or twin.commissioning is not None:
+            return  # nothing tracked yet (a restart during the commissioning gathers its window again)
         try:
             blob = pickle.dumps(twin.state(), protocol=pickle.HIGHEST_PROTOCOL)
             self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples, self._fp,
@@ -881,7 +1028,7 @@ class Fleet:
                 stop_pipes.append((reader, writer))
                 p = ctx.Process(target=worker_main, args=(group, cfg, inbox, reader,
                                                           logging.getLogger().getEffectiveLevel()),
-                                name=f"twin-worker-{i}", daemon=True)
+                                name=f"twin-worker-{i}", daemon=False)  # may start a fit's process
                 procs.append((p, [r.name for r in group]))
             for t in threads:
                 t.start()

@@ -37,7 +37,7 @@ from collections.abc import Callable
 import numpy as np
 
 from replay.base import Samples, Sink
-from twin.config import RigConfig, ServiceConfig, load_config
+from twin.config import RigConfig, ServiceConfig, load_config, with_commission_s
 from twin.errors import TwinError
 from twin.events import AlarmEvent, EstimateEvent, StatusEvent, format_alarm
 
@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 SERVICE_HISTORY = 4096
 #: Alarm events kept in memory per rig (the journal has them all).
 ALARMS_KEPT = 10000
+#: Samples that arrive while a rig's commissioning fit runs wait for it, at most this much sample time [s].
+COMMISSION_PENDING_S = 60.0
 
 
 @dataclasses.dataclass
@@ -107,6 +109,34 @@ class Ring:
         return float(self._t[i]), self._v[i].copy(), self._s[i].copy()
 
 
+class Commissioning:
+    """A rig's commissioning in progress: its first seconds gathered (:class:`twin.commission.Window`), then
+    fitted in a worker process; samples that arrive meanwhile wait (at most ``pending_s`` of them, the
+    oldest dropped and counted beyond that) and are tracked once the fit is done."""
+
+    def __init__(self, seconds: float, pending_s: float = COMMISSION_PENDING_S) -> None:
+        from twin.commission import Window
+
+        self.seconds = float(seconds)
+        self.window = Window(seconds)
+        self.pending: collections.deque[Samples] = collections.deque()
+        self.pending_s = float(pending_s)
+        self.dropped = 0
+        self.fitting = False
+
+    def hold(self, samples: Samples) -> None:
+        self.pending.append(samples)
+        while len(self.pending) > 1 and (int(samples.t_ns[-1]) - int(self.pending[0].t_ns[0])) * 1e-9 > self.pending_s:
+            self.dropped += len(self.pending.popleft())
+
+    def note(self) -> str:
+        if self.fitting:
+            return (f"commissioning: fitting its first {self.window.gathered_s:.1f} s ({len(self.window)} samples) "
+                    "in a worker process; no alarms before it ends")
+        return (f"commissioning: {self.window.gathered_s:.1f} of {self.seconds:g} s gathered; "
+                "no alarms before it ends")
+
+
 def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
               history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
     """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
@@ -152,6 +182,8 @@ class RigTwin(Sink):
         self._last_status_wall = 0.0
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
+        self.commissioning: Commissioning | None = None
+        """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -183,9 +215,55 @@ class RigTwin(Sink):
         for k, v in old.counters.items():
             self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
 
+    # -- commissioning ---------------------------------------------------------------------
+    def _gather(self, samples: Samples) -> None:
+        c = self.commissioning
+        assert c is not None  # only while commissioning
+        if self._t0_ns is None:
+            self._t0_ns = int(samples.t_ns[0])
+        rest = c.window.add(samples)
+        if rest is not None:
+            c.hold(rest)
+        self.last_t_ns = int(samples.t_ns[-1])
+        self.stats.samples += len(samples) - (len(rest) if rest is not None else 0)
+        self._status(None)
+
+    def finish_commissioning(self, com, problem: str = "") -> str:
+        """End the commissioning: with ``com`` (a :class:`twin.commission.Commission`) the rig is tracked with
+        its values, noise and timing against bands centred on it; without, against the configured bands
+        (``problem`` says why). The samples that waited are tracked now. Returns the status line."""
+        from twin.commission import apply_commission, describe, tracker_for
+        from twin.drift import DriftMonitor
+
+        c = self.commissioning
+        assert c is not None  # only while commissioning
+        self.commissioning = None
+        if com is not None:
+            self.rig = apply_commission(self.rig, com)
+            self.tracker = tracker_for(self.rig)
+            self.drift = DriftMonitor(self.rig.name, self.rig.baseline)
+            line = (f"commissioned on its first {c.window.gathered_s:.1f} s: "
+                    f"{describe(com, self.rig.track)}")
+        else:
+            line = f"commissioning failed: {problem}; tracking against the configured baseline"
+        if c.dropped:
+            line += f" ({c.dropped} samples that arrived during the fit were dropped)"
+            self.health.counters["commission_dropped"] = c.dropped
+        self._last_status = None
+        self.health.message = line
+        if self.health.state == "starting":
+            self.health.state = "running"
+        for block in c.pending:
+            self.write(block)
+        self._status(None, force=True)
+        return line
+
     # -- Sink ---------------------------------------------------------------------------
     def write(self, samples: Samples) -> None:
         if len(samples) == 0:
+            return
+        if self.commissioning is not None:
+            self._gather(samples)
             return
         t_start = time.perf_counter()
         if self._t0_ns is None:
@@ -263,15 +341,30 @@ class RigTwin(Sink):
         per_param = self.drift.statuses()
         state = state or self.health.state
         message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        com = self.commissioning
+        progress = ""
+        if com is not None:
+            if state in ("starting", "running"):
+                state = "commissioning"
+            if state not in ("failed", "stopped", "finished"):
+                progress = com.note()
+                message = "; ".join(m for m in (str(com.fitting), message) if m)  # progress: once a second
+            per_param = {n: "commissioning" for n in per_param}
         key = (state, message, tuple(sorted(per_param.items())))
         if not force and key == self._last_status and now - self._last_status_wall < 1.0:
             return
         self._last_status = key
         self._last_status_wall = now
+        if progress:
+            message = "; ".join(m for m in (progress, self.health.message,
+                                            consistency_note(self.tracker, self.drift)) if m)
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
         counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
                     **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
                     **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
+        if com is not None:
+            counters["commission_ms"] = int(com.window.gathered_s * 1000)
+            counters["commission_needed_ms"] = int(com.seconds * 1000)
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
                          counters=counters, message=message, sensors=self.tracker.sensor_status(),
                          consistency=str(self.drift.guard or "consistent"))
@@ -349,6 +442,9 @@ def add_serve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
                    "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
     p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
+    p.add_argument("--commission-s", type=float, metavar="SECONDS",
+                   help="commission every rig without commission/commission_s on its first SECONDS in service "
+                        "(as commission_s in rigs.toml; a commissioning saved by an earlier run is reused)")
 
 
 def startup_line(cfg: ServiceConfig, workers: int) -> str:
@@ -375,7 +471,7 @@ def run_serve(args) -> int:
 
     logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
                         stream=sys.stderr)
-    cfg = load_config(args.config)
+    cfg = with_commission_s(load_config(args.config), getattr(args, "commission_s", None))
     check_journal_dir(cfg)
     check_sources(cfg)
     stop = threading.Event()
