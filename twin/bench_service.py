@@ -13,6 +13,14 @@
     in the same run: how many rigs the compiled filter alone could follow
     (its samples per second on every core, divided by 1000).
 
+``python -m twin.bench_service overhead [--seconds 20] [--block-ms 100]``
+    what one rig costs per sample outside the compiled filter: a rig's runner
+    (block by block: filter, drift test, estimates, statuses, checkpoints,
+    the batch to the bus) and the service's side of the bus (Zenoh puts on a
+    real session), in this process without pacing; baseline in the same run:
+    the filter alone (``OnlineTracker.process``) on the same blocks. Rounds
+    alternate; the smallest time of each is kept.
+
 Every figure is measured here and now; nothing is compared with fixed
 milliseconds. Statuses are read over Zenoh, as a dashboard would.
 """
@@ -126,9 +134,14 @@ class _Statuses:
         self.session.close()
 
 
-def _start(config: Path) -> subprocess.Popen:
+def _start(config: Path, profile: str = "") -> subprocess.Popen:
+    env = dict(os.environ)
+    if profile:
+        os.makedirs(profile, exist_ok=True)
+        env["FPDD_PROFILE_DIR"] = os.path.abspath(profile)
     return subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config),
-                             "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                             "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=env)
 
 
 def _stop(proc: subprocess.Popen) -> str:
@@ -198,7 +211,7 @@ def _filter_rigs() -> float:
     return sum(r[0] for r in res) / max(r[1] for r in res) / 1000.0
 
 
-def fleet(counts: list[int], seconds: float, say=print) -> dict:
+def fleet(counts: list[int], seconds: float, say=print, profile: str = "") -> dict:
     rows = []
     with tempfile.TemporaryDirectory(prefix="fpdd-fleet-") as tmp:
         d = Path(tmp)
@@ -209,14 +222,14 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
             run = d / f"n{n}"
             run.mkdir()
             port = _free_port()
-            proc = _start(_config(run, logs, n, port))
+            proc = _start(_config(run, logs, n, port), os.path.join(profile, f"n{n}") if profile else "")
             watch = _Statuses(f"tcp/127.0.0.1:{port}")
             t0 = time.monotonic()
             finished: set[str] = set()
             lags: dict[str, list[float]] = {}
             cpu0: float | None = None
             cpu1: float | None = None
-            tc0 = tc1 = 0.0
+            tc0 = tc1 = main0 = main1 = 0.0
             deadline = t0 + seconds + 120.0
             while len(finished) < n and time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(1.0)
@@ -227,30 +240,119 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
                     elif st["state"] in ("running", "degraded"):
                         lags.setdefault(rig, []).append(st["counters"].get("lag_ms", 0) / 1000)
                 if not finished:  # CPU of the tree while every rig runs (a finished worker leaves the tree)
-                    now_cpu, now_t = _cpu_s(_tree(proc.pid)), time.monotonic()
+                    now_cpu, now_t, now_main = _cpu_s(_tree(proc.pid)), time.monotonic(), _cpu_s([proc.pid])
                     if cpu0 is None and len(lags) == n:
-                        cpu0, tc0 = now_cpu, now_t
+                        cpu0, tc0, main0 = now_cpu, now_t, now_main
                     elif cpu0 is not None:
-                        cpu1, tc1 = now_cpu, now_t
+                        cpu1, tc1, main1 = now_cpu, now_t, now_main
             # tc1 > tc0 only once cpu1 is measured too
-            cpu = (cpu1 - cpu0) / (tc1 - tc0) if cpu0 is not None and cpu1 is not None and tc1 > tc0 else float("nan")
+            ok = cpu0 is not None and cpu1 is not None and tc1 > tc0
+            cpu = (cpu1 - cpu0) / (tc1 - tc0) if ok else float("nan")  # type: ignore[operator]
+            cpu_main = (main1 - main0) / (tc1 - tc0) if ok else float("nan")
             err = _stop(proc)
             watch.close()
             # the steady part: each rig's statuses after its first 5 s
             steady = [x for v in lags.values() for x in v[5:]]
             row: dict[str, Any] = {"rigs": n, "finished": len(finished), "lag_max_s": max(steady, default=float("nan")),
                    "lag_p95_s": float(np.percentile(steady, 95)) if steady else float("nan"),
-                   "cpu_cores_busy": cpu, "errors": [line for line in err.splitlines() if "error" in line][:3]}
+                   "cpu_cores_busy": cpu, "cpu_service_process": cpu_main,
+                   "cpu_us_per_sample": cpu * 1e6 / (n * 1000.0), "errors": [line for line in err.splitlines() if "error" in line][:3]}
             row["real_time"] = row["finished"] == n and row["lag_max_s"] < 1.0
             rows.append(row)
             say(f"  {n:4d} rigs: finished {row['finished']}/{n}, lag max {row['lag_max_s']:.3f} s, "
-                f"p95 {row['lag_p95_s']:.3f} s, {cpu:.2f} cores busy -> "
+                f"p95 {row['lag_p95_s']:.3f} s, {cpu:.2f} cores busy ({cpu_main:.2f} in the service's process; "
+                f"{row['cpu_us_per_sample']:.1f} us CPU per sample) -> "
                 f"{'real time' if row['real_time'] else 'NOT real time'}")
     say("baseline: the compiled filter alone on every core...")
     alone = _filter_rigs()
     best = max((r["rigs"] for r in rows if r["real_time"]), default=0)
     return {"rows": rows, "filter_alone_rigs": alone, "best_real_time_rigs": best,
             "service_vs_filter_alone": best / alone if alone else float("nan"), "cores": os.cpu_count()}
+
+
+def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = "", say=print) -> dict:
+    """CPU per sample of a rig's service path and of the filter alone on the same blocks (see the module doc)."""
+    import dataclasses
+    import threading
+
+    import zenoh
+
+    from replay.factory import open_source
+    from twin.bus import StoreHistory, zenoh_config
+    from twin.commission import tracker_for
+    from twin.config import parse_config
+    from twin.fleet import BusFront, RigRunner, journal_path
+    from twin.journal import AlarmJournal
+
+    with tempfile.TemporaryDirectory(prefix="fpdd-overhead-") as tmp:
+        d = Path(tmp)
+        log = d / "rig.mcap"
+        _log(log, seconds, seed=40)
+        with open_source(str(log)) as src:
+            samples = next(src.chunks(10 ** 9))
+        n = len(samples)
+        b = max(1, int(round(block_ms)))  # 1 kHz: one sample per millisecond
+        blocks = [samples.slice(i, min(i + b, n)) for i in range(0, n, b)]
+        per_s = max(1, int(round(1000.0 / b)))  # blocks per second of data: a checkpoint and a flush each second
+
+        def filter_alone() -> float:
+            tr = tracker_for(cfg.rigs[0])
+            t0 = time.process_time()
+            for blk in blocks:
+                tr.process(blk)
+            return time.process_time() - t0
+
+        def service(k: int) -> float:
+            c = dataclasses.replace(cfg, journal_dir=str(d / f"j{k}"), checkpoint_s=1e9)
+            out: queue.Queue = queue.Queue()
+            rig = c.rigs[0]
+            with AlarmJournal(journal_path(c, rig.name)) as journal:
+                history = StoreHistory(journal_path(c, rig.name))
+                front = BusFront(session, {rig.name: history})
+                runner = RigRunner(rig, c, journal, out, threading.Event())
+                runner._open()
+                t0 = time.process_time()
+                for i, blk in enumerate(blocks):
+                    runner._process(blk, live=False)
+                    runner._lag = 0.0
+                    runner._tick()
+                    if i % per_s == per_s - 1:  # what the wall clock triggers once a second in real time
+                        runner._checkpoint()
+                        runner.outbox.flush()
+                        while not out.empty():
+                            msg = out.get_nowait()
+                            if msg[0] == "batch":
+                                front.handle(msg[1], msg[2])
+                spent = time.process_time() - t0
+                front.close()
+                history.close()
+            return spent
+
+        cfg = parse_config({"service": {"journal_dir": str(d / "j"), "block_s": b / 1000.0, "estimate_every": 50},
+                            "rig": [{"name": "rig-0", "source": str(log), "speed": 1.0}]}, str(d / "rigs.toml"))
+        with zenoh.open(zenoh_config("peer")) as session:
+            filter_alone()  # warm: compiled code loaded, caches filled
+            service(99)
+            alone, full = [], []
+            for k in range(rounds):
+                alone.append(filter_alone())
+                if profile and k == rounds - 1:
+                    import cProfile
+                    import pstats
+
+                    prof = cProfile.Profile(time.process_time)
+                    prof.enable()
+                    full.append(service(k))
+                    prof.disable()
+                    pstats.Stats(prof).sort_stats("tottime").dump_stats(profile)
+                else:
+                    full.append(service(k))
+                say(f"  round {k + 1}: filter alone {alone[-1] / n * 1e6:.1f} us/sample, "
+                    f"service path {full[-1] / n * 1e6:.1f} us/sample")
+    kernel_us, full_us = min(alone) / n * 1e6, min(full) / n * 1e6
+    return {"samples": n, "block_samples": b, "filter_alone_us_per_sample": kernel_us,
+            "service_us_per_sample": full_us, "overhead_us_per_sample": full_us - kernel_us,
+            "overhead_us_per_block": (full_us - kernel_us) * b}
 
 
 def main(argv=None) -> int:
@@ -262,7 +364,14 @@ def main(argv=None) -> int:
     f = sub.add_parser("fleet", help="how many 1 kHz rigs one twin serve keeps in real time")
     f.add_argument("--rigs", default="60,100,120", help="rig counts to try, comma-separated")
     f.add_argument("--seconds", type=float, default=30.0, help="length of each replayed log")
-    for p in (s, f):
+    f.add_argument("--profile", default="", metavar="DIR", help="cProfile every rig's thread and the service's "
+                   "loop (CPU time) into DIR/n<rigs>/*.prof")
+    o = sub.add_parser("overhead", help="CPU per sample of a rig outside the compiled filter")
+    o.add_argument("--seconds", type=float, default=20.0, help="length of the simulated record")
+    o.add_argument("--block-ms", type=float, default=100.0, help="block length (1 kHz: samples)")
+    o.add_argument("--rounds", type=int, default=3)
+    o.add_argument("--profile", default="", metavar="FILE", help="cProfile statistics of the last round to FILE")
+    for p in (s, f, o):
         p.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print
@@ -275,8 +384,17 @@ def main(argv=None) -> int:
                   f"{r['rss_warm_mib']:.1f} MiB, at the end {r['rss_final_mib']:.1f} MiB: growth "
                   f"{r['growth_after_warm_pct']:+.2f} % (target < 5 %), slope {r['slope_kib_per_min']:+.0f} KiB/min; "
                   f"lag max {r['lag_max_s']:.3f} s, p95 {r['lag_p95_s']:.3f} s")
+    elif args.what == "overhead":
+        r = overhead(args.seconds, args.block_ms, args.rounds, args.profile, say)
+        if args.json:
+            print(json.dumps(r, indent=2))
+        else:
+            print(f"overhead: {r['block_samples']}-sample blocks: filter alone {r['filter_alone_us_per_sample']:.1f} "
+                  f"us/sample, service path {r['service_us_per_sample']:.1f} us/sample: "
+                  f"{r['overhead_us_per_sample']:.1f} us/sample outside the filter "
+                  f"({r['overhead_us_per_block']:.0f} us per block)")
     else:
-        r = fleet([int(x) for x in args.rigs.split(",")], args.seconds, say)
+        r = fleet([int(x) for x in args.rigs.split(",")], args.seconds, say, args.profile)
         if args.json:
             print(json.dumps(r, indent=2))
         else:

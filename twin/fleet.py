@@ -178,11 +178,13 @@ class Outbox:
         self.out = out
         self._batch: list[tuple] = []
         self._last_flush = time.monotonic()
+        self._seq = journal.last_seq(rig)
 
     def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
         recorded = self.journal.record(event)
         if not recorded.new:
             return None
+        self._seq = max(self._seq, recorded.event.seq)
         self._batch.append(("alarm", recorded.event, recorded.durable))
         self.flush()  # alarms go out at once
         return recorded.event
@@ -190,10 +192,13 @@ class Outbox:
     def publish_estimate(self, event) -> None:
         self._batch.append(("estimate", event_to_json(event)))
 
+    def status_counters(self) -> dict[str, int]:
+        """``alarm_seq``: the last number the journal gave an alarm of this rig (this runner is its one writer)."""
+        return {"alarm_seq": self._seq}
+
     def publish_status(self, event: StatusEvent) -> StatusEvent:
-        counters = dict(event.counters)
-        counters["alarm_seq"] = self.journal.last_seq(self.rig)
-        event = dataclasses.replace(event, counters=counters)
+        if "alarm_seq" not in event.counters:
+            event = dataclasses.replace(event, counters={**event.counters, **self.status_counters()})
         self._batch.append(("status", event_to_json(event), event.state, event.message))
         return event
 
@@ -895,12 +900,31 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     threading.Thread(target=relay, name="stop-relay", daemon=True).start()
     threads = []
     for rig in rigs:
-        threads.append(threading.Thread(target=_run_one, args=(rig, cfg, out, local), name=f"rig-{rig.name}",
-                                        daemon=True))
+        threads.append(threading.Thread(target=_profiled(_run_one, f"rig-{rig.name}"), args=(rig, cfg, out, local),
+                                        name=f"rig-{rig.name}", daemon=True))
     for t in threads:
         t.start()
     for t in threads:
         t.join()
+
+
+def _profiled(target: Callable[..., Any], name: str) -> Callable[..., Any]:
+    """``target`` under cProfile (CPU time of its thread) when ``FPDD_PROFILE_DIR`` is set: the statistics go
+    to ``FPDD_PROFILE_DIR/<name>.prof`` (``python -m twin.bench_service fleet --profile DIR`` reads them)."""
+    directory = os.environ.get("FPDD_PROFILE_DIR")
+    if not directory:
+        return target
+
+    def run(*args: Any) -> Any:
+        import cProfile
+
+        prof = cProfile.Profile(time.thread_time)
+        try:
+            return prof.runcall(target, *args)
+        finally:
+            prof.dump_stats(os.path.join(directory, f"{name}.{os.getpid()}.prof"))
+
+    return run
 
 
 def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
@@ -1034,7 +1058,7 @@ class Fleet:
                 t.start()
             for proc, _ in procs:
                 proc.start()
-            self._loop(front, inbox, procs)
+            _profiled(self._loop, "service")(front, inbox, procs)
         finally:
             self.stop.set()
             for _reader, writer in stop_pipes:

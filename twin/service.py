@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 SERVICE_HISTORY = 4096
 #: Alarm events kept in memory per rig (the journal has them all).
 ALARMS_KEPT = 10000
+#: A rig's status is published at least this often [s], and a change of its message alone waits for it.
+STATUS_S = 1.0
 #: Samples that arrive while a rig's commissioning fit runs wait for it, at most this much sample time [s].
 COMMISSION_PENDING_S = 60.0
 
@@ -178,7 +180,7 @@ class RigTwin(Sink):
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
         self.last_t_ns: int | None = None
         self._t0_ns: int | None = None
-        self._last_status: tuple[str, str, tuple[tuple[str, str], ...]] | None = None
+        self._last_status: tuple | None = None
         self._last_status_wall = 0.0
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
@@ -335,29 +337,29 @@ class RigTwin(Sink):
         self._status(None, force=force)
 
     def _status(self, out, force: bool = False, state: str | None = None) -> None:
+        """Publish a status when the rig's state, a parameter's status, a sensor's status or the filter's
+        consistency changed, else at most once a second (``STATUS_S``; a change of the message alone, such as
+        the lag, waits for it); ``force``: now."""
         now = time.monotonic()
-        from twin.tracker import consistency_note
-
         per_param = self.drift.statuses()
         state = state or self.health.state
-        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
         com = self.commissioning
-        progress = ""
         if com is not None:
             if state in ("starting", "running"):
                 state = "commissioning"
-            if state not in ("failed", "stopped", "finished"):
-                progress = com.note()
-                message = "; ".join(m for m in (str(com.fitting), message) if m)  # progress: once a second
             per_param = {n: "commissioning" for n in per_param}
-        key = (state, message, tuple(sorted(per_param.items())))
-        if not force and key == self._last_status and now - self._last_status_wall < 1.0:
+        sensors = self.tracker.sensor_status()
+        guard = str(self.drift.guard or "consistent")
+        key = (state, tuple(per_param.items()), tuple(sensors.items()), guard, com is not None and com.fitting)
+        if not force and key == self._last_status and now - self._last_status_wall < STATUS_S:
             return
         self._last_status = key
         self._last_status_wall = now
-        if progress:
-            message = "; ".join(m for m in (progress, self.health.message,
-                                            consistency_note(self.tracker, self.drift)) if m)
+        from twin.tracker import consistency_note
+
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        if com is not None and state not in ("failed", "stopped", "finished"):
+            message = "; ".join(m for m in (com.note(), message) if m)
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
         counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
                     **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
@@ -365,9 +367,11 @@ class RigTwin(Sink):
         if com is not None:
             counters["commission_ms"] = int(com.window.gathered_s * 1000)
             counters["commission_needed_ms"] = int(com.seconds * 1000)
+        extra = getattr(self.publisher, "status_counters", None)
+        if extra is not None:  # the publisher's own counters (alarm_seq), so the event is built and checked once
+            counters.update(extra())
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
-                         counters=counters, message=message, sensors=self.tracker.sensor_status(),
-                         consistency=str(self.drift.guard or "consistent"))
+                         counters=counters, message=message, sensors=sensors, consistency=guard)
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:
