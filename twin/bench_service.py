@@ -311,12 +311,14 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
                 front = BusFront(session, {rig.name: history})
                 runner = RigRunner(rig, c, journal, out, threading.Event())
                 runner._open()
+                assert runner.twin is not None  # made by _open
                 t0 = time.process_time()
                 for i, blk in enumerate(blocks):
                     runner._process(blk, live=False)
                     runner._lag = 0.0
                     runner._tick()
                     if i % per_s == per_s - 1:  # what the wall clock triggers once a second in real time
+                        runner.twin.publish_status(force=True)
                         runner._checkpoint()
                         runner.outbox.flush()
                         while not out.empty():

@@ -75,6 +75,9 @@ READ_CHUNK = 20000
 FLUSH_S = 0.25
 #: A jump in sample time longer than this (or 20 sample periods) restarts the filter's model states [s].
 GAP_S = 0.5
+#: A rig behind real time filters every sample already due in one block, up to this much of them [s]
+#: (fewer, larger blocks cost less Python per sample, so a rig that fell behind catches up).
+MAX_BLOCK_S = 1.0
 #: A filter that diverges again within this long of a restart is a failure of the rig [s].
 RESET_WINDOW_S = 10.0
 
@@ -239,6 +242,12 @@ class Pacer:
             return None
         return max(0.0, time.monotonic() - self.due(t_ns))
 
+    def due_now(self) -> float:
+        """The sample time [ns] due now (``inf`` before the first sample or without pacing)."""
+        if self.speed <= 0 or self._t0 is None:
+            return math.inf
+        return self._t0 + (time.monotonic() - self._w0) * self.speed * 1e9
+
 
 class LiveLag:
     """Lag of a live input: the arrival delay of the latest sample beyond the smallest one seen.
@@ -256,13 +265,18 @@ class LiveLag:
         return d - self._best
 
 
-def blocks_by_time(block: Samples, span_s: float):
-    """``block`` cut into consecutive pieces spanning at most ``span_s`` of sample time."""
+def blocks_by_time(block: Samples, span_s: float, pacer: Pacer | None = None, max_span_s: float = MAX_BLOCK_S):
+    """``block`` cut into consecutive pieces spanning at most ``span_s`` of sample time; with a ``pacer``,
+    a piece whose samples are all due already (the rig is behind) takes every sample due now, up to
+    ``max_span_s`` (larger blocks where the latency is there anyway)."""
     t = block.t_ns
     i, n = 0, len(block)
     while i < n:
         j = int(np.searchsorted(t, t[i] + int(span_s * 1e9), side="left"))
         j = max(j, i + 1)
+        if pacer is not None and j < n and t[j - 1] <= pacer.due_now():
+            late = min(pacer.due_now(), t[i] + max_span_s * 1e9)
+            j = max(j, int(np.searchsorted(t, late, side="right")))
         yield block if (i == 0 and j >= n) else block.slice(i, j)
         i = j
 
@@ -567,7 +581,8 @@ class RigRunner:
                         continue
                     if k:
                         chunk = chunk.slice(k, len(chunk))
-                for block in (blocks_by_time(chunk, span) if math.isfinite(span) else (chunk,)):
+                for block in (blocks_by_time(chunk, span, pacer, max(span, MAX_BLOCK_S))
+                              if math.isfinite(span) else (chunk,)):
                     if not pacer.wait(int(block.t_ns[-1]), self.stop):
                         raise _Stopped
                     self._process(block, live=False)
@@ -663,7 +678,10 @@ class RigRunner:
                     first_wall = self._last_data
                 pending.append(block)
                 span = (int(block.t_ns[-1]) - int(pending[0].t_ns[0])) * 1e-9
-                if span >= self.cfg.block_s or self._last_data - first_wall >= self.cfg.block_s:
+                # behind real time: larger blocks (up to MAX_BLOCK_S), the latency is there anyway
+                want = self.cfg.block_s if not self._lag or self._lag <= self.cfg.block_s else \
+                    min(MAX_BLOCK_S, self._lag)
+                if span >= want or self._last_data - first_wall >= self.cfg.block_s:
                     self._live_block(pending, lag)
                     self._input_counters(src)
                     pending = []
@@ -741,10 +759,10 @@ class RigRunner:
             gap = (int(block.t_ns[0]) - last) * 1e-9
             self.summary.input_gaps += 1
             self._restart_filter(f"{gap:.1f} s without samples before t_ns={int(block.t_ns[0])}")
-        good = twin.tracker.estimate()
         try:
             twin.write(block)
         except FilterError as exc:
+            good = twin.last_estimate()  # after the last block the filter finished (not this failed one)
             now = time.monotonic()
             if self._last_reset is not None and now - self._last_reset < RESET_WINDOW_S:
                 raise RigFailure(f"{exc}; it diverged again {now - self._last_reset:.1f} s after a restart") from None

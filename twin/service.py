@@ -184,6 +184,7 @@ class RigTwin(Sink):
         self._last_status_wall = 0.0
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
+        self._last_row: tuple[np.ndarray, np.ndarray] | None = None
         self.commissioning: Commissioning | None = None
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
 
@@ -271,6 +272,8 @@ class RigTwin(Sink):
         if self._t0_ns is None:
             self._t0_ns = int(samples.t_ns[0])
         out = self.tracker.process(samples)
+        if len(out.t_ns):
+            self._last_row = (out.estimates[-1], out.stds[-1])
         self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
@@ -295,6 +298,13 @@ class RigTwin(Sink):
         """Published estimates kept (the last ``history``): ``t_s [n]``, ``values [n, p]``, ``stds [n, p]`` (SI)."""
         t, v, s = self._ring.arrays()
         return {"t_s": t, "values": v, "stds": s}
+
+    def last_estimate(self) -> dict[str, tuple[float, float]]:
+        """(value, std) of every tracked parameter (SI) after the last block filtered ({} before the first)."""
+        row = getattr(self, "_last_row", None)
+        if row is None:
+            return {}
+        return {n: (float(row[0][j]), float(row[1][j])) for j, n in enumerate(self.tracker.tracked)}
 
     def final_estimates(self) -> dict[str, dict]:
         last = self._ring.last()
