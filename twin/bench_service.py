@@ -230,6 +230,8 @@ def fleet(counts: list[int], seconds: float, say=print, profile: str = "") -> di
             cpu0: float | None = None
             cpu1: float | None = None
             tc0 = tc1 = main0 = main1 = 0.0
+            n0 = n1 = 0
+            done: dict[str, int] = {}  # samples each rig says it processed (its latest status)
             deadline = t0 + seconds + 120.0
             while len(finished) < n and time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(1.0)
@@ -239,12 +241,13 @@ def fleet(counts: list[int], seconds: float, say=print, profile: str = "") -> di
                         finished.add(rig)
                     elif st["state"] in ("running", "degraded"):
                         lags.setdefault(rig, []).append(st["counters"].get("lag_ms", 0) / 1000)
+                        done[rig] = st["counters"].get("samples", 0)
                 if not finished:  # CPU of the tree while every rig runs (a finished worker leaves the tree)
                     now_cpu, now_t, now_main = _cpu_s(_tree(proc.pid)), time.monotonic(), _cpu_s([proc.pid])
                     if cpu0 is None and len(lags) == n:
-                        cpu0, tc0, main0 = now_cpu, now_t, now_main
+                        cpu0, tc0, main0, n0 = now_cpu, now_t, now_main, sum(done.values())
                     elif cpu0 is not None:
-                        cpu1, tc1, main1 = now_cpu, now_t, now_main
+                        cpu1, tc1, main1, n1 = now_cpu, now_t, now_main, sum(done.values())
             # tc1 > tc0 only once cpu1 is measured too
             ok = cpu0 is not None and cpu1 is not None and tc1 > tc0
             cpu = (cpu1 - cpu0) / (tc1 - tc0) if ok else float("nan")  # type: ignore[operator]
@@ -256,7 +259,8 @@ def fleet(counts: list[int], seconds: float, say=print, profile: str = "") -> di
             row: dict[str, Any] = {"rigs": n, "finished": len(finished), "lag_max_s": max(steady, default=float("nan")),
                    "lag_p95_s": float(np.percentile(steady, 95)) if steady else float("nan"),
                    "cpu_cores_busy": cpu, "cpu_service_process": cpu_main,
-                   "cpu_us_per_sample": cpu * 1e6 / (n * 1000.0), "errors": [line for line in err.splitlines() if "error" in line][:3]}
+                   "cpu_us_per_sample": (cpu1 - cpu0) * 1e6 / (n1 - n0) if ok and n1 > n0 else float("nan"),  # type: ignore[operator]
+                   "errors": [line for line in err.splitlines() if "error" in line][:3]}
             row["real_time"] = row["finished"] == n and row["lag_max_s"] < 1.0
             rows.append(row)
             say(f"  {n:4d} rigs: finished {row['finished']}/{n}, lag max {row['lag_max_s']:.3f} s, "

@@ -195,6 +195,10 @@ class Outbox:
     def publish_estimate(self, event) -> None:
         self._batch.append(("estimate", event_to_json(event)))
 
+    def publish_estimate_json(self, payload: str) -> None:
+        """An estimate already written as its JSON payload (:meth:`twin.service.RigTwin._estimate_json`)."""
+        self._batch.append(("estimate", payload))
+
     def status_counters(self) -> dict[str, int]:
         """``alarm_seq``: the last number the journal gave an alarm of this rig (this runner is its one writer)."""
         return {"alarm_seq": self._seq}

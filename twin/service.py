@@ -185,6 +185,7 @@ class RigTwin(Sink):
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
         self._last_row: tuple[np.ndarray, np.ndarray] | None = None
+        self._est_template: tuple | None = None
         self.commissioning: Commissioning | None = None
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
 
@@ -333,6 +334,14 @@ class RigTwin(Sink):
         if self.publisher is None and self.recorder is None:
             self.stats.estimates += 1
             return
+        fast = getattr(self.publisher, "publish_estimate_json", None)
+        if fast is not None and self.recorder is None:
+            payload = self._estimate_json(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], out.stds[i],
+                                          float(out.nis[i]), str(out.status[i]))
+            if payload is not None:
+                fast(payload)
+                self.stats.estimates += 1
+                return
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
                                       out.estimates[i], out.stds[i], self.tracker.units,
                                       float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
@@ -341,6 +350,37 @@ class RigTwin(Sink):
         if self.recorder is not None:
             self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict())
         self.stats.estimates += 1
+
+    def _estimate_json(self, t_ns: int, t_s: float, values: np.ndarray, stds: np.ndarray, nis: float,
+                       status: str) -> str | None:
+        """The ``EstimateEvent`` payload, written straight from the numbers: the same text as
+        ``event_to_json(EstimateEvent.of_tracker(...))`` (sorted keys, compact, floats by ``repr``) without
+        building the event; ``None`` for anything the schema checks would refuse (the event path then runs)."""
+        import math
+
+        vals = values.tolist()
+        sds = stds.tolist()
+        if not (all(map(math.isfinite, vals)) and all(math.isfinite(v) and v >= 0 for v in sds) and t_ns >= 0
+                and math.isfinite(t_s) and not nis < 0):
+            return None
+        template = self._est_template
+        if template is None or template[0] != self.tracker.tracked:
+            import json
+
+            def text(v: str) -> str:  # a JSON string constant inside a %-format
+                return json.dumps(v).replace("%", "%%")
+
+            names, units = self.tracker.tracked, self.tracker.units
+            order = sorted(range(len(names)), key=lambda j: names[j])
+            parts = [f'{text(names[j])}:{{"std":%r,"unit":{text(units[j])},"value":%r}}' for j in order]
+            template = (names, order, '{"nis":%s,"params":{' + ",".join(parts)
+                        + f'}},"rig":{text(self.rig.name)},"status":"%s","t_ns":%d,"t_s":%r}}')
+            self._est_template = template
+        _, order, fmt = template
+        nums: list[Any] = [repr(nis) if math.isfinite(nis) else "null"]
+        for j in order:
+            nums += [sds[j], vals[j]]
+        return fmt % (*nums, status, t_ns, t_s)
 
     def publish_status(self, force: bool = False) -> None:
         """Publish a status now if it changed or a second has passed (``force``: now)."""
