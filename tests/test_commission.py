@@ -145,3 +145,21 @@ def test_the_commission_s_flag_commissions_the_rigs_without_a_commissioning(tmp_
     assert with_commission_s(cfg, None) is cfg
     with pytest.raises(ConfigError, match=r"^--commission-s: must be >= 5 seconds, got 1$"):
         with_commission_s(cfg, 1.0)
+
+
+def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
+    """Rigs spread over worker processes: the worker starts the fit's own process (workers are not daemonic
+    for that, and die with the service all the same)."""
+    rec, log = excited
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "out_dir": str(tmp_path / "run1"), "workers": 1},
+        "rig": [{"name": "rig-c", "source": str(log), "speed": 0.0, "commission_s": 8.0}],
+    }, str(tmp_path / "rigs.toml"))
+    summaries: dict = {}
+    serve(cfg, summaries=summaries)
+    assert summaries["rig-c"].state == "finished" and summaries["rig-c"].samples == 30000
+    doc = json.loads((tmp_path / "journal" / "rig-c.commission.json").read_text())
+    assert abs(doc["params"]["Ffric"] - float(rec.truth["Ffric"])) <= 4.0 * doc["std"]["Ffric"]
+    states = [s.state for s in _statuses(tmp_path, "run1")]
+    assert "commissioning" in states and states.index("commissioning") < states.index("running")
