@@ -149,6 +149,9 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
     """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
     d = dataclasses.asdict(rig)
     d.pop("speed")
+    for key, default in (("commission_s", None), ("baseline_set", ())):  # keys added later: their default is
+        if d.get(key) == default:                                          # no change (checkpoints still match)
+            d.pop(key, None)
     d["estimate_every"] = estimate_every
     return hashlib.sha256(repr(sorted(d.items())).encode()).hexdigest()[:16]
 
