@@ -452,7 +452,11 @@ class RigRunner:
         if c is None or not c.window.full:
             return
         if self._fit is None:
-            self._fit = FitJob(self.rig, c.window.samples())
+            try:
+                self._fit = FitJob(self.rig, c.window.samples())
+            except (OSError, RuntimeError, ValueError) as exc:  # no process for the fit: the rig goes on all the same
+                self._end_commission(None, f"the fit's process cannot start ({type(exc).__name__}: {exc})")
+                return
             c.fitting = True
             log.info("rig %s: %s", self.rig.name, c.note())
             twin.publish_status(force=True)
@@ -466,6 +470,11 @@ class RigRunner:
             self.outbox.flush(force=False)
         doc, problem = self._fit.result()
         self._fit = None
+        self._end_commission(doc, problem)
+
+    def _end_commission(self, doc: dict | None, problem: str) -> None:
+        twin = self.twin
+        assert twin is not None  # made by _open
         com = None
         if doc is not None:
             com = self._save_commission(doc)
