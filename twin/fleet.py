@@ -410,6 +410,7 @@ class RigRunner:
         if self.keep is not None:
             self.keep[self.rig.name] = self.twin
         self._resume()
+        self.twin.status_after_write = False  # _tick publishes after each block, the rig's health included
         if self.rig.commission_s and saved is None and self.summary.resumed_samples is None:
             from twin.service import Commissioning
 

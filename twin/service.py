@@ -189,6 +189,8 @@ class RigTwin(Sink):
         self._ring = Ring(len(self.tracker.tracked), history)
         self._last_row: tuple[np.ndarray, np.ndarray] | None = None
         self._est_template: tuple | None = None
+        self.status_after_write = True
+        """Check the status after every block (``False``: the caller does, as a runner does after its block)."""
         self.commissioning: Commissioning | None = None
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
 
@@ -291,7 +293,8 @@ class RigTwin(Sink):
         self._since_estimate = (self._since_estimate + n) % self.estimate_every
         self.stats.samples += len(samples)
         self.stats.blocks += 1
-        self._status(out)
+        if self.status_after_write:
+            self._status(out)
         self.stats.busy_s += time.perf_counter() - t_start
 
     def close(self) -> None:
