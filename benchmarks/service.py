@@ -11,7 +11,20 @@
     for each count, the rigs' lag as they report it in their status
     (``lag_ms``), and whether every rig stayed under its warning level; baseline
     in the same run: how many rigs the compiled filter alone could follow
-    (its samples per second on every core, divided by 1000).
+    (its samples per second on every core, divided by 1000). Also, from CPU
+    time (robust to other work on the machine): the service's CPU per sample
+    processed (the service's process and its workers) and the filter's alone,
+    and the rigs each would hold if the cores were theirs.
+
+``python -m benchmarks.service overhead [--seconds 20] [--block-ms 100]``
+    what one rig costs per sample outside the compiled filter: a rig's runner
+    (block by block: filter, drift test, estimates, statuses, checkpoints,
+    the batch to the bus) and the service's side of the bus (Zenoh puts on a
+    real session), in this process without pacing, split in the same run into
+    the compiled call (``twin.online.ukf.run_kernel``, timed where the tracker makes
+    it), the tracker's Python around it and the service's Python; the round
+    least disturbed by the machine's other work is kept. Also the filter alone
+    (``OnlineTracker.process``) on the same blocks.
 
 Every figure is measured here and now; nothing is compared with fixed
 milliseconds. Statuses are read over Zenoh, as a dashboard would.
@@ -126,9 +139,14 @@ class _Statuses:
         self.session.close()
 
 
-def _start(config: Path) -> subprocess.Popen:
+def _start(config: Path, profile: str = "") -> subprocess.Popen:
+    env = dict(os.environ)
+    if profile:
+        os.makedirs(profile, exist_ok=True)
+        env["FPDD_PROFILE_DIR"] = os.path.abspath(profile)
     return subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config),
-                             "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                             "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=env)
 
 
 def _stop(proc: subprocess.Popen) -> str:
@@ -186,8 +204,22 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
             if all_lags else float("nan"), "service_stderr_tail": err.strip().splitlines()[-rigs:]}
 
 
-def _filter_rigs() -> float:
-    """Rigs the compiled filter alone follows at 1 kHz on every core (the tracker benchmark's fleet figure)."""
+def _filter_cpu_worker(seed: int) -> tuple[int, float]:
+    """Samples filtered and the CPU seconds they took (the compiled filter alone, whole record per call)."""
+    from benchmarks.tracker import _record
+    from twin.online.tracker import OnlineTracker
+
+    s = _record(10.0, seed).to_samples()
+    OnlineTracker().process(s.slice(0, 50))  # compile/load outside the clock
+    t0 = time.process_time()
+    for _ in range(3):
+        OnlineTracker().process(s)
+    return 3 * len(s), time.process_time() - t0
+
+
+def _filter_rigs() -> tuple[float, float]:
+    """Rigs the compiled filter alone follows at 1 kHz on every core: (by wall clock, as the tracker benchmark
+    counts them, on the machine as loaded now; by its CPU per sample, if the cores were the service's)."""
     import multiprocessing as mp
 
     from benchmarks.tracker import _worker
@@ -195,10 +227,12 @@ def _filter_rigs() -> float:
     cores = os.cpu_count() or 1
     with mp.get_context("spawn").Pool(cores) as pool:
         res = pool.map(_worker, [(10.0, 3, 30 + i) for i in range(cores)])
-    return sum(r[0] for r in res) / max(r[1] for r in res) / 1000.0
+        cpu = pool.map(_filter_cpu_worker, [30 + i for i in range(cores)])
+    us = sum(c[1] for c in cpu) / sum(c[0] for c in cpu) * 1e6
+    return sum(r[0] for r in res) / max(r[1] for r in res) / 1000.0, cores * 1e6 / (us * 1000.0)
 
 
-def fleet(counts: list[int], seconds: float, say=print) -> dict:
+def fleet(counts: list[int], seconds: float, say=print, profile: str = "") -> dict:
     rows = []
     with tempfile.TemporaryDirectory(prefix="fpdd-fleet-") as tmp:
         d = Path(tmp)
@@ -209,14 +243,16 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
             run = d / f"n{n}"
             run.mkdir()
             port = _free_port()
-            proc = _start(_config(run, logs, n, port))
+            proc = _start(_config(run, logs, n, port), os.path.join(profile, f"n{n}") if profile else "")
             watch = _Statuses(f"tcp/127.0.0.1:{port}")
             t0 = time.monotonic()
             finished: set[str] = set()
             lags: dict[str, list[float]] = {}
             cpu0: float | None = None
             cpu1: float | None = None
-            tc0 = tc1 = 0.0
+            tc0 = tc1 = main0 = main1 = 0.0
+            n0 = n1 = 0
+            done: dict[str, int] = {}  # samples each rig says it processed (its latest status)
             deadline = t0 + seconds + 120.0
             while len(finished) < n and time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(1.0)
@@ -226,31 +262,167 @@ def fleet(counts: list[int], seconds: float, say=print) -> dict:
                         finished.add(rig)
                     elif st["state"] in ("running", "degraded"):
                         lags.setdefault(rig, []).append(st["counters"].get("lag_ms", 0) / 1000)
+                        done[rig] = st["counters"].get("samples", 0)
                 if not finished:  # CPU of the tree while every rig runs (a finished worker leaves the tree)
-                    now_cpu, now_t = _cpu_s(_tree(proc.pid)), time.monotonic()
+                    now_cpu, now_t, now_main = _cpu_s(_tree(proc.pid)), time.monotonic(), _cpu_s([proc.pid])
                     if cpu0 is None and len(lags) == n:
-                        cpu0, tc0 = now_cpu, now_t
+                        cpu0, tc0, main0, n0 = now_cpu, now_t, now_main, sum(done.values())
                     elif cpu0 is not None:
-                        cpu1, tc1 = now_cpu, now_t
+                        cpu1, tc1, main1, n1 = now_cpu, now_t, now_main, sum(done.values())
             # tc1 > tc0 only once cpu1 is measured too
-            cpu = (cpu1 - cpu0) / (tc1 - tc0) if cpu0 is not None and cpu1 is not None and tc1 > tc0 else float("nan")
+            ok = cpu0 is not None and cpu1 is not None and tc1 > tc0
+            cpu = (cpu1 - cpu0) / (tc1 - tc0) if ok else float("nan")  # type: ignore[operator]
+            cpu_main = (main1 - main0) / (tc1 - tc0) if ok else float("nan")
             err = _stop(proc)
             watch.close()
             # the steady part: each rig's statuses after its first 5 s
             steady = [x for v in lags.values() for x in v[5:]]
             row: dict[str, Any] = {"rigs": n, "finished": len(finished), "lag_max_s": max(steady, default=float("nan")),
                    "lag_p95_s": float(np.percentile(steady, 95)) if steady else float("nan"),
-                   "cpu_cores_busy": cpu, "errors": [line for line in err.splitlines() if "error" in line][:3]}
+                   "cpu_cores_busy": cpu, "cpu_service_process": cpu_main,
+                   "cpu_us_per_sample": (cpu1 - cpu0) * 1e6 / (n1 - n0) if ok and n1 > n0 else float("nan"),  # type: ignore[operator]
+                   "errors": [line for line in err.splitlines() if "error" in line][:3]}
             row["real_time"] = row["finished"] == n and row["lag_max_s"] < 1.0
             rows.append(row)
             say(f"  {n:4d} rigs: finished {row['finished']}/{n}, lag max {row['lag_max_s']:.3f} s, "
-                f"p95 {row['lag_p95_s']:.3f} s, {cpu:.2f} cores busy -> "
+                f"p95 {row['lag_p95_s']:.3f} s, {cpu:.2f} cores busy ({cpu_main:.2f} in the service's process; "
+                f"{row['cpu_us_per_sample']:.1f} us CPU per sample) -> "
                 f"{'real time' if row['real_time'] else 'NOT real time'}")
     say("baseline: the compiled filter alone on every core...")
-    alone = _filter_rigs()
+    alone, alone_cpu = _filter_rigs()
     best = max((r["rigs"] for r in rows if r["real_time"]), default=0)
+    cores = os.cpu_count() or 1
+    by_cpu = [cores * 1e6 / (r["cpu_us_per_sample"] * 1000.0) for r in rows if r["cpu_us_per_sample"] > 0]
     return {"rows": rows, "filter_alone_rigs": alone, "best_real_time_rigs": best,
-            "service_vs_filter_alone": best / alone if alone else float("nan"), "cores": os.cpu_count()}
+            "service_vs_filter_alone": best / alone if alone else float("nan"), "cores": cores,
+            "filter_alone_rigs_by_cpu": alone_cpu, "filter_us_per_sample_cpu": cores * 1e3 / alone_cpu,
+            "service_rigs_by_cpu": min(by_cpu) if by_cpu else float("nan"),
+            "load_average": os.getloadavg()[0]}
+
+
+def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = "", say=print) -> dict:
+    """CPU per sample of a rig's service path, split into the compiled filter, the tracker's Python around
+    it and the service's Python (see the module doc); the filter alone on the same blocks as a baseline."""
+    import dataclasses
+    import threading
+
+    import zenoh
+
+    from replay.factory import open_source
+    from twin.online import ukf
+    from replay.zenohconf import zenoh_config
+    from twin.service.bus import StoreHistory
+    from twin.online.commission import tracker_for
+    from twin.service.config import parse_config
+    from twin.service.fleet import BusFront, RigRunner, journal_path
+    from twin.service.journal import AlarmJournal
+    from twin.online.tracker import OnlineTracker
+
+    clock = time.process_time
+    spent = {"kernel": 0.0, "tracker": 0.0}
+    kernel = ukf.run_kernel
+
+    def timed_kernel(*args):  # the compiled call, timed where the tracker makes it
+        t0 = clock()
+        try:
+            return kernel(*args)
+        finally:
+            spent["kernel"] += clock() - t0
+
+    process = OnlineTracker.process
+
+    def timed_process(self, blk):  # the tracker's call, its Python around the compiled one included
+        t0 = clock()
+        try:
+            return process(self, blk)
+        finally:
+            spent["tracker"] += clock() - t0
+
+    with tempfile.TemporaryDirectory(prefix="fpdd-overhead-") as tmp:
+        d = Path(tmp)
+        log = d / "rig.mcap"
+        _log(log, seconds, seed=40)
+        with open_source(str(log)) as src:
+            samples = next(src.chunks(10 ** 9))
+        n = len(samples)
+        b = max(1, int(round(block_ms)))  # 1 kHz: one sample per millisecond
+        blocks = [samples.slice(i, min(i + b, n)) for i in range(0, n, b)]
+        per_s = max(1, int(round(1000.0 / b)))  # blocks per second of data: a checkpoint and a flush each second
+
+        def filter_alone() -> float:
+            tr = tracker_for(cfg.rigs[0])
+            t0 = clock()
+            for blk in blocks:
+                tr.process(blk)
+            return clock() - t0
+
+        def service(k: int) -> dict[str, float]:
+            c = dataclasses.replace(cfg, journal_dir=str(d / f"j{k}"), checkpoint_s=1e9)
+            out: queue.Queue = queue.Queue()
+            rig = c.rigs[0]
+            with AlarmJournal(journal_path(c, rig.name)) as journal:
+                history = StoreHistory(journal_path(c, rig.name))
+                front = BusFront(session, {rig.name: history})
+                runner = RigRunner(rig, c, journal, out, threading.Event())
+                runner._open()
+                assert runner.twin is not None  # made by _open
+                spent["kernel"] = spent["tracker"] = 0.0
+                ukf.run_kernel = timed_kernel  # type: ignore[assignment]
+                OnlineTracker.process = timed_process  # type: ignore[method-assign]
+                t0 = clock()
+                try:
+                    for i, blk in enumerate(blocks):
+                        runner._process(blk, live=False)
+                        runner._lag = 0.0
+                        runner._tick()
+                        if i % per_s == per_s - 1:  # what the wall clock triggers once a second in real time
+                            runner.twin.publish_status(force=True)
+                            runner._checkpoint()
+                            runner.outbox.flush()
+                            while not out.empty():
+                                msg = out.get_nowait()
+                                if msg[0] == "batch":
+                                    front.handle(msg[1], msg[2])
+                    total = clock() - t0
+                finally:
+                    ukf.run_kernel = kernel
+                    OnlineTracker.process = process  # type: ignore[method-assign]
+                front.close()
+                history.close()
+            return {"total": total, "kernel": spent["kernel"], "tracker": spent["tracker"] - spent["kernel"],
+                    "service": total - spent["tracker"]}
+
+        cfg = parse_config({"service": {"journal_dir": str(d / "j"), "block_s": b / 1000.0, "estimate_every": 50},
+                            "rig": [{"name": "rig-0", "source": str(log), "speed": 1.0}]}, str(d / "rigs.toml"))
+        with zenoh.open(zenoh_config("peer")) as session:
+            filter_alone()  # warm: compiled code loaded, caches filled
+            service(99)
+            alone: list[float] = []
+            runs: list[dict[str, float]] = []
+            for k in range(rounds):
+                alone.append(filter_alone())
+                if profile and k == rounds - 1:
+                    import cProfile
+                    import pstats
+
+                    prof = cProfile.Profile(clock)
+                    prof.enable()
+                    runs.append(service(k))
+                    prof.disable()
+                    pstats.Stats(prof).sort_stats("tottime").dump_stats(profile)
+                else:
+                    runs.append(service(k))
+                r = runs[-1]
+                say(f"  round {k + 1}: filter alone {alone[-1] / n * 1e6:.1f} us/sample; in the service: kernel "
+                    f"{r['kernel'] / n * 1e6:.1f}, tracker's Python {r['tracker'] / n * 1e6:.2f}, service's "
+                    f"Python {r['service'] / n * 1e6:.2f} us/sample")
+    best = min(runs, key=lambda r: r["total"])  # the least disturbed round, its parts measured together
+    per = {k: v / n * 1e6 for k, v in best.items()}
+    return {"samples": n, "block_samples": b, "filter_alone_us_per_sample": min(alone) / n * 1e6,
+            "kernel_us_per_sample": per["kernel"], "tracker_python_us_per_sample": per["tracker"],
+            "service_python_us_per_sample": per["service"], "service_us_per_sample": per["total"],
+            "overhead_us_per_sample": per["tracker"] + per["service"],
+            "overhead_us_per_block": (per["tracker"] + per["service"]) * b}
 
 
 def main(argv=None) -> int:
@@ -262,7 +434,14 @@ def main(argv=None) -> int:
     f = sub.add_parser("fleet", help="how many 1 kHz rigs one twin serve keeps in real time")
     f.add_argument("--rigs", default="60,100,120", help="rig counts to try, comma-separated")
     f.add_argument("--seconds", type=float, default=30.0, help="length of each replayed log")
-    for p in (s, f):
+    f.add_argument("--profile", default="", metavar="DIR", help="cProfile every rig's thread and the service's "
+                   "loop (CPU time) into DIR/n<rigs>/*.prof")
+    o = sub.add_parser("overhead", help="CPU per sample of a rig outside the compiled filter")
+    o.add_argument("--seconds", type=float, default=20.0, help="length of the simulated record")
+    o.add_argument("--block-ms", type=float, default=100.0, help="block length (1 kHz: samples)")
+    o.add_argument("--rounds", type=int, default=3)
+    o.add_argument("--profile", default="", metavar="FILE", help="cProfile statistics of the last round to FILE")
+    for p in (s, f, o):
         p.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print
@@ -275,14 +454,27 @@ def main(argv=None) -> int:
                   f"{r['rss_warm_mib']:.1f} MiB, at the end {r['rss_final_mib']:.1f} MiB: growth "
                   f"{r['growth_after_warm_pct']:+.2f} % (target < 5 %), slope {r['slope_kib_per_min']:+.0f} KiB/min; "
                   f"lag max {r['lag_max_s']:.3f} s, p95 {r['lag_p95_s']:.3f} s")
+    elif args.what == "overhead":
+        r = overhead(args.seconds, args.block_ms, args.rounds, args.profile, say)
+        if args.json:
+            print(json.dumps(r, indent=2))
+        else:
+            print(f"overhead: {r['block_samples']}-sample blocks: service path {r['service_us_per_sample']:.1f} "
+                  f"us/sample = compiled filter {r['kernel_us_per_sample']:.1f} + tracker's Python "
+                  f"{r['tracker_python_us_per_sample']:.2f} + service's Python {r['service_python_us_per_sample']:.2f}"
+                  f": {r['overhead_us_per_sample']:.2f} us/sample outside the compiled filter "
+                  f"({r['overhead_us_per_block']:.0f} us per block); the filter alone "
+                  f"{r['filter_alone_us_per_sample']:.1f} us/sample")
     else:
-        r = fleet([int(x) for x in args.rigs.split(",")], args.seconds, say)
+        r = fleet([int(x) for x in args.rigs.split(",")], args.seconds, say, args.profile)
         if args.json:
             print(json.dumps(r, indent=2))
         else:
             print(f"fleet: {r['best_real_time_rigs']} rigs at 1 kHz in real time in one twin serve on {r['cores']} "
-                  f"cores; the filter alone would follow {r['filter_alone_rigs']:.0f} "
-                  f"(service/filter {r['service_vs_filter_alone']:.2f})")
+                  f"cores (load average {r['load_average']:.1f}); the filter alone would follow "
+                  f"{r['filter_alone_rigs']:.0f} now (service/filter {r['service_vs_filter_alone']:.2f}). By CPU per "
+                  f"sample, on cores of their own: the service {r['service_rigs_by_cpu']:.0f} rigs, the filter "
+                  f"alone {r['filter_alone_rigs_by_cpu']:.0f} ({r['filter_us_per_sample_cpu']:.1f} us/sample)")
     return 0
 
 

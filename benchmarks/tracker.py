@@ -171,7 +171,7 @@ def _track_reference(rec, controller, base, chunk=5000):
 
 
 def accuracy(duration: float = 600.0, fault_duration: float = 20.0) -> dict:
-    from twin.online.drift import Baseline, default_baseline
+    from twin.online.baseline import Baseline, default_baseline
 
     ref = _reference()
     nominal = default_baseline("msp25")

@@ -108,6 +108,16 @@ CASES = [
      r"model: 'msp26' is not a model the online twin runs; it runs msp25"),
     ("model-not-tracked-online", edit('speed = 1.0', 'speed = 1.0\nmodel = "oscillator"'),
      r"model: 'oscillator' is not a model the online twin runs; it runs msp25"),
+    ("commission-s-short", edit("speed = 1.0", "speed = 1.0\ncommission_s = 2"),
+     r"rig 'msp25-a'\.commission_s: must be >= 5 seconds \(the commissioning fit needs a few periods of the "
+     r"demand\), got 2"),
+    ("commission-s-string", edit("speed = 1.0", 'speed = 1.0\ncommission_s = "2min"'),
+     r"rig 'msp25-a'\.commission_s: expected a number, got '2min'"),
+    ("commission-s-typo", edit("speed = 1.0", "speed = 1.0\ncommision_s = 60"),
+     r"unknown key 'commision_s' \(did you mean 'commission_s'\?\)"),
+    ("commission-both", edit("speed = 1.0", 'speed = 1.0\ncommission_s = 60\ncommission = "fit.json"'),
+     r"rig 'msp25-a': give either commission \(a saved fit\) or commission_s \(commission on the first seconds in "
+     r"service\), not both"),
     ("journal-dir-empty", edit('journal_dir = "JOURNAL"', 'journal_dir = ""'),
      r"service\.journal_dir: expected a directory path, got an empty string"),
     ("journal-dir-under-a-file", edit('journal_dir = "JOURNAL"', 'journal_dir = "AFILE/journal"'),
@@ -149,6 +159,13 @@ def test_bad_rigs_toml(files, capsys, name, change, message) -> None:
     line = one_line_error(capsys, "serve")
     assert str(path) in line
     assert __import__("re").search(message, line), line
+
+
+def test_commission_s_flag_too_short(files, capsys) -> None:
+    path = files["root"] / "rigs.toml"
+    path.write_text(render(GOOD, files, free_port()))
+    assert cli.main(["serve", "--config", str(path), "--commission-s", "1"]) == 2
+    assert one_line_error(capsys, "serve") == "twin serve: error: --commission-s: must be >= 5 seconds, got 1"
 
 
 @pytest.mark.parametrize("content, message", [

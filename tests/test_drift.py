@@ -9,8 +9,9 @@ import types
 import numpy as np
 import pytest
 
-from twin.online.drift import Baseline, default_baseline
-from twin.online.drift import DriftMonitor, baseline_from_fit
+from twin.online.baseline import Baseline, default_baseline
+from twin.online.baseline import baseline_from_fit
+from twin.online.drift import DriftMonitor
 from twin.errors import ParameterError
 from twin.online.events import AlarmEvent
 from twin.models import msp25 as M

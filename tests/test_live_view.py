@@ -24,7 +24,7 @@ from websockets.sync.client import connect
 from replay.base import Samples
 from twin.service.bus import TwinPublisher
 from replay.zenohconf import zenoh_config
-from twin.online.drift import default_baseline
+from twin.online.baseline import default_baseline
 from net_helpers import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate
 from twin.service.journal import AlarmJournal

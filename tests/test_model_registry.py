@@ -11,7 +11,8 @@ import pytest
 
 from twin.errors import ParameterError
 from twin.models import MODELS, REGISTRY, get_model, trackable_models
-from twin.online.drift import DriftMonitor, default_baseline
+from twin.online.baseline import default_baseline
+from twin.online.drift import DriftMonitor
 from twin.online.tracker import OnlineTracker
 from twin.params import EXCITATION, Tracking
 

@@ -157,7 +157,7 @@ def test_diagnose_report_from_the_object_and_from_its_json(tmp_path):
 
 
 def test_track_report(tmp_path):
-    from twin.online.drift import Baseline
+    from twin.online.baseline import Baseline
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
     from twin.models.simulate import DEFAULT_NOISE, excite

@@ -19,7 +19,7 @@ from twin.service.config import load_config
 from net_helpers import free_port
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
-from twin.service.rig import serve
+from twin.service.serve import serve
 from twin.models.simulate import DEFAULT_NOISE, excite
 from twin.service.store import Store
 

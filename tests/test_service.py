@@ -23,7 +23,7 @@ from twin.commands.demo import run as run_demo
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
 from twin.online.events import StatusEvent
-from twin.service.rig import serve
+from twin.service.serve import serve
 from twin.service.store import Store
 from twin.models.simulate import DEFAULT_NOISE, excite
 

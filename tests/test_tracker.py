@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from replay.base import Samples
-from twin.online.drift import default_baseline
+from twin.online.baseline import default_baseline
 from twin.online.drift import DriftMonitor
 from twin.errors import DataError, ParameterError
 from twin.models import msp25 as M

@@ -16,7 +16,7 @@ import pytest
 
 from replay.base import Samples
 from tests.track_reference import record, to_samples, truth_at
-from twin.online.drift import Baseline, default_baseline
+from twin.online.baseline import Baseline, default_baseline
 from twin.online.drift import DriftMonitor
 from twin.models.base import Timing
 from twin.online.tracker import OnlineTracker

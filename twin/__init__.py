@@ -35,7 +35,7 @@ _EXPORTS = {
     "diagnose": "twin.estimation.diagnose",
     "Diagnosis": "twin.estimation.diagnose",
     "track": "twin.service.track",
-    "serve": "twin.service.rig",
+    "serve": "twin.service.serve",
     "load_config": "twin.service.config",
     "TwinPublisher": "twin.service.bus",
     "AlarmSubscriber": "twin.service.bus",

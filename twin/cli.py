@@ -28,7 +28,7 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "diagnose": ("twin.commands.diagnose", "add_arguments", "run",
                  "show what the simulation gets wrong, name the cause, measure the gain"),
     "alarms": ("twin.commands.alarms", "add_arguments", "run", "print drift alarms as they come, history first"),
-    "serve": ("twin.service.rig", "add_serve_arguments", "run_serve", "run the online twin for one or more rigs"),
+    "serve": ("twin.commands.serve", "add_arguments", "run", "run the online twin for one or more rigs"),
     "demo": ("twin.commands.demo", "add_demo_arguments", "run_demo",
              "end-to-end demo: simulate a wearing rig, track it, alarm over Zenoh"),
     "top": ("twin.commands.top", "add_top_arguments", "run_top",

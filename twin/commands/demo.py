@@ -56,10 +56,10 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     from replay.mcapio import McapSink
     from twin.service.bus import AlarmSubscriber
     from replay.zenohconf import zenoh_config
-    from twin.online.drift import default_baseline
+    from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig, ServiceConfig
     from twin.models import msp25 as M
-    from twin.service.rig import serve
+    from twin.service.serve import serve
 
     os.makedirs(out_dir, exist_ok=True)
     t0 = time.perf_counter()

@@ -46,7 +46,7 @@ class Commission:
 
     def baseline(self, names: Sequence[str], rel_band: Mapping[str, float] | None = None, k_sigma: float = 3.0):
         """Healthy bands of ``names`` centred on the fitted (or known) values."""
-        from twin.online.drift import Baseline, default_band
+        from twin.online.baseline import Baseline, default_band
 
         bands = {**{n: default_band(self.model, n) for n in names}, **dict(rel_band or {})}
         out = {}
@@ -140,35 +140,162 @@ def tracker_params(c: Commission, tracked: Sequence[str]) -> tuple[dict[str, flo
     return params, {t: params[t] for t in tracked if t in params}
 
 
-def commission_from_samples(samples, seconds: float, tracked: Sequence[str], params: Mapping[str, float] | None = None,
-                            timing: Timing | None = None) -> Commission:
-    """Fit the free parameters on the first ``seconds`` of ``samples`` (the rig's first minute in service)."""
+#: The least peak-to-peak movement of the position in a commissioning window [m]: less is no excitation.
+MIN_STROKE_M = 1e-4
+#: A fitted parameter known worse than this (relative standard error) was not excited enough.
+MAX_REL_STD = 0.5
+#: At most this many samples are gathered for a commissioning fit, whatever ``commission_s`` says (memory).
+MAX_WINDOW_SAMPLES = 1_000_000
+
+
+class Window:
+    """The first ``seconds`` (of sample time) of a rig's samples, gathered for its commissioning fit.
+
+    Memory is bounded: the window ends at ``seconds`` or at ``max_samples``
+    samples, whichever comes first; :meth:`add` hands back what lies beyond it.
+    """
+
+    def __init__(self, seconds: float, max_samples: int = MAX_WINDOW_SAMPLES) -> None:
+        self.seconds = float(seconds)
+        self.max_samples = int(max_samples)
+        self._blocks: list = []
+        self._n = 0
+        self._t0_ns: int | None = None
+        self._t_last_ns: int | None = None
+        self.full = False
+
+    @property
+    def gathered_s(self) -> float:
+        if self._t0_ns is None or self._t_last_ns is None:
+            return 0.0
+        return (self._t_last_ns - self._t0_ns) * 1e-9
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, samples):
+        """Gather ``samples`` up to the end of the window; returns the samples beyond it (``None``: none)."""
+        import numpy as np
+
+        if self.full:
+            return samples
+        if len(samples) == 0:
+            return None
+        if self._t0_ns is None:
+            self._t0_ns = int(samples.t_ns[0])
+        end_ns = self._t0_ns + int(round(self.seconds * 1e9))
+        k = int(np.searchsorted(samples.t_ns, end_ns, side="left"))
+        k = min(k, self.max_samples - self._n)
+        if k > 0:
+            part = samples if k >= len(samples) else samples.slice(0, k)
+            self._blocks.append(part)
+            self._n += len(part)
+            self._t_last_ns = int(part.t_ns[-1])
+        if k < len(samples):
+            self.full = True
+            return samples.slice(k, len(samples)) if k > 0 else samples
+        return None
+
+    def samples(self):
+        """The gathered samples, in one block."""
+        from replay.base import Samples
+
+        return Samples.concat(self._blocks)
+
+
+def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | None = None,
+               timing: Timing | None = None, rig: str = "") -> tuple[dict | None, str]:
+    """The commissioning fit of a rig's first samples: ``(document, "")`` or ``(None, why it cannot be used)``.
+
+    The document is what ``twin fit --save`` writes (``model, effects, params,
+    std, timing, noise``, plus ``commissioned``: the window's first and last
+    sample time, its length and sample count) and :func:`from_dict` reads.
+    It is refused, with the reason, when the position hardly moved (less than
+    :data:`MIN_STROKE_M` peak to peak: no excitation), the fit did not
+    converge, a parameter ended at a bound, or one is known worse than
+    :data:`MAX_REL_STD` relatively (too little excitation for it). Runs in a
+    worker process of the service (everything in and out is plain data).
+    """
     import numpy as np
 
     from twin.estimation.fit import fit
     from twin.record import Record
 
-    t = (np.asarray(samples.t_ns) - samples.t_ns[0]) * 1e-9
-    n = int(np.searchsorted(t, seconds))
+    n = len(samples)
     if n < 100:
-        raise ConfigError(f"commission_s = {seconds:g}: only {n} samples in that time; need at least 100")
-    dt = float(np.median(np.diff(samples.t_ns[:n]))) * 1e-9
-    sig = {k: np.asarray(v[:n], float) for k, v in samples.signals.items()}
-    rec = Record(dt, sig, "commissioning")
+        return None, f"only {n} samples gathered; at least 100 are needed"
+    t_ns = np.asarray(samples.t_ns)
+    seconds = (int(t_ns[-1]) - int(t_ns[0])) * 1e-9
+    dt = float(np.median(np.diff(t_ns))) * 1e-9
+    sig = {k: np.asarray(v, float) for k, v in samples.signals.items()}
+    if "x" in sig:
+        x = sig["x"][np.isfinite(sig["x"])]
+        stroke = float(np.ptp(x)) if x.size else 0.0
+        if stroke < MIN_STROKE_M:
+            return None, (f"too little excitation: the position moved {stroke * 1e3:.3f} mm peak to peak in "
+                          f"{seconds:.1f} s (at least {MIN_STROKE_M * 1e3:g} mm needed; run the rig's "
+                          "identification demand while it commissions)")
+    rec = Record(dt, sig, f"commissioning {rig}".strip())
     model = get_model("msp25")
-    base = model.params((), **dict(params or {}))
-    res = fit(model, [rec], tuple(tracked), base=base, timing=timing)
-    noise = {}
-    for o in NOISE_KEYS:
-        if o in sig and res.predicted:
-            r = sig[o] - np.asarray(res.predicted[0][o])
-            r = r[np.isfinite(r)]
-            if r.size:
-                noise[o] = float(np.sqrt(np.mean(r * r)))
+    try:
+        base = model.params((), **dict(params or {}))
+        res = fit(model, [rec], tuple(tracked), base=base, timing=timing)
+    except (ParameterError, ValueError) as exc:
+        return None, f"the fit cannot run: {exc}"
+    if not res.success:
+        return None, f"the fit did not converge ({res.message})"
+    at_bound = [k for k in tracked if not math.isfinite(float(res.std.get(k, math.nan)))]
+    if at_bound:
+        return None, f"the fit left {', '.join(at_bound)} at a bound (no standard error): {res.message}"
+    weak = [f"{k} +-{100 * res.std[k] / res.estimate[k]:.0f} %" for k in tracked
+            if not res.std[k] <= MAX_REL_STD * abs(res.estimate[k])]
+    if weak:
+        return None, f"too little excitation: {', '.join(weak)} (at most +-{100 * MAX_REL_STD:.0f} % usable)"
     allp = base.as_dict()
     allp.update({k: float(v) for k, v in res.estimate.items()})
-    fitted = {k: (float(res.estimate[k]), float(res.std.get(k, math.nan))) for k in tracked}
-    return Commission(allp, fitted, noise, timing, (), "commissioning fit", model.name)
+    doc = {"model": "msp25", "effects": [], "params": allp,
+           "std": {k: float(res.std[k]) for k in tracked}, "timing": res.timing,
+           "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs if o in NOISE_KEYS},
+           "commissioned": {"rig": rig, "first_t_ns": int(t_ns[0]), "last_t_ns": int(t_ns[-1]),
+                            "seconds": seconds, "samples": n, "fit_pct": dict(res.fit_pct)}}
+    return doc, ""
+
+
+def commission_from_samples(samples, seconds: float, tracked: Sequence[str], params: Mapping[str, float] | None = None,
+                            timing: Timing | None = None) -> Commission:
+    """Fit the free parameters on the first ``seconds`` of ``samples`` (the rig's first minutes in service).
+
+    :raises ConfigError: the window cannot commission the rig (:func:`fit_window` says why).
+    """
+    w = Window(seconds)
+    w.add(samples)
+    doc, problem = fit_window(w.samples(), tracked, params, timing)
+    if doc is None:
+        raise ConfigError(f"commission_s = {seconds:g}: {problem}")
+    return from_dict(doc, "commissioning fit")
+
+
+def apply_commission(rig, com: Commission):
+    """The rig configuration commissioned by ``com``: its values, noise and timing (``commission``: the
+    saved file) and bands centred on the fit, but the bands ``[rig.baseline.NAME]`` set explicitly."""
+    baseline = com.baseline(rig.track)
+    baseline.update({n: b for n, b in rig.baseline.items() if n in rig.baseline_set})
+    return dataclasses.replace(rig, commission=com.source, baseline=baseline)
+
+
+def describe(c: Commission, names: Sequence[str]) -> str:
+    """One line: the fitted values with their standard errors and the noise levels, in display units."""
+    ps = get_model("msp25").params()
+    parts = []
+    for n in names:
+        if n in c.fitted:
+            v, sd = c.fitted[n]
+            show = ps.spec(n).show
+            parts.append(f"{n} {show(float(f'{v:.4g}'))} +- {show(float(f'{sd:.2g}'))}")
+    noise_units = {"x": (1e6, "um"), "pA": (1e-3, "kPa"), "pB": (1e-3, "kPa")}
+    noise = [f"{o} {v * noise_units[o][0]:.3g} {noise_units[o][1]}" for o, v in c.noise.items() if o in noise_units]
+    text = ", ".join(parts)
+    return f"{text}; noise {', '.join(noise)}" if noise else text
 
 
 def tracker_for(rig, dt: float | None = None, start: Mapping[str, float] | None = None):

@@ -44,10 +44,10 @@ at the band's edge within its own uncertainty accumulates nothing.  The
 statistic is capped at ``3 h_alarm`` so a parameter that comes back is
 declared returned within a bounded time.
 
-Baselines (:class:`Baseline`) come from the rig's values (:func:`default_baseline`:
+Baselines (:class:`twin.online.baseline.Baseline`) come from the rig's values (:func:`~twin.online.baseline.default_baseline`:
 the paper's Table 9 for the MSP25, with each parameter's healthy band declared
 beside its spec in the model, :class:`twin.params.Tracking`), the rig
-configuration, or a commissioning fit (:func:`baseline_from_fit`).
+configuration, or a commissioning fit (:func:`~twin.online.baseline.baseline_from_fit`).
 """
 
 from __future__ import annotations
@@ -56,74 +56,12 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
+import numba as nb
 import numpy as np
 
-from twin.errors import ParameterError
 from twin.models import get_model
-from twin.online.events import AlarmEvent
-
-#: relative band of a parameter whose spec declares none (not tracked online)
-FALLBACK_BAND = 0.3
-
-
-@dataclasses.dataclass(frozen=True)
-class Baseline:
-    """Healthy value of one parameter and its band [lo, hi] (SI units)."""
-
-    value: float
-    lo: float
-    hi: float
-
-
-def default_band(model_name: str, name: str) -> float:
-    """The healthy band (relative half-width) of ``name``: its spec's tracking band, else
-    :data:`FALLBACK_BAND`."""
-    spec = get_model(model_name).params().spec(name) if name in get_model(model_name).kernel_names else None
-    return spec.tracking.band if spec is not None and spec.tracking is not None else FALLBACK_BAND
-
-
-def default_baseline(model_name: str, params: Mapping[str, float] | None = None,
-                     names: Sequence[str] | None = None) -> dict[str, Baseline]:
-    """Bands around the rig's values (the paper's Table 9 for the MSP25), each as wide as its spec's
-    tracking band."""
-    model = get_model(model_name)
-    ps = model.params((), **dict(params or {}))
-    out = {}
-    for n in names or model.PHENOMENOLOGICAL:
-        v = ps[n]
-        r = default_band(model_name, n)
-        out[n] = Baseline(v, v / (1 + r), v * (1 + r))
-    return out
-
-
-def baseline_from_fit(fit, names: Sequence[str] | None = None, rel_band: Mapping[str, float] | None = None,
-                      k_sigma: float = 3.0) -> dict[str, Baseline]:
-    """Healthy bands centred on a commissioning fit (:class:`twin.estimation.fit.FitResult`).
-
-    Each band is ``[v / (1 + r), v (1 + r)]`` around the fitted value ``v`` with
-    ``r`` the configured relative band (``rel_band``, default each parameter's
-    tracking band in the model), widened to ``k_sigma`` standard errors of
-    the fit when the fit itself is less certain than that.  ``names``: the
-    parameters to take (default: all free parameters of the fit).
-    """
-    names = tuple(names or fit.free)
-    missing = [n for n in names if n not in fit.estimate]
-    if missing:
-        raise ParameterError(f"the commissioning fit did not estimate {', '.join(missing)}; "
-                             f"it estimated {', '.join(fit.free)}")
-    model_name = fit.params.model
-    bands = {**{n: default_band(model_name, n) for n in names}, **dict(rel_band or {})}
-    out = {}
-    for n in names:
-        v = float(fit.estimate[n])
-        if not (v > 0 and math.isfinite(v)):
-            raise ParameterError(f"the commissioning fit's {n} (={v}) is not a positive number; no band around it")
-        sd = float(fit.std.get(n, math.nan))
-        r = float(bands.get(n, FALLBACK_BAND))
-        if math.isfinite(sd):
-            r = max(r, k_sigma * sd / v)
-        out[n] = Baseline(v, v / (1.0 + r), v * (1.0 + r))
-    return out
+from twin.online.baseline import Baseline
+from twin.online.events import ALARM_LEVELS, AlarmEvent
 
 
 @dataclasses.dataclass
@@ -174,27 +112,88 @@ class DriftMonitor:
 
         ``hold[i]`` True (the tracker's consistency guard, :attr:`twin.online.tracker.TrackBlock.hold`): the
         filter is not consistent with the data at sample ``i``; the statistics keep their value and
-        the parameters say ``inconsistent``; ``guard[i]`` is the reason.
+        the parameters say ``inconsistent``; ``guard[i]`` is the reason. The whole block is one
+        compiled call (:func:`_cusum_block`); Python builds an event only where a level changes.
         """
-        events: list[AlarmEvent] = []
-        if len(t_s) == 0:
-            return events
-        step = 1.0 / self.rate_hz
+        T = len(t_s)
+        if T == 0:
+            return []
         if self._next_t is None:
             self._next_t = float(t_s[0]) + self.settle_s
-        i = int(np.searchsorted(t_s, self._next_t))
-        while i < len(t_s):
-            held = bool(hold[i]) if hold is not None else False
-            self.guard = str(guard[i]) if (guard is not None and held) else "consistent"
-            for j, n in enumerate(names):
-                if n in self.params:
-                    ev = self._step(self.params[n], int(t_ns[i]), float(t_s[i]), float(est[i, j]),
-                                    float(log_std[i, j]), bool(frozen[i, j]), step, held)
-                    if ev is not None:
-                        events.append(ev)
-            self._next_t = float(t_s[i]) + step
-            i = int(np.searchsorted(t_s, self._next_t))
+        c = self._constants(tuple(names))
+        if c is None:
+            return []
+        jj, ps, const, whole = c
+        state = np.array([[q.s_hi, q.s_lo, ALARM_LEVELS.index(q.level),
+                           math.nan if q.inside_since is None else q.inside_since, _STATUS_CODE[q.status]]
+                          for q in ps]).T.copy()
+        if whole:  # every column is a monitored parameter, in order: no copies
+            E = np.ascontiguousarray(est, dtype=float)
+            S = np.ascontiguousarray(log_std, dtype=float)
+            F = np.ascontiguousarray(frozen, dtype=np.bool_)
+        else:
+            E = np.ascontiguousarray(est[:, jj], dtype=float)
+            S = np.ascontiguousarray(log_std[:, jj], dtype=float)
+            F = np.ascontiguousarray(frozen[:, jj], dtype=np.bool_)
+        H = np.zeros(T, np.bool_) if hold is None else np.ascontiguousarray(hold, dtype=np.bool_)
+        ev = self._buffer(len(ps) * (int((float(t_s[-1]) - float(t_s[0])) * self.rate_hz) + 2))
+        cfg = np.array([self._next_t, 1.0 / self.rate_hz, self.rate_hz, self.kappa, self.h_warn, self.h_alarm,
+                        3.0 * self.h_alarm, self.hold_s, self.resolve, self.max_ess_factor])
+        n_ev, next_t, last_i = _cusum_block(np.ascontiguousarray(t_s, dtype=float), E, S, F, H, cfg, const, state, ev)
+        self._next_t = float(next_t)
+        if last_i >= 0:
+            self.guard = str(guard[last_i]) if (guard is not None and H[last_i]) else "consistent"
+        for k, q in enumerate(ps):
+            q.s_hi, q.s_lo = float(state[0, k]), float(state[1, k])
+            q.level = ALARM_LEVELS[int(state[2, k])]
+            q.inside_since = None if math.isnan(state[3, k]) else float(state[3, k])
+            q.status = _STATUSES[int(state[4, k])]
+        events = []
+        for e in range(n_ev):
+            i, k = int(ev[e, 0]), int(ev[e, 1])
+            q = ps[k]
+            old, new = ALARM_LEVELS[int(ev[e, 2])], ALARM_LEVELS[int(ev[e, 3])]
+            side = "high" if ev[e, 5] else "low"
+            q.side = side if new != "ok" else ""  # the parameter's last change in the block stays
+            kind = "returned" if new == "ok" else ("escalated" if old == "warning" else "raised")
+            value = float(E[i, k])
+            stat = float(ev[e, 4])
+            msg = (f"{q.name} back inside its band" if new == "ok" else
+                   f"{q.name} {'above' if side == 'high' else 'below'} its healthy band "
+                   f"({old} -> {new}, CUSUM {stat:.1f})")
+            events.append(AlarmEvent(rig=self.rig, parameter=q.name, level=new, kind=kind, t_ns=int(t_ns[i]),
+                                     t_s=float(t_s[i]), estimate=value, std=value * float(S[i, k]),
+                                     baseline=q.base.value, band_lo=q.base.lo, band_hi=q.base.hi, statistic=stat,
+                                     message=msg))
         return events
+
+    def _constants(self, names: tuple[str, ...]):
+        """Per tuple of tracked names: the monitored columns, their states, and ``const`` rows: baseline value,
+        log band (lo, hi) relative to it, drift-rate intensity (log units^2 per s)."""
+        cache = getattr(self, "_const", None)
+        if cache is not None and cache[0] == names:
+            return cache[1]
+        cols = [(j, n) for j, n in enumerate(names) if n in self.params]
+        if not cols:
+            c = None
+        else:
+            ps = [self.params[n] for _, n in cols]
+            val = np.array([q.base.value for q in ps])
+            const = np.stack([val, np.log(np.array([q.base.lo for q in ps]) / val),
+                              np.log(np.array([q.base.hi for q in ps]) / val),
+                              np.array([self.drift_rate.get(q.name, 0.0) ** 2 for q in ps])])
+            jj = [j for j, _ in cols]
+            c = (jj, ps, const, jj == list(range(len(names))))
+        self._const = (names, c)
+        return c
+
+    def _buffer(self, n: int) -> np.ndarray:
+        """Room for ``n`` changes of level (reused from block to block)."""
+        buf = getattr(self, "_buf", None)
+        if buf is None or len(buf) < n:
+            buf = np.empty((max(n, 64), 6))
+            self._buf = buf
+        return buf
 
     def ess_factor(self, name: str, sigma: float) -> float:
         """How many evaluation steps make one independent sample of the estimate: ``(1+r)/(1-r)``, with
@@ -207,51 +206,83 @@ class DriftMonitor:
         r = math.exp(-1.0 / (self.rate_hz * max(tau, 1e-9)))
         return min(self.max_ess_factor, (1.0 + r) / max(1.0 - r, 1e-12))
 
-    def _step(self, p: _ParamState, t_ns: int, t_s: float, value: float, sigma: float, frozen: bool,
-              step: float, held: bool = False) -> AlarmEvent | None:
-        b = p.base
-        lo, hi = math.log(b.lo / b.value), math.log(b.hi / b.value)
-        z = math.log(value / b.value) if value > 0 else -math.inf
-        if frozen:
-            p.status = "frozen"
-            return None
-        if held:
-            p.status = "inconsistent"
-            return None
-        if not (sigma > 0 and math.isfinite(sigma)) or sigma > self.resolve * 0.5 * (hi - lo):
-            p.status = "unresolved"
-            return None
-        p.status = "ok"
-        d_hi = (z - hi) / sigma
-        d_lo = (lo - z) / sigma
-        w = 1.0 / math.sqrt(self.ess_factor(p.name, sigma))
-        cap = 3.0 * self.h_alarm
-        p.s_hi = min(cap, max(0.0, p.s_hi + w * (d_hi - self.kappa)))
-        p.s_lo = min(cap, max(0.0, p.s_lo + w * (d_lo - self.kappa)))
-        stat = max(p.s_hi, p.s_lo)
-        side = "high" if p.s_hi >= p.s_lo else "low"
-        inside = lo <= z <= hi
-        if inside:
-            p.inside_since = t_s if p.inside_since is None else p.inside_since
-        else:
-            p.inside_since = None
-        new = p.level
-        if stat >= self.h_alarm:
-            new = "alarm"
-        elif stat >= self.h_warn and p.level == "ok":
-            new = "warning"
-        elif p.level != "ok" and stat == 0.0 and p.inside_since is not None and t_s - p.inside_since >= self.hold_s:
-            new = "ok"
-        if new == p.level:
-            return None
-        kind = "returned" if new == "ok" else ("escalated" if p.level == "warning" else "raised")
-        old = p.level
-        p.level = new
-        p.side = side if new != "ok" else ""
-        std = value * sigma
-        msg = (f"{p.name} back inside its band" if new == "ok" else
-               f"{p.name} {'above' if side == 'high' else 'below'} its healthy band "
-               f"({old} -> {new}, CUSUM {stat:.1f})")
-        return AlarmEvent(rig=self.rig, parameter=p.name, level=new, kind=kind, t_ns=t_ns, t_s=t_s,
-                          estimate=value, std=std, baseline=b.value, band_lo=b.lo, band_hi=b.hi,
-                          statistic=stat, message=msg)
+
+_STATUSES = ("ok", "frozen", "unresolved", "inconsistent")
+_STATUS_CODE = {name: code for code, name in enumerate(_STATUSES)}
+
+
+@nb.njit(cache=True)
+def _cusum_block(t_s, E, S, F, H, cfg, const, state, ev):
+    """The drift test over one block, evaluated at the first sample at or after ``cfg[0]`` (``next_t``) and
+    then every ``cfg[1]`` seconds of sample time.
+
+    ``cfg``: next_t, step, rate, kappa, h_warn, h_alarm, cap, hold_s, resolve, max_ess; ``const`` rows
+    per parameter: baseline value, log band lo and hi relative to it, random-walk intensity q (log units^2
+    per s, for the effective-sample weight); ``state`` rows, updated in place: s_hi, s_lo, level (0/1/2 =
+    ok/warning/alarm), inside (since when the estimate is inside its band, NaN: not), status (0..3 =
+    ok/frozen/unresolved/inconsistent). Each change of level goes to a row of ``ev``: sample, parameter,
+    old level, new level, statistic, high side. Returns (changes, next_t, last sample evaluated or -1)."""
+    next_t, step, rate, kappa, h_warn, h_alarm, cap, hold_s, resolve, max_ess = (
+        cfg[0], cfg[1], cfg[2], cfg[3], cfg[4], cfg[5], cfg[6], cfg[7], cfg[8], cfg[9])
+    T = t_s.shape[0]
+    p = E.shape[1]
+    n = 0
+    last = -1
+    i = np.searchsorted(t_s, next_t)
+    while i < T:
+        last = i
+        held = H[i]
+        for j in range(p):
+            value = E[i, j]
+            sigma = S[i, j]
+            lo = const[1, j]
+            hi = const[2, j]
+            if F[i, j]:
+                state[4, j] = 1
+                continue
+            if held:
+                state[4, j] = 3
+                continue
+            if not (sigma > 0.0 and np.isfinite(sigma)) or sigma > resolve * 0.5 * (hi - lo):
+                state[4, j] = 2
+                continue
+            state[4, j] = 0
+            z = np.log(value / const[0, j]) if value > 0.0 else -np.inf
+            d_hi = (z - hi) / sigma
+            d_lo = (lo - z) / sigma
+            g = 1.0
+            if const[3, j] > 0.0:
+                tau = sigma * sigma / const[3, j]
+                r = np.exp(-1.0 / (rate * max(tau, 1e-9)))
+                g = min(max_ess, (1.0 + r) / max(1.0 - r, 1e-12))
+            w = 1.0 / np.sqrt(g)
+            s_hi = min(cap, max(0.0, state[0, j] + w * (d_hi - kappa)))
+            s_lo = min(cap, max(0.0, state[1, j] + w * (d_lo - kappa)))
+            state[0, j] = s_hi
+            state[1, j] = s_lo
+            stat = max(s_hi, s_lo)
+            if lo <= z <= hi:
+                if np.isnan(state[3, j]):
+                    state[3, j] = t_s[i]
+            else:
+                state[3, j] = np.nan
+            old = state[2, j]
+            new = old
+            if stat >= h_alarm:
+                new = 2.0
+            elif stat >= h_warn and old == 0.0:
+                new = 1.0
+            elif old != 0.0 and stat == 0.0 and not np.isnan(state[3, j]) and t_s[i] - state[3, j] >= hold_s:
+                new = 0.0
+            if new != old:
+                ev[n, 0] = i
+                ev[n, 1] = j
+                ev[n, 2] = old
+                ev[n, 3] = new
+                ev[n, 4] = stat
+                ev[n, 5] = 1.0 if s_hi >= s_lo else 0.0
+                n += 1
+                state[2, j] = new
+        next_t = t_s[i] + step
+        i = np.searchsorted(t_s, next_t)
+    return n, next_t, last

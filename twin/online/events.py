@@ -58,9 +58,11 @@ ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
 (escalated), or came back down (returned, to ``warning`` or ``ok``)."""
 
 SERVICE_STATES: tuple[str, ...] = (
-    "starting", "running", "degraded", "stale_input", "finished", "failed", "stopped",
+    "starting", "commissioning", "running", "degraded", "stale_input", "finished", "failed", "stopped",
 )
-"""Life-cycle states of a twin service for one rig: ``starting``; ``running``;
+"""Life-cycle states of a twin service for one rig: ``starting``; ``commissioning`` (gathering its
+first seconds for the commissioning fit, or fitting them: no alarms yet; counters
+``commission_ms`` / ``commission_needed_ms``); ``running``;
 ``degraded`` (running, but behind real time or unable to journal: the message
 says which); ``stale_input`` (no sample for a while: the rig waits, counter
 ``stale_ms`` says how long); ``finished`` (a replayed log ended); ``failed``

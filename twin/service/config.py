@@ -27,6 +27,10 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     track = ["Ffric", "CdAleak", "Cd", "zeta", "wn"]
     commission = "commissioning.json"   # a `twin fit --save` file (relative to this file): bands
                                         # centred on the fit, its noise levels and its timing
+    # commission_s = 120                # or: commission the rig on its first 120 s in service
+                                        # (status 'commissioning', no alarms until the fit is done;
+                                        # saved as <journal_dir>/<rig>.commission.json and reused on
+                                        # restart; a failed fit falls back to the configured bands)
     controller = "digital"              # the loop's timing: digital, digital:5000, continuous
     intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
@@ -49,13 +53,19 @@ import difflib
 import math
 import os
 import tomllib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from twin.errors import ConfigError, ParameterError
-from twin.online.drift import Baseline, default_band, default_baseline
+from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
 from twin.models import MODELS, get_model, trackable_models
 from twin.models.base import Timing
+
+#: The shortest commissioning window ``commission_s`` [s].
+MIN_COMMISSION_S = 5.0
+
+if TYPE_CHECKING:
+    from twin.online.commission import Commission
 
 @dataclasses.dataclass(frozen=True)
 class RigConfig:
@@ -71,8 +81,12 @@ class RigConfig:
     """Sensor noise standard deviations (SI) per output; learnt online on top."""
     timing: Timing | None = None
     """The loop's timing (``controller``, ``intersample``); None: digital at the log's rate, or the fit's."""
-    commission: str | None = None
-    """A ``twin fit --save`` file: known values, bands centred on the fit, noise levels and timing."""
+    commission: str | Commission | None = None
+    """A ``twin fit --save`` file (or, once a rig commissioned in service, what it found): known values, bands centred on the fit, noise levels and timing."""
+    commission_s: float | None = None
+    """Commission the rig on its first ``commission_s`` seconds in service (``None``: no)."""
+    baseline_set: tuple[str, ...] = ()
+    """The parameters whose band ``[rig.baseline.NAME]`` sets explicitly (a commissioning keeps them)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,7 +113,7 @@ ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s")
 RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
-            "intersample", "commission")
+            "intersample", "commission", "commission_s")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
@@ -286,6 +300,11 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     if len(set(track)) != len(track):
         raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
     commission = _get(r, "commission", str, where, "") or None
+    commission_s = _number(r, "commission_s", where, None, lo=MIN_COMMISSION_S,
+                           what=" seconds (the commissioning fit needs a few periods of the demand)")
+    if commission is not None and commission_s is not None:
+        raise ConfigError(f"{where}: give either commission (a saved fit) or commission_s (commission on the "
+                          "first seconds in service), not both")
     if commission is not None:
         from twin.online.commission import load_fit
 
@@ -353,4 +372,17 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
-    return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission)
+    return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
+                     commission_s, tuple(_get(r, "baseline", dict, where, {})))
+
+
+def with_commission_s(cfg: ServiceConfig, seconds: float | None) -> ServiceConfig:
+    """``cfg`` with ``commission_s = seconds`` for every rig that has neither ``commission`` nor ``commission_s``
+    (``twin serve --commission-s``)."""
+    if seconds is None:
+        return cfg
+    if not (math.isfinite(seconds) and seconds >= MIN_COMMISSION_S):
+        raise ConfigError(f"--commission-s: must be >= {MIN_COMMISSION_S:g} seconds, got {seconds:g}")
+    rigs = tuple(r if (r.commission or r.commission_s) else dataclasses.replace(r, commission_s=float(seconds))
+                 for r in cfg.rigs)
+    return dataclasses.replace(cfg, rigs=rigs)

@@ -75,6 +75,9 @@ READ_CHUNK = 20000
 FLUSH_S = 0.25
 #: A jump in sample time longer than this (or 20 sample periods) restarts the filter's model states [s].
 GAP_S = 0.5
+#: A rig behind real time filters every sample already due in one block, up to this much of them [s]
+#: (fewer, larger blocks cost less Python per sample, so a rig that fell behind catches up).
+MAX_BLOCK_S = 1.0
 #: A filter that diverges again within this long of a restart is a failure of the rig [s].
 RESET_WINDOW_S = 10.0
 
@@ -86,6 +89,11 @@ def is_live(uri: str) -> bool:
 def journal_path(cfg: ServiceConfig, rig: str) -> Path:
     """The rig's SQLite journal."""
     return Path(cfg.journal_dir) / f"{rig}.db"
+
+
+def commission_path(cfg: ServiceConfig, rig: str) -> Path:
+    """Where a rig's commissioning in service (``commission_s``) is saved, next to its journal."""
+    return Path(cfg.journal_dir) / f"{rig}.commission.json"
 
 
 def legacy_journal_path(cfg: ServiceConfig, rig: str) -> Path:
@@ -173,11 +181,13 @@ class Outbox:
         self.out = out
         self._batch: list[tuple] = []
         self._last_flush = time.monotonic()
+        self._seq = journal.last_seq(rig)
 
     def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
         recorded = self.journal.record(event)
         if not recorded.new:
             return None
+        self._seq = max(self._seq, recorded.event.seq)
         self._batch.append(("alarm", recorded.event, recorded.durable))
         self.flush()  # alarms go out at once
         return recorded.event
@@ -185,10 +195,17 @@ class Outbox:
     def publish_estimate(self, event) -> None:
         self._batch.append(("estimate", event_to_json(event)))
 
+    def publish_estimate_json(self, payload: str) -> None:
+        """An estimate already written as its JSON payload (:meth:`twin.service.rig.RigTwin._estimate_json`)."""
+        self._batch.append(("estimate", payload))
+
+    def status_counters(self) -> dict[str, int]:
+        """``alarm_seq``: the last number the journal gave an alarm of this rig (this runner is its one writer)."""
+        return {"alarm_seq": self._seq}
+
     def publish_status(self, event: StatusEvent) -> StatusEvent:
-        counters = dict(event.counters)
-        counters["alarm_seq"] = self.journal.last_seq(self.rig)
-        event = dataclasses.replace(event, counters=counters)
+        if "alarm_seq" not in event.counters:
+            event = dataclasses.replace(event, counters={**event.counters, **self.status_counters()})
         self._batch.append(("status", event_to_json(event), event.state, event.message))
         return event
 
@@ -229,6 +246,12 @@ class Pacer:
             return None
         return max(0.0, time.monotonic() - self.due(t_ns))
 
+    def due_now(self) -> float:
+        """The sample time [ns] due now (``inf`` before the first sample or without pacing)."""
+        if self.speed <= 0 or self._t0 is None:
+            return math.inf
+        return self._t0 + (time.monotonic() - self._w0) * self.speed * 1e9
+
 
 class LiveLag:
     """Lag of a live input: the arrival delay of the latest sample beyond the smallest one seen.
@@ -246,15 +269,69 @@ class LiveLag:
         return d - self._best
 
 
-def blocks_by_time(block: Samples, span_s: float):
-    """``block`` cut into consecutive pieces spanning at most ``span_s`` of sample time."""
+def blocks_by_time(block: Samples, span_s: float, pacer: Pacer | None = None, max_span_s: float = MAX_BLOCK_S):
+    """``block`` cut into consecutive pieces spanning at most ``span_s`` of sample time; with a ``pacer``,
+    a piece whose samples are all due already (the rig is behind) takes every sample due now, up to
+    ``max_span_s`` (larger blocks where the latency is there anyway)."""
     t = block.t_ns
     i, n = 0, len(block)
     while i < n:
         j = int(np.searchsorted(t, t[i] + int(span_s * 1e9), side="left"))
         j = max(j, i + 1)
+        if pacer is not None and j < n and t[j - 1] <= pacer.due_now():
+            late = min(pacer.due_now(), t[i] + max_span_s * 1e9)
+            j = max(j, int(np.searchsorted(t, late, side="right")))
         yield block if (i == 0 and j >= n) else block.slice(i, j)
         i = j
+
+
+# --------------------------------------------------------------------------- commissioning
+
+
+def _fit_job(conn, samples: Samples, tracked: tuple[str, ...], params: dict, timing, rig: str) -> None:
+    """A spawned process: the commissioning fit of one rig's window, its outcome sent on ``conn``."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from twin.online.commission import fit_window
+
+    try:
+        out = fit_window(samples, tracked, params, timing, rig)
+    except Exception as exc:  # noqa: BLE001 - a bug of the fit is a failed commissioning, not a dead rig
+        out = (None, f"internal error of the fit {type(exc).__name__}: {exc}")
+    conn.send(out)
+    conn.close()
+
+
+class FitJob:
+    """A rig's commissioning fit in its own spawned process (the other rigs go on meanwhile)."""
+
+    def __init__(self, rig: RigConfig, samples: Samples) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=False)
+        timing = rig.timing
+        self.proc = ctx.Process(target=_fit_job, args=(child, samples, tuple(rig.track), dict(rig.params), timing,
+                                                       rig.name), name=f"twin-commission-{rig.name}")
+        self.proc.start()
+        child.close()
+
+    def done(self) -> bool:
+        return self._conn.poll() or not self.proc.is_alive()
+
+    def result(self) -> tuple[dict | None, str]:
+        try:
+            if self._conn.poll(1.0):
+                return self._conn.recv()
+        except (EOFError, OSError):
+            pass
+        finally:
+            self.proc.join(5.0)
+        return None, f"the fit's process ended without a result (exit code {self.proc.exitcode})"
+
+    def cancel(self) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+        self.proc.join(5.0)
+        self._conn.close()
 
 
 # --------------------------------------------------------------------------- one rig
@@ -297,6 +374,7 @@ class RigRunner:
         self._last_quiet_status = 0.0
         self._dropped: dict[str, int] = {}
         self._dropped_base: dict[str, int] = {}
+        self._fit: FitJob | None = None
 
     # ------------------------------------------------------------------ life
 
@@ -327,14 +405,107 @@ class RigRunner:
             from replay.mcapio import McapSink
 
             self.recorder = McapSink(_free_name(Path(self.cfg.out_dir), f"{self.rig.name}.twin", ".mcap"))
+        saved = self._saved_commission()
         self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
         if self.keep is not None:
             self.keep[self.rig.name] = self.twin
         self._resume()
+        self.twin.status_after_write = False  # _tick publishes after each block, the rig's health included
+        if self.rig.commission_s and saved is None and self.summary.resumed_samples is None:
+            from twin.service.rig import Commissioning
+
+            self.twin.commissioning = Commissioning(self.rig.commission_s)
+            log.info("rig %s: commissioning on its first %g s (no alarms before it ends)", self.rig.name,
+                     self.rig.commission_s)
         self._start_samples = self.twin.stats.samples
         self.twin.health.state = "starting"
+        self.twin.health.message = self._notes
         self.twin.publish_status(force=True)
         self.outbox.flush()
+
+    def _saved_commission(self):
+        """A commissioning saved by an earlier run (``commission_s``): it wins over commissioning again."""
+        if not self.rig.commission_s:
+            return None
+        path = commission_path(self.cfg, self.rig.name)
+        if not path.exists():
+            return None
+        from twin.online.commission import apply_commission, describe, load_fit
+
+        try:
+            com = load_fit(str(path))
+            self.rig = apply_commission(self.rig, com)
+        except TwinError as exc:
+            log.warning("rig %s: its saved commissioning cannot be used (%s); commissioning again", self.rig.name,
+                        exc)
+            return None
+        self._fp = fingerprint(self.rig, self.cfg.estimate_every)
+        self._notes = f"commissioned by an earlier run ({path.name}): {describe(com, self.rig.track)}"
+        log.info("rig %s: %s", self.rig.name, self._notes)
+        return com
+
+    def _commission(self, wait: bool) -> None:
+        """Start the commissioning fit once the window is gathered; finish the commissioning once it is done
+        (``wait``: until then, the rig's status going on; a replayed log waits, a live input does not)."""
+        twin = self.twin
+        assert twin is not None  # made by _open
+        c = twin.commissioning
+        if c is None or not c.window.full:
+            return
+        if self._fit is None:
+            try:
+                self._fit = FitJob(self.rig, c.window.samples())
+            except (OSError, RuntimeError, ValueError) as exc:  # no process for the fit: the rig goes on all the same
+                self._end_commission(None, f"the fit's process cannot start ({type(exc).__name__}: {exc})")
+                return
+            c.fitting = True
+            log.info("rig %s: %s", self.rig.name, c.note())
+            twin.publish_status(force=True)
+            self.outbox.flush()
+        while not self._fit.done():
+            if not wait:
+                return
+            if self.stop.wait(0.5):
+                raise _Stopped
+            twin.publish_status()
+            self.outbox.flush(force=False)
+        doc, problem = self._fit.result()
+        self._fit = None
+        self._end_commission(doc, problem)
+
+    def _end_commission(self, doc: dict | None, problem: str) -> None:
+        twin = self.twin
+        assert twin is not None  # made by _open
+        com = None
+        if doc is not None:
+            com = self._save_commission(doc)
+        try:
+            line = twin.finish_commissioning(com, problem)
+        except FilterError as exc:
+            raise RigFailure(f"{exc} (right after its commissioning)") from None
+        self.rig = twin.rig
+        self._fp = fingerprint(self.rig, self.cfg.estimate_every)
+        self._notes = line
+        (log.info if com is not None else log.warning)("rig %s: %s", self.rig.name, line)
+        self._checkpoint()
+        self.outbox.flush()
+
+    def _save_commission(self, doc: dict):
+        """Save a commissioning next to the journal (atomically) and read it back; unsaved, it is used all the same."""
+        import json
+
+        from twin.online.commission import from_dict, load_fit
+
+        path = commission_path(self.cfg, self.rig.name)
+        tmp = path.with_name(path.name + ".tmp")
+        try:
+            tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
+            os.replace(tmp, path)
+            return load_fit(str(path))
+        except (OSError, ValueError, TwinError) as exc:
+            log.error("rig %s: its commissioning cannot be saved to %s (%s); it is used but a restart "
+                      "commissions again", self.rig.name, path, exc)
+            return from_dict(doc, f"commissioning of {self.rig.name} (not saved)")
 
     def _resume(self) -> None:
         cp = self.journal.load_checkpoint(self.rig.name)
@@ -361,6 +532,9 @@ class RigRunner:
                  cp.t_ns)
 
     def _close(self) -> None:
+        if self._fit is not None:
+            self._fit.cancel()
+            self._fit = None
         twin = self.twin
         if twin is not None:
             if self.summary.state != "failed":
@@ -421,14 +595,19 @@ class RigRunner:
                         continue
                     if k:
                         chunk = chunk.slice(k, len(chunk))
-                for block in (blocks_by_time(chunk, span) if math.isfinite(span) else (chunk,)):
+                for block in (blocks_by_time(chunk, span, pacer, max(span, MAX_BLOCK_S))
+                              if math.isfinite(span) else (chunk,)):
                     if not pacer.wait(int(block.t_ns[-1]), self.stop):
                         raise _Stopped
                     self._process(block, live=False)
+                    self._commission(wait=True)
                     self._lag = pacer.lag(int(block.t_ns[-1]))
                     self._tick()
                 if self.stop.is_set():
                     raise _Stopped
+        if twin.commissioning is not None:  # the log ended before the window did: fit what it gave
+            twin.commissioning.window.full = True
+            self._commission(wait=True)
         report = getattr(src, "report", None)
         skipped = sum(report.skipped.values()) if report is not None else 0
         if skipped and report is not None:
@@ -513,7 +692,10 @@ class RigRunner:
                     first_wall = self._last_data
                 pending.append(block)
                 span = (int(block.t_ns[-1]) - int(pending[0].t_ns[0])) * 1e-9
-                if span >= self.cfg.block_s or self._last_data - first_wall >= self.cfg.block_s:
+                # behind real time: larger blocks (up to MAX_BLOCK_S), the latency is there anyway
+                want = self.cfg.block_s if not self._lag or self._lag <= self.cfg.block_s else \
+                    min(MAX_BLOCK_S, self._lag)
+                if span >= want or self._last_data - first_wall >= self.cfg.block_s:
                     self._live_block(pending, lag)
                     self._input_counters(src)
                     pending = []
@@ -545,6 +727,7 @@ class RigRunner:
             return
         self._stale_since = None
         self._process(block, live=True)
+        self._commission(wait=False)
         assert self.twin is not None  # made by _open
         if self.twin.last_t_ns is not None:
             self._lag = lag.lag(self.twin.last_t_ns)
@@ -570,6 +753,7 @@ class RigRunner:
         twin.health.message = f"no input from {self.rig.source} for {quiet:.1f} s" + (f" ({why})" if why else "")
         twin.publish_status(force=True)
         self.outbox.flush()
+        self._commission(wait=False)
         if now - self._last_cp >= self.cfg.checkpoint_s:
             self._checkpoint()
 
@@ -589,10 +773,10 @@ class RigRunner:
             gap = (int(block.t_ns[0]) - last) * 1e-9
             self.summary.input_gaps += 1
             self._restart_filter(f"{gap:.1f} s without samples before t_ns={int(block.t_ns[0])}")
-        good = twin.tracker.estimate()
         try:
             twin.write(block)
         except FilterError as exc:
+            good = twin.last_estimate()  # after the last block the filter finished (not this failed one)
             now = time.monotonic()
             if self._last_reset is not None and now - self._last_reset < RESET_WINDOW_S:
                 raise RigFailure(f"{exc}; it diverged again {now - self._last_reset:.1f} s after a restart") from None
@@ -676,8 +860,8 @@ class RigRunner:
         self._last_cp = time.monotonic()
         twin = self.twin
         self.journal.retry()
-        if twin is None or twin.last_t_ns is None:
-            return
+        if twin is None or twin.last_t_ns is None or twin.commissioning is not None:
+            return  # nothing tracked yet (a restart during the commissioning gathers its window again)
         try:
             blob = pickle.dumps(twin.state(), protocol=pickle.HIGHEST_PROTOCOL)
             self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples, self._fp,
@@ -748,12 +932,31 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     threading.Thread(target=relay, name="stop-relay", daemon=True).start()
     threads = []
     for rig in rigs:
-        threads.append(threading.Thread(target=_run_one, args=(rig, cfg, out, local), name=f"rig-{rig.name}",
-                                        daemon=True))
+        threads.append(threading.Thread(target=_profiled(_run_one, f"rig-{rig.name}"), args=(rig, cfg, out, local),
+                                        name=f"rig-{rig.name}", daemon=True))
     for t in threads:
         t.start()
     for t in threads:
         t.join()
+
+
+def _profiled(target: Callable[..., Any], name: str) -> Callable[..., Any]:
+    """``target`` under cProfile (CPU time of its thread) when ``FPDD_PROFILE_DIR`` is set: the statistics go
+    to ``FPDD_PROFILE_DIR/<name>.prof`` (``python -m benchmarks.service fleet --profile DIR`` reads them)."""
+    directory = os.environ.get("FPDD_PROFILE_DIR")
+    if not directory:
+        return target
+
+    def run(*args: Any) -> Any:
+        import cProfile
+
+        prof = cProfile.Profile(time.thread_time)
+        try:
+            return prof.runcall(target, *args)
+        finally:
+            prof.dump_stats(os.path.join(directory, f"{name}.{os.getpid()}.prof"))
+
+    return run
 
 
 def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
@@ -881,13 +1084,13 @@ class Fleet:
                 stop_pipes.append((reader, writer))
                 p = ctx.Process(target=worker_main, args=(group, cfg, inbox, reader,
                                                           logging.getLogger().getEffectiveLevel()),
-                                name=f"twin-worker-{i}", daemon=True)
+                                name=f"twin-worker-{i}", daemon=False)  # may start a fit's process
                 procs.append((p, [r.name for r in group]))
             for t in threads:
                 t.start()
             for proc, _ in procs:
                 proc.start()
-            self._loop(front, inbox, procs)
+            _profiled(self._loop, "service")(front, inbox, procs)
         finally:
             self.stop.set()
             for _reader, writer in stop_pipes:

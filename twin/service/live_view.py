@@ -124,7 +124,7 @@ class LiveView:
 
     :param host: address to listen on (default loopback; ``0.0.0.0`` exposes it to the network).
     :param port: TCP port (0: any free port, see :attr:`port`).
-    :param bands: ``{rig: {parameter: (lo, hi)}}`` or ``{rig: {parameter: twin.service.config.Baseline}}`` in SI:
+    :param bands: ``{rig: {parameter: (lo, hi)}}`` or ``{rig: {parameter: twin.online.baseline.Baseline}}`` in SI:
         the healthy bands drawn with the estimates (an alarm's band updates them too).
     :param model: the rigs' model (display units of its parameters), default ``msp25``.
     :param signal_rate_hz: most signal messages per second and rig (the rest are decimated away).

@@ -23,13 +23,10 @@ checkpoints (:meth:`RigTwin.state` / :meth:`RigTwin.restore`).
 
 from __future__ import annotations
 
-import argparse
 import collections
 import dataclasses
 import hashlib
 import logging
-import sys
-import threading
 import time
 from typing import Any
 from collections.abc import Callable
@@ -37,9 +34,8 @@ from collections.abc import Callable
 import numpy as np
 
 from replay.base import Samples, Sink
-from twin.service.config import RigConfig, ServiceConfig, load_config
-from twin.errors import TwinError
-from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, format_alarm
+from twin.service.config import RigConfig
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +43,10 @@ log = logging.getLogger(__name__)
 SERVICE_HISTORY = 4096
 #: Alarm events kept in memory per rig (the journal has them all).
 ALARMS_KEPT = 10000
+#: A rig's status is published at least this often [s], and a change of its message alone waits for it.
+STATUS_S = 1.0
+#: Samples that arrive while a rig's commissioning fit runs wait for it, at most this much sample time [s].
+COMMISSION_PENDING_S = 60.0
 
 
 @dataclasses.dataclass
@@ -107,6 +107,34 @@ class Ring:
         return float(self._t[i]), self._v[i].copy(), self._s[i].copy()
 
 
+class Commissioning:
+    """A rig's commissioning in progress: its first seconds gathered (:class:`twin.online.commission.Window`), then
+    fitted in a worker process; samples that arrive meanwhile wait (at most ``pending_s`` of them, the
+    oldest dropped and counted beyond that) and are tracked once the fit is done."""
+
+    def __init__(self, seconds: float, pending_s: float = COMMISSION_PENDING_S) -> None:
+        from twin.online.commission import Window
+
+        self.seconds = float(seconds)
+        self.window = Window(seconds)
+        self.pending: collections.deque[Samples] = collections.deque()
+        self.pending_s = float(pending_s)
+        self.dropped = 0
+        self.fitting = False
+
+    def hold(self, samples: Samples) -> None:
+        self.pending.append(samples)
+        while len(self.pending) > 1 and (int(samples.t_ns[-1]) - int(self.pending[0].t_ns[0])) * 1e-9 > self.pending_s:
+            self.dropped += len(self.pending.popleft())
+
+    def note(self) -> str:
+        if self.fitting:
+            return (f"commissioning: fitting its first {self.window.gathered_s:.1f} s ({len(self.window)} samples) "
+                    "in a worker process; no alarms before it ends")
+        return (f"commissioning: {self.window.gathered_s:.1f} of {self.seconds:g} s gathered; "
+                "no alarms before it ends")
+
+
 def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
               history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
     """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
@@ -117,6 +145,9 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
     """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
     d = dataclasses.asdict(rig)
     d.pop("speed")
+    for key, default in (("commission_s", None), ("baseline_set", ())):  # keys added later: their default is
+        if d.get(key) == default:                                          # no change (checkpoints still match)
+            d.pop(key, None)
     d["estimate_every"] = estimate_every
     return hashlib.sha256(repr(sorted(d.items())).encode()).hexdigest()[:16]
 
@@ -148,10 +179,16 @@ class RigTwin(Sink):
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
         self.last_t_ns: int | None = None
         self._t0_ns: int | None = None
-        self._last_status: tuple[str, str, tuple[tuple[str, str], ...]] | None = None
+        self._last_status: tuple | None = None
         self._last_status_wall = 0.0
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
+        self._last_row: tuple[np.ndarray, np.ndarray] | None = None
+        self._est_template: tuple | None = None
+        self.status_after_write = True
+        """Check the status after every block (``False``: the caller does, as a runner does after its block)."""
+        self.commissioning: Commissioning | None = None
+        """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -183,14 +220,62 @@ class RigTwin(Sink):
         for k, v in old.counters.items():
             self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
 
+    # -- commissioning ---------------------------------------------------------------------
+    def _gather(self, samples: Samples) -> None:
+        c = self.commissioning
+        assert c is not None  # only while commissioning
+        if self._t0_ns is None:
+            self._t0_ns = int(samples.t_ns[0])
+        rest = c.window.add(samples)
+        if rest is not None:
+            c.hold(rest)
+        self.last_t_ns = int(samples.t_ns[-1])
+        self.stats.samples += len(samples) - (len(rest) if rest is not None else 0)
+        self._status(None)
+
+    def finish_commissioning(self, com, problem: str = "") -> str:
+        """End the commissioning: with ``com`` (a :class:`twin.online.commission.Commission`) the rig is tracked with
+        its values, noise and timing against bands centred on it; without, against the configured bands
+        (``problem`` says why). The samples that waited are tracked now. Returns the status line."""
+        from twin.online.commission import apply_commission, describe, tracker_for
+        from twin.online.drift import DriftMonitor
+
+        c = self.commissioning
+        assert c is not None  # only while commissioning
+        self.commissioning = None
+        if com is not None:
+            self.rig = apply_commission(self.rig, com)
+            self.tracker = tracker_for(self.rig)
+            self.drift = DriftMonitor(self.rig.name, self.rig.baseline)
+            line = (f"commissioned on its first {c.window.gathered_s:.1f} s: "
+                    f"{describe(com, self.rig.track)}")
+        else:
+            line = f"commissioning failed: {problem}; tracking against the configured baseline"
+        if c.dropped:
+            line += f" ({c.dropped} samples that arrived during the fit were dropped)"
+            self.health.counters["commission_dropped"] = c.dropped
+        self._last_status = None
+        self.health.message = line
+        if self.health.state == "starting":
+            self.health.state = "running"
+        for block in c.pending:
+            self.write(block)
+        self._status(None, force=True)
+        return line
+
     # -- Sink ---------------------------------------------------------------------------
     def write(self, samples: Samples) -> None:
         if len(samples) == 0:
+            return
+        if self.commissioning is not None:
+            self._gather(samples)
             return
         t_start = time.perf_counter()
         if self._t0_ns is None:
             self._t0_ns = int(samples.t_ns[0])
         out = self.tracker.process(samples)
+        if len(out.t_ns):
+            self._last_row = (out.estimates[-1], out.stds[-1])
         self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
@@ -204,7 +289,8 @@ class RigTwin(Sink):
         self._since_estimate = (self._since_estimate + n) % self.estimate_every
         self.stats.samples += len(samples)
         self.stats.blocks += 1
-        self._status(out)
+        if self.status_after_write:
+            self._status(out)
         self.stats.busy_s += time.perf_counter() - t_start
 
     def close(self) -> None:
@@ -215,6 +301,13 @@ class RigTwin(Sink):
         """Published estimates kept (the last ``history``): ``t_s [n]``, ``values [n, p]``, ``stds [n, p]`` (SI)."""
         t, v, s = self._ring.arrays()
         return {"t_s": t, "values": v, "stds": s}
+
+    def last_estimate(self) -> dict[str, tuple[float, float]]:
+        """(value, std) of every tracked parameter (SI) after the last block filtered ({} before the first)."""
+        row = getattr(self, "_last_row", None)
+        if row is None:
+            return {}
+        return {n: (float(row[0][j]), float(row[1][j])) for j, n in enumerate(self.tracker.tracked)}
 
     def final_estimates(self) -> dict[str, dict]:
         last = self._ring.last()
@@ -243,6 +336,14 @@ class RigTwin(Sink):
         if self.publisher is None and self.recorder is None:
             self.stats.estimates += 1
             return
+        fast = getattr(self.publisher, "publish_estimate_json", None)
+        if fast is not None and self.recorder is None:
+            payload = self._estimate_json(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], out.stds[i],
+                                          float(out.nis[i]), str(out.status[i]))
+            if payload is not None:
+                fast(payload)
+                self.stats.estimates += 1
+                return
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
                                       out.estimates[i], out.stds[i], self.tracker.units,
                                       float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
@@ -252,175 +353,79 @@ class RigTwin(Sink):
             self.recorder.write_message("/twin/estimate", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         self.stats.estimates += 1
 
+    def _estimate_json(self, t_ns: int, t_s: float, values: np.ndarray, stds: np.ndarray, nis: float,
+                       status: str) -> str | None:
+        """The ``EstimateEvent`` payload, written straight from the numbers: the same text as
+        ``event_to_json(EstimateEvent.of_tracker(...))`` (sorted keys, compact, floats by ``repr``) without
+        building the event; ``None`` for anything the schema checks would refuse (the event path then runs)."""
+        import math
+
+        vals = values.tolist()
+        sds = stds.tolist()
+        if not (all(map(math.isfinite, vals)) and all(math.isfinite(v) and v >= 0 for v in sds) and t_ns >= 0
+                and math.isfinite(t_s) and not nis < 0):
+            return None
+        template = self._est_template
+        if template is None or template[0] != self.tracker.tracked:
+            import json
+
+            def text(v: str) -> str:  # a JSON string constant inside a %-format
+                return json.dumps(v).replace("%", "%%")
+
+            names, units = self.tracker.tracked, self.tracker.units
+            order = sorted(range(len(names)), key=lambda j: names[j])
+            parts = [f'{text(names[j])}:{{"std":%r,"unit":{text(units[j])},"value":%r}}' for j in order]
+            template = (names, order, '{"nis":%s,"params":{' + ",".join(parts)
+                        + f'}},"rig":{text(self.rig.name)},"status":"%s","t_ns":%d,"t_s":%r}}')
+            self._est_template = template
+        _, order, fmt = template
+        nums: list[Any] = [repr(nis) if math.isfinite(nis) else "null"]
+        for j in order:
+            nums += [sds[j], vals[j]]
+        return fmt % (*nums, status, t_ns, t_s)
+
     def publish_status(self, force: bool = False) -> None:
         """Publish a status now if it changed or a second has passed (``force``: now)."""
         self._status(None, force=force)
 
     def _status(self, out, force: bool = False, state: str | None = None) -> None:
+        """Publish a status when the rig's state, a parameter's status, a sensor's status or the filter's
+        consistency changed, else at most once a second (``STATUS_S``; a change of the message alone, such as
+        the lag, waits for it); ``force``: now."""
         now = time.monotonic()
-        from twin.online.tracker import consistency_note
-
         per_param = self.drift.statuses()
         state = state or self.health.state
-        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
-        key = (state, message, tuple(sorted(per_param.items())))
-        if not force and key == self._last_status and now - self._last_status_wall < 1.0:
+        com = self.commissioning
+        if com is not None:
+            if state in ("starting", "running"):
+                state = "commissioning"
+            per_param = {n: "commissioning" for n in per_param}
+        sensors = self.tracker.sensor_status()
+        guard = str(self.drift.guard or "consistent")
+        key = (state, tuple(per_param.items()), tuple(sensors.items()), guard, com is not None and com.fitting)
+        if not force and key == self._last_status and now - self._last_status_wall < STATUS_S:
             return
         self._last_status = key
         self._last_status_wall = now
+        from twin.online.tracker import consistency_note
+
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        if com is not None and state not in ("failed", "stopped", "finished"):
+            message = "; ".join(m for m in (com.note(), message) if m)
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
         counters = {"samples": self.stats.samples, "alarms": self.stats.alarms,
                     **{k: int(v) for k, v in self.tracker.counters.items() if k != "ok"},
                     **{k: max(0, int(v)) for k, v in self.health.counters.items()}}
+        if com is not None:
+            counters["commission_ms"] = int(com.window.gathered_s * 1000)
+            counters["commission_needed_ms"] = int(com.seconds * 1000)
+        extra = getattr(self.publisher, "status_counters", None)
+        if extra is not None:  # the publisher's own counters (alarm_seq), so the event is built and checked once
+            counters.update(extra())
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
-                         counters=counters, message=message, sensors=self.tracker.sensor_status(),
-                         consistency=str(self.drift.guard or "consistent"))
+                         counters=counters, message=message, sensors=sensors, consistency=guard)
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:
             self.recorder.write_message("/twin/status", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         self.stats.statuses += 1
-
-
-def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
-          on_alarm: Callable[[AlarmEvent], None] | None = None, session=None,
-          twins: dict[str, RigTwin] | None = None, *, summaries: dict | None = None) -> dict[str, RigStats]:
-    """Run every rig of ``cfg`` until their logs end or ``stop`` is set; returns per-rig stats.
-
-    A live rig runs until ``stop``. ``session``: an open Zenoh session to use
-    (default: open one from ``cfg`` and ``ZENOH_CONFIG``); ``twins``: a dict
-    that receives each rig's :class:`RigTwin` (rigs then run in threads of this
-    process); ``summaries``: a dict that receives each rig's
-    :class:`twin.service.fleet.RigSummary`, failures included.
-
-    :raises ConfigError: the configuration cannot run (journal directory, a log missing).
-    :raises SourceError: the Zenoh session cannot be opened (one line naming the endpoint).
-    :raises TwinError: a rig failed (``rig NAME failed: cause``) after the others stopped.
-    """
-    from twin.service.fleet import Fleet, check_journal_dir, check_sources
-
-    stop = stop or threading.Event()
-    check_journal_dir(cfg)
-    check_sources(cfg)
-    own_session = session is None
-    if own_session:
-        session = open_service_session(cfg)
-    try:
-        fleet = Fleet(cfg, session, stop, on_alarm=on_alarm, keep=twins)
-        result = fleet.run()
-    finally:
-        if own_session:
-            session.close()
-    if summaries is not None:
-        summaries.update(result)
-    failed = [s for s in result.values() if s.state == "failed"]
-    if failed:
-        raise TwinError("; ".join(f"rig {s.rig} failed: {s.message}" for s in failed))
-    return {name: s.stats for name, s in result.items()}
-
-
-def zenoh_settings(cfg: ServiceConfig):
-    """The service's Zenoh configuration: ``ZENOH_CONFIG`` (if set), then what ``[zenoh]`` gives explicitly."""
-    import os
-
-    from replay.zenohconf import zenoh_config
-    from twin.errors import ConfigError
-
-    file = os.environ.get("ZENOH_CONFIG") or None
-    try:
-        return zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect, None, config_file=file)
-    except ConfigError as exc:
-        text = str(exc)
-        raise ConfigError(f"ZENOH_CONFIG={text}" if file and text.startswith(file) else f"{cfg.path}: zenoh: {text}") \
-            from None
-
-
-def open_service_session(cfg: ServiceConfig):
-    from replay.zenohconf import open_session
-
-    return open_session(zenoh_settings(cfg), "twin serve")
-
-
-def add_serve_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/service/config.py)")
-    p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
-    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
-                   help="console messages from this level up (default info)")
-    p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
-                   "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
-    p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
-
-
-def startup_line(cfg: ServiceConfig, workers: int) -> str:
-    from replay.zenohconf import config_endpoints
-
-    from twin.service.fleet import journal_path
-
-    conf = zenoh_settings(cfg)
-    import json as _json
-
-    mode = _json.loads(conf.get_json("mode") or '"peer"')
-    listen, connect = config_endpoints(conf)
-    rigs = ", ".join(f"{r.name} <- {r.source}" for r in cfg.rigs)
-    where = "in this process" if workers == 0 else f"over {workers} worker process(es)"
-    return (f"{len(cfg.rigs)} rig(s) {where}: {rigs}; zenoh {mode}, listen {listen or 'none'}, "
-            f"connect {connect or 'none'}; journal {journal_path(cfg, '<rig>').parent}/<rig>.db")
-
-
-def run_serve(args) -> int:
-    import json
-    import signal
-
-    from twin.service.fleet import Fleet, check_journal_dir, check_sources
-
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
-                        stream=sys.stderr)
-    cfg = load_config(args.config)
-    check_journal_dir(cfg)
-    check_sources(cfg)
-    stop = threading.Event()
-
-    def on_signal(signum, frame) -> None:  # noqa: ARG001
-        if not stop.is_set():
-            print(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)",
-                  file=sys.stderr, flush=True)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def show(ev: AlarmEvent) -> None:
-        print(f"twin serve: {format_alarm(ev, wall_clock=False)}", file=sys.stderr, flush=True)
-
-    session = open_service_session(cfg)
-    summaries: dict = {}
-    view = None
-    try:
-        if args.foxglove is not None:
-            from twin.service.live_view import LiveView
-
-            view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
-                            model=cfg.rigs[0].model)
-            view.follow(session)  # every rig's estimate, status and alarm as published, workers included
-            print(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}", file=sys.stderr,
-                  flush=True)
-        workers = Fleet(cfg, session, stop).worker_count
-        print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
-        error = None
-        try:
-            stats = serve(cfg, stop, on_alarm=show, session=session, summaries=summaries)
-        except TwinError as exc:
-            error, stats = exc, {k: v.stats for k, v in summaries.items()}
-    finally:
-        if view is not None:
-            view.close()
-        session.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    for name in (r.name for r in cfg.rigs):
-        if name in summaries:
-            print(f"twin serve: summary {summaries[name].line()}", file=sys.stderr, flush=True)
-    if args.json:
-        print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
-    if error is not None:
-        raise error
-    return 0

@@ -78,7 +78,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     :class:`twin.record.Record`, :class:`replay.base.Samples`, or an iterable of
     them in time order (a stream of blocks).  ``params``: known parameters that
     differ from the nominal MSP25; ``tracked``: parameter names (default all five
-    phenomenological ones); ``baseline``: ``{name: twin.service.config.Baseline}``
+    phenomenological ones); ``baseline``: ``{name: twin.online.baseline.Baseline}``
     overriding the default bands; ``noise``: sensor noise standard deviations
     per output (SI); ``timing``: the loop's :class:`~twin.models.base.Timing`;
     ``commission``: a :class:`twin.online.commission.Commission` (or the path of a
@@ -91,7 +91,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``tracker.counters``.
     """
     from replay.mcapio import McapSink
-    from twin.online.drift import default_baseline
+    from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig
     from twin.models import msp25 as M
     from twin.service.rig import RigTwin

@@ -1,0 +1,166 @@
+"""Commissioning inside the service (``commission_s`` in rigs.toml): a rig of the independent reference
+simulator (truth drawn off Table 9, noise through the loop) is replayed through ``twin serve``; its first
+seconds are fitted in a worker process, the bands end up centred on the truth within the fit's stated
+uncertainty, the statuses say ``commissioning`` then ``commissioned``, a restart reuses the saved
+commissioning, and a rig that is not excited falls back to the configured baseline, saying so."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from replay.base import Samples
+from replay.mcapio import McapSink
+from tests.conftest import get_records, msp25_spec
+from twin.online.baseline import default_baseline
+from twin.service.config import parse_config, with_commission_s
+from twin.commands.demo import free_port
+from twin.errors import ConfigError
+from twin.online.events import StatusEvent
+from twin.service.serve import serve
+
+TRACKED = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
+T0_NS = 1_700_000_000_000_000_000
+
+
+def _write_log(path, rec) -> None:
+    t_ns = T0_NS + np.round(rec.t * 1e9).astype(np.int64)
+    with McapSink(str(path)) as sink:
+        sink.write(Samples(t_ns, {k: np.asarray(v, float) for k, v in rec.signals.items()}))
+
+
+def _config(tmp_path, log, commission_s=12.0, run="run1", **rig):
+    return parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "out_dir": str(tmp_path / run), "workers": 0},
+        "rig": [{"name": "rig-c", "source": str(log), "speed": 0.0, "commission_s": commission_s, **rig}],
+    }, str(tmp_path / "rigs.toml"))
+
+
+def _statuses(tmp_path, run):
+    path = tmp_path / run / "rig-c.twin.mcap"
+    with open(path, "rb") as f:
+        return [StatusEvent.from_dict(json.loads(m.data))
+                for _, _, m in make_reader(f).iter_messages(topics=["/twin/status"])]
+
+
+def _alarms(tmp_path, run):
+    with open(tmp_path / run / "rig-c.twin.mcap", "rb") as f:
+        return [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/twin/alarm"])]
+
+
+@pytest.fixture(scope="module")
+def excited(tmp_path_factory):
+    """A healthy reference rig with its truth drawn off Table 9, the default multisine demand, 30 s."""
+    rec = get_records([msp25_spec(21, duration=30.0, truth="draw")])[0]
+    path = tmp_path_factory.mktemp("logs") / "excited.mcap"
+    _write_log(path, rec)
+    return rec, path
+
+
+def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path, excited):
+    rec, log = excited
+    twins: dict = {}
+    summaries: dict = {}
+    serve(_config(tmp_path, log), twins=twins, summaries=summaries)
+    twin = twins["rig-c"]
+    assert summaries["rig-c"].state == "finished"
+    saved = tmp_path / "journal" / "rig-c.commission.json"
+    doc = json.loads(saved.read_text())
+    assert doc["commissioned"]["seconds"] == pytest.approx(12.0, abs=0.01)
+    # the bands are centred on the truth within the fit's stated uncertainty
+    for n in TRACKED:
+        truth, band, std = float(rec.truth[n]), twin.rig.baseline[n], doc["std"][n]
+        assert abs(band.value - truth) <= 4.0 * std, (n, band.value, truth, std)
+        assert band.lo < truth < band.hi
+        assert band.value != pytest.approx(default_baseline("msp25")[n].value, rel=0.01)  # not Table 9's
+    # its noise levels and timing
+    assert twin.tracker.noise_levels()["x"]["nominal"] == pytest.approx(doc["noise"]["x"])
+    assert doc["noise"]["x"] == pytest.approx(2e-6, rel=0.2) and doc["noise"]["pA"] == pytest.approx(2e4, rel=0.2)
+    assert doc["timing"]["controller"] == "digital"
+    # statuses: commissioning (gathering, then fitting; no alarms, parameters say so), then commissioned
+    sts = _statuses(tmp_path, "run1")
+    states = [s.state for s in sts]
+    first_run = states.index("running")
+    assert set(states[1:first_run]) == {"commissioning"} and "commissioning" not in states[first_run:]
+    gathering = [s for s in sts[:first_run] if "gathered" in s.message]
+    assert gathering and all(set(s.parameters.values()) == {"commissioning"} for s in gathering)
+    assert all("no alarms before it ends" in s.message for s in sts[1:first_run])
+    assert gathering[-1].counters["commission_needed_ms"] == 12000
+    assert any("fitting its first 12.0 s" in s.message for s in sts[:first_run])
+    done = sts[first_run]
+    assert done.message.startswith("commissioned on its first 12.0 s: Ffric ") and "noise x " in done.message
+    assert _alarms(tmp_path, "run1") == []  # a healthy rig against bands centred on its own fit
+    assert twin.stats.samples == 30000
+    # a restart reuses the saved commissioning: no new commissioning, same bands, the file untouched
+    stamp = saved.stat().st_mtime_ns
+    twins2: dict = {}
+    serve(_config(tmp_path, log, run="run2"), twins=twins2)
+    assert saved.stat().st_mtime_ns == stamp
+    assert twins2["rig-c"].rig.baseline == twin.rig.baseline
+    sts2 = _statuses(tmp_path, "run2")
+    assert "commissioning" not in {s.state for s in sts2}
+    assert any(s.message.startswith("commissioned by an earlier run (rig-c.commission.json): Ffric ") for s in sts2)
+    # a saved commissioning wins even without a checkpoint (a fresh journal beside it)
+    os.remove(tmp_path / "journal" / "rig-c.db")
+    twins3: dict = {}
+    serve(_config(tmp_path, log, run="run3"), twins=twins3)
+    assert "commissioning" not in {s.state for s in _statuses(tmp_path, "run3")}
+    assert twins3["rig-c"].rig.baseline == twin.rig.baseline and twins3["rig-c"].stats.samples == 30000
+
+
+def test_a_rig_at_rest_cannot_commission_and_keeps_the_configured_baseline(tmp_path):
+    """A demand of 10 um: the position hardly moves; the failure is one status line, the rig is tracked
+    against its configured bands (here one set explicitly), nothing is saved, nothing crashes."""
+    demand = {"kind": "multisine", "amplitude": 1e-5, "f_lo": 0.2, "f_hi": 15.0, "n_lines": 16}
+    rec = get_records([msp25_spec(22, duration=10.0, demand=demand)])[0]
+    log = tmp_path / "rest.mcap"
+    _write_log(log, rec)
+    twins: dict = {}
+    summaries: dict = {}
+    serve(_config(tmp_path, log, commission_s=5.0, baseline={"Ffric": {"value": 60.0, "rel_band": 0.4}}),
+          twins=twins, summaries=summaries)
+    assert summaries["rig-c"].state == "finished"
+    twin = twins["rig-c"]
+    assert twin.rig.baseline["Ffric"].value == 60.0
+    assert twin.rig.baseline["wn"] == default_baseline("msp25")["wn"]
+    assert not (tmp_path / "journal" / "rig-c.commission.json").exists()
+    sts = _statuses(tmp_path, "run1")
+    failed = [s for s in sts if s.message.startswith("commissioning failed: too little excitation: the position "
+                                                     "moved 0.0")]
+    assert failed and failed[0].state == "running"
+    assert "tracking against the configured baseline" in failed[0].message
+    assert twin.stats.samples == 10000 and twin.tracker.samples == 5000  # tracked after the window
+
+
+def test_the_commission_s_flag_commissions_the_rigs_without_a_commissioning(tmp_path):
+    log = tmp_path / "rig.mcap"
+    cfg = parse_config({"rig": [{"name": "a", "source": str(log)},
+                                {"name": "b", "source": str(log), "commission_s": 60.0}]}, "rigs.toml")
+    assert [r.commission_s for r in cfg.rigs] == [None, 60.0]
+    assert [r.commission_s for r in with_commission_s(cfg, 30.0).rigs] == [30.0, 60.0]
+    assert with_commission_s(cfg, None) is cfg
+    with pytest.raises(ConfigError, match=r"^--commission-s: must be >= 5 seconds, got 1$"):
+        with_commission_s(cfg, 1.0)
+
+
+def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
+    """Rigs spread over worker processes: the worker starts the fit's own process (workers are not daemonic
+    for that, and die with the service all the same)."""
+    rec, log = excited
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "out_dir": str(tmp_path / "run1"), "workers": 1},
+        "rig": [{"name": "rig-c", "source": str(log), "speed": 0.0, "commission_s": 8.0}],
+    }, str(tmp_path / "rigs.toml"))
+    summaries: dict = {}
+    serve(cfg, summaries=summaries)
+    assert summaries["rig-c"].state == "finished" and summaries["rig-c"].samples == 30000
+    doc = json.loads((tmp_path / "journal" / "rig-c.commission.json").read_text())
+    assert abs(doc["params"]["Ffric"] - float(rec.truth["Ffric"])) <= 4.0 * doc["std"]["Ffric"]
+    states = [s.state for s in _statuses(tmp_path, "run1")]
+    assert "commissioning" in states and states.index("commissioning") < states.index("running")

@@ -1,0 +1,105 @@
+"""``twin serve --config RIG.toml``: the online twin for every rig of a configuration, until told to stop
+(library: :mod:`twin.service.serve`)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+import threading
+
+from twin.errors import TwinError
+from twin.online.events import AlarmEvent, format_alarm
+from twin.service.config import ServiceConfig, load_config, with_commission_s
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/service/config.py)")
+    p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
+                   help="console messages from this level up (default info)")
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
+                   "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
+    p.add_argument("--commission-s", type=float, metavar="SECONDS",
+                   help="commission every rig without commission/commission_s on its first SECONDS in service "
+                        "(as commission_s in rigs.toml; a commissioning saved by an earlier run is reused)")
+
+
+def startup_line(cfg: ServiceConfig, workers: int) -> str:
+    from replay.zenohconf import config_endpoints
+    from twin.service.serve import zenoh_settings
+
+    from twin.service.fleet import journal_path
+
+    conf = zenoh_settings(cfg)
+    import json as _json
+
+    mode = _json.loads(conf.get_json("mode") or '"peer"')
+    listen, connect = config_endpoints(conf)
+    rigs = ", ".join(f"{r.name} <- {r.source}" for r in cfg.rigs)
+    where = "in this process" if workers == 0 else f"over {workers} worker process(es)"
+    return (f"{len(cfg.rigs)} rig(s) {where}: {rigs}; zenoh {mode}, listen {listen or 'none'}, "
+            f"connect {connect or 'none'}; journal {journal_path(cfg, '<rig>').parent}/<rig>.db")
+
+
+def run(args) -> int:
+    import json
+    import signal
+
+    from twin.service.serve import open_service_session, serve
+
+    from twin.service.fleet import Fleet, check_journal_dir, check_sources
+
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
+                        stream=sys.stderr)
+    cfg = with_commission_s(load_config(args.config), getattr(args, "commission_s", None))
+    check_journal_dir(cfg)
+    check_sources(cfg)
+    stop = threading.Event()
+
+    def on_signal(signum, frame) -> None:  # noqa: ARG001
+        if not stop.is_set():
+            print(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)",
+                  file=sys.stderr, flush=True)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def show(ev: AlarmEvent) -> None:
+        print(f"twin serve: {format_alarm(ev, wall_clock=False)}", file=sys.stderr, flush=True)
+
+    session = open_service_session(cfg)
+    summaries: dict = {}
+    view = None
+    try:
+        if args.foxglove is not None:
+            from twin.service.live_view import LiveView
+
+            view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
+                            model=cfg.rigs[0].model)
+            view.follow(session)  # every rig's estimate, status and alarm as published, workers included
+            print(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}", file=sys.stderr,
+                  flush=True)
+        workers = Fleet(cfg, session, stop).worker_count
+        print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
+        error = None
+        try:
+            stats = serve(cfg, stop, on_alarm=show, session=session, summaries=summaries)
+        except TwinError as exc:
+            error, stats = exc, {k: v.stats for k, v in summaries.items()}
+    finally:
+        if view is not None:
+            view.close()
+        session.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for name in (r.name for r in cfg.rigs):
+        if name in summaries:
+            print(f"twin serve: summary {summaries[name].line()}", file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
+    if error is not None:
+        raise error
+    return 0
