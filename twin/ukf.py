@@ -328,6 +328,119 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
         out[j] = s[j]
 
 
+# --- the sigma points of the lean path, all at once --------------------------------------------------------------
+# One work vector ``W [N_W * LANES]``: row ``r`` (one quantity) of lane ``ln`` (one sigma point that needs the model)
+# at ``r * LANES + ln``.  The right-hand side then runs over the lanes in one loop the compiler vectorises (square
+# roots and divisions of 8 sigma points per instruction): a constant row stride lets it prove that the rows do not
+# overlap, and a constant lane count leaves no scalar remainder.  Each lane computes exactly what :func:`lean_step`
+# computes for its sigma point (the same operations in the same order); unused lanes repeat lane 0.
+LANES = 8 * ((2 * (6 + len(TRACKABLE)) + 1 + 7) // 8)
+W_A, W_Y, W_ACC, W_K, W_C, W_TH = 0, 6, 12, 18, 24, 40
+N_W = 41
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lanes_deriv(W, u):
+    """:func:`_lean_deriv` of every lane at the stage input (rows ``W_Y``) into rows ``W_K``."""
+    for ln in range(LANES):  # the friction's tanh (libm's exp: not vectorised)
+        W[W_TH * LANES + ln] = fast_tanh(W[(W_Y + 5) * LANES + ln] * W[(W_C + 14) * LANES + ln])
+    for ln in range(LANES):
+        xs = W[W_Y * LANES + ln]
+        vs = W[(W_Y + 1) * LANES + ln]
+        pA = W[(W_Y + 2) * LANES + ln]
+        pB = W[(W_Y + 3) * LANES + ln]
+        x = W[(W_Y + 4) * LANES + ln]
+        v = W[(W_Y + 5) * LANES + ln]
+        pP = W[(W_C + 4) * LANES + ln]
+        pT = W[(W_C + 5) * LANES + ln]
+        dl2 = W[(W_C + 6) * LANES + ln]
+        # the valve's two flow paths as selects: the numbers of _lean_deriv's branches
+        pos = xs >= 0.0
+        d1 = pP - pA if pos else pA - pT
+        d2 = pB - pT if pos else pP - pB
+        gx = W[(W_C + 3) * LANES + ln] * xs
+        qa = gx * (d1 / math.sqrt(math.sqrt(d1 * d1 + dl2)))
+        qb = gx * (d2 / math.sqrt(math.sqrt(d2 * d2 + dl2)))
+        dpAB = pA - pB
+        qAB = W[(W_C + 7) * LANES + ln] * (dpAB / math.sqrt(math.sqrt(dpAB * dpAB + W[(W_C + 8) * LANES + ln])))
+        qA = qa - qAB
+        qB = qAB - qb
+        A = W[(W_C + 10) * LANES + ln]
+        V0 = W[(W_C + 11) * LANES + ln]
+        VA = max(V0 + A * x, 1e-3 * V0)
+        VB = max(V0 - A * x, 1e-3 * V0)
+        bulk = W[(W_C + 9) * LANES + ln]
+        W[W_K * LANES + ln] = vs
+        W[(W_K + 1) * LANES + ln] = W[W_C * LANES + ln] * (W[(W_C + 2) * LANES + ln] * u - xs) - \
+            W[(W_C + 1) * LANES + ln] * vs
+        W[(W_K + 2) * LANES + ln] = bulk * (qA - A * v) / VA
+        W[(W_K + 3) * LANES + ln] = bulk * (qB + A * v) / VB
+        W[(W_K + 4) * LANES + ln] = v
+        W[(W_K + 5) * LANES + ln] = (dpAB * A - W[(W_C + 13) * LANES + ln] * W[W_TH * LANES + ln]
+                                    - W[(W_C + 15) * LANES + ln]) * W[(W_C + 12) * LANES + ln]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def lean_lanes(W, wnd, mode, dt, nsub):
+    """:func:`lean_step` of every lane of ``W`` (states in rows ``W_A``, constants in rows ``W_C``), in place."""
+    h = dt / nsub
+    fh = 1.0 / nsub
+    hh = 0.5 * h
+    cc = h / 6.0
+    for j in range(nsub):
+        f0 = j * fh
+        if mode == 0:
+            u1 = wnd[1]
+            u2 = u1
+            u4 = u1
+        else:
+            u1 = input_at(wnd, 1, f0, mode)
+            u2 = input_at(wnd, 1, f0 + 0.5 * fh, mode)
+            u4 = input_at(wnd, 1, f0 + fh, mode)
+        for i in range(6 * LANES):
+            W[W_Y * LANES + i] = W[W_A * LANES + i]
+        _lanes_deriv(W, u1)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + hh * k
+        _lanes_deriv(W, u2)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = W[W_ACC * LANES + i] + 2.0 * k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + hh * k
+        _lanes_deriv(W, u2)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = W[W_ACC * LANES + i] + 2.0 * k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + h * k
+        _lanes_deriv(W, u4)
+        for i in range(6 * LANES):
+            W[W_A * LANES + i] += cc * (W[W_ACC * LANES + i] + W[W_K * LANES + i])
+
+
+@nb.njit(cache=True)
+def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, c, nmod):
+    """The model part (``nmod`` entries) of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m <=
+    LANES``: :func:`fx_into` on the lean path for all of them at once."""
+    for ln in range(LANES):
+        s = sig[rows[ln if ln < m else 0]]
+        for j in range(idx.shape[0]):
+            pw[idx[j]] = theta_of(s[6 + j], lo_log[j], width[j])
+        _lean_consts(pw, c)
+        for i in range(16):
+            W[(W_C + i) * LANES + ln] = c[i]
+        for i in range(6):
+            W[(W_A + i) * LANES + ln] = s[i] * scale[i]
+    lean_lanes(W, wnd, mode, h, nsub)
+    for ln in range(m):
+        r = rows[ln]
+        for i in range(6):
+            sf[r, i] = W[(W_A + i) * LANES + ln] / scale[i]
+        for i in range(6, nmod):
+            sf[r, i] = sig[r, i]
+
+
 def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a, closed=False, ticks=1, mode=0,
            u_before=None, xm=0.0):
     """Propagate one augmented state over one log interval (for tests and filterpy): returns the new state.
@@ -347,7 +460,7 @@ def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a,
 
 @nb.njit(cache=True)
 def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
-             nmod, a_pow, L, A, sig, sf, si, so, ctrl):
+             nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows):
     """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1."""
     n = x.shape[0]
     status = ST_OK
@@ -369,17 +482,25 @@ def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, n
         for i in range(n):
             sig[k + 1, i] = x[i] + L[i, k]
             sig[n + k + 1, i] = x[i] - L[i, k]
-    fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so, sf[0], nmod)
-    for k in range(n):
-        if k < nmod:  # sigma points that move the model or the parameters
+    if not closed and ctrl[3] > 0.0 and 2 * nmod + 1 <= LANES:  # lean path: the sigma points that move the model
+        m = 0
+        for k in range(2 * n + 1):
+            if k == 0 or (k - 1) % n < nmod:
+                rows[m] = k
+                m += 1
+        _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, ctrl[4:], nmod)
+    else:
+        fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so, sf[0],
+                nmod)
+        for k in range(nmod):
             fx_into(sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so,
                     sf[k + 1], nmod)
             fx_into(sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si,
                     so, sf[n + k + 1], nmod)
-        else:  # along a noise state only: the model part is the central point's
-            for i in range(nmod):
-                sf[k + 1, i] = sf[0, i]
-                sf[n + k + 1, i] = sf[0, i]
+    for k in range(nmod, n):  # along a noise state only: the model part is the central point's
+        for i in range(nmod):
+            sf[k + 1, i] = sf[0, i]
+            sf[n + k + 1, i] = sf[0, i]
     for k in range(2 * n + 1):
         for i in range(nmod, n):
             sf[k, i] = a_pow[i - nmod] * sig[k, i]
@@ -582,6 +703,8 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     ctrl[3] = 1.0 if lean_applicable(pvec) else 0.0
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
+    W = np.empty(N_W * LANES)
+    rows = np.empty(2 * n + 1, dtype=np.int64)
     freeze = np.zeros(n, dtype=np.bool_)
     innov = np.empty(q)
     Sd = np.empty(q)
@@ -649,7 +772,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                     wnd[2] = a_now
                     wnd[3] = a_now
                     ps = _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
-                                  fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl)
+                                  fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows)
                 else:  # across a gap: the drive linear from the last sample to this one
                     for j in range(q):
                         a_pow[j] = ch[j, H_A]
@@ -665,7 +788,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                         wnd[3] = wnd[2]
                         xm = fs[F_XM1] if s_i == 0 else x[4] * scale[4]
                         ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale, h,
-                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl)
+                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows)
                         if ps < 0:
                             break
                 if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
