@@ -15,6 +15,11 @@ checks and online noise learning on (the production settings):
 
 Targets: <= 20 us per sample on one core, >= 100 rigs at 1 kHz on 2 cores.
 
+``--against REV``: the kernel (``twin/ukf.py``) of git revision ``REV`` loaded
+as a separate module and timed against the current one on the same record,
+interleaved, ``--repeats`` times each (medians), with the largest difference
+of their estimates: a before/after comparison on a shared, noisy machine.
+
 Accuracy (``--accuracy``, needs the repository's ``tests/reference``
 simulator; records are cached, see ``tests/track_reference.py``): false
 alarms per hour on the long healthy reference records (nominal, 2x and
@@ -29,8 +34,11 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import importlib.util
 import os
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -135,6 +143,55 @@ def run(quick: bool = False) -> dict:
     }
 
 
+def _kernel_at(rev: str):
+    """``twin/ukf.py`` as it was at git revision ``rev``, imported as its own module."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    src = subprocess.run(["git", "show", f"{rev}:twin/ukf.py"], cwd=root, capture_output=True, text=True)
+    if src.returncode != 0:
+        raise SystemExit(f"--against {rev}: {src.stderr.strip() or 'git show failed'}")
+    folder = os.path.join(tempfile.gettempdir(), "twin_bench_kernels")
+    os.makedirs(folder, exist_ok=True)
+    name = "ukf_" + "".join(c if c.isalnum() else "_" for c in rev)
+    path = os.path.join(folder, name + ".py")
+    with open(path, "w") as f:
+        f.write(src.stdout)
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def against(rev: str, repeats: int = 3, duration: float = 20.0) -> dict:
+    """Current kernel against the kernel of ``rev``, same record, interleaved; CPU us per sample (medians)."""
+    from twin import tracker as T
+
+    mine, old = T.ukf, _kernel_at(rev)
+    s = _record(duration).to_samples()
+
+    def once(kernel):
+        T.ukf = kernel  # the tracker calls its module's kernel: swap it for this run only
+        try:
+            T.OnlineTracker().process(s.slice(0, 20))  # compile / load outside the clock
+            tr = T.OnlineTracker()
+            c0 = time.process_time()
+            out = tr.process(s)
+            return (time.process_time() - c0) / len(s) * 1e6, out.estimates
+        finally:
+            T.ukf = mine
+
+    times: dict[str, list[float]] = {"current": [], rev: []}
+    est = {}
+    for _ in range(repeats):
+        for key, kernel in (("current", mine), (rev, old)):
+            t, est[key] = once(kernel)
+            times[key].append(t)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"rev": rev, "cpu_us_per_sample": times, "median": med, "speedup": med[rev] / med["current"],
+            "max_rel_estimate_difference": float(np.max(np.abs(est["current"] / est[rev] - 1.0))),
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+
+
 # --- accuracy on the reference simulator --------------------------------------------------------
 LONG_HEALTHY = [("healthy", 100), ("healthy_2x", 101), ("healthy_ar1", 102), ("analog", 103), ("digital5k", 104),
                 ("healthy", 105)]
@@ -225,8 +282,20 @@ def main(argv=None) -> int:
     ap.add_argument("--accuracy", action="store_true", help="false alarms, coverage and delays on the reference "
                                                             "simulator's records (long; cached)")
     ap.add_argument("--seconds", type=float, default=600.0, help="length of each healthy record (--accuracy)")
+    ap.add_argument("--against", metavar="REV", help="time the kernel of git revision REV against the current one")
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (--against)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.against:
+        a = against(args.against, args.repeats, 10.0 if args.quick else 20.0)
+        if args.json:
+            print(json.dumps(a, indent=2))
+            return 0
+        for k, v in a["cpu_us_per_sample"].items():
+            print(f"{k:>12s}: median {a['median'][k]:6.2f} us/sample CPU (runs: {', '.join(f'{t:.2f}' for t in v)})")
+        print(f"speed-up {a['speedup']:.2f}x over {a['rev']}; largest relative difference of the estimates "
+              f"{a['max_rel_estimate_difference']:.1e} (load average {a['load_average_1min']})")
+        return 0
     if args.accuracy:
         r = accuracy(args.seconds)
         if args.json:
