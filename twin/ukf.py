@@ -337,6 +337,8 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
 LANES = 8 * ((2 * (6 + len(TRACKABLE)) + 1 + 7) // 8)
 W_A, W_Y, W_ACC, W_K, W_C, W_TH = 0, 6, 12, 18, 24, 40
 N_W = 41
+# the lanes recompute only the constants (:func:`_lean_consts`) of these parameters per sigma point
+assert set(TRACKABLE) <= {"Ffric", "CdAleak", "Cd", "zeta", "wn"}, "a new trackable parameter: see _lean_sigmas"
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -422,14 +424,32 @@ def lean_lanes(W, wnd, mode, dt, nsub):
 @nb.njit(cache=True)
 def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, c, nmod):
     """The model part (``nmod`` entries) of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m <=
-    LANES``: :func:`fx_into` on the lean path for all of them at once."""
+    LANES``: :func:`fx_into` on the lean path for all of them at once.
+
+    Only the constants of the tracked parameters differ between lanes (:func:`_lean_consts`' expressions); a
+    parameter at the central point's value (a sigma point along a later state) reuses its value."""
+    p_count = idx.shape[0]  # c: 16 constants, then the central point's parameter values
+    s0 = sig[rows[0]]
+    for j in range(p_count):
+        pw[idx[j]] = theta_of(s0[6 + j], lo_log[j], width[j])
+    _lean_consts(pw, c)
+    for i in range(16):
+        for ln in range(LANES):
+            W[(W_C + i) * LANES + ln] = c[i]
+    s2r = math.sqrt(2.0 / pw[M.I_RHO])
     for ln in range(LANES):
         s = sig[rows[ln if ln < m else 0]]
-        for j in range(idx.shape[0]):
-            pw[idx[j]] = theta_of(s[6 + j], lo_log[j], width[j])
-        _lean_consts(pw, c)
-        for i in range(16):
-            W[(W_C + i) * LANES + ln] = c[i]
+        for j in range(p_count):
+            zj = s[6 + j]
+            pw[idx[j]] = c[16 + j] if ln > 0 and zj == s0[6 + j] else theta_of(zj, lo_log[j], width[j])
+            if ln == 0:
+                c[16 + j] = pw[idx[j]]
+        wn = pw[M.I_WN]
+        W[W_C * LANES + ln] = wn * wn
+        W[(W_C + 1) * LANES + ln] = 2.0 * pw[M.I_ZETA] * wn
+        W[(W_C + 3) * LANES + ln] = pw[M.I_CD] * pw[M.I_B] * s2r
+        W[(W_C + 7) * LANES + ln] = pw[M.I_CDALEAK] * s2r
+        W[(W_C + 13) * LANES + ln] = pw[M.I_FFRIC]
         for i in range(6):
             W[(W_A + i) * LANES + ln] = s[i] * scale[i]
     lean_lanes(W, wnd, mode, h, nsub)
@@ -439,7 +459,6 @@ def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, 
             sf[r, i] = W[(W_A + i) * LANES + ln] / scale[i]
         for i in range(6, nmod):
             sf[r, i] = sig[r, i]
-
 
 def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a, closed=False, ticks=1, mode=0,
            u_before=None, xm=0.0):
@@ -539,22 +558,30 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
     ``eta0 < 0``: no noise states (white measurement noise ``R`` only).
     """
     n = x.shape[0]
+    q = meas_idx.shape[0]
+    return _update_into(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag, np.empty(q, dtype=np.int64),
+                        np.empty((4 * q + 1, q)), np.empty((2 * n, q)), np.empty((n, n)))
+
+
+@nb.njit(cache=True)
+def _update_into(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag, sel, WQ, WN, B):
+    """:func:`_update` in preallocated work arrays: ``sel [q]``, ``WQ [4q + 1, q]``, ``WN [2n, q]``, ``B [n, n]``."""
+    n = x.shape[0]
     mall = meas_idx.shape[0]
-    m = 0
-    for i in range(mall):
-        if use[i]:
-            m += 1
-    if m == 0:
-        return ST_STALE, np.nan, np.nan, 0
-    sel = np.empty(m, dtype=np.int64)
     m = 0
     for i in range(mall):
         if use[i]:
             sel[m] = i
             m += 1
-    S = np.empty((m, m))
-    y = np.empty(m)
-    PHt = np.empty((n, m))
+    if m == 0:
+        return ST_STALE, np.nan, np.nan, 0
+    S = WQ[:m, :m]
+    Ls = WQ[mall:mall + m, :m]
+    Li = WQ[2 * mall:2 * mall + m, :m]
+    SI = WQ[3 * mall:3 * mall + m, :m]
+    y = WQ[4 * mall, :m]
+    PHt = WN[:n, :m]
+    K = WN[n:2 * n, :m]
     for a in range(m):
         ja = sel[a]
         ia = meas_idx[ja]
@@ -569,10 +596,8 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
         for b in range(m):
             S[a, b] = PHt[ia, b] + (PHt[ea, b] if eta0 >= 0 else 0.0)
         S[a, a] += R[sel[a]]
-    Ls = np.zeros((m, m))
     if not _chol_lower(S, Ls):
         return ST_GATED, np.inf, -np.inf, m
-    Li = np.zeros((m, m))
     logdet = 0.0
     for i in range(m):
         logdet += 2.0 * math.log(Ls[i, i])
@@ -582,7 +607,6 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
             for k in range(j, i):
                 acc -= Ls[i, k] * Li[k, j]
             Li[i, j] = acc / Ls[i, i]
-    SI = np.zeros((m, m))
     for a in range(m):
         for b in range(m):
             acc = 0.0
@@ -599,7 +623,6 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
         Sdiag[sel[a]] = S[a, a]
     if nis > gate:
         return ST_GATED, nis, loglik, m
-    K = np.zeros((n, m))
     for i in range(n):
         for b in range(m):
             acc = 0.0
@@ -624,21 +647,22 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
                 for a in range(m):
                     acc += K[i, a] * PHt[j, a]
                 P[i, j] -= acc
-    else:  # Joseph form: P = (I - K H) P (I - K H)' + K R K'
-        IKH = np.eye(n)
-        for i in range(n):
-            for a in range(m):
-                IKH[i, meas_idx[sel[a]]] -= K[i, a]
-                if eta0 >= 0:
-                    IKH[i, eta0 + sel[a]] -= K[i, a]
-        KRK = np.zeros((n, n))
-        for i in range(n):
+    else:  # Joseph form: P = (I - K H) P (I - K H)' + K R K', H picking model state plus noise state
+        for i in range(n):  # B = (I - K H) P = P - K (P H')'
             for j in range(n):
                 acc = 0.0
                 for a in range(m):
-                    acc += K[i, a] * R[sel[a]] * K[j, a]
-                KRK[i, j] = acc
-        P[:, :] = IKH @ P @ IKH.T + KRK
+                    acc += K[i, a] * PHt[j, a]
+                B[i, j] = P[i, j] - acc
+        for i in range(n):  # P = B (I - K H)' + K R K'
+            for j in range(n):
+                acc = 0.0
+                kr = 0.0
+                for a in range(m):
+                    bh = B[i, meas_idx[sel[a]]] + (B[i, eta0 + sel[a]] if eta0 >= 0 else 0.0)
+                    acc += bh * K[j, a]
+                    kr += K[i, a] * R[sel[a]] * K[j, a]
+                P[i, j] = B[i, j] - acc + kr
     for i in range(n):
         for j in range(i + 1, n):
             v = 0.5 * (P[i, j] + P[j, i])
@@ -699,12 +723,17 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     pw = pvec.copy()
     si = np.empty(6)
     so = np.empty(6)
-    ctrl = np.zeros(20)  # controller memory [0:3], lean-path flag [3], lean constants [4:20]
+    # controller memory [0:3], lean-path flag [3], lean constants [4:20], the central sigma point's parameters [20:]
+    ctrl = np.zeros(20 + len(TRACKABLE))
     ctrl[3] = 1.0 if lean_applicable(pvec) else 0.0
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
     W = np.empty(N_W * LANES)
     rows = np.empty(2 * n + 1, dtype=np.int64)
+    sel = np.empty(q, dtype=np.int64)
+    WQ = np.empty((4 * q + 1, q))
+    WN = np.empty((2 * n, q))
+    B = np.empty((n, n))
     freeze = np.zeros(n, dtype=np.bool_)
     innov = np.empty(q)
     Sd = np.empty(q)
@@ -924,7 +953,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
         ll = np.nan
         if not reinit:
             g = gate if fs[F_GATED_RUN] < max_gated else np.inf
-            us, nis, ll, m = _update(x, P, zk, mia, nmod, R, use, freeze, g, inn2, sd2)
+            us, nis, ll, m = _update_into(x, P, zk, mia, nmod, R, use, freeze, g, inn2, sd2, sel, WQ, WN, B)
             fs[F_GATED_RUN] = fs[F_GATED_RUN] + 1.0 if us == ST_GATED else 0.0
             # ---- noise learning and the consistency guard on the normalised innovations
             w_n = min(1.0, max(dtk, dt0) / cfg[C_TAU_NOISE])
