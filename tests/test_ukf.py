@@ -232,7 +232,7 @@ def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode
     assert ukf.lean_applicable(tr.pvec)
     sf = np.full((2 * n + 1, n), np.nan)
     ukf._lean_sigmas(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
-                     np.empty(ukf.N_W * ukf.LANES), np.empty(16 + len(ukf.TRACKABLE)), nm)
+                     np.empty(ukf.N_W * ukf.LANES), np.empty(16), nm)
     for r in rows[:m]:
         one = np.empty(n)
         ukf.fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,

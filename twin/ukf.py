@@ -335,8 +335,8 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
 # overlap, and a constant lane count leaves no scalar remainder.  Each lane computes exactly what :func:`lean_step`
 # computes for its sigma point (the same operations in the same order); unused lanes repeat lane 0.
 LANES = 8 * ((2 * (6 + len(TRACKABLE)) + 1 + 7) // 8)
-W_A, W_Y, W_ACC, W_K, W_C, W_TH = 0, 6, 12, 18, 24, 40
-N_W = 41
+W_A, W_Y, W_ACC, W_K, W_C, W_TH, W_P0 = 0, 6, 12, 18, 24, 40, 41  # W_P0: the central point's parameters
+N_W = 42
 # the lanes recompute only the constants (:func:`_lean_consts`) of these parameters per sigma point
 assert set(TRACKABLE) <= {"Ffric", "CdAleak", "Cd", "zeta", "wn"}, "a new trackable parameter: see _lean_sigmas"
 
@@ -428,7 +428,7 @@ def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, 
 
     Only the constants of the tracked parameters differ between lanes (:func:`_lean_consts`' expressions); a
     parameter at the central point's value (a sigma point along a later state) reuses its value."""
-    p_count = idx.shape[0]  # c: 16 constants, then the central point's parameter values
+    p_count = idx.shape[0]
     s0 = sig[rows[0]]
     for j in range(p_count):
         pw[idx[j]] = theta_of(s0[6 + j], lo_log[j], width[j])
@@ -441,9 +441,9 @@ def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, 
         s = sig[rows[ln if ln < m else 0]]
         for j in range(p_count):
             zj = s[6 + j]
-            pw[idx[j]] = c[16 + j] if ln > 0 and zj == s0[6 + j] else theta_of(zj, lo_log[j], width[j])
+            pw[idx[j]] = W[W_P0 * LANES + j] if ln > 0 and zj == s0[6 + j] else theta_of(zj, lo_log[j], width[j])
             if ln == 0:
-                c[16 + j] = pw[idx[j]]
+                W[W_P0 * LANES + j] = pw[idx[j]]
         wn = pw[M.I_WN]
         W[W_C * LANES + ln] = wn * wn
         W[(W_C + 1) * LANES + ln] = 2.0 * pw[M.I_ZETA] * wn
@@ -723,8 +723,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     pw = pvec.copy()
     si = np.empty(6)
     so = np.empty(6)
-    # controller memory [0:3], lean-path flag [3], lean constants [4:20], the central sigma point's parameters [20:]
-    ctrl = np.zeros(20 + len(TRACKABLE))
+    ctrl = np.zeros(20)  # controller memory [0:3], lean-path flag [3], lean constants [4:20]
     ctrl[3] = 1.0 if lean_applicable(pvec) else 0.0
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
@@ -817,7 +816,8 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                         wnd[3] = wnd[2]
                         xm = fs[F_XM1] if s_i == 0 else x[4] * scale[4]
                         ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale, h,
-                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows)
+                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W,
+                                      rows)
                         if ps < 0:
                             break
                 if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
