@@ -460,6 +460,7 @@ def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, 
         for i in range(6, nmod):
             sf[r, i] = sig[r, i]
 
+
 def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a, closed=False, ticks=1, mode=0,
            u_before=None, xm=0.0):
     """Propagate one augmented state over one log interval (for tests and filterpy): returns the new state.
