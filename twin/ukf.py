@@ -20,7 +20,10 @@ The algorithm is filterpy's ``UnscentedKalmanFilter`` with
 ``(lambda + n) P``, mean and covariance by the unscented transform plus
 ``Q``).  The noise states come last: a sigma point along one of them differs
 from the mean only in noise coordinates (the Cholesky factor is triangular),
-so the rig model is integrated for ``2 (6 + p) + 1`` sigma points only.  The
+so the rig model is integrated for ``2 (6 + p) + 1`` sigma points only, and on
+the open-loop path of a rig without effects they are integrated side by side,
+vectorised across sigma points (:func:`lean_lanes`; the same numbers as one
+point at a time, bit for bit).  The
 measurement function ``H x`` (model output plus noise state) is linear: the
 unscented update is then exactly the Kalman update, which is what we compute.
 
