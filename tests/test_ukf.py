@@ -211,3 +211,31 @@ def test_sigma_point_weights_are_filterpys_with_a_small_alpha():
     np.testing.assert_allclose(tr.Wm, pts.Wm, rtol=1e-14)
     np.testing.assert_allclose(tr.Wc, pts.Wc, rtol=1e-14)
     assert tr.alpha <= 0.5  # wide sigma points through the tanh friction fling the parameters (model-spec)
+
+
+@pytest.mark.parametrize("mode", [0, 1, 2])
+def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode):
+    """The lean path integrates the sigma points side by side (vectorised lanes): per point the same numbers as
+    fx_into, bit for bit, on both sides of the valve's null and with a noise state in the last coordinates."""
+    tr = OnlineTracker()
+    n, nm = tr.n, tr.nmod
+    rng = np.random.default_rng(31 + mode)
+    x = np.concatenate([[0.01, 0.0, 11.0, 9.0, 2.0, 0.5], np.zeros(len(tr.tracked)), np.zeros(n - nm)])
+    sig = x + rng.normal(size=(2 * n + 1, n)) * np.concatenate([[0.05, 0.5, 2.0, 2.0, 1.0, 1.0],
+                                                                np.full(len(tr.tracked), 0.3), np.full(n - nm, 0.1)])
+    assert (sig[:, 0] < 0).any() and (sig[:, 0] > 0).any()
+    wnd = np.array([0.1, 0.2, 0.5, 0.5])
+    rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm] + [0] * (ukf.LANES - 2 * nm - 1))
+    m = 2 * nm + 1
+    ctrl = np.zeros(20)
+    ctrl[3] = 1.0
+    assert ukf.lean_applicable(tr.pvec)
+    sf = np.full((2 * n + 1, n), np.nan)
+    ukf._lean_sigmas(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+                     np.empty(ukf.N_W * ukf.LANES), np.empty(16), nm)
+    for r in rows[:m]:
+        one = np.empty(n)
+        ukf.fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+                    0.0, ctrl.copy(), np.empty(6), np.empty(6), one, nm)
+        np.testing.assert_array_equal(sf[r, :nm], one[:nm])
+    assert np.isnan(sf[nm + 1:n + 1]).all()  # the points along noise states are not integrated

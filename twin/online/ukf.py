@@ -20,7 +20,10 @@ The algorithm is filterpy's ``UnscentedKalmanFilter`` with
 ``(lambda + n) P``, mean and covariance by the unscented transform plus
 ``Q``).  The noise states come last: a sigma point along one of them differs
 from the mean only in noise coordinates (the Cholesky factor is triangular),
-so the rig model is integrated for ``2 (6 + p) + 1`` sigma points only.  The
+so the rig model is integrated for ``2 (6 + p) + 1`` sigma points only, and on
+the open-loop path of a rig without effects they are integrated side by side,
+vectorised across sigma points (:func:`lean_lanes`; the same numbers as one
+point at a time, bit for bit).  The
 measurement function ``H x`` (model output plus noise state) is linear: the
 unscented update is then exactly the Kalman update, which is what we compute.
 
@@ -81,6 +84,8 @@ from twin.models.intersample import input_at
 STATE_SCALE = np.array([1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1])
 #: measured outputs and their state index
 MEAS_INDEX = {"x": 4, "pA": 2, "pB": 3}
+#: the parameters the kernel can track: those whose spec declares a Tracking (twin/models/msp25.py)
+TRACKABLE = M.MODEL.trackable
 #: excitation channels (``chan`` of the kernel) follow :data:`twin.params.EXCITATION`: 0 rod motion,
 #: 1 valve command, 2 pressure difference; each parameter's is declared in its spec's Tracking
 #: largest standard deviation (log units) the parameter random walk grows a parameter's uncertainty to
@@ -327,6 +332,139 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
         out[j] = s[j]
 
 
+# --- the sigma points of the lean path, all at once --------------------------------------------------------------
+# One work vector ``W [N_W * LANES]``: row ``r`` (one quantity) of lane ``ln`` (one sigma point that needs the model)
+# at ``r * LANES + ln``.  The right-hand side then runs over the lanes in one loop the compiler vectorises (square
+# roots and divisions of 8 sigma points per instruction): a constant row stride lets it prove that the rows do not
+# overlap, and a constant lane count leaves no scalar remainder.  Each lane computes exactly what :func:`lean_step`
+# computes for its sigma point (the same operations in the same order); unused lanes repeat lane 0.
+LANES = 8 * ((2 * (6 + len(TRACKABLE)) + 1 + 7) // 8)
+W_A, W_Y, W_ACC, W_K, W_C, W_TH, W_P0 = 0, 6, 12, 18, 24, 40, 41  # W_P0: the central point's parameters
+N_W = 42
+# the lanes recompute only the constants (:func:`_lean_consts`) of these parameters per sigma point
+assert set(TRACKABLE) <= {"Ffric", "CdAleak", "Cd", "zeta", "wn"}, "a new trackable parameter: see _lean_sigmas"
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lanes_deriv(W, u):
+    """:func:`_lean_deriv` of every lane at the stage input (rows ``W_Y``) into rows ``W_K``."""
+    for ln in range(LANES):  # the friction's tanh (libm's exp: not vectorised)
+        W[W_TH * LANES + ln] = fast_tanh(W[(W_Y + 5) * LANES + ln] * W[(W_C + 14) * LANES + ln])
+    for ln in range(LANES):
+        xs = W[W_Y * LANES + ln]
+        vs = W[(W_Y + 1) * LANES + ln]
+        pA = W[(W_Y + 2) * LANES + ln]
+        pB = W[(W_Y + 3) * LANES + ln]
+        x = W[(W_Y + 4) * LANES + ln]
+        v = W[(W_Y + 5) * LANES + ln]
+        pP = W[(W_C + 4) * LANES + ln]
+        pT = W[(W_C + 5) * LANES + ln]
+        dl2 = W[(W_C + 6) * LANES + ln]
+        # the valve's two flow paths as selects: the numbers of _lean_deriv's branches
+        pos = xs >= 0.0
+        d1 = pP - pA if pos else pA - pT
+        d2 = pB - pT if pos else pP - pB
+        gx = W[(W_C + 3) * LANES + ln] * xs
+        qa = gx * (d1 / math.sqrt(math.sqrt(d1 * d1 + dl2)))
+        qb = gx * (d2 / math.sqrt(math.sqrt(d2 * d2 + dl2)))
+        dpAB = pA - pB
+        qAB = W[(W_C + 7) * LANES + ln] * (dpAB / math.sqrt(math.sqrt(dpAB * dpAB + W[(W_C + 8) * LANES + ln])))
+        qA = qa - qAB
+        qB = qAB - qb
+        A = W[(W_C + 10) * LANES + ln]
+        V0 = W[(W_C + 11) * LANES + ln]
+        VA = max(V0 + A * x, 1e-3 * V0)
+        VB = max(V0 - A * x, 1e-3 * V0)
+        bulk = W[(W_C + 9) * LANES + ln]
+        W[W_K * LANES + ln] = vs
+        W[(W_K + 1) * LANES + ln] = W[W_C * LANES + ln] * (W[(W_C + 2) * LANES + ln] * u - xs) - \
+            W[(W_C + 1) * LANES + ln] * vs
+        W[(W_K + 2) * LANES + ln] = bulk * (qA - A * v) / VA
+        W[(W_K + 3) * LANES + ln] = bulk * (qB + A * v) / VB
+        W[(W_K + 4) * LANES + ln] = v
+        W[(W_K + 5) * LANES + ln] = (dpAB * A - W[(W_C + 13) * LANES + ln] * W[W_TH * LANES + ln]
+                                    - W[(W_C + 15) * LANES + ln]) * W[(W_C + 12) * LANES + ln]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def lean_lanes(W, wnd, mode, dt, nsub):
+    """:func:`lean_step` of every lane of ``W`` (states in rows ``W_A``, constants in rows ``W_C``), in place."""
+    h = dt / nsub
+    fh = 1.0 / nsub
+    hh = 0.5 * h
+    cc = h / 6.0
+    for j in range(nsub):
+        f0 = j * fh
+        if mode == 0:
+            u1 = wnd[1]
+            u2 = u1
+            u4 = u1
+        else:
+            u1 = input_at(wnd, 1, f0, mode)
+            u2 = input_at(wnd, 1, f0 + 0.5 * fh, mode)
+            u4 = input_at(wnd, 1, f0 + fh, mode)
+        for i in range(6 * LANES):
+            W[W_Y * LANES + i] = W[W_A * LANES + i]
+        _lanes_deriv(W, u1)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + hh * k
+        _lanes_deriv(W, u2)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = W[W_ACC * LANES + i] + 2.0 * k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + hh * k
+        _lanes_deriv(W, u2)
+        for i in range(6 * LANES):
+            k = W[W_K * LANES + i]
+            W[W_ACC * LANES + i] = W[W_ACC * LANES + i] + 2.0 * k
+            W[W_Y * LANES + i] = W[W_A * LANES + i] + h * k
+        _lanes_deriv(W, u4)
+        for i in range(6 * LANES):
+            W[W_A * LANES + i] += cc * (W[W_ACC * LANES + i] + W[W_K * LANES + i])
+
+
+@nb.njit(cache=True)
+def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, c, nmod):
+    """The model part (``nmod`` entries) of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m <=
+    LANES``: :func:`fx_into` on the lean path for all of them at once.
+
+    Only the constants of the tracked parameters differ between lanes (:func:`_lean_consts`' expressions); a
+    parameter at the central point's value (a sigma point along a later state) reuses its value."""
+    p_count = idx.shape[0]
+    s0 = sig[rows[0]]
+    for j in range(p_count):
+        pw[idx[j]] = theta_of(s0[6 + j], lo_log[j], width[j])
+    _lean_consts(pw, c)
+    for i in range(16):
+        for ln in range(LANES):
+            W[(W_C + i) * LANES + ln] = c[i]
+    s2r = math.sqrt(2.0 / pw[M.I_RHO])
+    for ln in range(LANES):
+        s = sig[rows[ln if ln < m else 0]]
+        for j in range(p_count):
+            zj = s[6 + j]
+            pw[idx[j]] = W[W_P0 * LANES + j] if ln > 0 and zj == s0[6 + j] else theta_of(zj, lo_log[j], width[j])
+            if ln == 0:
+                W[W_P0 * LANES + j] = pw[idx[j]]
+        wn = pw[M.I_WN]
+        W[W_C * LANES + ln] = wn * wn
+        W[(W_C + 1) * LANES + ln] = 2.0 * pw[M.I_ZETA] * wn
+        W[(W_C + 3) * LANES + ln] = pw[M.I_CD] * pw[M.I_B] * s2r
+        W[(W_C + 7) * LANES + ln] = pw[M.I_CDALEAK] * s2r
+        W[(W_C + 13) * LANES + ln] = pw[M.I_FFRIC]
+        for i in range(6):
+            W[(W_A + i) * LANES + ln] = s[i] * scale[i]
+    lean_lanes(W, wnd, mode, h, nsub)
+    for ln in range(m):
+        r = rows[ln]
+        for i in range(6):
+            sf[r, i] = W[(W_A + i) * LANES + ln] / scale[i]
+        for i in range(6, nmod):
+            sf[r, i] = sig[r, i]
+
+
 def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a, closed=False, ticks=1, mode=0,
            u_before=None, xm=0.0):
     """Propagate one augmented state over one log interval (for tests and filterpy): returns the new state.
@@ -346,7 +484,7 @@ def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a,
 
 @nb.njit(cache=True)
 def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
-             nmod, a_pow, L, A, sig, sf, si, so, ctrl):
+             nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows):
     """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1."""
     n = x.shape[0]
     status = ST_OK
@@ -368,17 +506,25 @@ def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, n
         for i in range(n):
             sig[k + 1, i] = x[i] + L[i, k]
             sig[n + k + 1, i] = x[i] - L[i, k]
-    fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so, sf[0], nmod)
-    for k in range(n):
-        if k < nmod:  # sigma points that move the model or the parameters
+    if not closed and ctrl[3] > 0.0 and 2 * nmod + 1 <= LANES:  # lean path: the sigma points that move the model
+        m = 0
+        for k in range(2 * n + 1):
+            if k == 0 or (k - 1) % n < nmod:
+                rows[m] = k
+                m += 1
+        _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, ctrl[4:], nmod)
+    else:
+        fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so, sf[0],
+                nmod)
+        for k in range(nmod):
             fx_into(sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so,
                     sf[k + 1], nmod)
             fx_into(sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si,
                     so, sf[n + k + 1], nmod)
-        else:  # along a noise state only: the model part is the central point's
-            for i in range(nmod):
-                sf[k + 1, i] = sf[0, i]
-                sf[n + k + 1, i] = sf[0, i]
+    for k in range(nmod, n):  # along a noise state only: the model part is the central point's
+        for i in range(nmod):
+            sf[k + 1, i] = sf[0, i]
+            sf[n + k + 1, i] = sf[0, i]
     for k in range(2 * n + 1):
         for i in range(nmod, n):
             sf[k, i] = a_pow[i - nmod] * sig[k, i]
@@ -417,22 +563,30 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
     ``eta0 < 0``: no noise states (white measurement noise ``R`` only).
     """
     n = x.shape[0]
+    q = meas_idx.shape[0]
+    return _update_into(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag, np.empty(q, dtype=np.int64),
+                        np.empty((4 * q + 1, q)), np.empty((2 * n, q)), np.empty((n, n)))
+
+
+@nb.njit(cache=True)
+def _update_into(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag, sel, WQ, WN, B):
+    """:func:`_update` in preallocated work arrays: ``sel [q]``, ``WQ [4q + 1, q]``, ``WN [2n, q]``, ``B [n, n]``."""
+    n = x.shape[0]
     mall = meas_idx.shape[0]
-    m = 0
-    for i in range(mall):
-        if use[i]:
-            m += 1
-    if m == 0:
-        return ST_STALE, np.nan, np.nan, 0
-    sel = np.empty(m, dtype=np.int64)
     m = 0
     for i in range(mall):
         if use[i]:
             sel[m] = i
             m += 1
-    S = np.empty((m, m))
-    y = np.empty(m)
-    PHt = np.empty((n, m))
+    if m == 0:
+        return ST_STALE, np.nan, np.nan, 0
+    S = WQ[:m, :m]
+    Ls = WQ[mall:mall + m, :m]
+    Li = WQ[2 * mall:2 * mall + m, :m]
+    SI = WQ[3 * mall:3 * mall + m, :m]
+    y = WQ[4 * mall, :m]
+    PHt = WN[:n, :m]
+    K = WN[n:2 * n, :m]
     for a in range(m):
         ja = sel[a]
         ia = meas_idx[ja]
@@ -447,10 +601,8 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
         for b in range(m):
             S[a, b] = PHt[ia, b] + (PHt[ea, b] if eta0 >= 0 else 0.0)
         S[a, a] += R[sel[a]]
-    Ls = np.zeros((m, m))
     if not _chol_lower(S, Ls):
         return ST_GATED, np.inf, -np.inf, m
-    Li = np.zeros((m, m))
     logdet = 0.0
     for i in range(m):
         logdet += 2.0 * math.log(Ls[i, i])
@@ -460,7 +612,6 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
             for k in range(j, i):
                 acc -= Ls[i, k] * Li[k, j]
             Li[i, j] = acc / Ls[i, i]
-    SI = np.zeros((m, m))
     for a in range(m):
         for b in range(m):
             acc = 0.0
@@ -477,7 +628,6 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
         Sdiag[sel[a]] = S[a, a]
     if nis > gate:
         return ST_GATED, nis, loglik, m
-    K = np.zeros((n, m))
     for i in range(n):
         for b in range(m):
             acc = 0.0
@@ -502,21 +652,22 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
                 for a in range(m):
                     acc += K[i, a] * PHt[j, a]
                 P[i, j] -= acc
-    else:  # Joseph form: P = (I - K H) P (I - K H)' + K R K'
-        IKH = np.eye(n)
-        for i in range(n):
-            for a in range(m):
-                IKH[i, meas_idx[sel[a]]] -= K[i, a]
-                if eta0 >= 0:
-                    IKH[i, eta0 + sel[a]] -= K[i, a]
-        KRK = np.zeros((n, n))
-        for i in range(n):
+    else:  # Joseph form: P = (I - K H) P (I - K H)' + K R K', H picking model state plus noise state
+        for i in range(n):  # B = (I - K H) P = P - K (P H')'
             for j in range(n):
                 acc = 0.0
                 for a in range(m):
-                    acc += K[i, a] * R[sel[a]] * K[j, a]
-                KRK[i, j] = acc
-        P[:, :] = IKH @ P @ IKH.T + KRK
+                    acc += K[i, a] * PHt[j, a]
+                B[i, j] = P[i, j] - acc
+        for i in range(n):  # P = B (I - K H)' + K R K'
+            for j in range(n):
+                acc = 0.0
+                kr = 0.0
+                for a in range(m):
+                    bh = B[i, meas_idx[sel[a]]] + (B[i, eta0 + sel[a]] if eta0 >= 0 else 0.0)
+                    acc += bh * K[j, a]
+                    kr += K[i, a] * R[sel[a]] * K[j, a]
+                P[i, j] = B[i, j] - acc + kr
     for i in range(n):
         for j in range(i + 1, n):
             v = 0.5 * (P[i, j] + P[j, i])
@@ -581,6 +732,12 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     ctrl[3] = 1.0 if lean_applicable(pvec) else 0.0
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
+    W = np.empty(N_W * LANES)
+    rows = np.empty(2 * n + 1, dtype=np.int64)
+    sel = np.empty(q, dtype=np.int64)
+    WQ = np.empty((4 * q + 1, q))
+    WN = np.empty((2 * n, q))
+    B = np.empty((n, n))
     freeze = np.zeros(n, dtype=np.bool_)
     innov = np.empty(q)
     Sd = np.empty(q)
@@ -648,7 +805,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                     wnd[2] = a_now
                     wnd[3] = a_now
                     ps = _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
-                                  fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl)
+                                  fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows)
                 else:  # across a gap: the drive linear from the last sample to this one
                     for j in range(q):
                         a_pow[j] = ch[j, H_A]
@@ -664,7 +821,8 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                         wnd[3] = wnd[2]
                         xm = fs[F_XM1] if s_i == 0 else x[4] * scale[4]
                         ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale, h,
-                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl)
+                                      nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W,
+                                      rows)
                         if ps < 0:
                             break
                 if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
@@ -800,7 +958,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
         ll = np.nan
         if not reinit:
             g = gate if fs[F_GATED_RUN] < max_gated else np.inf
-            us, nis, ll, m = _update(x, P, zk, mia, nmod, R, use, freeze, g, inn2, sd2)
+            us, nis, ll, m = _update_into(x, P, zk, mia, nmod, R, use, freeze, g, inn2, sd2, sel, WQ, WN, B)
             fs[F_GATED_RUN] = fs[F_GATED_RUN] + 1.0 if us == ST_GATED else 0.0
             # ---- noise learning and the consistency guard on the normalised innovations
             w_n = min(1.0, max(dtk, dt0) / cfg[C_TAU_NOISE])
