@@ -17,7 +17,7 @@ checks and online noise learning on (the production settings):
 
 Targets: <= 20 us per sample on one core, >= 100 rigs at 1 kHz on 2 cores.
 
-``--against REV``: the kernel (``twin/ukf.py``) of git revision ``REV`` loaded
+``--against REV``: the kernel (``twin/online/ukf.py``) of git revision ``REV`` loaded
 as a separate module and timed against the current one on the same record,
 interleaved, ``--repeats`` times each (medians), with the largest difference
 of their estimates: a before/after comparison on a shared, noisy machine.
@@ -147,9 +147,13 @@ def run(quick: bool = False) -> dict:
 
 
 def _kernel_at(rev: str):
-    """``twin/ukf.py`` as it was at git revision ``rev``, imported as its own module."""
+    """The UKF kernel as it was at git revision ``rev`` (``twin/online/ukf.py``, or ``twin/ukf.py`` before the
+    layers had folders), imported as its own module."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    src = subprocess.run(["git", "show", f"{rev}:twin/ukf.py"], cwd=root, capture_output=True, text=True)
+    for where in ("twin/online/ukf.py", "twin/ukf.py"):
+        src = subprocess.run(["git", "show", f"{rev}:{where}"], cwd=root, capture_output=True, text=True)
+        if src.returncode == 0:
+            break
     if src.returncode != 0:
         raise SystemExit(f"--against {rev}: {src.stderr.strip() or 'git show failed'}")
     folder = os.path.join(tempfile.gettempdir(), "twin_bench_kernels")
@@ -167,7 +171,7 @@ def _kernel_at(rev: str):
 
 def against(rev: str, repeats: int = 3, duration: float = 20.0) -> dict:
     """Current kernel against the kernel of ``rev``, same record, interleaved; CPU us per sample (medians)."""
-    from twin import tracker as T
+    from twin.online import tracker as T
 
     mine, old = T.ukf, _kernel_at(rev)
     s = _record(duration).to_samples()
