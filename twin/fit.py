@@ -31,8 +31,8 @@
   even-order effect stays, the first-order one (a coloured disturbance the
   covariance accounts for) cancels (``loop_noise=False`` skips it).
 * Standard errors are heteroskedasticity- and autocorrelation-consistent (a
-  Newey-West sandwich with Bartlett weights and Andrews' AR(1) bandwidth, per
-  output and record): output-error residuals of a closed loop fed by a noisy
+  Newey-West sandwich with Bartlett weights and Andrews' AR(1) bandwidth, at
+  least ``sqrt(n)`` lags, per output and record): output-error residuals of a closed loop fed by a noisy
   sensor are coloured, and the textbook ``s^2 (J'J)^-1`` then understates the
   uncertainty many times over.  ``std_white`` keeps the textbook figure.
 
@@ -221,7 +221,8 @@ class _Problem:
 
     def loop_noise(self, z: np.ndarray, seed: int = 0) -> list[np.ndarray | None]:
         """Per record: a white noise at the level of the displacement noise the controller read, drawn from
-        ``seed`` (``None`` for a record whose controller is not simulated or whose displacement is not fitted).
+        ``seed`` (``None`` for a record whose controller is not simulated, reads the sensor more often than the
+        log samples it, or whose displacement is not fitted).
 
         The level comes from the high band of the residuals at ``z`` (above :data:`LOOP_NOISE_BAND` of the
         Nyquist frequency, where the loop and the model's error leave the sensor noise alone): of the logged
@@ -236,8 +237,8 @@ class _Problem:
         out: list[np.ndarray | None] = []
         for r, pr in enumerate(self.predict(z)):
             rec = self.records[r]
-            if self.drives[r][0] != "x_ref":
-                out.append(None)
+            if self.drives[r][0] != "x_ref" or self.timing.ticks(rec.dt) != 1:
+                out.append(None)  # no simulated controller, or one reading the sensor between logged samples
                 continue
             n = len(rec)
             w = np.pi * np.arange(n // 2 + 1) / (n // 2)  # rfft frequencies, rad per sample
@@ -533,7 +534,12 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
 
 
 def _bartlett_lag(g: np.ndarray) -> int:
-    """Andrews' (1991) AR(1) plug-in bandwidth for Bartlett weights, from the score series ``g [n, p]``."""
+    """Bartlett bandwidth for the score series ``g [n, p]``: Andrews' (1991) AR(1) plug-in, at least ``sqrt(n)``.
+
+    The floor: the scores of a closed loop are white sensor noise plus the slower response of the loop to the
+    noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks a handful of
+    lags, which on the reference simulator left the friction's standard error 20 % short (lag 9 on 12 000
+    samples; from lag 50 on every parameter's spread matches its standard error)."""
     n = g.shape[0]
     num = den = 0.0
     for a in range(g.shape[1]):
@@ -545,9 +551,10 @@ def _bartlett_lag(g: np.ndarray) -> int:
         s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
         num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
         den += s4 / (1 - rho) ** 4
+    floor = math.ceil(math.sqrt(n))
     if den <= 0:
-        return 0
-    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), 0), n // 4))
+        return min(floor, n // 4)
+    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), floor), n // 4))
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
