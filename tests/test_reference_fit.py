@@ -95,8 +95,11 @@ def test_five_parameters_with_loop_noise_within_three_standard_errors_under_each
     for k in FREE:
         z = (res.estimate[k] - ref.truth[k]) / res.std[k]
         assert abs(z) < 3.0, (kind, k, res.estimate[k], ref.truth[k], res.std[k])
-    # the loop's noise colours the output-error residuals: the sandwich knows, the textbook does not
-    assert all(res.std[k] >= res.std_white[k] for k in ("zeta", "wn")), (res.std, res.std_white)
+    # the loop's noise colours the output-error residuals: the sandwich knows, the textbook does not; a
+    # controller five times faster than the log leaves them nearly white, and the sandwich (at least sqrt(n)
+    # lags) then scatters a few per cent about the textbook figure
+    ratio = {k: res.std[k] / res.std_white[k] for k in ("zeta", "wn")}
+    assert all(r >= (0.9 if kind == "digital5k" else 1.0) for r in ratio.values()), ratio
 
 
 def test_wrong_timing_is_what_bends_the_valve_parameters(reference_records):
