@@ -100,6 +100,10 @@ MIN_SHARE = 0.5
 SECANTS = (0.3, 1.0, 3.0)
 #: multiples of a secondary parameter's typical value tried in the screen (e.g. Stribeck velocity)
 SECONDARY = (1.0 / 3.0, 1.0, 3.0)
+#: limit parameters (a clipping effect) and the model state they clip: probed at levels the record reaches
+LIMITS = {"xs_max": "xs"}
+#: quantiles of the limited state's magnitude used as a limit's probe levels
+LIMIT_QUANTILES = (0.75, 0.9, 0.97, 0.995)
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -414,6 +418,9 @@ def _simulate(data: _Data, ps: ParameterSet, timing: Timing) -> list[dict[str, n
         d = {o: sim.outputs[o][0] for o in model.OUTPUTS}
         for k, v in sim.inputs.items():
             d[k] = np.asarray(v)[0] if np.ndim(v) == 2 else np.asarray(v)
+        for j, k in enumerate(getattr(model, "STATES", ())):  # the states a limit probe needs (LIMITS)
+            if k in LIMITS.values():
+                d[f"state:{k}"] = sim.states[0, :, j]
         out.append(d)
     return out
 
@@ -608,6 +615,20 @@ def _probe_params(E) -> list[int]:
     return out
 
 
+def _limit_levels(model: Model, name: str, state: ModelState, data: _Data) -> list[float] | None:
+    """Probe levels of a limit parameter (``LIMITS``): quantiles of the limited state's magnitude in the
+    current model's simulation of the fitting data, so that a probe clips a plausible share of the record;
+    ``None`` for a parameter that is not a limit."""
+    key = LIMITS.get(name)
+    if key is None or f"state:{key}" not in state.predicted[0]:
+        return None
+    mag = np.concatenate([np.abs(p[f"state:{key}"][:n]) for p, n in zip(state.predicted, data.n_fit)])
+    mag = mag[np.isfinite(mag)]
+    if not mag.size or not np.max(mag) > 0:
+        return []
+    return sorted({float(v) for v in np.quantile(mag, LIMIT_QUANTILES)}, reverse=True)
+
+
 def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[ScreenRow]:
     """Score-test every candidate effect against ``state`` in one batched simulation per record, on the
     one-step prediction errors of ``state``'s noise model (module docstring)."""
@@ -638,9 +659,14 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
             s = E.params[j]
             vals = sorted({float(np.clip(E.typical[j] * f, s.lo, s.hi)) for f in SECONDARY})
             sec_grid = [dict(g, **{s.name: v}) for g in sec_grid for v in vals]
-        pvals = [("derivative", pspec, neutral, neutral + direction * 1e-4 * abs(typical - neutral))]
-        for f in SECANTS:
-            pv = float(np.clip(typical * f, pspec.lo, pspec.hi))
+        pvals = []
+        levels = _limit_levels(model, pspec.name, state, data)
+        if levels is None:  # a limit's derivative at neutral (no clipping) vanishes: probed by levels only
+            pvals.append(("derivative", pspec, neutral, neutral + direction * 1e-4 * abs(typical - neutral)))
+            # secants to a few plausible magnitudes: multiples of the typical deviation from neutral
+            levels = [neutral + f * (typical - neutral) for f in SECANTS]
+        for lv in levels:
+            pv = float(np.clip(lv, pspec.lo, pspec.hi))
             if pv != neutral:
                 pvals.append((f"secant@{pspec.show(pv)}", pspec, neutral, pv))
         for j in movers[1:]:  # a parameter that moves either way from neutral (e.g. the other offset)
