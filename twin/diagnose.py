@@ -104,6 +104,12 @@ SECONDARY = (1.0 / 3.0, 1.0, 3.0)
 LIMITS = {"xs_max": "xs"}
 #: quantiles of the limited state's magnitude used as a limit's probe levels
 LIMIT_QUANTILES = (0.75, 0.9, 0.97, 0.995)
+#: relative tolerance of the diagnosis's fits (cost, step, gradient): the LR tests need the cost to a small
+#: fraction of one whitened unit, not to machine precision
+FIT_TOL = 1e-8
+#: a candidate whose screen LM is below this fraction of an accepted trial's LR is not fitted in that round
+#: (its linearised gain cannot reach the accepted one's AICc; the margin covers nonlinear effects)
+PRUNE = 0.1
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -809,7 +815,7 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
                n_starts: int, seed: int, timing: Timing, max_nfev: int = 80) -> ModelState:
     res = fit(data.model, data.parts, free, base=ps, start=start, outputs=data.outputs, noise=data.sigma,
               drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
-              max_nfev=max_nfev, timing=timing)
+              max_nfev=max_nfev, timing=timing, tol=FIT_TOL)
     return _state(data, res, free, timing)
 
 
@@ -1030,6 +1036,11 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             if tt is not None:
                 trials.append(tt)
         for row in promising:
+            best_lr = max((t.lr for t in trials if t.accepted), default=0.0)
+            if row.lm < PRUNE * best_lr:
+                say(f"  {row.effect}: not fitted (screen LM {row.lm:.3g} < {PRUNE:g} x LR {best_lr:.4g} of an "
+                    "accepted extension)")
+                continue
             trials.append(_try(data, cur, row, seed, min_share, base))
         # Holm over the catalogue (the timing counts as one more candidate): the trials' LR p-values take the
         # places of their effects' screen p-values; effects not fitted keep theirs
