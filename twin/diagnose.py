@@ -110,6 +110,8 @@ FIT_TOL = 1e-8
 #: a candidate whose screen LM is below this fraction of an accepted trial's LR is not fitted in that round
 #: (its linearised gain cannot reach the accepted one's AICc; the margin covers nonlinear effects)
 PRUNE = 0.1
+#: a named effect's parameters lie within this multiple of the effect's typical deviation from neutral
+PLAUSIBLE = 10.0
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -246,6 +248,7 @@ class Trial:
     gain_interval: tuple[float, float]   # block-bootstrap interval (GAIN_COVERAGE)
     share: float               # share of the current model's excess misfit removed
     p_adjusted: float = 1.0    # Holm over the catalogue
+    implausible: list[str] = dataclasses.field(default_factory=list)  # parameters beyond PLAUSIBLE
     accepted: bool = False
     reason: str = ""
 
@@ -264,7 +267,7 @@ class Trial:
                 "p_adjusted": self.p_adjusted, "df": self.df, "delta_aicc": self.delta_aicc,
                 "holdout_gain": self.holdout_gain, "holdout_gain_interval": list(self.gain_interval),
                 "share": self.share, "converged": self.state.converged, "accepted": self.accepted,
-                "reason": self.reason, "params": self.params()}
+                "reason": self.reason, "implausible": list(self.implausible), "params": self.params()}
 
 
 def _effect_params(state: ModelState, effect: str) -> dict:
@@ -940,8 +943,24 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
     floor = math.sqrt(2.0 * cur.fit.n_obs)
     share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
     t = Trial(effects, st, lr, p, df, d_aicc, hg, (lo, hi), share, p_adjusted=p)
+    t.implausible = _implausible(data.model, effects, st)
     _verdict(t, data.alpha, min_share, judge_share=not cur.adequate)
     return t
+
+
+def _implausible(model: Model, effects: Sequence[str], st: ModelState) -> list[str]:
+    """Parameters of ``effects`` fitted further from neutral than ``PLAUSIBLE`` times the effect's typical
+    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range)."""
+    out = []
+    for e in effects:
+        if e not in model.EFFECTS:
+            continue
+        E = model.EFFECTS[e]
+        for s, n, typ in zip(E.params, E.neutral, E.typical):
+            v = st.params[s.name]
+            if typ != n and abs(v - n) > PLAUSIBLE * abs(typ - n):
+                out.append(f"{s.name}={s.show(v)}")
+    return out
 
 
 def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> None:
@@ -953,6 +972,8 @@ def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> Non
     if not (t.gain_interval[0] > 0):
         reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not above its bootstrap spread "
                        f"(interval from {100 * t.gain_interval[0]:.2f} %)")
+    if t.implausible:
+        reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
     if judge_share and not t.share >= min_share:
         reasons.append(f"explains only {100 * t.share:.0f} % of the excess misfit")
     if not t.state.converged and not reasons:
