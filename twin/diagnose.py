@@ -19,14 +19,20 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
 4. **Adequacy** of a model: its innovations are white (Ljung-Box per output,
    degrees of freedom reduced by the autoregression's order) and the held-out
    innovations are no larger than those on the fitting data (a drift, or an
-   error the fit bent the parameters around, shows there); Bonferroni over
-   the tests.  Loop noise and coloured sensor noise are not model errors.
+   error the fit bent the parameters around, shows there), and they do not
+   follow the exogenous drive (``x_ref``; regressed on its increments at lags
+   0-50 ms: significant, and explaining over 1 % of an output's innovation
+   variance beyond chance) - an autoregression can soak up a deterministic
+   error such as a resonance, an exogenous drive it cannot explain away;
+   Bonferroni over the tests.  Loop noise and coloured sensor noise are not
+   model errors.
 5. **Screen the catalogue** with a score (Lagrange-multiplier) test in one
    batched simulation per record: the model at the estimate, at a step of
    every free parameter (Jacobian ``J``) and at probes of every candidate
    effect (a small step of each of its parameters away from neutral, plus
    secants to a few plausible magnitudes where the derivative at neutral
-   vanishes).  Residuals, ``J`` and the probe sensitivities ``s`` are
+   vanishes; a limit such as the spool's stroke is probed at levels the
+   record reaches: quantiles of the limited state's magnitude).  Residuals, ``J`` and the probe sensitivities ``s`` are
    whitened by the current noise model; with ``s_perp`` = ``s`` with the span
    of ``J`` projected out and ``g_t`` the per-sample score ``s_perp r``,
 
@@ -51,7 +57,10 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    95 % interval above zero).  While the current model is not adequate the
    extension must also remove at least ``min_share`` of the current model's
    excess misfit (an effect soaking up a little of an out-of-catalogue error
-   is not named).  The lowest AICc among accepted ones wins; the screen is
+   is not named), and its parameters must lie within 10 times the effect's
+   typical deviation from neutral.  Candidates whose screen LM is below a
+   tenth of an accepted extension's LR are not fitted.  The lowest AICc
+   among accepted ones wins; the screen is
    run again on the extended model (greedy).  When no single effect passes
    but two are significant, the pair is fitted together and judged the same
    way, each significant within the pair.
@@ -112,6 +121,12 @@ FIT_TOL = 1e-8
 PRUNE = 0.1
 #: a named effect's parameters lie within this multiple of the effect's typical deviation from neutral
 PLAUSIBLE = 10.0
+#: lags of the drive in the exogeneity test of the one-step prediction errors
+EXO_LAGS = 50
+#: share of an output's innovation variance the drive's history must explain (beyond chance) for a
+#: significant dependence to make a model inadequate: an error outside the catalogue that the noise model
+#: soaked up (a resonance) is over it, a slight mismatch of formulation is not
+EXO_R2 = 0.01
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -150,6 +165,7 @@ class _Data:
     timing: Timing = DEFAULT_TIMING
     alpha: float = ALPHA
     seed: int = 0
+    exo_cache: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def parts(self) -> list[Record]:
@@ -411,6 +427,10 @@ def _adequacy_text(st: ModelState) -> str:
     parts = [f"{o}: LB p={v['p']:.3g} (AR {v['ar_order']})" for o, v in a["whiteness"].items()]
     h = a["holdout"]
     parts.append(f"held-out/fitting innovation power {h['ratio']:.3g} (p={h['p']:.3g})")
+    x = a.get("exogenous")
+    if x:
+        parts.append(f"drive explains up to {100 * x['r2']:.1f} % of an output's innovations "
+                     f"({100 * x['r2_excess']:.1f} % beyond chance, p={x['p']:.3g})")
     return (f"  one-step prediction errors ({'adequate' if a['adequate'] else 'NOT adequate'}): "
             + "; ".join(parts))
 
@@ -482,7 +502,7 @@ def _excess(data: _Data, pred: list[dict[str, np.ndarray]]) -> float:
     return max(total, 0.0)
 
 
-def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray) -> dict:
+def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None) -> dict:
     """Are the one-step prediction errors white, and no larger on held-out data than on fitting data?"""
     white = {}
     for i, o in enumerate(data.outputs):
@@ -498,11 +518,62 @@ def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray
         hold = {"ratio": mh / mf if mf > 0 else float("inf"), "z": z, "p": float(stats.norm.sf(z))}
     else:
         hold = {"ratio": 1.0, "z": 0.0, "p": 1.0}
-    n_tests = len(white) + 1
+    n_tests = len(white) + 1 + (exo is not None)
     ps = [v["p"] for v in white.values()] + [hold["p"]]
     adequate = min(ps) * n_tests >= data.alpha
-    return {"whiteness": white, "holdout": hold, "n_tests": n_tests, "p_min_bonferroni": min(1.0, min(ps) * n_tests),
-            "adequate": bool(adequate)}
+    out = {"whiteness": white, "holdout": hold, "n_tests": n_tests}
+    if exo is not None:
+        # a deterministic error the noise model soaked up: the innovations follow the exogenous drive, by a
+        # share of their variance that matters (a slight formulation mismatch is significant on long records)
+        exo["dependent"] = bool(exo["p"] * n_tests < data.alpha and exo["r2_excess"] > EXO_R2)
+        adequate = adequate and not exo["dependent"]
+        out["exogenous"] = exo
+        ps.append(exo["p"])
+    out.update({"p_min_bonferroni": min(1.0, min(ps) * n_tests), "adequate": bool(adequate)})
+    return out
+
+
+def _exogenous(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]]) -> dict | None:
+    """Are the one-step prediction errors on the fitting data independent of the exogenous drive (the
+    reference ``x_ref`` of a closed loop, the logged input of an open one)?  Each output's innovations are
+    regressed on the drive's increments at lags ``0 ... EXO_LAGS``; with white innovations and an exogenous
+    drive, ``Q = T sum_outputs R^2`` is chi-square(m x rank) under independence.  ``r2`` is the largest share
+    of an output's innovation variance the drive's history explains."""
+    L = EXO_LAGS
+    Es, Xs = [], []
+    for rec, n, (_name, drive), p in zip(data.records, data.n_fit, data.drives(), pred):
+        start = nm.order + L
+        if n - start < 10 * L:
+            continue
+        key = (id(rec), n, start)
+        if key not in data.exo_cache:
+            d = np.diff(np.asarray(drive[:n], float), prepend=float(drive[0]))
+            sd = float(np.std(d))
+            if not sd > 0:
+                return None
+            d = d / sd
+            data.exo_cache[key] = np.stack([d[start - lag: n - lag] for lag in range(L + 1)], axis=1)
+        B = np.array([(rec[o][:n] - p[o][:n]) / data.sigma[o] for o in data.outputs])
+        E = nm.whiten(B)[:, start - nm.order:]               # samples start ... n - 1
+        if not np.all(np.isfinite(E)):
+            return None
+        Es.append(E)
+        Xs.append(data.exo_cache[key])
+    if not Es:
+        return None
+    E = np.concatenate(Es, axis=1)
+    E = E - E.mean(axis=1, keepdims=True)
+    X = np.concatenate(Xs, axis=0)
+    U, sv, _ = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
+    U = U[:, sv > 1e-8 * sv[0]]
+    proj = E @ U                                             # [m, rank]
+    r2 = np.sum(proj * proj, axis=1) / np.sum(E * E, axis=1)
+    T = E.shape[1]
+    q = float(T * np.sum(r2))
+    df = int(U.shape[1] * E.shape[0])
+    # the share explained beyond what chance explains under independence (rank / T per output)
+    return {"Q": q, "df": df, "lags": L, "p": float(stats.chi2.sf(q, df)), "r2": float(np.max(r2)),
+            "r2_excess": float(np.max(r2) - U.shape[1] / T), "dependent": False}
 
 
 def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -> ModelState:
@@ -517,7 +588,7 @@ def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -
         E_fit, E_hold = _innovations(data, st.noise, pred)
         st.wcost = float(np.sum(E_fit * E_fit))
         st.n_w = int(E_fit.size)
-        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold)
+        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold, _exogenous(data, st.noise, pred))
     else:  # a diverged simulation: nothing to judge, never adequate
         st.wcost, st.n_w = float("inf"), 0
         st.adequacy = {"adequate": False, "whiteness": {}, "holdout": {"ratio": float("nan"), "z": float("nan"),
@@ -838,6 +909,20 @@ def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, fl
     return [dict(starts[i]) for i in np.argsort(cost, kind="stable")]
 
 
+def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> list[float]:
+    """Weighted sums of squares on the fitting data of several parameter sets, one batch per record."""
+    model = data.model
+    P = np.ascontiguousarray(np.array([model.vector(ps) for ps in sets]))
+    cost = np.zeros(len(sets))
+    for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
+        S0 = np.concatenate([model.initial_state(P[k:k + 1], init) for k in range(P.shape[0])])
+        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
+        for o in data.outputs:
+            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
+            cost += np.sum(e * e, axis=1)
+    return [float(c) if math.isfinite(c) else float("inf") for c in cost]
+
+
 def _effect_starts(model: Model, effect: str, est: Mapping[str, float]) -> list[dict[str, float]]:
     """The screen's estimate, the typical magnitude and a tenth of it (close to neutral) of ``effect``."""
     E = model.EFFECTS[effect]
@@ -890,12 +975,8 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
     ps = cur.params
     conf = ps.update({n: configured[n] for n in cur.free if n in configured})
     scores = []
-    for a in alts:
-        costs = []
-        for cand in (ps, conf):
-            pred = _simulate(data, cand, a)
-            c = sum(float(np.sum(B * B)) for B in _blocks(data, pred, "fit"))
-            costs.append(c if math.isfinite(c) else float("inf"))
+    for a in alts:  # both parameter sets in one batch per timing
+        costs = _fit_costs(data, [ps, conf], a)
         scores.append((min(costs), int(np.argmin(costs)), a))
     scores.sort(key=lambda s: s[0])
     say("  timings at the current estimates: " + ", ".join(f"{a.label} cost {c:.4g}" for c, _, a in scores))
