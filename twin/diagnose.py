@@ -57,7 +57,8 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    95 % interval above zero).  While the current model is not adequate the
    extension must also remove at least ``min_share`` of the current model's
    excess misfit (an effect soaking up a little of an out-of-catalogue error
-   is not named), and its parameters must lie within 10 times the effect's
+   is not named) or leave a model that is adequate, and its parameters must
+   lie within 10 times the effect's
    typical deviation from neutral.  Candidates whose screen LM is below a
    tenth of an accepted extension's LR are not fitted.  The lowest AICc
    among accepted ones wins; the screen is
@@ -1055,8 +1056,9 @@ def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> Non
                        f"(interval from {100 * t.gain_interval[0]:.2f} %)")
     if t.implausible:
         reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
-    if judge_share and not t.share >= min_share:
-        reasons.append(f"explains only {100 * t.share:.0f} % of the excess misfit")
+    if judge_share and not t.share >= min_share and not t.state.adequate:
+        reasons.append(f"explains only {100 * t.share:.0f} % of the excess misfit and leaves the model "
+                       "inadequate")
     if not t.state.converged and not reasons:
         pass  # a fit stopped by its evaluation budget can still be better; its figures are what they are
     t.accepted = not reasons
