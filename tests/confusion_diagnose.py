@@ -7,7 +7,8 @@ digital controller at the log's rate reading the noisy x, white noise), healthy 
 coloured (AR(1), 5 ms) noise, an analog controller diagnosed with the default timing (expects
 ``controller_rate``) and with ``--controller continuous`` (expects nothing), and the out-of-catalogue
 effects (a mechanical resonance, a friction drifting during the record: expects "unexplained" and no
-name).  Prints the table and writes every row as JSON.
+name).  A spool stroke limit the valve command never reaches leaves no trace in the record: such seeds are
+marked "[limit never reached]".  Prints the table and writes every row as JSON.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -56,6 +59,10 @@ def run_case(c: dict, duration: float) -> dict:
     else:
         row["correct"] = d.causes == c["expect"] and not d.unexplained
     row["named_exactly"] = c["expect"] != "unexplained" and d.causes == c["expect"]
+    if "spool_saturation" in c["effects"]:  # does the valve command ever ask for more than the stroke limit?
+        known = info["meta"]["known"]
+        cmd = float(np.max(np.abs(rec["u"]))) * known["Ke"] * known["Ksp"]
+        row["limit_reached"] = bool(cmd > info["truth"]["spool_saturation.xs_max"])
     return row
 
 
@@ -67,7 +74,7 @@ def table(rows: list[dict]) -> str:
     for case, rs in by.items():
         rs = sorted(rs, key=lambda r: r["seed"])
         said = "; ".join(("+".join(r["causes"]) or "nothing") + (" (unexplained)" if r["unexplained"] else "")
-                         for r in rs)
+                         + ("" if r.get("limit_reached", True) else " [limit never reached]") for r in rs)
         lines.append(f"{case:<34} {len(rs):>5} {100 * sum(r['correct'] for r in rs) / len(rs):7.0f}%  {said}")
     healthy = [r for r in rows if r["expect"] == [] ]
     lines.append(f"false names on healthy records: {sum(bool(r['causes']) for r in healthy)} of {len(healthy)}")

@@ -19,14 +19,20 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
 4. **Adequacy** of a model: its innovations are white (Ljung-Box per output,
    degrees of freedom reduced by the autoregression's order) and the held-out
    innovations are no larger than those on the fitting data (a drift, or an
-   error the fit bent the parameters around, shows there); Bonferroni over
-   the tests.  Loop noise and coloured sensor noise are not model errors.
+   error the fit bent the parameters around, shows there), and they do not
+   follow the exogenous drive (``x_ref``; regressed on its increments at lags
+   0-50 ms: significant, and explaining over 1 % of an output's innovation
+   variance beyond chance) - an autoregression can soak up a deterministic
+   error such as a resonance, an exogenous drive it cannot explain away;
+   Bonferroni over the tests.  Loop noise and coloured sensor noise are not
+   model errors.
 5. **Screen the catalogue** with a score (Lagrange-multiplier) test in one
    batched simulation per record: the model at the estimate, at a step of
    every free parameter (Jacobian ``J``) and at probes of every candidate
    effect (a small step of each of its parameters away from neutral, plus
    secants to a few plausible magnitudes where the derivative at neutral
-   vanishes).  Residuals, ``J`` and the probe sensitivities ``s`` are
+   vanishes; a limit such as the spool's stroke is probed at levels the
+   record reaches: quantiles of the limited state's magnitude).  Residuals, ``J`` and the probe sensitivities ``s`` are
    whitened by the current noise model; with ``s_perp`` = ``s`` with the span
    of ``J`` projected out and ``g_t`` the per-sample score ``s_perp r``,
 
@@ -51,7 +57,11 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    95 % interval above zero).  While the current model is not adequate the
    extension must also remove at least ``min_share`` of the current model's
    excess misfit (an effect soaking up a little of an out-of-catalogue error
-   is not named).  The lowest AICc among accepted ones wins; the screen is
+   is not named) or leave a model that is adequate, and its parameters must
+   lie within 10 times the effect's
+   typical deviation from neutral.  Candidates whose screen LM is below a
+   tenth of an accepted extension's LR are not fitted.  The lowest AICc
+   among accepted ones wins; the screen is
    run again on the extended model (greedy).  When no single effect passes
    but two are significant, the pair is fitted together and judged the same
    way, each significant within the pair.
@@ -93,6 +103,24 @@ MIN_SHARE = 0.5
 SECANTS = (0.3, 1.0, 3.0)
 #: multiples of a secondary parameter's typical value tried in the screen (e.g. Stribeck velocity)
 SECONDARY = (1.0 / 3.0, 1.0, 3.0)
+#: limit parameters (a clipping effect) and the model state they clip: probed at levels the record reaches
+LIMITS = {"xs_max": "xs"}
+#: quantiles of the limited state's magnitude used as a limit's probe levels
+LIMIT_QUANTILES = (0.75, 0.9, 0.97, 0.995)
+#: relative tolerance of the diagnosis's fits (cost, step, gradient): the LR tests need the cost to a small
+#: fraction of one whitened unit, not to machine precision
+FIT_TOL = 1e-8
+#: a candidate whose screen LM is below this fraction of an accepted trial's LR is not fitted in that round
+#: (its linearised gain cannot reach the accepted one's AICc; the margin covers nonlinear effects)
+PRUNE = 0.1
+#: a named effect's parameters lie within this multiple of the effect's typical deviation from neutral
+PLAUSIBLE = 10.0
+#: lags of the drive in the exogeneity test of the one-step prediction errors
+EXO_LAGS = 50
+#: share of an output's innovation variance the drive's history must explain (beyond chance) for a
+#: significant dependence to make a model inadequate: an error outside the catalogue that the noise model
+#: soaked up (a resonance) is over it, a slight mismatch of formulation is not
+EXO_R2 = 0.01
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -131,6 +159,7 @@ class _Data:
     timing: Timing = DEFAULT_TIMING
     alpha: float = ALPHA
     seed: int = 0
+    exo_cache: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def parts(self) -> list[Record]:
@@ -229,6 +258,7 @@ class Trial:
     gain_interval: tuple[float, float]   # block-bootstrap interval (GAIN_COVERAGE)
     share: float               # share of the current model's excess misfit removed
     p_adjusted: float = 1.0    # Holm over the catalogue
+    implausible: list[str] = dataclasses.field(default_factory=list)  # parameters beyond PLAUSIBLE
     accepted: bool = False
     reason: str = ""
 
@@ -247,7 +277,7 @@ class Trial:
                 "p_adjusted": self.p_adjusted, "df": self.df, "delta_aicc": self.delta_aicc,
                 "holdout_gain": self.holdout_gain, "holdout_gain_interval": list(self.gain_interval),
                 "share": self.share, "converged": self.state.converged, "accepted": self.accepted,
-                "reason": self.reason, "params": self.params()}
+                "reason": self.reason, "implausible": list(self.implausible), "params": self.params()}
 
 
 def _effect_params(state: ModelState, effect: str) -> dict:
@@ -391,6 +421,10 @@ def _adequacy_text(st: ModelState) -> str:
     parts = [f"{o}: LB p={v['p']:.3g} (AR {v['ar_order']})" for o, v in a["whiteness"].items()]
     h = a["holdout"]
     parts.append(f"held-out/fitting innovation power {h['ratio']:.3g} (p={h['p']:.3g})")
+    x = a.get("exogenous")
+    if x:
+        parts.append(f"drive explains up to {100 * x['r2']:.1f} % of an output's innovations "
+                     f"({100 * x['r2_excess']:.1f} % beyond chance, p={x['p']:.3g})")
     return (f"  one-step prediction errors ({'adequate' if a['adequate'] else 'NOT adequate'}): "
             + "; ".join(parts))
 
@@ -407,6 +441,9 @@ def _simulate(data: _Data, ps: ParameterSet, timing: Timing) -> list[dict[str, n
         d = {o: sim.outputs[o][0] for o in model.OUTPUTS}
         for k, v in sim.inputs.items():
             d[k] = np.asarray(v)[0] if np.ndim(v) == 2 else np.asarray(v)
+        for j, k in enumerate(getattr(model, "STATES", ())):  # the states a limit probe needs (LIMITS)
+            if k in LIMITS.values():
+                d[f"state:{k}"] = sim.states[0, :, j]
         out.append(d)
     return out
 
@@ -459,7 +496,7 @@ def _excess(data: _Data, pred: list[dict[str, np.ndarray]]) -> float:
     return max(total, 0.0)
 
 
-def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray) -> dict:
+def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None) -> dict:
     """Are the one-step prediction errors white, and no larger on held-out data than on fitting data?"""
     white = {}
     for i, o in enumerate(data.outputs):
@@ -475,11 +512,62 @@ def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray
         hold = {"ratio": mh / mf if mf > 0 else float("inf"), "z": z, "p": float(stats.norm.sf(z))}
     else:
         hold = {"ratio": 1.0, "z": 0.0, "p": 1.0}
-    n_tests = len(white) + 1
+    n_tests = len(white) + 1 + (exo is not None)
     ps = [v["p"] for v in white.values()] + [hold["p"]]
     adequate = min(ps) * n_tests >= data.alpha
-    return {"whiteness": white, "holdout": hold, "n_tests": n_tests, "p_min_bonferroni": min(1.0, min(ps) * n_tests),
-            "adequate": bool(adequate)}
+    out = {"whiteness": white, "holdout": hold, "n_tests": n_tests}
+    if exo is not None:
+        # a deterministic error the noise model soaked up: the innovations follow the exogenous drive, by a
+        # share of their variance that matters (a slight formulation mismatch is significant on long records)
+        exo["dependent"] = bool(exo["p"] * n_tests < data.alpha and exo["r2_excess"] > EXO_R2)
+        adequate = adequate and not exo["dependent"]
+        out["exogenous"] = exo
+        ps.append(exo["p"])
+    out.update({"p_min_bonferroni": min(1.0, min(ps) * n_tests), "adequate": bool(adequate)})
+    return out
+
+
+def _exogenous(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]]) -> dict | None:
+    """Are the one-step prediction errors on the fitting data independent of the exogenous drive (the
+    reference ``x_ref`` of a closed loop, the logged input of an open one)?  Each output's innovations are
+    regressed on the drive's increments at lags ``0 ... EXO_LAGS``; with white innovations and an exogenous
+    drive, ``Q = T sum_outputs R^2`` is chi-square(m x rank) under independence.  ``r2`` is the largest share
+    of an output's innovation variance the drive's history explains."""
+    L = EXO_LAGS
+    Es, Xs = [], []
+    for rec, n, (_name, drive), p in zip(data.records, data.n_fit, data.drives(), pred):
+        start = nm.order + L
+        if n - start < 10 * L:
+            continue
+        key = (id(rec), n, start)
+        if key not in data.exo_cache:
+            d = np.diff(np.asarray(drive[:n], float), prepend=float(drive[0]))
+            sd = float(np.std(d))
+            if not sd > 0:
+                return None
+            d = d / sd
+            data.exo_cache[key] = np.stack([d[start - lag: n - lag] for lag in range(L + 1)], axis=1)
+        B = np.array([(rec[o][:n] - p[o][:n]) / data.sigma[o] for o in data.outputs])
+        E = nm.whiten(B)[:, start - nm.order:]               # samples start ... n - 1
+        if not np.all(np.isfinite(E)):
+            return None
+        Es.append(E)
+        Xs.append(data.exo_cache[key])
+    if not Es:
+        return None
+    E = np.concatenate(Es, axis=1)
+    E = E - E.mean(axis=1, keepdims=True)
+    X = np.concatenate(Xs, axis=0)
+    U, sv, _ = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
+    U = U[:, sv > 1e-8 * sv[0]]
+    proj = E @ U                                             # [m, rank]
+    r2 = np.sum(proj * proj, axis=1) / np.sum(E * E, axis=1)
+    T = E.shape[1]
+    q = float(T * np.sum(r2))
+    df = int(U.shape[1] * E.shape[0])
+    # the share explained beyond what chance explains under independence (rank / T per output)
+    return {"Q": q, "df": df, "lags": L, "p": float(stats.chi2.sf(q, df)), "r2": float(np.max(r2)),
+            "r2_excess": float(np.max(r2) - U.shape[1] / T), "dependent": False}
 
 
 def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -> ModelState:
@@ -494,7 +582,7 @@ def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -
         E_fit, E_hold = _innovations(data, st.noise, pred)
         st.wcost = float(np.sum(E_fit * E_fit))
         st.n_w = int(E_fit.size)
-        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold)
+        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold, _exogenous(data, st.noise, pred))
     else:  # a diverged simulation: nothing to judge, never adequate
         st.wcost, st.n_w = float("inf"), 0
         st.adequacy = {"adequate": False, "whiteness": {}, "holdout": {"ratio": float("nan"), "z": float("nan"),
@@ -601,6 +689,20 @@ def _probe_params(E) -> list[int]:
     return out
 
 
+def _limit_levels(model: Model, name: str, state: ModelState, data: _Data) -> list[float] | None:
+    """Probe levels of a limit parameter (``LIMITS``): quantiles of the limited state's magnitude in the
+    current model's simulation of the fitting data, so that a probe clips a plausible share of the record;
+    ``None`` for a parameter that is not a limit."""
+    key = LIMITS.get(name)
+    if key is None or f"state:{key}" not in state.predicted[0]:
+        return None
+    mag = np.concatenate([np.abs(p[f"state:{key}"][:n]) for p, n in zip(state.predicted, data.n_fit)])
+    mag = mag[np.isfinite(mag)]
+    if not mag.size or not np.max(mag) > 0:
+        return []
+    return sorted({float(v) for v in np.quantile(mag, LIMIT_QUANTILES)}, reverse=True)
+
+
 def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[ScreenRow]:
     """Score-test every candidate effect against ``state`` in one batched simulation per record, on the
     one-step prediction errors of ``state``'s noise model (module docstring)."""
@@ -631,9 +733,14 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
             s = E.params[j]
             vals = sorted({float(np.clip(E.typical[j] * f, s.lo, s.hi)) for f in SECONDARY})
             sec_grid = [dict(g, **{s.name: v}) for g in sec_grid for v in vals]
-        pvals = [("derivative", pspec, neutral, neutral + direction * 1e-4 * abs(typical - neutral))]
-        for f in SECANTS:
-            pv = float(np.clip(typical * f, pspec.lo, pspec.hi))
+        pvals = []
+        levels = _limit_levels(model, pspec.name, state, data)
+        if levels is None:  # a limit's derivative at neutral (no clipping) vanishes: probed by levels only
+            pvals.append(("derivative", pspec, neutral, neutral + direction * 1e-4 * abs(typical - neutral)))
+            # secants to a few plausible magnitudes: multiples of the typical deviation from neutral
+            levels = [neutral + f * (typical - neutral) for f in SECANTS]
+        for lv in levels:
+            pv = float(np.clip(lv, pspec.lo, pspec.hi))
             if pv != neutral:
                 pvals.append((f"secant@{pspec.show(pv)}", pspec, neutral, pv))
         for j in movers[1:]:  # a parameter that moves either way from neutral (e.g. the other offset)
@@ -776,7 +883,7 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
                n_starts: int, seed: int, timing: Timing, max_nfev: int = 80) -> ModelState:
     res = fit(data.model, data.parts, free, base=ps, start=start, outputs=data.outputs, noise=data.sigma,
               drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
-              max_nfev=max_nfev, timing=timing)
+              max_nfev=max_nfev, timing=timing, tol=FIT_TOL)
     return _state(data, res, free, timing)
 
 
@@ -794,6 +901,20 @@ def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, fl
             cost += np.sum(e * e, axis=1)
     cost = np.where(np.isfinite(cost), cost, np.inf)
     return [dict(starts[i]) for i in np.argsort(cost, kind="stable")]
+
+
+def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> list[float]:
+    """Weighted sums of squares on the fitting data of several parameter sets, one batch per record."""
+    model = data.model
+    P = np.ascontiguousarray(np.array([model.vector(ps) for ps in sets]))
+    cost = np.zeros(len(sets))
+    for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
+        S0 = np.concatenate([model.initial_state(P[k:k + 1], init) for k in range(P.shape[0])])
+        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
+        for o in data.outputs:
+            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
+            cost += np.sum(e * e, axis=1)
+    return [float(c) if math.isfinite(c) else float("inf") for c in cost]
 
 
 def _effect_starts(model: Model, effect: str, est: Mapping[str, float]) -> list[dict[str, float]]:
@@ -848,12 +969,8 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
     ps = cur.params
     conf = ps.update({n: configured[n] for n in cur.free if n in configured})
     scores = []
-    for a in alts:
-        costs = []
-        for cand in (ps, conf):
-            pred = _simulate(data, cand, a)
-            c = sum(float(np.sum(B * B)) for B in _blocks(data, pred, "fit"))
-            costs.append(c if math.isfinite(c) else float("inf"))
+    for a in alts:  # both parameter sets in one batch per timing
+        costs = _fit_costs(data, [ps, conf], a)
         scores.append((min(costs), int(np.argmin(costs)), a))
     scores.sort(key=lambda s: s[0])
     say("  timings at the current estimates: " + ", ".join(f"{a.label} cost {c:.4g}" for c, _, a in scores))
@@ -901,8 +1018,24 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
     floor = math.sqrt(2.0 * cur.fit.n_obs)
     share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
     t = Trial(effects, st, lr, p, df, d_aicc, hg, (lo, hi), share, p_adjusted=p)
+    t.implausible = _implausible(data.model, effects, st)
     _verdict(t, data.alpha, min_share, judge_share=not cur.adequate)
     return t
+
+
+def _implausible(model: Model, effects: Sequence[str], st: ModelState) -> list[str]:
+    """Parameters of ``effects`` fitted further from neutral than ``PLAUSIBLE`` times the effect's typical
+    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range)."""
+    out = []
+    for e in effects:
+        if e not in model.EFFECTS:
+            continue
+        E = model.EFFECTS[e]
+        for s, n, typ in zip(E.params, E.neutral, E.typical):
+            v = st.params[s.name]
+            if typ != n and abs(v - n) > PLAUSIBLE * abs(typ - n):
+                out.append(f"{s.name}={s.show(v)}")
+    return out
 
 
 def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> None:
@@ -914,8 +1047,11 @@ def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> Non
     if not (t.gain_interval[0] > 0):
         reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not above its bootstrap spread "
                        f"(interval from {100 * t.gain_interval[0]:.2f} %)")
-    if judge_share and not t.share >= min_share:
-        reasons.append(f"explains only {100 * t.share:.0f} % of the excess misfit")
+    if t.implausible:
+        reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
+    if judge_share and not t.share >= min_share and not t.state.adequate:
+        reasons.append(f"explains only {100 * t.share:.0f} % of the excess misfit and leaves the model "
+                       "inadequate")
     if not t.state.converged and not reasons:
         pass  # a fit stopped by its evaluation budget can still be better; its figures are what they are
     t.accepted = not reasons
@@ -997,6 +1133,11 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             if tt is not None:
                 trials.append(tt)
         for row in promising:
+            best_lr = max((t.lr for t in trials if t.accepted), default=0.0)
+            if row.lm < PRUNE * best_lr:
+                say(f"  {row.effect}: not fitted (screen LM {row.lm:.3g} < {PRUNE:g} x LR {best_lr:.4g} of an "
+                    "accepted extension)")
+                continue
             trials.append(_try(data, cur, row, seed, min_share, base))
         # Holm over the catalogue (the timing counts as one more candidate): the trials' LR p-values take the
         # places of their effects' screen p-values; effects not fitted keep theirs
