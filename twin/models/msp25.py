@@ -240,6 +240,29 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     return dxs, dvs, dpA, dpB, v, dv
 
 
+@nb.njit(cache=True, inline="always")
+def rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h):
+    """The RK4 update of the six states from the four stage derivatives (the one copy every RK4 step of the
+    rig uses: :func:`step`, :func:`step_varying`, the filter's lean step)."""
+    c = h / 6.0
+    return (a0 + c * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]),
+            a1 + c * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1]),
+            a2 + c * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2]),
+            a3 + c * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3]),
+            a4 + c * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4]),
+            a5 + c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5]))
+
+
+@nb.njit(cache=True, inline="always")
+def store6(out, a0, a1, a2, a3, a4, a5):
+    out[0] = a0
+    out[1] = a1
+    out[2] = a2
+    out[3] = a3
+    out[4] = a4
+    out[5] = a5
+
+
 @nb.njit(cache=True)
 def step(s, u, p, dt, nsub, out):
     """Advance state ``s[6]`` by ``dt`` with ``nsub`` RK4 substeps, input ``u`` held; write ``out``."""
@@ -253,19 +276,8 @@ def step(s, u, p, dt, nsub, out):
                    a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u, p)
         k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
                    a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p)
-        c = h / 6.0
-        a0 += c * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
-        a1 += c * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
-        a2 += c * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
-        a3 += c * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
-        a4 += c * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
-        a5 += c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5])
-    out[0] = a0
-    out[1] = a1
-    out[2] = a2
-    out[3] = a3
-    out[4] = a4
-    out[5] = a5
+        a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+    store6(out, a0, a1, a2, a3, a4, a5)
 
 
 @nb.njit(cache=True)
@@ -348,19 +360,8 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, integ, out):
             e0 = input_at(drive, k, f0, mode) - p[I_KXM] * (a4 - p[I_TAUX] * a5)
             e1 = input_at(drive, k, f0 + fh, mode) - p[I_KXM] * (d4 - p[I_TAUX] * d5)
             integ += 0.5 * h * (e0 + e1)
-        c = h / 6.0
-        a0 += c * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
-        a1 += c * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
-        a2 += c * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
-        a3 += c * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
-        a4 += c * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
-        a5 += c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5])
-    out[0] = a0
-    out[1] = a1
-    out[2] = a2
-    out[3] = a3
-    out[4] = a4
-    out[5] = a5
+        a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+    store6(out, a0, a1, a2, a3, a4, a5)
     return integ
 
 

@@ -292,19 +292,8 @@ def lean_step(s, wnd, mode, c, dt, nsub, out):
                          a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u2, c)
         k4 = _lean_deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
                          a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u4, c)
-        cc = h / 6.0
-        a0 += cc * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
-        a1 += cc * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
-        a2 += cc * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
-        a3 += cc * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
-        a4 += cc * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
-        a5 += cc * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5])
-    out[0] = a0
-    out[1] = a1
-    out[2] = a2
-    out[3] = a3
-    out[4] = a4
-    out[5] = a5
+        a0, a1, a2, a3, a4, a5 = M.rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+    M.store6(out, a0, a1, a2, a3, a4, a5)
 
 
 @nb.njit(cache=True)
