@@ -30,8 +30,8 @@ class Baseline:
 def default_band(model_name: str, name: str) -> float:
     """The healthy band (relative half-width) of ``name``: its spec's tracking band, else
     :data:`FALLBACK_BAND`."""
-    spec = get_model(model_name).params().spec(name) if name in get_model(model_name).kernel_names else None
-    return spec.tracking.band if spec is not None and spec.tracking is not None else FALLBACK_BAND
+    model = get_model(model_name)
+    return model.tracking(name).band if name in model.trackable else FALLBACK_BAND
 
 
 def default_baseline(model_name: str, params: Mapping[str, float] | None = None,

@@ -268,6 +268,16 @@ def lean_applicable(p):
             and p[M.I_EPS] == 0.0 and p[M.I_XSMAX] >= 1.0 and p[M.I_KXM] == 1.0)
 
 
+@nb.njit(cache=True, inline="always")
+def _stage_inputs(wnd, f0, fh, mode):
+    """The logged input at an RK4 substep's start, middle and end (window ``wnd``, index 1 = this sample;
+    ``f0``, ``fh``: the substep's start and length as fractions of the sample interval)."""
+    if mode == 0:
+        u = wnd[1]
+        return u, u, u
+    return input_at(wnd, 1, f0, mode), input_at(wnd, 1, f0 + 0.5 * fh, mode), input_at(wnd, 1, f0 + fh, mode)
+
+
 @nb.njit(cache=True)
 def lean_step(s, wnd, mode, c, dt, nsub, out):
     """One log interval, open loop, of the logged input ``wnd`` (index 1 = this sample) interpolated by
@@ -277,14 +287,7 @@ def lean_step(s, wnd, mode, c, dt, nsub, out):
     a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
     for j in range(nsub):
         f0 = j * fh
-        if mode == 0:
-            u1 = wnd[1]
-            u2 = u1
-            u4 = u1
-        else:
-            u1 = input_at(wnd, 1, f0, mode)
-            u2 = input_at(wnd, 1, f0 + 0.5 * fh, mode)
-            u4 = input_at(wnd, 1, f0 + fh, mode)
+        u1, u2, u4 = _stage_inputs(wnd, f0, fh, mode)
         k1 = _lean_deriv(a0, a1, a2, a3, a4, a5, u1, c)
         k2 = _lean_deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
                          a3 + 0.5 * h * k1[3], a4 + 0.5 * h * k1[4], a5 + 0.5 * h * k1[5], u2, c)
@@ -384,14 +387,7 @@ def lean_lanes(W, wnd, mode, dt, nsub):
     cc = h / 6.0
     for j in range(nsub):
         f0 = j * fh
-        if mode == 0:
-            u1 = wnd[1]
-            u2 = u1
-            u4 = u1
-        else:
-            u1 = input_at(wnd, 1, f0, mode)
-            u2 = input_at(wnd, 1, f0 + 0.5 * fh, mode)
-            u4 = input_at(wnd, 1, f0 + fh, mode)
+        u1, u2, u4 = _stage_inputs(wnd, f0, fh, mode)
         for i in range(6 * LANES):
             W[W_Y * LANES + i] = W[W_A * LANES + i]
         _lanes_deriv(W, u1)
