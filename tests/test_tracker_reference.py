@@ -71,6 +71,8 @@ def test_healthy_reference_rig_raises_nothing_and_finds_its_truth(name, seed):
         assert abs(v / float(rec.truth[n]) - 1) < max(4 * sd / v, 0.05), (n, v, rec.truth[n], sd)
     last = outs[-1]
     assert (last.guard == "consistent").mean() > 0.9  # the filter ends consistent with the data
+    # the published interval (a parameter held still) is inside the filter's own, wider by its random walk
+    assert np.all(last.held_stds <= last.stds * (1 + 1e-9)) and np.all(last.held_stds > 0.3 * last.stds)
     assert set(tr.sensor_status().values()) == {"ok"}
     if name == "healthy_2x":  # the noise was learnt: twice the nominal
         for o, v in tr.noise_levels().items():

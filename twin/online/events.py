@@ -238,7 +238,8 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "t_s": _num("time from the start of the record [s]"),
         "estimate": _num("parameter estimate, SI unit of the parameter"),
-        "std": _num("standard deviation of the estimate, same unit", minimum=0),
+        "std": _num("the filter's standard deviation of the estimate under its drift model (the scale the drift "
+                    "test standardises by), same unit", minimum=0),
         "baseline": _num("healthy baseline value, same unit"),
         "band_lo": _num("lower edge of the healthy band, same unit"),
         "band_hi": _num("upper edge of the healthy band, same unit"),
@@ -303,7 +304,8 @@ class AlarmEvent(_FromJson):
     :ivar t_ns: ingest time of the sample that triggered the event [ns].
     :ivar t_s: time from the start of the record [s].
     :ivar estimate: the parameter estimate [SI unit of the parameter].
-    :ivar std: its standard deviation from the filter's covariance [same unit].
+    :ivar std: its standard deviation from the filter's covariance, under the filter's drift model (the
+        scale the drift test standardises by) [same unit].
     :ivar baseline: the healthy baseline [same unit].
     :ivar band_lo: lower edge of the healthy band [same unit].
     :ivar band_hi: upper edge of the healthy band [same unit].
@@ -391,7 +393,8 @@ _PARAM_ESTIMATE_SCHEMA: dict[str, Any] = {
     "required": ["value", "std", "unit"],
     "properties": {
         "value": _num("estimate in the SI unit given by 'unit'"),
-        "std": _num("standard deviation, same unit", minimum=0),
+        "std": _num("standard deviation of the estimate's error while the parameter holds still (value +- 1.96 std "
+                    "is the 95 % interval), same unit", minimum=0),
         "unit": {"type": "string", "description": "SI unit, e.g. 'N', 'm^3/(s*Pa)', '1', 'rad/s'"},
     },
 }

@@ -111,6 +111,13 @@ class TrackBlock:
     noise: np.ndarray | None = None    # [T, m] learnt noise standard deviation (SI)
     outputs: tuple = ()
     used: np.ndarray | None = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
+    held_stds: np.ndarray | None = None     # [T, p] SI: std of the estimate's error if the parameter has held still
+    held_log_std: np.ndarray | None = None  # [T, p] the same, relative (see twin.online.ukf.held_variance)
+
+    @property
+    def interval_stds(self) -> np.ndarray:
+        """[T, p] SI: the std behind the published 95 % intervals (:attr:`held_stds`; :attr:`stds` before it existed)."""
+        return self.stds if self.held_stds is None else self.held_stds
 
     @property
     def hold(self) -> np.ndarray:
@@ -260,6 +267,7 @@ class OnlineTracker:
         self.fs[ukf.F_CK_OK] = 1.0
         self.samples = 0
         self.counters = {s: 0 for s in ukf.STATUS}
+        self._held = np.full((2, p), np.nan)  # (E, V) of the last sample for ukf.held_variance
         self._last_t_ns: int | None = None
         self._pending = None
         self._started = False
@@ -407,12 +415,19 @@ class OnlineTracker:
         dz = np.sqrt(np.maximum(Pd[:, 6:6 + p], 0.0))
         est = self.values_of(z)
         log_std = dz * self.dlog_dz(z)
+        held = np.empty_like(log_std)
+        if getattr(self, "_held", None) is None:  # trackers pickled before the held-still variance existed
+            self._held = np.full((2, p), np.nan)
+        ukf.held_variance(np.ascontiguousarray(log_std * log_std), DT, q_param, ukf.PARAM_STD_CAP ** 2, self._held,
+                          held)
+        held_log_std = np.sqrt(held)
         states = X[:, :6] * self.scale
         msc = np.array([self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
                           status=np.array(ukf.STATUS)[st], frozen=frozen, innovation=innov * msc, states=states,
                           guard=np.array(ukf.GUARD)[guard], sensors=np.array(ukf.SENSOR)[sens],
-                          noise=noise * msc, outputs=self.outputs, used=used)
+                          noise=noise * msc, outputs=self.outputs, used=used, held_stds=est * held_log_std,
+                          held_log_std=held_log_std)
 
     def _empty(self) -> TrackBlock:
         p, m = len(self.tracked), len(self.outputs)
@@ -420,13 +435,17 @@ class OnlineTracker:
         return TrackBlock(np.zeros(0, np.int64), z, z, z, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U19"),
                           np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, 6)),
                           np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs,
-                          np.zeros((0, m), bool))
+                          np.zeros((0, m), bool), z, z)
 
     def estimate(self) -> dict[str, tuple[float, float]]:
-        """Current (value, std) of every tracked parameter (SI)."""
+        """Current (value, std) of every tracked parameter (SI); the std of the published intervals (the error's
+        if the parameter has held still, :func:`twin.online.ukf.held_variance`), the filter's before any sample."""
         p = len(self.tracked)
         z = self.x[6:6 + p]
         s = np.sqrt(np.maximum(np.diag(self.P)[6:6 + p], 0.0)) * self.dlog_dz(z)
+        held = getattr(self, "_held", None)
+        if held is not None:
+            s = np.where(np.isfinite(held[0]), np.sqrt(np.maximum(held[0], 0.0)), s)
         v = self.values_of(z)
         return {t: (float(v[j]), float(v[j] * s[j])) for j, t in enumerate(self.tracked)}
 

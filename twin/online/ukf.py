@@ -1063,3 +1063,45 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
         fs[F_U1] = a_now
         fs[F_HAVE_PREV] = 1.0
     return -1
+
+
+@nb.njit(cache=True)
+def held_variance(V, DT, q, cap, state, out):
+    """Variance of each parameter estimate's error *if the parameter has held still* (log units, in ``out``).
+
+    The filter's own variance ``V`` assumes each parameter random-walks at its
+    drift rate ``q`` (log units squared per second): that is what lets it follow
+    a real change quickly, and what makes its interval too wide for a
+    parameter that does not move (in a steady state the error variance of a
+    constant parameter is about half of ``V``).  This is the suboptimal-filter
+    analysis of the same gain with no random walk, one parameter at a time:
+    with ``a = V_post / V_pred`` the filter's variance reduction on a sample,
+    the error variance of a constant parameter follows
+    ``E <- a^2 E + a (1 - a) V_pred`` (``E = V`` when ``q = 0``); a frozen
+    parameter (``a = 1``) keeps ``E``; a covariance the filter inflated
+    (re-initialisation, recovery) resets ``E`` to ``V``.  ``V_pred`` is the
+    previous ``V`` plus ``q dt``, the random walk stopping at ``cap`` as the
+    kernel's does.  ``DT``: seconds since the previous sample (NaN: none);
+    ``state [2, p]``: (E, V) of the previous sample, NaN before any, updated.
+    """
+    T, p = V.shape
+    for k in range(T):
+        dt = DT[k]
+        for j in range(p):
+            v = V[k, j]
+            e_prev = state[0, j]
+            v_prev = state[1, j]
+            if not (math.isfinite(v_prev) and math.isfinite(e_prev) and math.isfinite(dt)):
+                e = v
+            else:
+                vp = min(v_prev + q[j] * max(dt, 0.0), max(v_prev, cap))
+                if v > vp * (1.0 + 1e-9) or not (vp > 0.0):
+                    e = v  # the filter inflated its covariance: the error is as large as the filter says
+                else:
+                    a = v / vp
+                    e = a * a * e_prev + a * (1.0 - a) * vp
+            if e > v:
+                e = v
+            out[k, j] = e
+            state[0, j] = e
+            state[1, j] = v

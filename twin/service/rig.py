@@ -275,7 +275,7 @@ class RigTwin(Sink):
             self._t0_ns = int(samples.t_ns[0])
         out = self.tracker.process(samples)
         if len(out.t_ns):
-            self._last_row = (out.estimates[-1], out.stds[-1])
+            self._last_row = (out.estimates[-1], out.interval_stds[-1])
         self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
@@ -332,20 +332,21 @@ class RigTwin(Sink):
             self.on_alarm(ev)
 
     def _estimate(self, out, t_s, i: int) -> None:
-        self._ring.add(float(t_s[i]), out.estimates[i], out.stds[i])
+        sd = out.interval_stds[i]
+        self._ring.add(float(t_s[i]), out.estimates[i], sd)
         if self.publisher is None and self.recorder is None:
             self.stats.estimates += 1
             return
         fast = getattr(self.publisher, "publish_estimate_json", None)
         if fast is not None and self.recorder is None:
-            payload = self._estimate_json(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], out.stds[i],
+            payload = self._estimate_json(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], sd,
                                           float(out.nis[i]), str(out.status[i]))
             if payload is not None:
                 fast(payload)
                 self.stats.estimates += 1
                 return
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
-                                      out.estimates[i], out.stds[i], self.tracker.units,
+                                      out.estimates[i], sd, self.tracker.units,
                                       float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
