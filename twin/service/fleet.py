@@ -70,7 +70,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("twin.serve")
 
 #: Samples read from a log per chunk before it is cut into paced blocks.
-READ_CHUNK = 20000
+READ_CHUNK = 2000
 #: A runner's bus messages are flushed at least this often [s] even without samples.
 FLUSH_S = 0.25
 #: A jump in sample time longer than this (or 20 sample periods) restarts the filter's model states [s].
@@ -234,13 +234,6 @@ class Pacer:
             self._t0, self._w0 = int(t_ns), time.monotonic()
         return self._w0 + (int(t_ns) - self._t0) * 1e-9 / self.speed
 
-    def wait(self, t_ns: int, stop) -> bool:
-        """Sleep until ``t_ns`` is due; ``False`` if ``stop`` was set meanwhile."""
-        delay = self.due(t_ns) - time.monotonic()
-        if delay > 0:
-            return not stop.wait(delay)
-        return not stop.is_set()
-
     def lag(self, t_ns: int) -> float | None:
         if self.speed <= 0:
             return None
@@ -380,12 +373,25 @@ class RigRunner:
 
     def run(self) -> RigSummary:
         """Never raises: the outcome is in the summary, on the bus and in the log."""
+        for due in self.run_steps():
+            delay = due - time.monotonic()
+            if delay > 0:
+                self.stop.wait(delay)
+        return self.summary
+
+    def run_steps(self):
+        """:meth:`run` as a generator for a scheduler that runs many rigs on one thread: it yields the
+        ``time.monotonic()`` at which it wants to go on (a replayed log's next block is due, a commissioning
+        fit may be done) and does the work when resumed; ``throw(_Stopped())`` stops it the way ``stop``
+        does. Never raises: the outcome is in the summary, on the bus and in the log. A live input blocks in
+        its reads, so it runs to its end in one step (its own thread)."""
         try:
             self._open()
+            yield -math.inf  # opened: a scheduler opens every rig before the first one's log is paced
             if is_live(self.rig.source):
                 self._run_live()
             else:
-                self._run_log()
+                yield from self._log_steps()
             self._set_state("finished" if not is_live(self.rig.source) else "stopped")
         except _Stopped:
             self._set_state("stopped")
@@ -398,7 +404,6 @@ class RigRunner:
             self._fail(f"internal error {type(exc).__name__}: {exc}")
         finally:
             self._close()
-        return self.summary
 
     def _open(self) -> None:
         if self.cfg.out_dir:
@@ -469,6 +474,23 @@ class RigRunner:
                 raise _Stopped
             twin.publish_status()
             self.outbox.flush(force=False)
+        self._finish_fit()
+
+    def _commission_steps(self):
+        """:meth:`_commission` for a replayed log, which waits for the fit: yields while it runs."""
+        self._commission(wait=False)
+        while self._fit is not None and not self._fit.done():
+            yield time.monotonic() + 0.5
+            if self.stop.is_set():
+                raise _Stopped
+            assert self.twin is not None  # made by _open
+            self.twin.publish_status()
+            self.outbox.flush(force=False)
+        if self._fit is not None:
+            self._finish_fit()
+
+    def _finish_fit(self) -> None:
+        assert self._fit is not None
         doc, problem = self._fit.result()
         self._fit = None
         self._end_commission(doc, problem)
@@ -570,7 +592,8 @@ class RigRunner:
 
     # ------------------------------------------------------------------ a replayed log
 
-    def _run_log(self) -> None:
+    def _log_steps(self):
+        """The replayed log, paced: yields when the next block is due (see :meth:`run_steps`)."""
         twin = self.twin
         assert twin is not None  # made by _open
         position = twin.last_t_ns
@@ -597,17 +620,20 @@ class RigRunner:
                         chunk = chunk.slice(k, len(chunk))
                 for block in (blocks_by_time(chunk, span, pacer, max(span, MAX_BLOCK_S))
                               if math.isfinite(span) else (chunk,)):
-                    if not pacer.wait(int(block.t_ns[-1]), self.stop):
+                    due = pacer.due(int(block.t_ns[-1]))
+                    if due > time.monotonic():
+                        yield due
+                    if self.stop.is_set():
                         raise _Stopped
                     self._process(block, live=False)
-                    self._commission(wait=True)
+                    yield from self._commission_steps()
                     self._lag = pacer.lag(int(block.t_ns[-1]))
                     self._tick()
                 if self.stop.is_set():
                     raise _Stopped
         if twin.commissioning is not None:  # the log ended before the window did: fit what it gave
             twin.commissioning.window.full = True
-            self._commission(wait=True)
+            yield from self._commission_steps()
         report = getattr(src, "report", None)
         skipped = sum(report.skipped.values()) if report is not None else 0
         if skipped and report is not None:
@@ -908,7 +934,8 @@ def _die_with_parent() -> None:
 
 
 def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_level: int) -> None:
-    """A spawned worker: its rigs in threads; results and bus messages go to ``out``.
+    """A spawned worker: its replayed logs on one thread (:func:`run_scheduled`), each live input on a
+    thread of its own; results and bus messages go to ``out``.
 
     ``stop_conn``: the reading end of a pipe from the service; a message or
     its end (the service's process gone) stops the rigs. Not a
@@ -931,9 +958,14 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
 
     threading.Thread(target=relay, name="stop-relay", daemon=True).start()
     threads = []
+    logs = [rig for rig in rigs if not is_live(rig.source)]
+    if logs:  # replayed logs: one thread, earliest due first (see run_scheduled)
+        threads.append(threading.Thread(target=_profiled(run_scheduled, "logs"), args=(logs, cfg, out, local),
+                                        name="rig-logs", daemon=True))
     for rig in rigs:
-        threads.append(threading.Thread(target=_profiled(_run_one, f"rig-{rig.name}"), args=(rig, cfg, out, local),
-                                        name=f"rig-{rig.name}", daemon=True))
+        if is_live(rig.source):  # a live input blocks in its reads: a thread of its own
+            threads.append(threading.Thread(target=_profiled(_run_one, f"rig-{rig.name}"),
+                                            args=(rig, cfg, out, local), name=f"rig-{rig.name}", daemon=True))
     for t in threads:
         t.start()
     for t in threads:
@@ -957,6 +989,50 @@ def _profiled(target: Callable[..., Any], name: str) -> Callable[..., Any]:
             prof.dump_stats(os.path.join(directory, f"{name}.{os.getpid()}.prof"))
 
     return run
+
+
+def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
+    """Rigs replaying logs, all on this thread: each rig's :meth:`RigRunner.run_steps` is resumed when its
+    next block is due, the earliest first.
+
+    Why not a thread per rig: the Python around each compiled filter call
+    holds the GIL, and dozens of threads of one process handing it over cost
+    more CPU than the work between the calls (with 50 rigs in one process,
+    17 us per sample in threads against 13 one after another, filter
+    included; ``python -m benchmarks.service fleet``). A worker process per
+    core keeps the cores busy; a rig that falls behind catches up in larger
+    blocks (:func:`blocks_by_time`), so every rig gets its turn. ``stop``
+    stops each rig at its next turn (it checkpoints).
+    """
+    import heapq
+    import inspect
+
+    heap: list[tuple[float, int, Any, AlarmJournal]] = []
+    for i, rig in enumerate(rigs):
+        try:
+            journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0)
+        except TwinError as exc:
+            out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
+            continue
+        heap.append((-math.inf, i, RigRunner(rig, cfg, journal, out, stop).run_steps(), journal))
+    heapq.heapify(heap)
+    while heap:
+        due, i, steps, journal = heap[0]
+        delay = due - time.monotonic()
+        if delay > 0 and not stop.is_set():
+            stop.wait(delay)
+            if not stop.is_set() and heap[0][0] > time.monotonic():
+                continue
+        heapq.heappop(heap)
+        try:
+            if stop.is_set() and inspect.getgeneratorstate(steps) != inspect.GEN_CREATED:
+                nxt = steps.throw(_Stopped())
+            else:  # a rig not started yet opens, reports and stops at its first check
+                nxt = next(steps)
+        except StopIteration:
+            journal.close()
+            continue
+        heapq.heappush(heap, (nxt, i, steps, journal))
 
 
 def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
