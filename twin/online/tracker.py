@@ -94,6 +94,11 @@ _GUARD_ORDER = ("nis_clip", "nis_hi", "rho_hi", "tau_guard", "div_nis", "tau_div
 assert len(_GUARD_ORDER) == ukf.N_CFG
 
 
+_STATUS_NAMES = np.array(ukf.STATUS)
+_GUARD_NAMES = np.array(ukf.GUARD)
+_SENSOR_NAMES = np.array(ukf.SENSOR)
+
+
 @dataclasses.dataclass
 class TrackBlock:
     t_ns: np.ndarray            # [T]
@@ -408,9 +413,9 @@ class OnlineTracker:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
                               "has no checkpoint to go back to: state or covariance not finite")
         self.samples += T
-        codes, counts = np.unique(st, return_counts=True)
-        for c, k in zip(codes, counts):
-            self.counters[ukf.STATUS[c]] += int(k)
+        counts = np.bincount(st, minlength=len(ukf.STATUS))
+        for c in np.flatnonzero(counts):
+            self.counters[ukf.STATUS[c]] += int(counts[c])
         z = X[:, 6:6 + p]
         dz = np.sqrt(np.maximum(Pd[:, 6:6 + p], 0.0))
         est = self.values_of(z)
@@ -424,8 +429,8 @@ class OnlineTracker:
         states = X[:, :6] * self.scale
         msc = np.array([self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
-                          status=np.array(ukf.STATUS)[st], frozen=frozen, innovation=innov * msc, states=states,
-                          guard=np.array(ukf.GUARD)[guard], sensors=np.array(ukf.SENSOR)[sens],
+                          status=_STATUS_NAMES[st], frozen=frozen, innovation=innov * msc, states=states,
+                          guard=_GUARD_NAMES[guard], sensors=_SENSOR_NAMES[sens],
                           noise=noise * msc, outputs=self.outputs, used=used, held_stds=est * held_log_std,
                           held_log_std=held_log_std)
 
