@@ -140,25 +140,29 @@ class _Statuses:
 
 
 def _start(config: Path, profile: str = "") -> subprocess.Popen:
+    """``twin serve`` on ``config``; its console goes to a file next to it (a pipe nobody reads until the end
+    fills up and blocks the service when it prints its alarms: 100 rigs print more than a pipe holds)."""
     env = dict(os.environ)
     if profile:
         os.makedirs(profile, exist_ok=True)
         env["FPDD_PROFILE_DIR"] = os.path.abspath(profile)
-    return subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config),
-                             "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env=env)
+    with open(config.with_suffix(".stderr"), "w") as err:
+        return subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config),
+                                 "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=err, env=env)
 
 
 def _stop(proc: subprocess.Popen) -> str:
+    """Stop the service (SIGTERM); its console output."""
     import signal
 
     proc.send_signal(signal.SIGTERM)
     try:
-        _, err = proc.communicate(timeout=120)
+        proc.wait(timeout=120)
     except subprocess.TimeoutExpired:
         proc.kill()
-        _, err = proc.communicate()
-    return err
+        proc.wait()
+    args = [str(a) for a in proc.args]  # type: ignore[union-attr]
+    return Path(args[args.index("--config") + 1]).with_suffix(".stderr").read_text(errors="replace")
 
 
 def soak(rigs: int, minutes: float, say=print) -> dict:
