@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import sys
 import threading
 
 from twin.errors import TwinError
@@ -45,6 +44,16 @@ def startup_line(cfg: ServiceConfig, workers: int) -> str:
 
 
 def run(args) -> int:
+    from twin.service.console import install
+
+    console = install(getattr(logging, args.log_level.upper()))  # a stuck console never stalls the service
+    try:
+        return _run(args, console)
+    finally:
+        console.close()
+
+
+def _run(args, console) -> int:
     import json
     import signal
 
@@ -52,8 +61,6 @@ def run(args) -> int:
 
     from twin.service.fleet import Fleet, check_journal_dir, check_sources
 
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()), format="twin serve: %(message)s",
-                        stream=sys.stderr)
     cfg = with_commission_s(load_config(args.config), getattr(args, "commission_s", None))
     check_journal_dir(cfg)
     check_sources(cfg)
@@ -61,14 +68,13 @@ def run(args) -> int:
 
     def on_signal(signum, frame) -> None:  # noqa: ARG001
         if not stop.is_set():
-            print(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)",
-                  file=sys.stderr, flush=True)
+            console.line(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)")
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def show(ev: AlarmEvent) -> None:
-        print(f"twin serve: {format_alarm(ev, wall_clock=False)}", file=sys.stderr, flush=True)
+        console.line(f"twin serve: {format_alarm(ev, wall_clock=False)}")
 
     session = open_service_session(cfg)
     summaries: dict = {}
@@ -80,10 +86,9 @@ def run(args) -> int:
             view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
                             model=cfg.rigs[0].model)
             view.follow(session)  # every rig's estimate, status and alarm as published, workers included
-            print(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}", file=sys.stderr,
-                  flush=True)
+            console.line(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}")
         workers = Fleet(cfg, session, stop).worker_count
-        print(f"twin serve: {startup_line(cfg, workers)}", file=sys.stderr, flush=True)
+        console.line(f"twin serve: {startup_line(cfg, workers)}")
         error = None
         try:
             stats = serve(cfg, stop, on_alarm=show, session=session, summaries=summaries)
@@ -97,7 +102,7 @@ def run(args) -> int:
             signal.signal(sig, handler)
     for name in (r.name for r in cfg.rigs):
         if name in summaries:
-            print(f"twin serve: summary {summaries[name].line()}", file=sys.stderr, flush=True)
+            console.line(f"twin serve: summary {summaries[name].line()}")
     if args.json:
         print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
     if error is not None:

@@ -946,7 +946,9 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service's process decides when to stop
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    logging.basicConfig(level=log_level, format="twin serve: %(message)s")
+    from twin.service.console import install
+
+    console = install(log_level)  # a stuck console never stalls a rig
     local = threading.Event()
 
     def relay() -> None:
@@ -970,6 +972,7 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
         t.start()
     for t in threads:
         t.join()
+    console.close()
 
 
 def _profiled(target: Callable[..., Any], name: str) -> Callable[..., Any]:
