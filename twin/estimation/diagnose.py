@@ -121,6 +121,12 @@ EXO_LAGS = 50
 #: significant dependence to make a model inadequate: an error outside the catalogue that the noise model
 #: soaked up (a resonance) is over it, a slight mismatch of formulation is not
 EXO_R2 = 0.01
+#: the share of a one-step prediction error's variance its own past may predict (``Q / n`` of the Ljung-Box
+#: test, about the sum of the squared autocorrelations) before the remaining dependence makes a model
+#: inadequate: on long records a loop noise that a finite autoregression leaves slightly coloured is
+#: significant yet immaterial (20 s healthy reference records: 0.6 %; a catalogue error leaves far more,
+#: and a resonance or a drift is caught by the drive or the held-out test)
+WHITE_R2 = 0.01
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -418,7 +424,8 @@ def _adequacy_text(st: ModelState) -> str:
     a = st.adequacy
     if not a:
         return "  adequacy: -"
-    parts = [f"{o}: LB p={v['p']:.3g} (AR {v['ar_order']})" for o, v in a["whiteness"].items()]
+    parts = [f"{o}: LB p={v['p']:.3g}, past predicts {100 * v.get('r2', 0.0):.2g} % (AR {v['ar_order']})"
+             for o, v in a["whiteness"].items()]
     h = a["holdout"]
     parts.append(f"held-out/fitting innovation power {h['ratio']:.3g} (p={h['p']:.3g})")
     x = a.get("exogenous")
@@ -502,7 +509,9 @@ def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray
     for i, o in enumerate(data.outputs):
         order = int(nm.orders.get(o, nm.order))
         lb = ljung_box(E_fit[i], LB_LAGS + order, df=LB_LAGS)
-        white[o] = {"Q": lb["Q"], "df": lb["df"], "lags": lb["lags"], "p": lb["p"], "ar_order": order}
+        r2 = float(lb["Q"]) / max(E_fit.shape[1], 1)
+        white[o] = {"Q": lb["Q"], "df": lb["df"], "lags": lb["lags"], "p": lb["p"], "ar_order": order,
+                    "r2": r2, "material": bool(r2 > WHITE_R2)}
     q_fit = np.sum(E_fit * E_fit, axis=0)
     q_hold = np.sum(E_hold * E_hold, axis=0)
     if q_hold.size > 10:
@@ -514,7 +523,9 @@ def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray
         hold = {"ratio": 1.0, "z": 0.0, "p": 1.0}
     n_tests = len(white) + 1 + (exo is not None)
     ps = [v["p"] for v in white.values()] + [hold["p"]]
-    adequate = min(ps) * n_tests >= data.alpha
+    # white: no output's remaining dependence both significant and material; held-out: not worse
+    adequate = (all(v["p"] * n_tests >= data.alpha or not v["material"] for v in white.values())
+                and hold["p"] * n_tests >= data.alpha)
     out = {"whiteness": white, "holdout": hold, "n_tests": n_tests}
     if exo is not None:
         # a deterministic error the noise model soaked up: the innovations follow the exogenous drive, by a
