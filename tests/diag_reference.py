@@ -2,7 +2,7 @@
 confusion table, cached on disk.
 
 Truth drawn off Table 9 per seed (3-20 % away), effects in the reference's own formulation with sizes
-drawn per seed, a controller reading the noisy measured displacement (digital at the log's rate unless
+drawn per seed (a spool stroke limit as a fraction of the peak command the record reaches), a controller reading the noisy measured displacement (digital at the log's rate unless
 said otherwise), white or AR(1) noise.  The cache key is the spec plus a digest of the reference's
 sources, so a change of the simulator invalidates it.  Cache directory: ``$FPDD_REF_CACHE`` or
 ``<tmp>/fpdd-ref-cache``.
@@ -45,12 +45,30 @@ def _source_digest() -> str:
     return h.hexdigest()[:12]
 
 
+#: a spool stroke limit is drawn as this fraction of the largest spool command of the same record without it
+#: (a limit the valve command never reaches leaves no trace in the record: it is no effect of that record)
+LIMIT_FRACTION = (0.5, 0.8)
+
+
+def _stroke_limit(seed: int, duration: float, controller: str, tau: float, spec: dict) -> float:
+    """A spool stroke limit the record reaches: a drawn fraction of the healthy record's peak command."""
+    rec, info = reference_record((), seed=seed, duration=duration, controller=controller, tau=tau, **spec)
+    known = info["meta"]["known"]
+    peak = float(np.max(np.abs(rec["u"]))) * known["Ke"] * known["Ksp"]
+    rng = np.random.default_rng([int(seed), 7919])
+    return float(rng.uniform(*LIMIT_FRACTION) * peak)
+
+
 def reference_record(effects=(), seed: int = 0, duration: float = 8.0, controller: str = "digital",
                      tau: float = 0.0, **spec) -> tuple[Record, dict]:
     """A reference record as the product reads it, and the truth behind it (``truth``, ``meta``)."""
     noise = {"tau": float(tau)} if tau else "default"
+    eff: list | dict = list(effects)
+    if "spool_saturation" in eff:
+        eff = {e: {} for e in eff}
+        eff["spool_saturation"] = {"xs_max": _stroke_limit(seed, duration, controller, tau, spec)}
     kwargs = dict(seed=int(seed), duration=float(duration), controller=controller, truth="draw",
-                  effects=list(effects), noise=noise, **spec)
+                  effects=eff, noise=noise, **spec)
     key = hashlib.sha1((json.dumps(kwargs, sort_keys=True, default=str) + _source_digest()).encode()).hexdigest()
     os.makedirs(CACHE, exist_ok=True)
     path = os.path.join(CACHE, f"msp25-{key[:20]}.npz")
@@ -58,7 +76,7 @@ def reference_record(effects=(), seed: int = 0, duration: float = 8.0, controlle
         ref = RefRecord.load(path)
     else:
         kw = dict(kwargs)
-        kw["effects"] = tuple(kw["effects"])
+        kw["effects"] = kw["effects"] if isinstance(kw["effects"], dict) else tuple(kw["effects"])
         ref = simulate_msp25(msp25_spec(**kw))
         ref.save(path)
     label = "+".join(effects) or "healthy"

@@ -18,6 +18,7 @@ from diag_reference import IN_CATALOGUE, reference_record
 from twin import cli
 from replay.jsonio import finite_or_none
 from twin.estimation.diagnose import CONTROLLER_RATE, _gain, _implausible, diagnose, holm
+from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.base import Timing
 from twin.estimation.noise_model import block_bootstrap, fit_noise_model, long_run_variance
@@ -46,14 +47,15 @@ def _diag(effects=(), seed=1, controller="digital", tau=0.0, timing=None):
 KNOWN = {
     "stribeck_friction": "named, but the reference's exp(-|v|/vs) Stribeck curve leaves the product's "
                          "exp(-(v/vs)^2) with a residual the adequacy test flags: 'partly explained'",
-    "position_sensor_gain": "absorbed by Cd: in the measured displacement the rig with gain g is the nominal rig "
-                            "with Cd x g, bulk modulus / g and moving mass x g; what Cd leaves (1-4 % of the "
-                            "compressibility flow and the inertial force) is below the screen",
 }
+
+#: effects a free nominal parameter mimics: not testable with the default free set (tested below with the
+#: mimicking parameter held at a commissioned value)
+MIMICKED = ("position_sensor_gain",)
 
 
 @pytest.mark.parametrize("effect", [pytest.param(e, marks=pytest.mark.xfail(strict=True, reason=KNOWN[e]))
-                                    if e in KNOWN else e for e in IN_CATALOGUE])
+                                    if e in KNOWN else e for e in IN_CATALOGUE if e not in MIMICKED])
 def test_each_catalogue_effect_is_named_exactly(effect):
     d, info = _diag((effect,), seed=1)
     assert d.causes == [effect], d.text()
@@ -67,6 +69,29 @@ def test_each_catalogue_effect_is_named_exactly(effect):
         if key is not None:  # the same physical quantity in both formulations: the right size
             truth = info["truth"][key]
             assert v["value"] == pytest.approx(truth, rel=0.35), (name, v, truth)
+
+
+def test_a_position_sensor_gain_is_not_testable_while_cd_is_free_and_named_when_cd_is_commissioned():
+    """In the measured displacement a gain g is the nominal rig with Cd x g (bulk modulus and moving mass / g
+    leave the hydraulic resonance unchanged): with Cd free the diagnosis says so instead of testing it; with
+    Cd held at a fit of the same rig's healthy record (a commissioning) the gain is named, at its size."""
+    d, info = _diag(("position_sensor_gain",), seed=1)
+    assert d.causes == [] and "position_sensor_gain" in d.not_testable, d.text()
+    assert d.not_testable["position_sensor_gain"]["mimicked_by"] == ["Cd"]
+    assert all(r.effect != "position_sensor_gain" for s in d.screens for r in s)
+    assert "not tested: position_sensor_gain" in d.text()
+    out = json.loads(json.dumps(d.to_dict(), allow_nan=False))
+    assert out["not_testable"]["position_sensor_gain"]["mimicked_by"] == ["Cd"]
+
+    healthy, _ = reference_record((), seed=1, duration=DURATION)
+    cd = fit(RIG, healthy, RIG.PHENOMENOLOGICAL, seed=1).estimate["Cd"]
+    rec, _ = reference_record(("position_sensor_gain",), seed=1, duration=DURATION)
+    free = tuple(n for n in RIG.PHENOMENOLOGICAL if n != "Cd")
+    d = diagnose(RIG, rec, free=free, base=RIG.params().update({"Cd": cd}), seed=1)
+    assert d.causes == ["position_sensor_gain"] and not d.unexplained and not d.not_testable, d.text()
+    k = d.effect_params("position_sensor_gain")["k_xm"]
+    truth = info["truth"]["position_sensor_gain.gain"]
+    assert abs(k["value"] - truth) < 0.1 * (truth - 1.0)  # the gain's error within a tenth of its size
 
 
 def test_healthy_record_with_loop_noise_names_nothing():
@@ -178,6 +203,26 @@ def test_long_run_variance_and_block_bootstrap_see_autocorrelation():
     assert long_run_variance(ar) == pytest.approx(11.1, rel=0.25)
     sums = block_bootstrap(ar, 200, 400, seed=0)
     assert np.std(sums) / math.sqrt(ar.size) == pytest.approx(math.sqrt(11.1), rel=0.25)
+
+
+def test_block_bootstrap_resamples_several_series_jointly():
+    """An improvement that comes in rare bursts (a stroke limit reached now and then): the ratio of the
+    removed to the total error resampled jointly stays a share (at most 1), its interval above zero."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    q0 = rng.chisquare(3, size=n)
+    burst = np.zeros(n)
+    for start in rng.choice(n - 30, size=4, replace=False):
+        burst[start:start + 30] = 200.0
+    q0 = q0 + burst
+    d = 0.95 * burst + 0.01 * rng.normal(size=n)
+    both = block_bootstrap(np.stack([d, q0]), 160, 1000, seed=0)
+    assert both.shape == (1000, 2)
+    # the same blocks for both series: the first column alone is the one-series bootstrap
+    assert np.allclose(both[:, 0], block_bootstrap(d, 160, 1000, seed=0))
+    ratio = both[:, 0] / both[:, 1]
+    lo, hi = np.quantile(ratio, [0.025, 0.975])
+    assert 0.0 < lo < d.sum() / q0.sum() < hi <= 1.0
 
 
 def test_holm_adjusts_step_down_and_monotone():

@@ -117,6 +117,10 @@ class Effect:
     neutral: tuple[float, ...]
     signature: str
     typical: tuple[float, ...]  # a plausible magnitude when present (starts and tests)
+    #: free parameters that mimic the effect (to within what a record resolves) while they are fitted: the
+    #: effect can be told from them only when they are held at known values (``mimicry`` says how)
+    mimicked_by: tuple[str, ...] = ()
+    mimicry: str = ""
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -23,10 +23,14 @@ def run(args) -> int:
     if args.json:
         _dump({"model": model.name, "params": [dict(s.to_dict(), value=v) for s, v in zip(ps.specs, ps.values)],
                "effects": {n: {"description": e.description, "signature": e.signature,
-                               "params": list(e.names)} for n, e in model.EFFECTS.items()}})
+                               "params": list(e.names), "mimicked_by": list(e.mimicked_by),
+                               "mimicry": e.mimicry} for n, e in model.EFFECTS.items()}})
         return 0
     print(ps.table())
     print("\neffects (switch on with --effects NAME,...):")
     for n, e in model.EFFECTS.items():
         print(f"  {n:<22} {e.description}  [{', '.join(e.names)}]")
+        if e.mimicked_by:
+            print(f"  {'':<22} (mimicked by {', '.join(e.mimicked_by)} while it is free: diagnose tests it only "
+                  "when it is held)")
     return 0

@@ -17,7 +17,9 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    errors.  Every statistic below is computed on them (Box-Jenkins style:
    output-error model, fitted noise model).
 4. **Adequacy** of a model: its innovations are white (Ljung-Box per output,
-   degrees of freedom reduced by the autoregression's order) and the held-out
+   degrees of freedom reduced by the autoregression's order; a significant
+   dependence counts only when the errors' own past predicts over 1 % of
+   their variance beyond chance, ``WHITE_R2``) and the held-out
    innovations are no larger than those on the fitting data (a drift, or an
    error the fit bent the parameters around, shows there), and they do not
    follow the exogenous drive (``x_ref``; regressed on its increments at lags
@@ -42,11 +44,19 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    colour.  An effect's p-value is its best probe's times its number of
    probes; the effects' p-values are Holm-corrected over the catalogue.  One-
    sided effects (a friction, a stroke limit) score 0 when the residual
-   points the wrong way.  Nothing passes: nothing is fitted.
+   points the wrong way.  Nothing passes: nothing is fitted.  An effect that
+   a free nominal parameter mimics (``Effect.mimicked_by``: a position sensor
+   gain is a Cd change while Cd is free) is not screened; the diagnosis says
+   so (``not_testable``) and how to test it (hold that parameter at a
+   commissioned value).
 6. **The loop's timing** (``controller_rate``): the alternative timings (a
    continuous controller, a digital one 2, 5, 10 times faster than the log)
-   are simulated at the current estimates; the best is refitted and judged by
-   the same tests as an effect, counted as one parameter.
+   are simulated at the current estimates; the best is refitted, then the
+   continuous one from its estimates (the nominal estimates are bent to the
+   assumed timing, so the closest alternative scores best at them even when
+   the loop is analog), then any other that scores lower at the best refit's
+   estimates; the best refit is judged by the same tests as an effect,
+   counted as one parameter.
 7. **Fit the promising extensions** (nominal free parameters plus the
    effect's own) and **decide**: accepted when its likelihood-ratio test on
    the whitened residuals (``LR = C0 - C1``, the innovations' sums of squares
@@ -89,7 +99,8 @@ from twin.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, resolve_outputs
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
-from twin.estimation.noise_model import NoiseModel, block_bootstrap, fit_noise_model, long_run_variance
+from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
+                                         long_run_variance)
 from twin.params import ParameterSet, check_names
 from twin.record import Record
 from twin.estimation.residuals import ResidualAnalysis, analyse, ljung_box
@@ -121,12 +132,15 @@ EXO_LAGS = 50
 #: significant dependence to make a model inadequate: an error outside the catalogue that the noise model
 #: soaked up (a resonance) is over it, a slight mismatch of formulation is not
 EXO_R2 = 0.01
-#: the share of a one-step prediction error's variance its own past may predict (``Q / n`` of the Ljung-Box
-#: test, about the sum of the squared autocorrelations) before the remaining dependence makes a model
-#: inadequate: on long records a loop noise that a finite autoregression leaves slightly coloured is
-#: significant yet immaterial (20 s healthy reference records: 0.6 %; a catalogue error leaves far more,
-#: and a resonance or a drift is caught by the drive or the held-out test)
+#: the share of a one-step prediction error's variance its own past may predict beyond chance (``(Q - df) / n``
+#: of the Ljung-Box test, about the sum of the squared autocorrelations less what white errors give) before
+#: the remaining dependence makes a model inadequate: a loop noise that a finite autoregression leaves
+#: slightly coloured is significant yet immaterial (healthy reference records: 0.2-0.6 %; a catalogue error
+#: leaves far more, and a resonance or a drift is caught by the drive or the held-out test)
 WHITE_R2 = 0.01
+#: held-out / fitting mean squared simulation error above which a significant increase makes a model
+#: inadequate (healthy reference records: 0.85-1.13; a pressure sensor drifting 0.2 MPa over 8 s: 3.9)
+SIM_HOLDOUT = 1.1
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -317,6 +331,8 @@ class Diagnosis:
     plots: list[str] = dataclasses.field(default_factory=list)
     timing: Timing = DEFAULT_TIMING        # the timing assumed (given)
     alpha: float = ALPHA
+    #: effects not tested because free parameters mimic them: effect -> {"mimicked_by": [...], "why": text}
+    not_testable: dict[str, dict] = dataclasses.field(default_factory=dict)
 
     def effect_params(self, effect: str) -> dict:
         return _effect_params(self.final, effect)
@@ -355,6 +371,7 @@ class Diagnosis:
             "trials": [[t.to_dict() for t in ts] for ts in self.trials],
             "signature": (self.final.analysis.summary() | {"adequacy": self.final.adequacy}
                           if self.unexplained and self.final.analysis else None),
+            "not_testable": self.not_testable,
             "holdout_fraction": self.holdout,
             "alpha": self.alpha,
             "outputs": list(self.outputs),
@@ -415,6 +432,8 @@ class Diagnosis:
         elif not self.causes:
             lines.append("the nominal model is adequate (one-step prediction errors white and consistent on "
                          "held-out data; output-error colour is the noise model's)")
+        for e, v in self.not_testable.items():
+            lines.append(f"not tested: {e} (free {', '.join(v['mimicked_by'])} mimics it): {v['why']}")
         for p in self.plots:
             lines.append(f"plot: {p}")
         return "\n".join(lines)
@@ -424,10 +443,15 @@ def _adequacy_text(st: ModelState) -> str:
     a = st.adequacy
     if not a:
         return "  adequacy: -"
-    parts = [f"{o}: LB p={v['p']:.3g}, past predicts {100 * v.get('r2', 0.0):.2g} % (AR {v['ar_order']})"
+    parts = [f"{o}: LB p={v['p']:.3g}, past predicts {100 * v.get('r2', 0.0):.2g} % "
+             f"({100 * v.get('r2_excess', 0.0):.2g} % beyond chance, AR {v['ar_order']})"
              for o, v in a["whiteness"].items()]
     h = a["holdout"]
     parts.append(f"held-out/fitting innovation power {h['ratio']:.3g} (p={h['p']:.3g})")
+    sim = a.get("simulation_holdout") or {}
+    if sim:
+        parts.append("held-out/fitting simulation error power " + ", ".join(
+            f"{o} {v['ratio']:.3g} (p={v['p']:.3g}){' WORSE' if v.get('worse') else ''}" for o, v in sim.items()))
     x = a.get("exogenous")
     if x:
         parts.append(f"drive explains up to {100 * x['r2']:.1f} % of an output's innovations "
@@ -503,15 +527,39 @@ def _excess(data: _Data, pred: list[dict[str, np.ndarray]]) -> float:
     return max(total, 0.0)
 
 
-def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None) -> dict:
+def _simulation_holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
+    """Per output: is the simulation's (output) error larger on the held-out tails than on the fitting data?
+    One-sided test of the mean squared weighted error, Newey-West variances with a lag of at least 0.1 s (the
+    errors are coloured by the loop noise).  A slow error the noise model follows step by step (a sensor
+    drifting during the record) leaves the one-step prediction errors white; the simulation shows it."""
+    out = {}
+    lag_min = int(round(0.1 / data.records[0].dt))
+    for i, o in enumerate(data.outputs):
+        qf = np.concatenate([B[i, :n] ** 2 for B, n in zip(_blocks(data, pred, "all"), data.n_fit)])
+        qh = np.concatenate([B[i, n:] ** 2 for B, n in zip(_blocks(data, pred, "all"), data.n_fit)])
+        if qh.size <= 10 or not (np.all(np.isfinite(qf)) and np.all(np.isfinite(qh))):
+            out[o] = {"ratio": float("nan"), "z": 0.0, "p": 1.0, "material": False}
+            continue
+        var = sum(long_run_variance(q - q.mean(), max(bartlett_lag(q), lag_min)) / q.size for q in (qf, qh))
+        mf, mh = float(qf.mean()), float(qh.mean())
+        z = (mh - mf) / math.sqrt(var) if var > 0 else 0.0
+        ratio = mh / mf if mf > 0 else float("inf")
+        out[o] = {"ratio": ratio, "z": z, "p": float(stats.norm.sf(z)), "material": bool(ratio > SIM_HOLDOUT)}
+    return out
+
+
+def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None,
+              sim: dict | None = None) -> dict:
     """Are the one-step prediction errors white, and no larger on held-out data than on fitting data?"""
     white = {}
     for i, o in enumerate(data.outputs):
         order = int(nm.orders.get(o, nm.order))
         lb = ljung_box(E_fit[i], LB_LAGS + order, df=LB_LAGS)
-        r2 = float(lb["Q"]) / max(E_fit.shape[1], 1)
+        n_e = max(E_fit.shape[1], 1)
+        r2 = float(lb["Q"]) / n_e
+        r2_excess = max(float(lb["Q"]) - float(lb["df"]), 0.0) / n_e  # beyond what chance gives (E Q = df)
         white[o] = {"Q": lb["Q"], "df": lb["df"], "lags": lb["lags"], "p": lb["p"], "ar_order": order,
-                    "r2": r2, "material": bool(r2 > WHITE_R2)}
+                    "r2": r2, "r2_excess": r2_excess, "material": bool(r2_excess > WHITE_R2)}
     q_fit = np.sum(E_fit * E_fit, axis=0)
     q_hold = np.sum(E_hold * E_hold, axis=0)
     if q_hold.size > 10:
@@ -521,12 +569,16 @@ def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray
         hold = {"ratio": mh / mf if mf > 0 else float("inf"), "z": z, "p": float(stats.norm.sf(z))}
     else:
         hold = {"ratio": 1.0, "z": 0.0, "p": 1.0}
-    n_tests = len(white) + 1 + (exo is not None)
-    ps = [v["p"] for v in white.values()] + [hold["p"]]
-    # white: no output's remaining dependence both significant and material; held-out: not worse
+    sim = sim or {}
+    n_tests = len(white) + 1 + (exo is not None) + len(sim)
+    ps = [v["p"] for v in white.values()] + [hold["p"]] + [v["p"] for v in sim.values()]
+    # white: no output's remaining dependence both significant and material; held-out: not worse, neither the
+    # one-step prediction errors nor (significantly and materially) the simulation's errors
+    for v in sim.values():
+        v["worse"] = bool(v["p"] * n_tests < data.alpha and v["material"])
     adequate = (all(v["p"] * n_tests >= data.alpha or not v["material"] for v in white.values())
-                and hold["p"] * n_tests >= data.alpha)
-    out = {"whiteness": white, "holdout": hold, "n_tests": n_tests}
+                and hold["p"] * n_tests >= data.alpha and not any(v["worse"] for v in sim.values()))
+    out = {"whiteness": white, "holdout": hold, "simulation_holdout": sim, "n_tests": n_tests}
     if exo is not None:
         # a deterministic error the noise model soaked up: the innovations follow the exogenous drive, by a
         # share of their variance that matters (a slight formulation mismatch is significant on long records)
@@ -593,7 +645,8 @@ def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -
         E_fit, E_hold = _innovations(data, st.noise, pred)
         st.wcost = float(np.sum(E_fit * E_fit))
         st.n_w = int(E_fit.size)
-        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold, _exogenous(data, st.noise, pred))
+        st.adequacy = _adequacy(data, st.noise, E_fit, E_hold, _exogenous(data, st.noise, pred),
+                                _simulation_holdout(data, pred))
     else:  # a diverged simulation: nothing to judge, never adequate
         st.wcost, st.n_w = float("inf"), 0
         st.adequacy = {"adequate": False, "whiteness": {}, "holdout": {"ratio": float("nan"), "z": float("nan"),
@@ -660,12 +713,14 @@ def _holdout_gain(cur: ModelState, st: ModelState, data: _Data) -> tuple[float, 
     total0 = float(q0.sum())
     g = float(d.sum()) / total0
     block = max(50, 4 * cur.noise.order, int(round(0.1 / data.records[0].dt)))
-    sums = block_bootstrap(d, block, N_BOOT, data.seed)
+    # the ratio resampled as a ratio (numerator and denominator from the same blocks): an error that comes in
+    # bursts (a stroke limit reached now and then) makes the denominator as variable as the numerator, and a
+    # fixed denominator would put resamples far above 100 % and, mirrored, the interval's lower end below zero
+    sums = block_bootstrap(np.stack([d, q0]), block, N_BOOT, data.seed)
+    ratio = sums[:, 0] / np.maximum(sums[:, 1], 1e-300)
     a = (1.0 - GAIN_COVERAGE) / 2.0
-    lo, hi = np.quantile(sums / total0, [a, 1.0 - a])
-    # the bootstrap's spread centred on the estimate (basic interval)
-    centre = float(np.mean(sums)) / total0
-    return g, float(lo - centre + g), float(hi - centre + g)
+    lo, hi = np.quantile(ratio, [a, 1.0 - a])  # percentile interval of the resampled ratio
+    return g, float(lo), float(hi)
 
 
 def _fd_step(spec, value: float, typical: float | None) -> float:
@@ -770,7 +825,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     P = np.ascontiguousarray(np.array(rows))
     raw = []
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
-        S0 = np.repeat(model.initial_state(P[:1], init), P.shape[0], axis=0)
+        S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, state.timing)
         Y = np.stack([sim.outputs[o] / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
         y = np.array([rec[o][:n] / data.sigma[o] for o in data.outputs])
@@ -905,7 +960,7 @@ def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, fl
     P = np.ascontiguousarray(np.array([model.vector(ps.update(s)) for s in starts]))
     cost = np.zeros(len(starts))
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
-        S0 = np.repeat(model.initial_state(P[:1], init), P.shape[0], axis=0)
+        S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
         for o in data.outputs:
             e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
@@ -920,7 +975,7 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
     P = np.ascontiguousarray(np.array([model.vector(ps) for ps in sets]))
     cost = np.zeros(len(sets))
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
-        S0 = np.concatenate([model.initial_state(P[k:k + 1], init) for k in range(P.shape[0])])
+        S0 = model.initial_state(P, init)
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
         for o in data.outputs:
             e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
@@ -985,13 +1040,34 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
         scores.append((min(costs), int(np.argmin(costs)), a))
     scores.sort(key=lambda s: s[0])
     say("  timings at the current estimates: " + ", ".join(f"{a.label} cost {c:.4g}" for c, _, a in scores))
-    best = None
-    for _cost, which, a in scores[:1]:
-        start = dict(cur.fit.estimate) if which == 0 else {n: configured[n] for n in cur.free if n in configured}
+    # the nominal estimates are bent to the assumed timing, so the timing closest to it scores best at them
+    # even when the loop is analog: that one is refitted, then the other end of the scale (continuous) from
+    # its estimates, then, from the better of the two, any alternative that scores lower at its estimates
+    # than its refitted cost (a descent over the timings; at most len(alts) fits)
+    _cost, which, first = scores[0]
+    start = dict(cur.fit.estimate) if which == 0 else {n: configured[n] for n in cur.free if n in configured}
+    best: Trial | None = None
+    tried: set = set()
+    queue = [first] + [a for a in alts if a.controller == "continuous" and a != first]
+    while queue:
+        a = queue.pop(0)
+        if a in tried:
+            continue
+        tried.add(a)
         st = _fit_state(data, cur.params.update(start), cur.free, start, 1, seed, a)
         t = _judge(data, (CONTROLLER_RATE,), cur, st, min_share)
-        if best is None or t.state.wcost < best.state.wcost:
+        say(f"  refitted under {a.label}: cost {st.fit.cost:.6g}")
+        if best is None or t.state.fit.cost < best.state.fit.cost:
             best = t
+        start = dict(best.state.fit.estimate)
+        if queue:
+            continue
+        rest = [b for b in alts if b not in tried]
+        if rest:
+            costs = [0.5 * _fit_costs(data, [best.state.params], b)[0] for b in rest]
+            k = int(np.argmin(costs))
+            if costs[k] < best.state.fit.cost:
+                queue.append(rest[k])
     return best
 
 
@@ -1116,6 +1192,10 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     data = _Data(model, records, n_fit, outputs, sigma, drive, timing, alpha, seed)
     catalogue = [e for e in (candidates or model.EFFECTS) if e not in base.effects]
     check_names(model.EFFECTS, catalogue, f"effect of {model.name}")
+    # an effect that free parameters mimic cannot be told from them: not screened, said in the verdict
+    mimicked = {e: model.EFFECTS[e].mimicry for e in catalogue
+                if set(getattr(model.EFFECTS[e], "mimicked_by", ())) & set(free)}
+    catalogue = [e for e in catalogue if e not in mimicked]
     closed = model.drive_signal(records[0].signals, drive)[0] == "x_ref"
     timing_candidate = test_timing and closed and (candidates is None)
     say = progress or (lambda _m: None)
@@ -1209,4 +1289,6 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         path.append(cur)
     unexplained = not cur.adequate
     return Diagnosis(model.name, causes, unexplained, nominal, cur, path, screens, trials_all, gains, outputs,
-                     holdout, time.perf_counter() - t0, records, n_fit, timing=timing, alpha=alpha)
+                     holdout, time.perf_counter() - t0, records, n_fit, timing=timing, alpha=alpha,
+                     not_testable={e: {"mimicked_by": [n for n in model.EFFECTS[e].mimicked_by if n in free],
+                                       "why": why} for e, why in mimicked.items()})

@@ -184,13 +184,19 @@ def long_run_variance(g: np.ndarray, lag: int | None = None) -> float:
 
 
 def block_bootstrap(d: np.ndarray, block: int, n_boot: int, seed: int) -> np.ndarray:
-    """Moving-block bootstrap of the sum of ``d [n]``: ``n_boot`` resampled sums (blocks of ``block``)."""
+    """Moving-block bootstrap of the sum of ``d [n]``: ``n_boot`` resampled sums (blocks of ``block``).
+
+    ``d [m, n]`` (several series of the same samples) resamples the same blocks for every series and returns
+    ``[n_boot, m]`` sums (a ratio of sums is then resampled jointly)."""
     d = np.asarray(d, dtype=float)
-    n = d.size
+    one = d.ndim == 1
+    d = np.atleast_2d(d)
+    n = d.shape[1]
     block = int(max(1, min(block, n)))
-    c = np.concatenate([[0.0], np.cumsum(d)])
-    sums = c[block:] - c[:-block]          # sum of each block starting at i
+    c = np.concatenate([np.zeros((d.shape[0], 1)), np.cumsum(d, axis=1)], axis=1)
+    sums = c[:, block:] - c[:, :-block]    # sum of each block starting at i, per series
     k = int(math.ceil(n / block))
     rng = np.random.default_rng(seed)
-    idx = rng.integers(0, sums.size, size=(n_boot, k))
-    return sums[idx].sum(axis=1) * (n / (k * block))
+    idx = rng.integers(0, sums.shape[1], size=(n_boot, k))
+    out = sums[:, idx].sum(axis=2).T * (n / (k * block))   # [n_boot, m]
+    return out[:, 0] if one else out

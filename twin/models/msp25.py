@@ -136,7 +136,11 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("position_sensor_gain", "displacement transducer gain error (the controller reads it too)",
            (_fx("k_xm", "1", 0.5, 2.0, "measured / true displacement"),), (1.0,),
            "the rod follows x_ref / gain; flow and pressures scale against the measured displacement",
-           (1.02,)),
+           (1.02,), mimicked_by=("Cd",),
+           mimicry="written in the measured displacement, a gain g is the nominal rig with Cd x g, the bulk "
+                   "modulus / g and the moving mass / g: the hydraulic resonance (bulk modulus / mass) is "
+                   "unchanged, so only g - 1 of the inertial pressure difference tells it from a Cd change; "
+                   "hold Cd at a value commissioned on the rig (--set Cd=... --free without Cd) to test it"),
     Effect("pressure_sensor_offset", "chamber pressure transducers read off by a constant",
            (_fx("pA_off", "Pa", -5e6, 5e6, "offset of the pA transducer", "MPa", 1e-6),
             _fx("pB_off", "Pa", -5e6, 5e6, "offset of the pB transducer", "MPa", 1e-6)), (0.0, 0.0),
@@ -479,6 +483,9 @@ class MSP25(Model):
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
         """Rod at ``x0`` moving at ``v0``, chambers at ``pA0``/``pB0``, spool where the command ``u0`` holds it.
 
+        ``x0``, ``pA0`` and ``pB0`` are measured values: a row of ``P`` with a position sensor gain or pressure
+        sensor offsets starts at the true state they imply (measured / gain, measured - offset).
+
         With neither ``pA0`` nor ``pB0`` the chambers sit about the mid pressure
         ``(pP+pT)/2`` with the difference ``dp0``; given pressures are shifted by
         ``dp0`` split evenly (so ``dp0`` stays a correction a fit can estimate).
@@ -497,9 +504,10 @@ class MSP25(Model):
         S0 = np.zeros((P.shape[0], NS))
         pm = 0.5 * (P[:, I_PP] + P[:, I_PT])
         S0[:, 0] = P[:, I_KE] * P[:, I_KSP] * u0
-        S0[:, 2] = (pm if pA0 is None else float(pA0)) + 0.5 * dp0
-        S0[:, 3] = (pm if pB0 is None else float(pB0)) - 0.5 * dp0
-        S0[:, 4] = x0
+        # measured starts are read through the transducers' own errors (an offset, a gain) where P has them
+        S0[:, 2] = (pm if pA0 is None else float(pA0) - P[:, I_PAOFF]) + 0.5 * dp0
+        S0[:, 3] = (pm if pB0 is None else float(pB0) - P[:, I_PBOFF]) - 0.5 * dp0
+        S0[:, 4] = x0 / P[:, I_KXM]
         S0[:, 5] = v0
         return S0
 

@@ -80,6 +80,9 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
         body.append(P.note(f"loop timing assumed: {_timing(ta)}; found: {_timing(tf)}"))
     else:
         body.append(P.note(f"loop timing: {_timing(ta)}"))
+    for e, v in (d.get("not_testable") or {}).items():
+        body.append(P.note(f"not tested: {e}, mimicked by the free {', '.join(v.get('mimicked_by', []))}: "
+                           f"{v.get('why', '')}"))
     pg.add("verdict", "Verdict", "\n".join(body))
 
     # nominal vs extended
