@@ -46,7 +46,8 @@ def _diag(effects=(), seed=1, controller="digital", tau=0.0, timing=None):
 #: known failures on the reference (strict: a fix makes the test fail until the mark is removed)
 KNOWN = {
     "stribeck_friction": "named, but the reference's exp(-|v|/vs) Stribeck curve leaves the product's "
-                         "exp(-(v/vs)^2) with a residual the adequacy test flags: 'partly explained'",
+                         "exp(-(v/vs)^2) with a residual the adequacy test flags: 'partly explained' (the same "
+                         "on noise-free records: the curve's shape, not the loop noise)",
 }
 
 #: effects a free nominal parameter mimics: not testable with the default free set (tested below with the
