@@ -162,6 +162,25 @@ def test_every_effect_changes_the_response_and_neutral_is_nominal():
         assert dx > 5e-6 or dp > 5e4, f"{effect} at its typical size is below the sensor noise (dx={dx}, dp={dp})"
 
 
+def test_measured_initial_state_is_read_through_the_sensor_errors():
+    """x0, pA0, pB0 are what the transducers read: a row with a pressure offset or a position gain starts at
+    the true state those errors imply, and the first sample it predicts is the measured one again."""
+    rig = M.MODEL
+    init = {"x0": 0.012, "pA0": 15.2e6, "pB0": 12.1e6}
+    ps = [rig.params(), rig.params(effects=["pressure_sensor_offset", "position_sensor_gain"],
+                                  pA_off=4e5, pB_off=-2e5, k_xm=1.03)]
+    P = np.array([rig.vector(p) for p in ps])
+    S0 = rig.initial_state(P, init)
+    assert S0[0, 2] == 15.2e6 and S0[0, 3] == 12.1e6 and S0[0, 4] == 0.012
+    assert S0[1, 2] == pytest.approx(15.2e6 - 4e5) and S0[1, 3] == pytest.approx(12.1e6 + 2e5)
+    assert S0[1, 4] == pytest.approx(0.012 / 1.03)
+    sim = rig.simulate_batch(P, "x_ref", np.full(50, 0.012), 1e-3, S0)
+    for k in range(2):
+        assert sim.outputs["x"][k, 0] == pytest.approx(0.012, rel=1e-9)
+        assert sim.outputs["pA"][k, 0] == pytest.approx(15.2e6, rel=1e-9)
+        assert sim.outputs["pB"][k, 0] == pytest.approx(12.1e6, rel=1e-9)
+
+
 def test_bad_drive_is_rejected_with_a_clear_message():
     ps = M.MODEL.params()
     bad = np.zeros(100)
