@@ -995,7 +995,7 @@ def _effect_starts(model: Model, effect: str, est: Mapping[str, float]) -> list[
 
 
 def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: float,
-         configured: ParameterSet) -> Trial:
+         configured: ParameterSet, n_ranked: int = 2) -> Trial:
     model = data.model
     E = model.EFFECTS[row.effect]
     free = cur.free + E.names
@@ -1010,8 +1010,8 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
     for s, n, v in zip(E.params, E.neutral, E.typical):
         near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
     t: Trial | None = None
-    for attempt, start in enumerate(ranked[:2] + [near]):
-        if attempt == 2 and t is not None and t.state.fit.cost < cur.fit.cost:
+    for attempt, start in enumerate(ranked[:n_ranked] + [near]):
+        if attempt == n_ranked and t is not None and t.state.fit.cost < cur.fit.cost:
             break
         st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
         cand = _judge(data, (row.effect,), cur, st, min_share)
@@ -1229,7 +1229,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
                 say(f"  {row.effect}: not fitted (screen LM {row.lm:.3g} < {PRUNE:g} x LR {best_lr:.4g} of an "
                     "accepted extension)")
                 continue
-            trials.append(_try(data, cur, row, seed, min_share, base))
+            # the second-best start (the nominal parameters as configured) is for the first round, where
+            # they may have bent to mimic the effect; later rounds extend a model already fitted with them
+            trials.append(_try(data, cur, row, seed, min_share, base, n_ranked=2 if cur is nominal else 1))
         # Holm over the catalogue (the timing counts as one more candidate): the trials' LR p-values take the
         # places of their effects' screen p-values; effects not fitted keep theirs
         fitted = {t.effects[0]: t for t in trials}
