@@ -21,6 +21,7 @@ from twin.estimation.diagnose import CONTROLLER_RATE, _gain, _implausible, diagn
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.base import Timing
+from twin.models.simulate import DEFAULT_NOISE
 from twin.estimation.noise_model import block_bootstrap, fit_noise_model, long_run_variance
 
 RIG = get_model("msp25")
@@ -129,6 +130,23 @@ def test_a_long_analog_record_is_named_controller_rate_by_refits_over_the_timing
     assert d.causes == [CONTROLLER_RATE] and not d.unexplained, d.text()
     assert d.final.timing.ticks(1e-3) >= 5 or d.final.timing.controller == "continuous"
     assert d.final.adequacy["exogenous"]["r2_excess"] < 0.01
+
+
+def test_a_noise_model_whose_errors_stay_predictable_gets_a_higher_order():
+    """8 s, a spool overlap, seed 0: after the deadband is named, AIC picks AR(20) for x's residual, whose
+    prediction errors keep 1.3 % of their variance predictable beyond chance (LB p 2e-11): the order is
+    raised along the grid until they do not, and the record is explained with nothing left over."""
+    rec, _ = reference_record(("spool_deadband",), seed=0, duration=8.0)
+    d = diagnose(RIG, rec, seed=0)
+    assert d.causes == ["spool_deadband"] and not d.unexplained, d.text()
+    n = d.n_fit[0]
+    resid = [np.array([(rec[o][:n] - d.final.predicted[0][o][:n]) / DEFAULT_NOISE[o] for o in d.outputs])]
+    by_aic = fit_noise_model(resid, d.outputs).orders["x"]
+    white = d.final.adequacy["whiteness"]["x"]
+    assert white["ar_order"] > by_aic and not white["material"], (white, by_aic)  # raised above AIC's choice
+    # an order given as a floor is respected
+    B = [np.array([(rec[o][:200] - rec[o][:200].mean()) / np.std(rec[o][:200]) for o in ("x", "pA")])]
+    assert fit_noise_model(B, ("x", "pA"), min_orders={"x": 6}).orders["x"] >= 6
 
 
 def test_healthy_record_with_coloured_noise_names_nothing():

@@ -11,10 +11,10 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    output-error residuals of a closed loop whose controller reads the noisy
    measured displacement are coloured even when the model is exact (the
    sensor noise goes round the loop), and a sensor may itself be coloured.  An
-   autoregression per output (order by AIC, innovations correlated across
-   outputs) is fitted to the residuals on the fitting data; the residuals
-   filtered by it are normalised innovations, one-step-ahead prediction
-   errors.  Every statistic below is computed on them (Box-Jenkins style:
+   autoregression per output (order by AIC, raised along the grid while its
+   errors stay materially predictable; innovations correlated across outputs)
+   is fitted to the residuals on the fitting data; the residuals filtered by
+   it are normalised innovations, one-step-ahead prediction errors.  Every statistic below is computed on them (Box-Jenkins style:
    output-error model, fitted noise model).
 4. **Adequacy** of a model: its innovations are white (Ljung-Box per output,
    degrees of freedom reduced by the autoregression's order; a significant
@@ -99,6 +99,7 @@ from twin.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, resolve_outputs
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
+from twin.estimation.noise_model import ORDERS as NOISE_ORDERS
 from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
                                          long_run_variance)
 from twin.params import ParameterSet, check_names
@@ -141,6 +142,9 @@ WHITE_R2 = 0.01
 #: held-out / fitting mean squared simulation error above which a significant increase makes a model
 #: inadequate (healthy reference records: 0.85-1.13; a pressure sensor drifting 0.2 MPa over 8 s: 3.9)
 SIM_HOLDOUT = 1.1
+#: times a noise model's order may be raised (one step along ``ORDERS`` each) while its innovations keep a
+#: material dependence
+NOISE_RAISE = 2
 #: lags of the Ljung-Box test beyond the noise model's order
 LB_LAGS = 25
 #: two-sided coverage of the held-out gain's bootstrap interval; its lower end must be above zero
@@ -633,6 +637,29 @@ def _exogenous(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]]) -
             "r2_excess": float(np.max(r2) - U.shape[1] / T), "dependent": False}
 
 
+def _noise_model(data: _Data, blocks: list[np.ndarray], pred) -> tuple[NoiseModel, np.ndarray, np.ndarray]:
+    """The noise model of a model's residuals and its innovations on the fitting and held-out data.  Each
+    output's autoregression has the order AIC picks, raised (along ``ORDERS``) while its innovations keep a
+    significant and material dependence at lags beyond it (Box-Jenkins: a noise model is not done while its
+    errors are predictable; AIC alone stops short when many small correlations remain)."""
+    nm = fit_noise_model(blocks, data.outputs)
+    E_fit, E_hold = _innovations(data, nm, pred)
+    for _ in range(NOISE_RAISE):
+        low = {}
+        for i, o in enumerate(data.outputs):
+            order = int(nm.orders.get(o, nm.order))
+            lb = ljung_box(E_fit[i], LB_LAGS + order, df=LB_LAGS)
+            excess = max(float(lb["Q"]) - float(lb["df"]), 0.0) / max(E_fit.shape[1], 1)
+            higher = [p for p in NOISE_ORDERS if p > order]
+            if lb["p"] * len(data.outputs) < data.alpha and excess > WHITE_R2 and higher:
+                low[o] = higher[0]
+        if not low:
+            break
+        nm = fit_noise_model(blocks, data.outputs, min_orders={**nm.orders, **low})
+        E_fit, E_hold = _innovations(data, nm, pred)
+    return nm, E_fit, E_hold
+
+
 def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -> ModelState:
     pred = _simulate(data, res.params, timing)
     st = ModelState(res.params, free, res, pred, timing)
@@ -641,8 +668,7 @@ def _state(data: _Data, res: FitResult, free: tuple[str, ...], timing: Timing) -
     st.excess = _excess(data, pred)
     blocks = _blocks(data, pred, "fit")
     if all(np.all(np.isfinite(b)) for b in blocks):
-        st.noise = fit_noise_model(blocks, data.outputs)
-        E_fit, E_hold = _innovations(data, st.noise, pred)
+        st.noise, E_fit, E_hold = _noise_model(data, blocks, pred)
         st.wcost = float(np.sum(E_fit * E_fit))
         st.n_w = int(E_fit.size)
         st.adequacy = _adequacy(data, st.noise, E_fit, E_hold, _exogenous(data, st.noise, pred),

@@ -132,16 +132,18 @@ def _ar_fit(blocks: Sequence[np.ndarray], orders: Sequence[int]) -> tuple[int, n
 
 
 def fit_noise_model(blocks: Sequence[np.ndarray], outputs: Sequence[str], orders: Sequence[int] = ORDERS,
-                    max_order: int | None = None) -> NoiseModel:
+                    max_order: int | None = None, min_orders: dict[str, int] | None = None) -> NoiseModel:
     """A noise model of residual blocks ``[m, T_r]`` (one per record): an autoregression per output (order
-    by AIC) and the innovations' covariance across outputs."""
+    by AIC, at least ``min_orders[output]`` where given) and the innovations' covariance across outputs."""
     blocks = [np.asarray(b, dtype=float) for b in blocks]
     m = blocks[0].shape[0]
     T_min = min(b.shape[1] for b in blocks)
     cap = max_order if max_order is not None else max(orders)
     cap = min(cap, max(0, T_min // 20))
     cand = [p for p in orders if p <= cap] or [0]
-    per = [_ar_fit([b[i] for b in blocks], cand) for i in range(m)]
+    low = min_orders or {}
+    per = [_ar_fit([b[i] for b in blocks], [p for p in cand if p >= low.get(o, 0)] or [max(cand)])
+           for i, o in enumerate(outputs)]
     p = max(q for q, _, _ in per)
     A = np.zeros((p, m, m))
     for i, (q, c, _) in enumerate(per):
