@@ -14,8 +14,9 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    autoregression per output (order by AIC, raised along the grid while its
    errors stay materially predictable; innovations correlated across outputs)
    is fitted to the residuals on the fitting data; the residuals filtered by
-   it are normalised innovations, one-step-ahead prediction errors.  Every statistic below is computed on them (Box-Jenkins style:
-   output-error model, fitted noise model).
+   it are normalised innovations, one-step-ahead prediction errors.  Every
+   statistic below is computed on them (Box-Jenkins style: output-error model,
+   fitted noise model).
 4. **Adequacy** of a model: its innovations are white (Ljung-Box per output,
    degrees of freedom reduced by the autoregression's order; a significant
    dependence counts only when the errors' own past predicts over 1 % of
@@ -531,6 +532,17 @@ def _excess(data: _Data, pred: list[dict[str, np.ndarray]]) -> float:
     return max(total, 0.0)
 
 
+def _whiteness(e: np.ndarray, order: int) -> dict:
+    """Ljung-Box test of one output's prediction errors ``e`` at the ``LB_LAGS`` lags beyond its noise model's
+    ``order``, and the share of their variance their past predicts, in all (``r2``) and beyond chance
+    (``r2_excess``, ``(Q - df) / n``: white errors give ``E Q = df``); ``material`` above ``WHITE_R2``."""
+    lb = ljung_box(e, LB_LAGS + order, df=LB_LAGS)
+    n_e = max(e.size, 1)
+    r2_excess = max(float(lb["Q"]) - float(lb["df"]), 0.0) / n_e
+    return {"Q": lb["Q"], "df": lb["df"], "lags": lb["lags"], "p": lb["p"], "ar_order": order,
+            "r2": float(lb["Q"]) / n_e, "r2_excess": r2_excess, "material": bool(r2_excess > WHITE_R2)}
+
+
 def _simulation_holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
     """Per output: is the simulation's (output) error larger on the held-out tails than on the fitting data?
     One-sided test of the mean squared weighted error, Newey-West variances with a lag of at least 0.1 s (the
@@ -538,9 +550,10 @@ def _simulation_holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
     drifting during the record) leaves the one-step prediction errors white; the simulation shows it."""
     out = {}
     lag_min = int(round(0.1 / data.records[0].dt))
+    blocks = _blocks(data, pred, "all")
     for i, o in enumerate(data.outputs):
-        qf = np.concatenate([B[i, :n] ** 2 for B, n in zip(_blocks(data, pred, "all"), data.n_fit)])
-        qh = np.concatenate([B[i, n:] ** 2 for B, n in zip(_blocks(data, pred, "all"), data.n_fit)])
+        qf = np.concatenate([B[i, :n] ** 2 for B, n in zip(blocks, data.n_fit)])
+        qh = np.concatenate([B[i, n:] ** 2 for B, n in zip(blocks, data.n_fit)])
         if qh.size <= 10 or not (np.all(np.isfinite(qf)) and np.all(np.isfinite(qh))):
             out[o] = {"ratio": float("nan"), "z": 0.0, "p": 1.0, "material": False}
             continue
@@ -555,15 +568,7 @@ def _simulation_holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
 def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None,
               sim: dict | None = None) -> dict:
     """Are the one-step prediction errors white, and no larger on held-out data than on fitting data?"""
-    white = {}
-    for i, o in enumerate(data.outputs):
-        order = int(nm.orders.get(o, nm.order))
-        lb = ljung_box(E_fit[i], LB_LAGS + order, df=LB_LAGS)
-        n_e = max(E_fit.shape[1], 1)
-        r2 = float(lb["Q"]) / n_e
-        r2_excess = max(float(lb["Q"]) - float(lb["df"]), 0.0) / n_e  # beyond what chance gives (E Q = df)
-        white[o] = {"Q": lb["Q"], "df": lb["df"], "lags": lb["lags"], "p": lb["p"], "ar_order": order,
-                    "r2": r2, "r2_excess": r2_excess, "material": bool(r2_excess > WHITE_R2)}
+    white = {o: _whiteness(E_fit[i], int(nm.orders.get(o, nm.order))) for i, o in enumerate(data.outputs)}
     q_fit = np.sum(E_fit * E_fit, axis=0)
     q_hold = np.sum(E_hold * E_hold, axis=0)
     if q_hold.size > 10:
@@ -648,10 +653,9 @@ def _noise_model(data: _Data, blocks: list[np.ndarray], pred) -> tuple[NoiseMode
         low = {}
         for i, o in enumerate(data.outputs):
             order = int(nm.orders.get(o, nm.order))
-            lb = ljung_box(E_fit[i], LB_LAGS + order, df=LB_LAGS)
-            excess = max(float(lb["Q"]) - float(lb["df"]), 0.0) / max(E_fit.shape[1], 1)
+            w = _whiteness(E_fit[i], order)
             higher = [p for p in NOISE_ORDERS if p > order]
-            if lb["p"] * len(data.outputs) < data.alpha and excess > WHITE_R2 and higher:
+            if w["p"] * len(data.outputs) < data.alpha and w["material"] and higher:
                 low[o] = higher[0]
         if not low:
             break
@@ -982,16 +986,7 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
 def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, float]],
                  timing: Timing) -> list[dict[str, float]]:
     """Starts sorted by weighted cost on the fitting data, all evaluated in one batch per record."""
-    model = data.model
-    P = np.ascontiguousarray(np.array([model.vector(ps.update(s)) for s in starts]))
-    cost = np.zeros(len(starts))
-    for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
-        S0 = model.initial_state(P, init)  # each row from its own sensor errors
-        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
-        for o in data.outputs:
-            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
-            cost += np.sum(e * e, axis=1)
-    cost = np.where(np.isfinite(cost), cost, np.inf)
+    cost = _fit_costs(data, [ps.update(s) for s in starts], timing)
     return [dict(starts[i]) for i in np.argsort(cost, kind="stable")]
 
 
@@ -1001,7 +996,7 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
     P = np.ascontiguousarray(np.array([model.vector(ps) for ps in sets]))
     cost = np.zeros(len(sets))
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
-        S0 = model.initial_state(P, init)
+        S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
         for o in data.outputs:
             e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
@@ -1220,7 +1215,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     check_names(model.EFFECTS, catalogue, f"effect of {model.name}")
     # an effect that free parameters mimic cannot be told from them: not screened, said in the verdict
     mimicked = {e: model.EFFECTS[e].mimicry for e in catalogue
-                if set(getattr(model.EFFECTS[e], "mimicked_by", ())) & set(free)}
+                if set(model.EFFECTS[e].mimicked_by) & set(free)}
     catalogue = [e for e in catalogue if e not in mimicked]
     closed = model.drive_signal(records[0].signals, drive)[0] == "x_ref"
     timing_candidate = test_timing and closed and (candidates is None)
