@@ -194,3 +194,28 @@ def test_noise_levels_are_configurable_and_checked():
         OnlineTracker(noise={"pB": -1.0})
     with pytest.raises(ParameterError, match="outside its physical bounds"):
         OnlineTracker(start={"wn": 10 * M.NOMINAL["wn"]})
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4, 5, 8])
+def test_gate_quantiles_are_scipys(k):
+    from scipy import stats
+
+    from twin.online import chi2
+
+    for p in (1e-300, 1e-50, 1e-9, 1e-3, 0.05, 0.5):
+        assert chi2.isf(p, k) == pytest.approx(stats.chi2.isf(p, k), rel=1e-12)
+    assert chi2.isf(0.0, k) == float("inf") and chi2.isf(1.0, k) == 0.0
+    with pytest.raises(ValueError, match="positive integer"):
+        chi2.isf(0.1, 0)
+
+
+def test_default_sigma_weights_are_filterpys_merwe_points():
+    from filterpy.kalman import MerweScaledSigmaPoints
+
+    from twin.online.sigma import MerweWeights, spread
+
+    for n, a, b, kap in ((14, 0.3, 2.0, 0.0), (9, 1e-3, 2.0, 1.0), (20, 0.5, 0.0, -3.0)):
+        ours_, theirs = MerweWeights(n, a, b, kap), MerweScaledSigmaPoints(n, alpha=a, beta=b, kappa=kap)
+        np.testing.assert_array_equal(ours_.Wm, theirs.Wm)
+        np.testing.assert_array_equal(ours_.Wc, theirs.Wc)
+        assert spread(ours_) == pytest.approx(a * a * (n + kap), rel=1e-12)

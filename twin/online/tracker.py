@@ -43,11 +43,9 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from filterpy.kalman import JulierSigmaPoints, MerweScaledSigmaPoints
-from scipy import stats
 
 from replay.base import Samples
-from twin.online import ukf
+from twin.online import chi2, sigma, ukf
 from twin.errors import DataError, FilterError, ParameterError
 from twin.models import get_model, trackable_models
 from twin.models import msp25 as M
@@ -147,8 +145,9 @@ class OnlineTracker:
     standard deviations (SI) per output; ``timing``: the loop's
     :class:`~twin.models.base.Timing` (or its spelling ``"continuous"``,
     ``"digital:5000"``); ``guard``: overrides of :data:`DEFAULT_GUARD`.
-    ``points``: a filterpy sigma-point object (``MerweScaledSigmaPoints`` from
-    ``alpha, beta, kappa`` by default, or ``JulierSigmaPoints``).
+    ``points``: a sigma-point object (:class:`~twin.online.sigma.SigmaPoints`: Merwe's scaled points
+    from ``alpha, beta, kappa`` by default; filterpy's ``MerweScaledSigmaPoints`` or
+    ``JulierSigmaPoints`` are taken as they are).
     """
 
     def __init__(self, model: str = "msp25", params: Mapping[str, float] | None = None,
@@ -205,14 +204,12 @@ class OnlineTracker:
         self.nmod = 6 + p
         self.n = n = 6 + p + q
         self.alpha, self.beta, self.kappa = alpha, beta, kappa
-        self.points = points if points is not None else MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
-        if isinstance(self.points, MerweScaledSigmaPoints):
-            spread = self.points.alpha**2 * (n + self.points.kappa)
-        elif isinstance(self.points, JulierSigmaPoints):
-            spread = n + self.points.kappa
-        else:
-            raise ParameterError(f"sigma points {type(self.points).__name__}: the compiled filter takes "
-                                 "filterpy's MerweScaledSigmaPoints or JulierSigmaPoints")
+        self.points = points if points is not None else sigma.MerweWeights(n, alpha=alpha, beta=beta, kappa=kappa)
+        try:
+            spread = sigma.spread(self.points)
+        except (AttributeError, IndexError, TypeError, ValueError) as e:
+            raise ParameterError(f"sigma points {type(self.points).__name__}: the compiled filter needs an object "
+                                 f"with n, Wm and Wc, as filterpy's MerweScaledSigmaPoints ({e})") from None
         if self.points.n != n:
             raise ParameterError(f"sigma points for n={self.points.n}, the filter has n={n} states "
                                  f"(6 model states, {p} parameters, {q} sensor-noise states)")
@@ -234,7 +231,7 @@ class OnlineTracker:
                              dtype=np.int64)
         self.excite_thresh = np.array(excite, dtype=float)
         self.tau_excite = tau_excite
-        self.gate = float(stats.chi2.isf(gate_p, len(self.outputs)))
+        self.gate = chi2.isf(gate_p, len(self.outputs))
         self.max_gated = int(max_gated)
         g = {**DEFAULT_GUARD, **{"adapt": 1.0 if adapt_noise else 0.0}, **dict(guard or {})}
         unknown = set(g) - set(_GUARD_ORDER)
