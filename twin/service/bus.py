@@ -601,14 +601,16 @@ class AlarmSubscriber(_Declarations):
         self._on_report = on_report
         self._delivered: dict[tuple[str, int], AlarmEvent] = {}
         self._conflicted: set[str] = set()
+        self._reported: set[str] = set()
         self.verification: dict[tuple[str, int], str] = {}
         """Per delivered ``(rig, seq)``: ``verified`` or ``unverified``."""
         self.reports: list[str] = []
         """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``), in order."""
         self.forged = 0
-        """Alarms (live or history replies) that did not verify with their rig's key."""
+        """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
         self.conflicts = 0
-        """History queries whose repliers disagreed, plus live alarms different from the one delivered under their number."""
+        """Disagreements of history repliers (each reported once), plus live alarms different from the one
+        delivered under their number."""
         self.since_seq = since_seq
         self.since_t_ns = since_t_ns
         self._session = session
@@ -736,13 +738,20 @@ class AlarmSubscriber(_Declarations):
         """A number seen again: the same alarm is a harmless duplicate, a different one a conflict."""
         first = self._delivered.get((event.rig, event.seq))
         if first is not None and first != event:
-            self.conflicts += 1
             self._report("conflict", f"rig {event.rig} seq {event.seq}: a different alarm under a number already "
                          f"delivered ({first.parameter} {first.level} {first.kind} delivered, "
                          f"{event.parameter} {event.level} {event.kind} now); not delivered")
 
-    def _report(self, kind: str, text: str) -> None:
+    def _report(self, kind: str, text: str, count: int = 1, once: bool = False) -> None:
+        """Report one line; ``once``: not again when the same line was reported (a history asked again)."""
         line = f"{kind}: {text}"
+        if once and line in self._reported:
+            return
+        self._reported.add(line)
+        if kind == "forged":
+            self.forged += count
+        elif kind == "conflict":
+            self.conflicts += count
         self.reports.append(line)
         log.warning("%s", line)
         if self._on_report is not None:
@@ -751,7 +760,6 @@ class AlarmSubscriber(_Declarations):
     def _admit(self, event: AlarmEvent, verdict: Verdict, where: str) -> bool:
         """Whether a payload may be looked at further; a forged one is reported, counted and dropped."""
         if verdict.status == FORGED:
-            self.forged += 1
             self.rejected += 1
             self._report("forged", f"rig {event.rig} seq {event.seq} on {where}: {verdict.reason}; not accepted")
             return False
@@ -784,7 +792,8 @@ class AlarmSubscriber(_Declarations):
                     assert reply.err is not None  # a reply is either ok or an error
                     log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
                     continue
-                replier = "queryable " + (str(reply.replier_id) if reply.replier_id is not None else "(unknown)")
+                who = reply.replier_id  # a session and an entity in it: two queryables are two repliers
+                replier = "queryable " + (f"{who.zid}:{who.eid}" if who is not None else "(unknown)")
                 try:
                     data = json.loads(reply.ok.payload.to_string())
                     event = AlarmEvent.from_dict(data)
@@ -823,22 +832,19 @@ class AlarmSubscriber(_Declarations):
         where = {r: RigKeys(r).history for r in per_rig}
         for (kind, replier, rig), seqs in forged.items():
             self.rejected += len(seqs)
-            if kind == "forged":
-                self.forged += len(seqs)
             self._report(kind, f"rig {rig} seq {_ranges(seqs)} in replies of {replier} on {where[rig]}: "
-                         f"{reasons[(kind, replier, rig)]}; not accepted")
+                         f"{reasons[(kind, replier, rig)]}; not accepted", len(seqs), once=True)
         out: list[tuple[AlarmEvent, str]] = []
         for rig, by_replier in per_rig.items():
             views = {replier: frozenset(alarms.items()) for replier, alarms in by_replier.items()}
             agree = len(set(views.values())) <= 1
             if not agree:
-                self.conflicts += 1
                 self._conflicted.add(rig)
                 names = sorted(views)
                 numbers = sorted(set().union(*(set(a) for a in by_replier.values())))
                 self._report("conflict", f"rig {rig}: the history on {where[rig]} is answered differently by "
                              f"{len(names)} repliers ({', '.join(names)}; seq {_ranges(numbers)}); not merged: "
-                             "only alarms that verify with the rig's key are taken")
+                             "only alarms that verify with the rig's key are taken", once=True)
             else:
                 self._conflicted.discard(rig)
             seqs = sorted(set().union(*(set(a) for a in by_replier.values())))
@@ -848,9 +854,8 @@ class AlarmSubscriber(_Declarations):
                 if len(verified) == 1:
                     out.append((verified[0], VERIFIED))
                 elif len(verified) > 1:
-                    self.conflicts += 1
                     self._report("conflict", f"rig {rig} seq {seq}: {len(verified)} different alarms that all "
-                                 "verify with the rig's key; none delivered")
+                                 "verify with the rig's key; none delivered", once=True)
                 elif agree and len(versions) == 1:
                     out.append((next(iter(versions)), UNVERIFIED))
         return out
