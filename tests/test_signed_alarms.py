@@ -216,6 +216,30 @@ def test_forged_alarm_with_the_next_seq_is_reported_and_all_real_alarms_arrive(
     assert "does not verify with the key of rig 'r1'" in forged_lines[1] and forged_lines[1] == forged_lines[2]
 
 
+def test_without_keys_a_forged_next_seq_is_checked_against_the_live_twins_history(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal
+) -> None:
+    """No keys anywhere: the live twin's history (journaled before put) still tells the forged number."""
+    with connected(endpoint) as twin_session, connected(endpoint) as forger_session, \
+            AlarmSubscriber(hub, "r1") as sub, TwinPublisher(twin_session, "r1", journal) as twin:
+        assert twin.wait_for_alarm_subscribers(WAIT_S)
+        real = [twin.publish_alarm(alarm("r1", 1))]
+        got = [sub.recv(timeout=WAIT_S)]
+        forger = forger_session.declare_publisher("fpdd/r1/alarm")
+        wait_matching(forger)
+        forger.put(event_to_json(alarm("r1", 50, seq=2)))  # before the real seq 2
+        got += pump_until(sub, lambda: sub.forged == 1)
+        real += [twin.publish_alarm(alarm("r1", i)) for i in (2, 3, 4, 5)]
+        forger.put(event_to_json(alarm("r1", 51, seq=6)))  # the next number again, after the real ones
+        got += [sub.recv(timeout=WAIT_S) for _ in range(4)]
+        pump_until(sub, lambda: sub.forged == 2)
+        forger.undeclare()
+    assert got == real and {sub.verification[("r1", e.seq)] for e in got} == {UNVERIFIED}
+    assert sub.reports == [f"forged: rig r1 seq {n} on fpdd/r1/alarm: not in the history of the rig's live twin "
+                           "(not journaled by it); not accepted" for n in (2, 6)]
+    assert sub.missed == []
+
+
 def test_without_keys_a_different_alarm_under_a_delivered_number_is_a_conflict(
     hub: zenoh.Session, endpoint: str, journal: AlarmJournal
 ) -> None:
