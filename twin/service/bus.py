@@ -101,6 +101,8 @@ KEY_PREFIX = "fpdd"
 """First chunk of every key of the service."""
 
 _JSON = zenoh.Encoding.APPLICATION_JSON
+_KEEP_DELIVERED = 100_000
+"""Delivered alarms an :class:`AlarmSubscriber` remembers (to tell a conflicting duplicate from a plain one)."""
 _RIG_RE = re.compile(RIG_PATTERN)
 
 
@@ -378,15 +380,16 @@ class TwinPublisher(_Declarations):
         """
         self._check_event_rig(event)
         try:
-            self._alarm_pub.put(event_to_json(self._signed(event)))
+            self._alarm_pub.put(self._payload(event))
         except zenoh.ZError as exc:
             raise SourceError(
                 f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({zenoh_text(exc)}); "
                 f"subscribers will get it from {self.keys.history}"
             ) from exc
 
-    def _signed(self, event: AlarmEvent) -> AlarmEvent:
-        return event if self._signer is None else self._signer.sign(event)
+    def _payload(self, event: AlarmEvent) -> str:
+        """The alarm's JSON payload, signed when the rig has a key."""
+        return event_to_json(event) if self._signer is None else self._signer.payload(event)
 
     def put_payload(self, what: str, payload: str) -> None:
         """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value."""
@@ -456,7 +459,7 @@ class TwinPublisher(_Declarations):
                 query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
                 return
             for event in events:
-                query.reply(self.keys.history, event_to_json(self._signed(event)), encoding=_JSON)
+                query.reply(self.keys.history, self._payload(event), encoding=_JSON)
 
 
 def _ranges(numbers: list[int]) -> str:
@@ -737,6 +740,10 @@ class AlarmSubscriber(_Declarations):
         return True
 
     def _hand_over(self, event: AlarmEvent, status: str) -> None:
+        if len(self._delivered) >= _KEEP_DELIVERED:  # a subscriber that runs for years: forget the oldest half
+            for key in list(self._delivered)[: _KEEP_DELIVERED // 2]:
+                del self._delivered[key]
+                self.verification.pop(key, None)
         self._delivered[(event.rig, event.seq)] = event
         self.verification[(event.rig, event.seq)] = status
         self._ready.append(event)

@@ -95,19 +95,32 @@ class Signer:
         self.path = path
         self.fingerprint = fingerprint(private_key.public_key())
 
-    def sign(self, event: AlarmEvent) -> AlarmEvent:
-        """``event`` with its ``signature`` set (over every other field of its payload)."""
-        from dataclasses import replace
+    def signature(self, event: AlarmEvent) -> str:
+        """The base64 signature of ``event`` (over every field of its payload but ``signature``)."""
+        from replay import jsonio
 
         if event.rig != self.rig:
             raise ConfigError(f"{self.path}: the signing key of rig {self.rig!r} cannot sign an alarm of rig "
                               f"{event.rig!r}")
-        from twin.online.events import event_to_json
-
+        data = event.to_dict()
+        data.pop(SIGNATURE_FIELD, None)
         # What is signed is what goes on the wire, read back as a subscriber reads it.
-        payload = json.loads(event_to_json(replace(event, signature="")))
-        signature = self._key.sign(canonical(payload))
-        return replace(event, signature=base64.b64encode(signature).decode("ascii"))
+        payload = json.loads(jsonio.dumps(data, indent=None, sort_keys=True))
+        return base64.b64encode(self._key.sign(canonical(payload))).decode("ascii")
+
+    def payload(self, event: AlarmEvent) -> str:
+        """The signed JSON payload of ``event`` (what is put and what a history reply carries)."""
+        from replay import jsonio
+
+        data = event.to_dict()
+        data[SIGNATURE_FIELD] = self.signature(event)
+        return jsonio.dumps(data, indent=None, sort_keys=True)
+
+    def sign(self, event: AlarmEvent) -> AlarmEvent:
+        """``event`` with its ``signature`` set."""
+        from dataclasses import replace
+
+        return replace(event, signature=self.signature(event))
 
 
 def load_signer(path: str | Path, rig: str) -> Signer:
