@@ -164,6 +164,16 @@ def test_keys_command_files_modes_and_refusals(tmp_path: Path, capsys: pytest.Ca
         TrustStore(directory)
     with pytest.raises(ConfigError, match="no <rig>.pub public key in the trust store"):
         TrustStore(tmp_path)
+    capsys.readouterr()
+    bad = {("keys", "init", "--rig", "a/b", "--dir", str(directory)): "--rig: 'a/b' is not a valid rig id",
+           ("keys", "show", str(tmp_path / "none.pub")): "none.pub: cannot read the key (No such file or directory)",
+           ("keys", "show", str(directory / "bad.pub")): "bad.pub: not a PEM key",
+           ("alarms", "--keys", str(tmp_path / "none"), "--connect", "tcp/127.0.0.1:1"):
+               "none: cannot read the trust store (No such file or directory)"}
+    for argv, message in bad.items():
+        assert twin_main(list(argv)) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and message in err and "Traceback" not in err, (argv, err)
 
 
 def test_rigs_toml_signing_keys(keys: Path, tmp_path: Path) -> None:
