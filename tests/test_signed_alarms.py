@@ -12,7 +12,10 @@ import argparse
 import base64
 import json
 import os
+import re
 import stat
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -174,6 +177,20 @@ def test_keys_command_files_modes_and_refusals(tmp_path: Path, capsys: pytest.Ca
         assert twin_main(list(argv)) == 2, argv
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and message in err and "Traceback" not in err, (argv, err)
+
+
+def test_the_deploy_readme_key_commands_run_as_written(tmp_path: Path) -> None:
+    readme = (Path(__file__).parent.parent / "deploy" / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## Signed alarms", 1)[1].split("\n## ", 1)[0]
+    script = "\n".join(re.findall(r"```sh\n(.*?)```", section, re.DOTALL))
+    env = {**os.environ, "PATH": str(Path(sys.executable).parent) + os.pathsep + os.environ["PATH"]}
+    done = subprocess.run(["bash", "-euo", "pipefail", "-c", script], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    shown = done.stdout.splitlines()[-2:]  # twin keys show: the private and the public file
+    assert [line.split(", ")[-1] for line in shown][0] == [line.split(", ")[-1] for line in shown][1]
+    assert shown[0].startswith("keys/msp25-hall1-a.key: rig msp25-hall1-a, private key, SHA256:")
+    assert TrustStore(tmp_path / "keys").rigs == ["msp25-hall1-a", "msp25-hall1-b"]
 
 
 def test_rigs_toml_signing_keys(keys: Path, tmp_path: Path) -> None:
