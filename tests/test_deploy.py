@@ -226,6 +226,7 @@ def test_the_readme_try_it_commands_run_as_written(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr
     got = AlarmEvent.from_dict(json.loads((tmp_path / "alarm.json").read_text()))
     assert (got.rig, got.parameter, got.seq) == (RIG, "Ffric", 1) and got.level in ("warning", "alarm")
+    assert json.loads((tmp_path / "alarm.json").read_text())["verification"] == "verified"  # signed by the service
     assert "Ffric" in done.stdout  # the second twin alarms printed the history
     serve_log = (tmp_path / "serve.log").read_text()
     assert "twin serve: 1 rig(s)" in serve_log and "zenoh client" in serve_log and "Traceback" not in serve_log

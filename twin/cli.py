@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "diagnose": ("twin.commands.diagnose", "add_arguments", "run",
                  "show what the simulation gets wrong, name the cause, measure the gain"),
     "alarms": ("twin.commands.alarms", "add_arguments", "run", "print drift alarms as they come, history first"),
+    "keys": ("twin.commands.keys", "add_arguments", "run", "make a rig's alarm-signing key pair (Ed25519)"),
     "serve": ("twin.commands.serve", "add_arguments", "run", "run the online twin for one or more rigs"),
     "demo": ("twin.commands.demo", "add_demo_arguments", "run_demo",
              "end-to-end demo: simulate a wearing rig, track it, alarm over Zenoh"),
@@ -60,7 +61,7 @@ def jit_note(command: str) -> str | None:
     import glob
     import os
 
-    if command in ("params", "alarms", "top"):
+    if command in ("params", "alarms", "top", "keys"):
         return None
     here = os.path.join(os.path.dirname(__file__), "models", "__pycache__")
     if glob.glob(os.path.join(here, "msp25.*.nbi")):

@@ -1,4 +1,12 @@
-"""``twin alarms``: drift alarms as they come, history first (library: :mod:`twin.service.bus`)."""
+"""``twin alarms``: drift alarms as they come, history first (library: :mod:`twin.service.bus`).
+
+With ``--keys DIR`` (a trust store of ``<rig>.pub`` files, :mod:`twin.service.signing`) every
+alarm of a rig with a key is verified: each printed line says ``verified``; a forged one is
+not printed, a ``forged: ...`` line goes to stderr instead. Alarms of rigs without a key are
+printed marked ``unverified`` (refused with ``--require-signed``). Two history queryables that
+disagree are reported as ``conflict: ...`` on stderr and never merged. ``--json`` adds
+``"verification"`` to each alarm object.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +20,9 @@ from pathlib import Path
 import zenoh
 
 from replay.argtypes import non_negative_seconds, positive_int, positive_seconds
-from twin.errors import SourceError
-from twin.online.events import event_to_json, format_alarm
+from replay import jsonio
+from twin.errors import ConfigError, SourceError
+from twin.online.events import format_alarm
 from twin.service.bus import AlarmSubscriber, RigKeys, live_twins
 from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
 
@@ -83,7 +92,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--zenoh-config", type=Path, metavar="FILE",
         help="Zenoh JSON5 configuration (TLS, credentials), e.g. deploy/twin-peer.json5",
     )
-    parser.add_argument("--json", action="store_true", help="print one AlarmEvent JSON object per line")
+    parser.add_argument(
+        "--keys", type=Path, metavar="DIR",
+        help="trust store: a directory of <rig>.pub public keys (twin keys init); alarms of those rigs are "
+        "verified and forged ones refused (reported on stderr)",
+    )
+    parser.add_argument(
+        "--require-signed", action="store_true",
+        help="refuse alarms of rigs without a key in --keys too (default: print them marked unverified)",
+    )
+    parser.add_argument("--json", action="store_true",
+                        help="print one AlarmEvent JSON object per line, with \"verification\": verified|unverified")
     parser.add_argument("--count", type=positive_int, metavar="N", help="exit after N alarms")
     parser.add_argument(
         "--timeout", type=positive_seconds, metavar="S", help="exit after S seconds (default: run until stopped)"
@@ -114,9 +133,15 @@ def run(args: argparse.Namespace) -> int:
 
     :param args: parsed by a parser set up with :func:`add_arguments`.
     :returns: exit status: 0, or 1 when ``--count`` alarms did not arrive within ``--timeout``.
+        Forgeries and conflicts are reported on stderr and do not change the status.
     :raises ConfigError: a bad option or Zenoh file (one line naming it).
     :raises SourceError: the session cannot be opened, or no twin is reachable within ``--wait``.
     """
+    from twin.service.signing import TrustStore
+
+    if args.require_signed and args.keys is None:
+        raise ConfigError("--require-signed: needs --keys DIR (the rigs' public keys)")
+    trust = TrustStore(args.keys) if args.keys is not None else None
     scouting = True if not args.connect and args.zenoh_config is None else None
     for e in args.connect:
         check_endpoint(e, "--connect")
@@ -140,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
             since_seq=args.since_seq,
             since_t_ns=args.since,
             history=not args.no_history,
+            trust=trust,
+            require_signed=args.require_signed,
+            on_report=lambda _kind, line: print(line, file=sys.stderr, flush=True),
         ) as subscriber:
             reported = 0
             while args.count is None or printed < args.count:
@@ -153,7 +181,11 @@ def run(args: argparse.Namespace) -> int:
                 for rig, first, last in subscriber.missed[reported:]:
                     print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
                 reported = len(subscriber.missed)
-                line = event_to_json(event) if args.json else format_alarm(event)
+                checked = subscriber.verification.get((event.rig, event.seq), "unverified")
+                if args.json:
+                    line = jsonio.dumps({**event.to_dict(), "verification": checked}, indent=None, sort_keys=True)
+                else:
+                    line = f"{format_alarm(event)} [{checked}]"
                 print(line, flush=True)
                 printed += 1
     return 1 if args.count is not None and printed < args.count else 0

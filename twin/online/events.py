@@ -248,6 +248,8 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "message": {"type": "string", "description": "one human-readable line"},
         "unit": {"type": "string", "description": "SI unit of estimate, std, baseline and band, e.g. 'N', "
                                                   "'m^2', 'rad/s', '1'"},
+        "signature": {"type": "string", "description": "optional: base64 Ed25519 signature of the rig's key "
+                      "over the canonical JSON of every other field (twin.service.signing)"},
     },
 }
 
@@ -312,6 +314,8 @@ class AlarmEvent(_FromJson):
     :ivar statistic: value of the sequential test when the event fired [-].
     :ivar message: one human-readable line.
     :ivar seq: per-rig sequence number assigned by the journal; 0 = not journaled yet.
+    :ivar signature: base64 Ed25519 signature of the rig's key over every other field
+        (:mod:`twin.service.signing`); ``""``: unsigned (the field is then left out of the payload).
     """
 
     rig: str
@@ -329,6 +333,7 @@ class AlarmEvent(_FromJson):
     message: str = ""
     seq: int = 0
     unit: str = ""
+    signature: str = ""
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
@@ -349,7 +354,7 @@ class AlarmEvent(_FromJson):
 
     def to_dict(self) -> dict[str, Any]:
         """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/alarm``)."""
-        return {
+        data = {
             "rig": self.rig,
             "parameter": self.parameter,
             "level": self.level,
@@ -366,6 +371,9 @@ class AlarmEvent(_FromJson):
             "message": self.message,
             "unit": self.unit,
         }
+        if self.signature:  # an unsigned alarm's payload is as before signatures existed
+            data["signature"] = self.signature
+        return data
 
     @classmethod
     def from_dict(cls, data: Any) -> Self:

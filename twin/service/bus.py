@@ -32,6 +32,11 @@ Delivery guarantees and how they are obtained:
   from the history, (4) re-syncs from the history when a twin's liveliness
   token (re)appears (a twin or a router came back), and (5) catches a lost
   *last* alarm through the ``alarm_seq`` counter that every status carries.
+* Who published it: with a per-rig key (:mod:`twin.service.signing`) every
+  alarm put and every history reply carries an Ed25519 signature over all its
+  fields; an :class:`AlarmSubscriber` with a trust store refuses and reports a
+  forged one before it can move a sequence number, and never merges history
+  queryables that disagree. This holds on a plain peer bus with no router.
 * Estimates and statuses go through ``zenoh.ext`` advanced publishers with a
   one-sample cache (late ``zenoh.ext.AdvancedSubscriber`` with a
   ``HistoryConfig`` gets the current value), and the latest value is also
@@ -78,6 +83,7 @@ from twin.online.events import (
     format_alarm,
 )
 from twin.service.journal import AlarmJournal
+from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, Signer, TrustStore, Verdict
 
 __all__ = [
     "KEY_PREFIX",
@@ -95,6 +101,8 @@ KEY_PREFIX = "fpdd"
 """First chunk of every key of the service."""
 
 _JSON = zenoh.Encoding.APPLICATION_JSON
+_KEEP_DELIVERED = 100_000
+"""Delivered alarms an :class:`AlarmSubscriber` remembers (to tell a conflicting duplicate from a plain one)."""
 _RIG_RE = re.compile(RIG_PATTERN)
 
 
@@ -254,6 +262,8 @@ class TwinPublisher(_Declarations):
     :param journal: the durable journal alarms are written to before publishing.
     :param heartbeat_s: period of the advanced publishers' sporadic heartbeat [s]
         (lets advanced subscribers notice a missed last estimate/status).
+    :param signer: the rig's private key (:func:`twin.service.signing.load_signer`): every alarm put and
+        every history reply carries its signature. ``None``: alarms go out unsigned.
     :raises ConfigError: ``rig`` is not a valid rig id.
     :raises SourceError: a declaration failed (session closed, access denied).
     """
@@ -266,11 +276,15 @@ class TwinPublisher(_Declarations):
         *,
         history: History | None = None,
         heartbeat_s: float = 1.0,
+        signer: Signer | None = None,
     ) -> None:
         self.rig = _check_rig(rig, wildcard=False)
         self.keys = RigKeys(rig)
         self._session = session
         self._journal = journal
+        if signer is not None and signer.rig != rig:
+            raise ConfigError(f"{signer.path}: the signing key of rig {signer.rig!r} given to the twin of rig {rig!r}")
+        self._signer = signer
         if history is None and journal is None:
             raise ConfigError(f"rig {rig!r}: a twin publisher needs a journal or a history to answer from")
         self._history: History = history if history is not None else journal  # type: ignore[assignment]
@@ -366,12 +380,16 @@ class TwinPublisher(_Declarations):
         """
         self._check_event_rig(event)
         try:
-            self._alarm_pub.put(event_to_json(event))
+            self._alarm_pub.put(self._payload(event))
         except zenoh.ZError as exc:
             raise SourceError(
                 f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({zenoh_text(exc)}); "
                 f"subscribers will get it from {self.keys.history}"
             ) from exc
+
+    def _payload(self, event: AlarmEvent) -> str:
+        """The alarm's JSON payload, signed when the rig has a key."""
+        return event_to_json(event) if self._signer is None else self._signer.payload(event)
 
     def put_payload(self, what: str, payload: str) -> None:
         """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value."""
@@ -441,7 +459,18 @@ class TwinPublisher(_Declarations):
                 query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
                 return
             for event in events:
-                query.reply(self.keys.history, event_to_json(event), encoding=_JSON)
+                query.reply(self.keys.history, self._payload(event), encoding=_JSON)
+
+
+def _ranges(numbers: list[int]) -> str:
+    """``1..5, 8`` for [1, 2, 3, 4, 5, 8]."""
+    runs: list[list[int]] = []
+    for n in sorted(set(numbers)):
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(lo) if lo == hi else f"{lo}..{hi}" for lo, hi in runs)
 
 
 def _int_parameter(parameters: zenoh.Parameters, name: str) -> int | None:
@@ -518,7 +547,9 @@ class AlarmSubscriber(_Declarations):
     * while the rig's twin is alive (its liveliness token is present), a live
       alarm or a status ``alarm_seq`` that its history does not hold is
       rejected (:attr:`rejected`, logged): it was not journaled by the twin,
-      so it is forged or corrupt, and it moves no sequence number;
+      so it is forged or corrupt, and it moves no sequence number; an alarm
+      no key vouches for is checked so even when it carries the number owed
+      (the twin journals before it puts, so the history holds the real one);
     * with no twin alive nothing can be checked: the alarm is delivered (a
       real alarm is never dropped) and the numbers in between are recorded in
       :attr:`missed`; when a twin appears (liveliness), the history is
@@ -530,9 +561,32 @@ class AlarmSubscriber(_Declarations):
     :param rig: a rig id or ``"*"`` for all rigs.
     :param since_seq: deliver only ``seq >= since_seq`` (per rig).
     :param since_t_ns: deliver only alarms with ``t_ns >= since_t_ns`` from the history.
+    Signatures (:mod:`twin.service.signing`): with a ``trust`` store, every live
+    alarm and every history reply of a rig that has a key there is verified
+    before anything else looks at it. One that does not verify (or is unsigned)
+    is *forged*: reported (:attr:`reports`, ``on_report``), counted in
+    :attr:`rejected`, and it moves no sequence number, so the real alarm of that
+    number is still delivered when it comes. A validly signed alarm is real:
+    it is delivered even when the history does not (yet) hold it. Alarms of a
+    rig without a key are delivered as ``unverified`` (rejected with
+    ``require_signed``). :attr:`verification` says, per delivered ``(rig, seq)``,
+    ``verified`` or ``unverified``.
+
+    Several history queryables (``QueryTarget.ALL``) are never merged: their
+    replies are grouped by replier; when two repliers disagree on a rig
+    (different alarms under one number, or numbers only one of them has), that
+    is a *conflict*, reported once per query, and only verified alarms are taken
+    from that query (with no keys: nothing, the bus cannot tell which replier
+    is the twin). A different alarm arriving live under a number already
+    delivered is reported as a conflict too (it is not delivered).
+
     :param history: fetch the history first (default). With ``False`` only live
         alarms are delivered; gaps between them are still filled.
     :param query_timeout: timeout of each history query [s].
+    :param trust: the public keys to verify with (``None``: nothing is verified).
+    :param require_signed: reject alarms of rigs without a key in ``trust`` too.
+    :param on_report: called with ``(kind, line)`` for every ``forged``, ``conflict`` or
+        ``unverified`` (rejected under ``require_signed``) report, on the consumer's thread.
     :raises ConfigError: ``rig`` is not a rig id or ``"*"``.
     :raises SourceError: the subscription failed (session closed, access denied).
     """
@@ -546,9 +600,27 @@ class AlarmSubscriber(_Declarations):
         *,
         history: bool = True,
         query_timeout: float = 5.0,
+        trust: TrustStore | None = None,
+        require_signed: bool = False,
+        on_report: Callable[[str, str], None] | None = None,
     ) -> None:
         self.keys = RigKeys(rig)
         self.rig = rig
+        self._trust = trust if trust is not None else TrustStore()
+        self._require_signed = require_signed
+        self._on_report = on_report
+        self._delivered: dict[tuple[str, int], AlarmEvent] = {}
+        self._conflicted: set[str] = set()
+        self._reported: set[str] = set()
+        self.verification: dict[tuple[str, int], str] = {}
+        """Per delivered ``(rig, seq)``: ``verified`` or ``unverified``."""
+        self.reports: list[str] = []
+        """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``), in order."""
+        self.forged = 0
+        """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
+        self.conflicts = 0
+        """Disagreements of history repliers (each reported once), plus live alarms different from the one
+        delivered under their number."""
         self.since_seq = since_seq
         self.since_t_ns = since_t_ns
         self._session = session
@@ -579,8 +651,8 @@ class AlarmSubscriber(_Declarations):
             self.close()
             raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
         if history:
-            for event in sorted(self._query(rig, since_seq, since_t_ns), key=lambda e: (e.rig, e.seq)):
-                self._accept(event)
+            for event, status in sorted(self._query(rig, since_seq, since_t_ns), key=lambda p: (p[0].rig, p[0].seq)):
+                self._accept(event, status)
 
     # ------------------------------------------------------------------ life cycle
 
@@ -597,13 +669,14 @@ class AlarmSubscriber(_Declarations):
 
     def _on_alarm(self, sample: zenoh.Sample) -> None:
         try:
-            event = AlarmEvent.from_dict(json.loads(sample.payload.to_string()))
+            data = json.loads(sample.payload.to_string())
+            event = AlarmEvent.from_dict(data)
             if event.rig != RigKeys.rig_of(sample.key_expr):
                 raise DataError(f"AlarmEvent.rig: {event.rig!r} published on {sample.key_expr}")
         except (DataError, ValueError) as exc:
             self._inbox.put(("rejected", f"{sample.key_expr}: rejected alarm payload: {exc}"))
             return
-        self._inbox.put(("alarm", event))
+        self._inbox.put(("alarm", (event, self._trust.check(data))))
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         try:
@@ -646,7 +719,7 @@ class AlarmSubscriber(_Declarations):
                 out.append([lo, hi])
         self._gaps[rig] = out
 
-    def _accept(self, event: AlarmEvent) -> bool:
+    def _accept(self, event: AlarmEvent, status: str = UNVERIFIED) -> bool:
         """Hand ``event`` over unless its number was handed over already."""
         rig, seq = event.rig, event.seq
         if self.since_seq is not None and seq < self.since_seq:
@@ -654,18 +727,65 @@ class AlarmSubscriber(_Declarations):
         last = self._last.get(rig)
         if last is not None and seq <= last:
             if not self._in_gap(rig, seq):
+                self._check_duplicate(event)
                 return False
             self._close_gap(rig, seq)  # a number recorded missed, found in the history after all
             self.recovered += 1
-            self._ready.append(event)
+            self._hand_over(event, status)
             return True
         if last is not None and seq > last + 1:
             self._record_missed(rig, last + 1, seq - 1)
         self._last[rig] = seq
-        self._ready.append(event)
+        self._hand_over(event, status)
         return True
 
-    def _query(self, rig: str, since_seq: int | None, since_t_ns: int | None) -> list[AlarmEvent]:
+    def _hand_over(self, event: AlarmEvent, status: str) -> None:
+        if len(self._delivered) >= _KEEP_DELIVERED:  # a subscriber that runs for years: forget the oldest half
+            for key in list(self._delivered)[: _KEEP_DELIVERED // 2]:
+                del self._delivered[key]
+                self.verification.pop(key, None)
+        self._delivered[(event.rig, event.seq)] = event
+        self.verification[(event.rig, event.seq)] = status
+        self._ready.append(event)
+
+    def _check_duplicate(self, event: AlarmEvent) -> None:
+        """A number seen again: the same alarm is a harmless duplicate, a different one a conflict."""
+        first = self._delivered.get((event.rig, event.seq))
+        if first is not None and replace(first, signature="") != replace(event, signature=""):
+            self._report("conflict", f"rig {event.rig} seq {event.seq}: a different alarm under a number already "
+                         f"delivered ({first.parameter} {first.level} {first.kind} delivered, "
+                         f"{event.parameter} {event.level} {event.kind} now); not delivered")
+
+    def _report(self, kind: str, text: str, count: int = 1, once: bool = False) -> None:
+        """Report one line; ``once``: not again when the same line was reported (a history asked again)."""
+        line = f"{kind}: {text}"
+        if once and line in self._reported:
+            return
+        self._reported.add(line)
+        if kind == "forged":
+            self.forged += count
+        elif kind == "conflict":
+            self.conflicts += count
+        self.reports.append(line)
+        log.warning("%s", line)
+        if self._on_report is not None:
+            self._on_report(kind, line)
+
+    def _admit(self, event: AlarmEvent, verdict: Verdict, where: str) -> bool:
+        """Whether a payload may be looked at further; a forged one is reported, counted and dropped."""
+        if verdict.status == FORGED:
+            self.rejected += 1
+            self._report("forged", f"rig {event.rig} seq {event.seq} on {where}: {verdict.reason}; not accepted")
+            return False
+        if verdict.status == UNVERIFIED and self._require_signed:
+            self.rejected += 1
+            self._report("unverified", f"rig {event.rig} seq {event.seq} on {where}: {verdict.reason}; "
+                         "not accepted (signatures required)")
+            return False
+        return True
+
+    def _query(self, rig: str, since_seq: int | None, since_t_ns: int | None) -> list[tuple[AlarmEvent, str]]:
+        """The history's alarms that may be delivered, with their verification status (see :meth:`_judge`)."""
         parameters = {}
         if since_seq is not None:
             parameters["since_seq"] = str(since_seq)
@@ -673,7 +793,7 @@ class AlarmSubscriber(_Declarations):
             parameters["since_t_ns"] = str(since_t_ns)
         selector = zenoh.Selector(RigKeys(rig).history, parameters)
         self.history_queries += 1
-        events = []
+        answers: list[tuple[str, AlarmEvent, Verdict]] = []
         try:
             replies = self._session.get(
                 selector,
@@ -686,17 +806,73 @@ class AlarmSubscriber(_Declarations):
                     assert reply.err is not None  # a reply is either ok or an error
                     log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
                     continue
+                who = reply.replier_id  # a session and an entity in it: two queryables are two repliers
+                replier = "queryable " + (f"{who.zid}:{who.eid}" if who is not None else "(unknown)")
                 try:
-                    event = AlarmEvent.from_dict(json.loads(reply.ok.payload.to_string()))
+                    data = json.loads(reply.ok.payload.to_string())
+                    event = AlarmEvent.from_dict(data)
                     if event.rig != RigKeys.rig_of(reply.ok.key_expr):
                         raise DataError(f"AlarmEvent.rig: {event.rig!r} in a reply on {reply.ok.key_expr}")
-                    events.append(event)
+                    answers.append((replier, event, self._trust.check(data)))
                 except (DataError, ValueError) as exc:
                     self.rejected += 1
-                    log.warning("%s: rejected history reply: %s", selector, exc)
+                    log.warning("%s: rejected history reply from %s: %s", selector, replier, exc)
         except zenoh.ZError as exc:
             log.warning("%s: history query failed: %s", selector, zenoh_text(exc))
-        return events
+        return self._judge(answers)
+
+    def _judge(self, answers: list[tuple[str, AlarmEvent, Verdict]]) -> list[tuple[AlarmEvent, str]]:
+        """What may be delivered from the replies of one query, never merging disagreeing repliers.
+
+        Forged replies are dropped (one report per replier and rig). A verified
+        alarm is taken unless another verified one claims its number. An
+        unverified alarm is taken only when every replier that answered for its
+        rig gave exactly it. Repliers that disagree are reported once.
+        """
+        forged: dict[tuple[str, str, str], list[int]] = {}  # (kind, replier, rig) -> seqs
+        reasons: dict[tuple[str, str, str], str] = {}
+        per_rig: dict[str, dict[str, dict[int, AlarmEvent]]] = {}
+        status: dict[tuple[str, int], dict[AlarmEvent, str]] = {}
+        for replier, event, verdict in answers:
+            rig = event.rig
+            per_rig.setdefault(rig, {}).setdefault(replier, {})
+            if verdict.status == FORGED or (verdict.status == UNVERIFIED and self._require_signed):
+                key = ("forged" if verdict.status == FORGED else "unverified", replier, rig)
+                forged.setdefault(key, []).append(event.seq)
+                reasons[key] = verdict.reason
+                continue
+            per_rig[rig][replier][event.seq] = event
+            status.setdefault((rig, event.seq), {})[event] = verdict.status
+        where = {r: RigKeys(r).history for r in per_rig}
+        for (kind, replier, rig), seqs in forged.items():
+            self.rejected += len(seqs)
+            self._report(kind, f"rig {rig} seq {_ranges(seqs)} in replies of {replier} on {where[rig]}: "
+                         f"{reasons[(kind, replier, rig)]}; not accepted", len(seqs), once=True)
+        out: list[tuple[AlarmEvent, str]] = []
+        for rig, by_replier in per_rig.items():
+            views = {replier: frozenset(alarms.items()) for replier, alarms in by_replier.items()}
+            agree = len(set(views.values())) <= 1
+            if not agree:
+                self._conflicted.add(rig)
+                names = sorted(views)
+                numbers = sorted(set().union(*(set(a) for a in by_replier.values())))
+                self._report("conflict", f"rig {rig}: the history on {where[rig]} is answered differently by "
+                             f"{len(names)} repliers ({', '.join(names)}; seq {_ranges(numbers)}); not merged: "
+                             "only alarms that verify with the rig's key are taken", once=True)
+            else:
+                self._conflicted.discard(rig)
+            seqs = sorted(set().union(*(set(a) for a in by_replier.values())))
+            for seq in seqs:
+                versions = status.get((rig, seq), {})
+                verified = [e for e, st in versions.items() if st == VERIFIED]
+                if len(verified) == 1:
+                    out.append((verified[0], VERIFIED))
+                elif len(verified) > 1:
+                    self._report("conflict", f"rig {rig} seq {seq}: {len(verified)} different alarms that all "
+                                 "verify with the rig's key; none delivered", once=True)
+                elif agree and len(versions) == 1:
+                    out.append((next(iter(versions)), UNVERIFIED))
+        return out
 
     def _fill(self, rig: str) -> list[AlarmEvent]:
         """Fetch what the history holds for ``rig`` from the first number not yet handed over."""
@@ -708,10 +884,11 @@ class AlarmSubscriber(_Declarations):
             since_seq, since_t_ns = self._last[rig] + 1, None
         else:
             since_seq, since_t_ns = self.since_seq, self.since_t_ns
-        found = sorted((e for e in self._query(rig, since_seq, since_t_ns) if e.rig == rig), key=lambda e: e.seq)
-        for event in found:
-            self._accept(event)
-        return found
+        found = sorted((p for p in self._query(rig, since_seq, since_t_ns) if p[0].rig == rig),
+                       key=lambda p: p[0].seq)
+        for event, status in found:
+            self._accept(event, status)
+        return [event for event, _ in found]
 
     def _twin_alive(self, rig: str) -> bool:
         """Whether the rig's twin holds its liveliness token (asked again when not known alive)."""
@@ -738,33 +915,41 @@ class AlarmSubscriber(_Declarations):
         self.rejected += 1
         log.warning("%s", message)
 
-    def _on_live(self, event: AlarmEvent) -> None:
+    def _on_live(self, event: AlarmEvent, verdict: Verdict) -> None:
         rig, seq = event.rig, event.seq
+        if not self._admit(event, verdict, RigKeys(rig).alarm):
+            return  # forged: moves nothing, the real alarm of this number is still awaited
         last = self._last.get(rig)
         if last is not None and seq <= last and not self._in_gap(rig, seq):
+            self._check_duplicate(event)
             return  # a duplicate (live after history, or twice)
         expected = self._expected(rig)
         if expected is not None and seq < expected and last is None:
             return  # below --since-seq
-        if expected is None or seq == expected:
-            self._accept(event)
+        # An alarm that no key vouches for, with the number owed, while the rig's twin is alive: the twin
+        # journals before it puts, so its history holds the real alarm of that number; ask it first.
+        check = verdict.status != VERIFIED and expected is not None and rig in self._alive
+        if expected is None or (seq == expected and not check):
+            self._accept(event, verdict.status)
             return
-        # A jump (or a number inside a recorded gap): ask the history before believing anything.
+        # A jump, a number inside a recorded gap, or an unverified number: ask the history before believing it.
         found = {e.seq: e for e in self._fill(rig)}
         if seq in found:
-            if found[seq] != event:
-                self._reject(f"rig {rig}: live alarm seq {seq} differs from the twin's journaled one; "
-                             "the journaled one was delivered")
+            if replace(found[seq], signature="") != replace(event, signature=""):
+                self.rejected += 1
+                self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: differs from the alarm the "
+                             "twin journaled under that number (that one was delivered); not accepted")
             return
-        if self._twin_alive(rig):
-            self._reject(f"rig {rig}: alarm seq {seq} on {RigKeys(rig).alarm} is not in the twin's history "
-                         "(not journaled by the twin: forged or corrupt); rejected")
+        if verdict.status != VERIFIED and rig not in self._conflicted and self._twin_alive(rig):
+            self.rejected += 1
+            self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: not in the history of the rig's "
+                         "live twin (not journaled by it); not accepted")
             return
         expected = self._expected(rig)
         if rig not in self._last and expected is not None and seq > expected:
             self._record_missed(rig, expected, seq - 1)
             self._last[rig] = seq - 1
-        self._accept(event)  # unverifiable: never drop what may be a real alarm
+        self._accept(event, verdict.status)  # signed by the rig, or unverifiable: never drop what may be real
 
     def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
         if self._status_seq.get(rig) == alarm_seq:
@@ -782,7 +967,7 @@ class AlarmSubscriber(_Declarations):
         expected = self._expected(rig)
         if expected is None or alarm_seq < expected:
             return
-        if self._twin_alive(rig):
+        if rig not in self._conflicted and self._twin_alive(rig):
             self._reject(f"rig {rig}: a status claims alarm seq {alarm_seq}, the twin's history ends at "
                          f"{expected - 1}; claim ignored")
             return
@@ -791,7 +976,7 @@ class AlarmSubscriber(_Declarations):
 
     def _process(self, kind: str, value: Any) -> None:
         if kind == "alarm":
-            self._on_live(value)
+            self._on_live(*value)
         elif kind == "status":
             self._on_alarm_seq(*value)
         elif kind == "rejected":

@@ -87,6 +87,8 @@ class RigConfig:
     """Commission the rig on its first ``commission_s`` seconds in service (``None``: no)."""
     baseline_set: tuple[str, ...] = ()
     """The parameters whose band ``[rig.baseline.NAME]`` sets explicitly (a commissioning keeps them)."""
+    signing_key: str | None = None
+    """The rig's private Ed25519 key file: its alarms are signed (``None``: unsigned; see twin.service.signing)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,9 +113,9 @@ class ServiceConfig:
 TOP_KEYS = ("zenoh", "service", "rig")
 ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
-                "stale_s")
+                "stale_s", "signing_keys")
 RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
-            "intersample", "commission", "commission_s")
+            "intersample", "commission", "commission_s", "signing_key")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
@@ -232,6 +234,7 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     seen: set[str] = set()
     for i, r in enumerate(rigs_doc):
         rigs.append(_parse_rig(r, i, path, seen))
+    rigs = _signing_keys(rigs, _get(s, "signing_keys", str, sw, "") or None, path)
     every = _get(s, "estimate_every", int, sw, 50)
     if every < 1:
         raise ConfigError(f"{path}: service.estimate_every must be >= 1, got {every}")
@@ -373,7 +376,24 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
-                     commission_s, tuple(_get(r, "baseline", dict, where, {})))
+                     commission_s, tuple(_get(r, "baseline", dict, where, {})),
+                     signing_key=_get(r, "signing_key", str, where, "") or None)
+
+
+def _signing_keys(rigs: list[RigConfig], directory: str | None, path: str) -> list[RigConfig]:
+    """Each rig's ``signing_key`` (its own, else ``<service.signing_keys>/<rig>.key``), checked by loading it."""
+    from twin.service.signing import load_signer
+
+    here = os.path.dirname(os.path.abspath(path))
+    out = []
+    for r in rigs:
+        key = r.signing_key or (os.path.join(directory, f"{r.name}.key") if directory else None)
+        if key is not None:
+            key = key if os.path.isabs(key) else os.path.join(here, key)
+            load_signer(key, r.name)  # one line naming the file now, not when the first alarm is due
+            r = dataclasses.replace(r, signing_key=key)
+        out.append(r)
+    return out
 
 
 def with_commission_s(cfg: ServiceConfig, seconds: float | None) -> ServiceConfig:

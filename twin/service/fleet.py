@@ -1055,8 +1055,9 @@ class BusFront:
     """The service's side of the bus: a :class:`~twin.service.bus.TwinPublisher` per rig, fed by the runners."""
 
     def __init__(self, session, histories: dict[str, Any],
-                 on_alarm: Callable[[AlarmEvent], None] | None = None) -> None:
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, signing_keys: dict[str, str] | None = None) -> None:
         from twin.service.bus import StoreHistory, TwinPublisher
+        from twin.service.signing import load_signer
 
         self._pubs: dict[str, TwinPublisher] = {}
         self._histories = histories
@@ -1065,7 +1066,9 @@ class BusFront:
         self.state: dict[str, tuple[str, str]] = {}
         try:
             for rig, history in histories.items():
-                self._pubs[rig] = TwinPublisher(session, rig, history=history)
+                key = (signing_keys or {}).get(rig)
+                self._pubs[rig] = TwinPublisher(session, rig, history=history,
+                                                signer=load_signer(key, rig) if key else None)
         except BaseException:
             self.close()
             raise
@@ -1153,7 +1156,8 @@ class Fleet:
                     journals.pop(rig.name).close()
                     histories[rig.name] = StoreHistory(journal_path(cfg, rig.name))
             histories.update(journals)
-            front = BusFront(self.session, histories, self.on_alarm)
+            front = BusFront(self.session, histories, self.on_alarm,
+                             {r.name: r.signing_key for r in cfg.rigs if r.signing_key})
             for rig in self.local:
                 runner = RigRunner(rig, cfg, journals[rig.name], inbox, self.stop, session=self.session,
                                    keep=self.keep)
