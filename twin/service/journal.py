@@ -97,7 +97,7 @@ class AlarmJournal:
         expect = None
         if saved is not None:
             when = max((cp.saved_at for cp in self._checkpoints.values()), default=None)
-            stamp = f" of {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(when))}" if when else ""
+            stamp = f" of {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(when))}" if when is not None else ""
             expect = Continuity(f"its checkpoint {self.checkpoint_path.name}{stamp}", saved[0],
                                 {rig: cp.alarm_seq for rig, cp in self._checkpoints.items()})
         else:
