@@ -144,6 +144,12 @@ def test_a_pickled_checkpoint_never_runs(tmp_path: Path) -> None:
     with pytest.raises(LogFormatError, match=r"old\.db: holds checkpoints of an earlier version \(pickled"):
         AlarmJournal(old)
     assert not marker.exists() and old.read_bytes() == before
+    with sqlite3.connect(old) as db:  # what the refusal says to do
+        db.execute("DELETE FROM checkpoints")
+    db.close()
+    with AlarmJournal(old) as journal:  # the journal of schema 1 opens, its rigs start afresh
+        assert journal.store.meta("schema_version") == "2" and journal.append(alarm(i=1)).seq == 1
+    assert not marker.exists()
 
 
 def _wear_log(path: Path, seed: int) -> None:

@@ -134,7 +134,8 @@ class AlarmJournal:
             self.retry()
             if self._pending:
                 log.error("%s: closing with %d alarm(s) not written (%s); they were not published, and no "
-                          "checkpoint was saved after them: a restart raises them again", self.path,
+                          "checkpoint was saved after them: a restart goes back to before them (a log is "
+                          "processed again and raises them; a live rig's detector resumes from there)", self.path,
                           len(self._pending), self.write_error)
         self.store.close()
 

@@ -163,11 +163,20 @@ class Store:
                 raise SourceError(f"{self.path}: cannot switch the journal to WAL mode (got {mode!r})")
             self._db.execute("PRAGMA synchronous = FULL")
             if writer:
-                self._db.executescript(_SCHEMA)
                 db = self._db
-                db.execute("INSERT OR IGNORE INTO meta VALUES ('journal_id', ?)", (uuid.uuid4().hex,))
-                if version != SCHEMA_VERSION:
-                    db.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,))
+                db.execute("BEGIN IMMEDIATE")  # the schema, the id and the version together, or none of them
+                try:
+                    for statement in _SCHEMA.split(";"):
+                        if statement.strip():
+                            db.execute(statement)
+                    db.execute("INSERT OR IGNORE INTO meta VALUES ('journal_id', ?)", (uuid.uuid4().hex,))
+                    if version != SCHEMA_VERSION:
+                        db.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,))
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
+                    raise
                 self._fold()  # a WAL left by a killed writer goes into the main file now
             self.journal_id = self.meta("journal_id")
         except sqlite3.DatabaseError as exc:
@@ -263,7 +272,7 @@ class Store:
         if "checkpoints" in tables and db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0]:
             raise LogFormatError(f"{self.path}: holds checkpoints of an earlier version (pickled objects, never "
                                  "loaded: they could run code); to start its rigs afresh from their journaled "
-                                 "alarms, delete them: sqlite3 FILE 'DELETE FROM checkpoints'")
+                                 f"alarms, delete them: sqlite3 {self.path} 'DELETE FROM checkpoints'")
         return version
 
     def _refusal(self, expect: Continuity, what: str) -> str:
@@ -581,12 +590,12 @@ def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Che
             for rig, cp in sorted(checkpoints.items())}
     body = {"journal_id": journal_id, "rigs": rigs}
     data = _canonical(body)
-    doc = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(data).hexdigest(),
-           "body": body}
+    head = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(data).hexdigest()}
+    doc = b'{"body":' + data + b"," + _canonical(head)[1:]  # the body serialised once
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "wb") as f:
-            f.write(_canonical(doc) + b"\n")
+            f.write(doc + b"\n")
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
