@@ -92,18 +92,20 @@ class AlarmJournal:
             raise SourceError(f"{self.path.parent}: cannot create the journal directory "
                               f"({exc.strerror or exc})") from None
         self.checkpoint_path = checkpoint_path(self.path)
-        saved = read_checkpoints(self.checkpoint_path)
-        self._checkpoints: dict[str, Checkpoint] = {} if saved is None else saved[1]
-        expect = None
-        if saved is not None:
-            when = max((cp.saved_at for cp in self._checkpoints.values()), default=None)
-            stamp = f" of {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(when))}" if when is not None else ""
-            expect = Continuity(f"its checkpoint {self.checkpoint_path.name}{stamp}", saved[0],
-                                {rig: cp.alarm_seq for rig, cp in self._checkpoints.items()})
-        else:
-            seen = [Path(w) for w in witnesses if Path(w).exists()]
-            if seen:
-                expect = Continuity(str(seen[0]))
+        self._checkpoints: dict[str, Checkpoint] = {}
+        seen = [Path(w) for w in witnesses]
+
+        def expect() -> Continuity | None:  # read once the writer's lock is held: no writer changes it meanwhile
+            saved = read_checkpoints(self.checkpoint_path)
+            if saved is not None:
+                self._checkpoints = saved[1]
+                when = max((cp.saved_at for cp in self._checkpoints.values()), default=None)
+                stamp = f" of {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(when))}" if when is not None else ""
+                return Continuity(f"its checkpoint {self.checkpoint_path.name}{stamp}", saved[0],
+                                  {rig: cp.alarm_seq for rig, cp in self._checkpoints.items()})
+            there = [w for w in seen if w.exists()]
+            return Continuity(str(there[0])) if there else None
+
         self.store = Store(self.path, lock_wait_s=lock_wait_s, expect=expect)
         self._lock = threading.Lock()
         self._pending: list[AlarmEvent] = []

@@ -55,7 +55,7 @@ import threading
 import time
 import uuid
 import zlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO, Self
@@ -134,11 +134,12 @@ class Store:
         or the sequence numbers fail), has a schema version this program does not
         know, holds a checkpoint of an earlier version (pickled: never loaded), or
         disagrees with ``expect``; the file is left as it is.
-    :param expect: what the files beside the journal say (a writer checks it before writing anything).
+    :param expect: what the files beside the journal say (a writer checks it before writing anything), or a
+        function that reads them, called once the writer's lock is held.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, writer: bool = True, lock_wait_s: float = 5.0,
-                 expect: Continuity | None = None) -> None:
+                 expect: Continuity | Callable[[], Continuity | None] | None = None) -> None:
         self.path = Path(path)
         self._lock = threading.RLock()
         self._lockfile: BinaryIO | None = None
@@ -148,6 +149,8 @@ class Store:
         try:
             if writer:
                 self._take_lock(lock_wait_s)
+            if callable(expect):
+                expect = expect()
             if expect is not None and (not self.path.exists() or self.path.stat().st_size == 0):
                 raise LogFormatError(self._refusal(expect, "is missing" if not self.path.exists()
                                                    else "is empty (0 bytes)"))
