@@ -237,3 +237,35 @@ def test_a_state_of_another_configuration_is_refused(tmp_path: Path) -> None:
     state["tracker"]["version"] = 7
     with pytest.raises(Exception, match=r"tracker state: version 7, this program reads 1"):
         twin.restore(state)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape
+                and a.tobytes() == b.tobytes())
+    try:
+        return bool(a == b)
+    except ValueError:
+        return False
+
+
+def test_everything_of_the_tracker_and_detector_that_changes_is_in_their_state(tmp_path: Path) -> None:
+    """What processing changes in the tracker or the detector (caches of the detector aside) is named in their
+    plain state, so a checkpoint cannot silently miss a part added later."""
+    import copy
+
+    rig = parse_config({"service": {"journal_dir": str(tmp_path)},
+                        "rig": [{"name": "rig-s", "source": str(tmp_path / "none.mcap")}]}, "<test>").rigs[0]
+    twin = make_twin(rig)
+    plain = (np.ndarray, dict, list, tuple, int, float, str, type(None))
+    same_object = {(o, k): v for o in ("tracker", "drift") for k, v in vars(getattr(twin, o)).items()}
+    before = {key: copy.deepcopy(v) for key, v in same_object.items() if isinstance(v, plain)}
+    for b in _blocks(1003)[:8]:
+        twin.write(b)
+    changed = {(o, k) for o in ("tracker", "drift") for k, v in vars(getattr(twin, o)).items()
+               if (o, k) not in same_object or v is not same_object[(o, k)]
+               or ((o, k) in before and not _same(before[(o, k)], v))}
+    caches = {("drift", "_const"), ("drift", "_buf")}  # rebuilt from the configuration when missing
+    named = {("tracker", k) for k in twin.tracker.state()} | {("drift", k) for k in twin.drift.state()} | \
+        {("drift", "_next_t"), ("drift", "params")}
+    assert changed and {(o, k.lstrip("_")) if o == "tracker" else (o, k) for o, k in changed} - caches <= named
