@@ -160,7 +160,7 @@ def _wear_log(path: Path, seed: int) -> None:
         sink.write(rec.to_samples())
 
 
-def test_twin_serve_refuses_a_pickled_checkpoint_with_one_line_and_runs_nothing(tmp_path: Path) -> None:
+def test_twin_serve_refuses_a_pickled_checkpoint_or_a_lost_journal_with_one_line(tmp_path: Path) -> None:
     log = tmp_path / "rig.mcap"
     _wear_log(log, 1001)
     journal = tmp_path / "journal"
@@ -181,6 +181,7 @@ speed = 0
     assert first.returncode == 0, first.stderr
     slot = journal / "rig-p.checkpoint.json"
     assert read_checkpoints(slot)[1]["rig-p"].alarm_seq >= 1  # the rig ran and raised its alarm
+    good = slot.read_bytes()
     marker = tmp_path / "planted"
     slot.write_bytes(pickle.dumps({"tracker": Planted(marker)}))
     second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
@@ -188,6 +189,14 @@ speed = 0
     assert second.returncode != 0 and len(errors) == 1, second.stderr
     assert errors[0].startswith("twin serve: error: ") and "rig-p.checkpoint.json: not a checkpoint" in errors[0]
     assert "Traceback" not in second.stderr and not marker.exists()
+    # the checkpoint back, the journal gone: refused too, and no new journal is started
+    slot.write_bytes(good)
+    (journal / "rig-p.db").unlink()
+    third = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    errors = [line for line in third.stderr.splitlines() if "error" in line]
+    assert third.returncode != 0 and len(errors) == 1 and "Traceback" not in third.stderr, third.stderr
+    assert "rig-p.db: the journal is missing, but its checkpoint rig-p.checkpoint.json" in errors[0]
+    assert not (journal / "rig-p.db").exists()
 
 
 def _blocks(seed: int):
