@@ -280,8 +280,8 @@ class Store:
 
     def _refusal(self, expect: Continuity, what: str) -> str:
         return (f"{self.path}: the journal {what}, but {expect.evidence} says the rig ran before; refused "
-                "(alarm numbers never restart): restore the journal from a backup, or move that file aside "
-                "to start the rig afresh")
+                "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                "move that file aside to go on from this journal (numbers then follow its last alarm)")
 
     def _check_continuity(self, expect: Continuity, version: str | None) -> None:
         db = self._conn()
@@ -292,14 +292,17 @@ class Store:
         if expect.journal_id is not None and have != expect.journal_id:
             raise LogFormatError(
                 f"{self.path}: the journal was replaced: its id is {have or 'missing'}, {expect.evidence} was "
-                f"written with journal {expect.journal_id}; refused (alarm numbers never restart): restore the "
-                "journal from a backup, or move that file aside to start the rig afresh")
+                f"written with journal {expect.journal_id}; refused "
+                "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                "move that file aside to go on from this journal (numbers then follow its last alarm)")
         for rig, n in sorted(expect.last_seqs.items()):
             last = self._last_seq(db, rig)
             if last < n:
                 raise LogFormatError(
                     f"{self.path}: the alarms of rig {rig!r} end at seq {last}, but {expect.evidence} says {n} "
-                    "were journaled (alarms were lost from the file); refused: restore the journal from a backup")
+                    "were journaled (alarms were lost from the file); refused "
+                    "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                    "move that file aside to go on from this journal (numbers then follow its last alarm)")
 
     def _check_integrity(self) -> None:
         rows = self._conn().execute("PRAGMA quick_check").fetchall()
