@@ -423,15 +423,17 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
     class Bus(queue.Queue):
         """What the runner sends to the bus; ``fill`` fills the disk once the first alarm went out."""
 
-        def __init__(self, journal: AlarmJournal | None = None) -> None:
+        def __init__(self, journal: AlarmJournal | None = None, wal: Path | None = None) -> None:
             super().__init__()
-            self.journal, self.alarms, self.messages = journal, [], []
+            self.journal, self.alarms, self.messages, self.wal, self.wal_sizes = journal, [], [], wal, []
 
         def put(self, item, block=True, timeout=None) -> None:
             for m in item[2] if item[0] == "batch" else ():
                 if m[0] == "alarm":
                     assert m[2]  # only journaled alarms go out
                     self.alarms.append(m[1])
+                    if self.wal is not None:
+                        self.wal_sizes.append(self.wal.stat().st_size if self.wal.exists() else 0)
                     if self.journal is not None and not fill:
                         full_disk(self.journal)
                         fill.append(True)
@@ -444,8 +446,10 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
             RigRunner(cfg.rigs[0], cfg, journal, bus, threading.Event()).run()
         return bus
 
-    reference = run(config("ref"), lambda j: Bus()).alarms
+    ref = run(config("ref"), lambda j: Bus(wal=j.path.with_name(j.path.name + "-wal")))
+    reference = ref.alarms
     assert len(reference) >= 3
+    assert ref.wal_sizes == [0] * len(reference)  # when an alarm goes out, the main file holds it: the WAL is empty
     fill: list[bool] = []
     cfg = config("journal")
     _small_pages(journal_path(cfg, "rig-f"))
