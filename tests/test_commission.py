@@ -19,7 +19,7 @@ from tests.conftest import get_records, msp25_spec
 from twin.online.baseline import default_baseline
 from twin.service.config import parse_config, with_commission_s
 from twin.commands.demo import free_port
-from twin.errors import ConfigError
+from twin.errors import ConfigError, LogFormatError
 from twin.online.events import StatusEvent
 from twin.service.serve import serve
 
@@ -105,8 +105,13 @@ def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path
     sts2 = _statuses(tmp_path, "run2")
     assert "commissioning" not in {s.state for s in sts2}
     assert any(s.message.startswith("commissioned by an earlier run (rig-c.commission.json): Ffric ") for s in sts2)
-    # a saved commissioning wins even without a checkpoint (a fresh journal beside it)
-    os.remove(tmp_path / "journal" / "rig-c.db")
+    # a journal gone from beside its checkpoint and commissioning is refused (alarm numbers never restart)
+    os.replace(tmp_path / "journal" / "rig-c.db", tmp_path / "rig-c.db.aside")
+    with pytest.raises(LogFormatError, match=r"rig-c\.db: the journal is missing, but its checkpoint"):
+        serve(_config(tmp_path, log, run="run3"))
+    os.replace(tmp_path / "rig-c.db.aside", tmp_path / "journal" / "rig-c.db")
+    # a saved commissioning wins even without a checkpoint (the checkpoint moved aside)
+    os.remove(tmp_path / "journal" / "rig-c.checkpoint.json")
     twins3: dict = {}
     serve(_config(tmp_path, log, run="run3"), twins=twins3)
     assert "commissioning" not in {s.state for s in _statuses(tmp_path, "run3")}

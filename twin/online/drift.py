@@ -167,6 +167,44 @@ class DriftMonitor:
                                      message=msg))
         return events
 
+    STATE_VERSION = 1
+
+    def state(self) -> dict:
+        """The test's statistics and levels as plain data (restore with :meth:`restore` into a monitor of the
+        same rig and baselines)."""
+        return {"version": self.STATE_VERSION, "guard": self.guard, "next_t": self._next_t,
+                "params": {n: {"base": [q.base.value, q.base.lo, q.base.hi], "s_hi": q.s_hi, "s_lo": q.s_lo,
+                               "level": q.level, "side": q.side, "inside_since": q.inside_since, "status": q.status}
+                           for n, q in self.params.items()}}
+
+    def restore(self, state: Mapping) -> None:
+        """Continue from :meth:`state`.
+
+        :raises ValueError: another version, other parameters or other baselines (nothing is changed then).
+        """
+        if state.get("version") != self.STATE_VERSION:
+            raise ValueError(f"drift state: version {state.get('version')!r}, this program reads {self.STATE_VERSION}")
+        params = state.get("params")
+        if not isinstance(params, Mapping) or sorted(params) != sorted(self.params):
+            raise ValueError(f"drift state: parameters {sorted(params) if isinstance(params, Mapping) else params}, "
+                             f"this rig monitors {sorted(self.params)}")
+        new = {}
+        for n, q in self.params.items():
+            d = params[n]
+            if list(d["base"]) != [q.base.value, q.base.lo, q.base.hi]:
+                raise ValueError(f"drift state: the band of {n} was {d['base']}, it is "
+                                 f"{[q.base.value, q.base.lo, q.base.hi]} now")
+            if d["level"] not in ALARM_LEVELS or d["status"] not in _STATUSES:
+                raise ValueError(f"drift state: level {d['level']!r} / status {d['status']!r} of {n}")
+            inside = d["inside_since"]
+            new[n] = _ParamState(n, q.base, float(d["s_hi"]), float(d["s_lo"]), str(d["level"]), str(d["side"]),
+                                 None if inside is None else float(inside), str(d["status"]))
+        next_t = state.get("next_t")
+        self.params = new
+        self.guard = str(state.get("guard", "consistent"))
+        self._next_t = None if next_t is None else float(next_t)
+        vars(self).pop("_const", None)  # the cached rows refer to the states replaced
+
     def _constants(self, names: tuple[str, ...]):
         """Per tuple of tracked names: the monitored columns, their states, and ``const`` rows: baseline value,
         log band (lo, hi) relative to it, drift-rate intensity (log units^2 per s)."""

@@ -271,7 +271,7 @@ class OnlineTracker:
         self.counters = {s: 0 for s in ukf.STATUS}
         self._held = np.full((2, p), np.nan)  # (E, V) of the last sample for ukf.held_variance
         self._last_t_ns: int | None = None
-        self._pending = None
+        self._pending: Samples | None = None
         self._started = False
         self.closed_fast = True
 
@@ -462,6 +462,74 @@ class OnlineTracker:
 
     def sensor_status(self) -> dict[str, str]:
         return {o: ukf.SENSOR[int(self.ch[j, ukf.H_STATUS])] for j, o in enumerate(self.outputs)}
+
+    # --- checkpoints ---------------------------------------------------------------------
+    STATE_VERSION = 1
+    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held")
+
+    def state(self) -> dict:
+        """What the filter's future output depends on beyond its construction, as plain data (numbers,
+        strings, lists, numpy arrays): restore it into a tracker built the same way (:meth:`restore`)."""
+        pending = self._pending
+        return {"version": self.STATE_VERSION, "tracked": list(self.tracked), "outputs": list(self.outputs),
+                "dt": self.dt, "samples": int(self.samples), "counters": {k: int(v) for k, v in self.counters.items()},
+                "last_t_ns": self._last_t_ns, "started": bool(self._started), "closed_fast": bool(self.closed_fast),
+                "pending": None if pending is None else {"t_ns": np.asarray(pending.t_ns, dtype=np.int64),
+                                                         "signals": {k: np.asarray(v, dtype=float)
+                                                                     for k, v in pending.signals.items()}},
+                **{k.lstrip("_"): np.array(getattr(self, k), dtype=float) for k in self._STATE_ARRAYS}}
+
+    def restore(self, state: Mapping) -> None:
+        """Continue from :meth:`state` of a tracker of the same configuration.
+
+        :raises DataError: a state of another version, other tracked parameters or outputs, or arrays of
+            other shapes (nothing is changed then).
+        """
+        def fail(what: str) -> DataError:
+            return DataError(f"tracker state: {what}")
+
+        if state.get("version") != self.STATE_VERSION:
+            raise fail(f"version {state.get('version')!r}, this program reads {self.STATE_VERSION}")
+        if list(state.get("tracked", ())) != list(self.tracked) or list(state.get("outputs", ())) != list(self.outputs):
+            raise fail(f"tracks {state.get('tracked')} from {state.get('outputs')}, this rig "
+                       f"{list(self.tracked)} from {list(self.outputs)}")
+        arrays = {}
+        for k in self._STATE_ARRAYS:
+            a = state.get(k.lstrip("_"))
+            ref = getattr(self, k)
+            if not isinstance(a, np.ndarray) or a.shape != ref.shape:
+                raise fail(f"{k.lstrip('_')} is not an array of shape {ref.shape}")
+            arrays[k] = np.array(a, dtype=float)
+        counters = state.get("counters")
+        if not isinstance(counters, Mapping) or set(counters) - set(self.counters):
+            raise fail("counters unknown to this program")
+        dt = state.get("dt")
+        if dt is not None and not (isinstance(dt, float) and dt > 0):
+            raise fail(f"sample time {dt!r}")
+        last = state.get("last_t_ns")
+        if last is not None and not isinstance(last, int):
+            raise fail(f"last_t_ns {last!r}")
+        pend = state.get("pending")
+        pending = None
+        if pend is not None:
+            try:
+                pending = Samples(np.asarray(pend["t_ns"], dtype=np.int64),
+                                  {str(k): np.asarray(v, dtype=float) for k, v in pend["signals"].items()})
+            except (KeyError, TypeError, ValueError, AttributeError) as exc:
+                raise fail(f"pending samples ({exc})") from None
+        try:
+            samples, started, closed_fast = int(state["samples"]), bool(state["started"]), bool(state["closed_fast"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise fail(f"samples, started or closed_fast ({exc})") from None
+        for k, a in arrays.items():
+            setattr(self, k, np.ascontiguousarray(a))
+        self.counters.update({k: int(v) for k, v in counters.items()})
+        self.dt = dt
+        self.samples = samples
+        self._last_t_ns = last
+        self._started = started
+        self.closed_fast = closed_fast
+        self._pending = pending
 
     def break_covariance(self) -> None:
         """Make the covariance indefinite (what round-off does to long runs); for tests and drills."""

@@ -15,10 +15,13 @@ A rig never stops silently:
   naming the rig, so systemd restarts it.
 
 Resume, don't replay: every ``checkpoint_s`` (and when it stops) a runner
-saves its twin's state (tracker and detector objects, pickled whole) with the
-time of the last sample processed, in one SQLite transaction of the rig's
-journal. A restart restores it: a log continues after that sample; a live
-input keeps the detector's state, so an ongoing alarm is not raised again.
+saves its twin's state (the tracker's and detector's numbers, plain data,
+:func:`twin.service.store.write_checkpoints`) with the time of the last sample
+processed, the journal's id and the rig's last alarm number, atomically beside
+the rig's journal. A restart restores it: a log continues after that sample; a
+live input keeps the detector's state, so an ongoing alarm is not raised again.
+A checkpoint that cannot be restored (another version, damaged) or a journal
+that disagrees with it is refused with one line, never started afresh silently.
 Alarms raised between the last checkpoint and a crash are raised again by
 the re-processing and recognised by their identity (not journaled or
 published twice).
@@ -42,7 +45,6 @@ import logging
 import math
 import multiprocessing as mp
 import os
-import pickle
 import queue
 import signal
 import threading
@@ -187,10 +189,11 @@ class Outbox:
         recorded = self.journal.record(event)
         if not recorded.new:
             return None
-        self._seq = max(self._seq, recorded.event.seq)
-        self._batch.append(("alarm", recorded.event, recorded.durable))
-        self.flush()  # alarms go out at once
-        return recorded.event
+        if recorded.durable:  # an alarm goes on the bus once it is in the journal's main file, and at once
+            self._seq = max(self._seq, recorded.event.seq)
+            self._batch.append(("alarm", recorded.event, True))
+            self.flush()
+        return recorded.event  # one the journal holds (write failed) goes out when written (flush)
 
     def publish_estimate(self, event) -> None:
         self._batch.append(("estimate", event_to_json(event)))
@@ -210,7 +213,13 @@ class Outbox:
         return event
 
     def flush(self, force: bool = True) -> None:
-        if self._batch and (force or time.monotonic() - self._last_flush >= FLUSH_S):
+        if self.journal.pending:
+            self.journal.retry()
+        written = self.journal.take_written()
+        for ev in written:
+            self._seq = max(self._seq, ev.seq)
+            self._batch.append(("alarm", ev, True))
+        if self._batch and (force or written or time.monotonic() - self._last_flush >= FLUSH_S):
             batch, self._batch = self._batch, []
             self.out.put(("batch", self.rig, batch))
             self._last_flush = time.monotonic()
@@ -540,15 +549,11 @@ class RigRunner:
             return
         assert self.twin is not None  # made by _open
         try:
-            state = pickle.loads(cp.state)
-            self.twin.restore(state)
-        except Exception as exc:  # a checkpoint of another program version
-            log.warning("rig %s: the checkpoint cannot be restored (%s: %s); starting afresh "
-                        "(alarms journaled before are not raised twice)", self.rig.name, type(exc).__name__, exc)
-            self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
-            if self.keep is not None:
-                self.keep[self.rig.name] = self.twin
-            return
+            self.twin.restore(cp.state)
+        except (TwinError, ValueError, KeyError, TypeError, AttributeError) as exc:  # another version's state
+            raise RigFailure(f"its checkpoint in {self.journal.checkpoint_path} cannot be restored "
+                             f"({type(exc).__name__}: {exc}); refused: move it aside to start the rig afresh "
+                             "from its journal") from None
         self.summary.resumed_samples = cp.samples
         log.info("rig %s: resumed from its checkpoint after %d samples (t_ns=%d)", self.rig.name, cp.samples,
                  cp.t_ns)
@@ -867,7 +872,8 @@ class RigRunner:
         pending = self.journal.pending
         if pending:
             h.counters["journal_pending"] = pending
-            warn.append(f"{pending} alarm(s) not written: {self.journal.write_error}")
+            held = ", ".join(f"#{a.seq} {a.parameter} {a.level}" for a in self.journal.pending_alarms()[:3])
+            warn.append(f"{pending} alarm(s) held, published once journaled ({held}): {self.journal.write_error}")
         else:
             h.counters.pop("journal_pending", None)
         if self._cp_error:
@@ -889,9 +895,8 @@ class RigRunner:
         if twin is None or twin.last_t_ns is None or twin.commissioning is not None:
             return  # nothing tracked yet (a restart during the commissioning gathers its window again)
         try:
-            blob = pickle.dumps(twin.state(), protocol=pickle.HIGHEST_PROTOCOL)
             self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples, self._fp,
-                                                    blob, time.time()))
+                                                    twin.state(), time.time()))
             if self._cp_error:
                 log.warning("rig %s: checkpoints are written again", self.rig.name)
             self._cp_error = None
@@ -1013,7 +1018,8 @@ def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
     heap: list[tuple[float, int, Any, AlarmJournal]] = []
     for i, rig in enumerate(rigs):
         try:
-            journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0)
+            journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0,
+                                   witnesses=[commission_path(cfg, rig.name)])
         except TwinError as exc:
             out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
             continue
@@ -1040,7 +1046,8 @@ def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
 
 def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
     try:
-        journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0)
+        journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0,
+                               witnesses=[commission_path(cfg, rig.name)])
     except TwinError as exc:
         out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
         return
@@ -1150,7 +1157,8 @@ class Fleet:
         try:
             # Every journal is opened here first: integrity, migration and locks are checked before any rig runs.
             for rig in cfg.rigs:
-                journals[rig.name] = AlarmJournal(journal_path(cfg, rig.name), legacy=legacy_journal_path(cfg, rig.name))
+                journals[rig.name] = AlarmJournal(journal_path(cfg, rig.name), legacy=legacy_journal_path(cfg, rig.name),
+                                                  witnesses=[commission_path(cfg, rig.name)])
             for group in self.remote:
                 for rig in group:
                     journals.pop(rig.name).close()

@@ -1,21 +1,32 @@
-"""The durable alarm journal of a twin: an SQLite database (:mod:`twin.service.store`) with a memory of last resort.
+"""The durable alarm journal of a twin: an SQLite database (:mod:`twin.service.store`) and its rigs' checkpoints.
 
-Every alarm the twin publishes is journaled first (committed with
-``synchronous=FULL``), so the bus's history queryable (which answers from the
-journal) has every alarm that was ever published. The journal numbers the
-alarms of each rig 1, 2, 3, ... and keeps one alarm per identity
+Every alarm the twin publishes is journaled first: committed with
+``synchronous=FULL`` and folded into the main database file
+(:meth:`twin.service.store.Store.insert_alarm`), so the bus's history
+queryable (which answers from the journal) has every alarm that was ever
+published, whatever happens to the WAL. The journal numbers the alarms of
+each rig 1, 2, 3, ... and keeps one alarm per identity
 (:attr:`twin.online.events.AlarmEvent.identity`): re-processing the same data after a
 restart raises the same alarms, which are recognised and neither journaled
 nor published again.
 
 When a write fails (disk full, file system remounted read-only, I/O error)
-the alarm is *not* lost: it gets the next number, stays in memory as
-*pending*, is published and served by the history like any other, and every
-later :meth:`AlarmJournal.record` (and :meth:`AlarmJournal.retry`) tries to
-write the pending alarms again, in order. :attr:`AlarmJournal.write_error`
-names the file and the cause while writes fail; the service reports it in
-the rig's status. Only a crash while alarms are pending loses them (logged
-loudly when they are first kept in memory).
+the alarm gets the next number and stays in memory as *pending*: it is not
+published (:attr:`Recorded.durable` is False) until it is on disk; every later
+:meth:`AlarmJournal.record` (and :meth:`AlarmJournal.retry`) writes the pending
+alarms again, in order, and :meth:`AlarmJournal.take_written` hands over those
+now journaled, to be published then. :attr:`AlarmJournal.write_error` names the
+file and the cause while writes fail; the service reports it (and the alarms
+held) in the rig's status. No checkpoint is saved while an alarm is pending, so
+a restart re-processes its data, raises it again and publishes it once: an
+alarm is never published twice, with or without a restart in between.
+
+Checkpoints live beside the journal (``<stem>.checkpoint.json``,
+:func:`twin.service.store.read_checkpoints`: data only, versioned). Each
+records the journal's id and the rig's last alarm number; on open, a journal
+that is missing, empty, replaced or whose alarms end before the checkpoint's
+(or, without a checkpoint, one missing or empty where a ``witnesses`` file such
+as a commissioning says the rig ran before) is refused with one line.
 
 Migration: the journal of earlier versions was a JSON-lines file
 (``<rig>.alarms.jsonl``). Given ``legacy=PATH``, an existing file is imported
@@ -32,14 +43,16 @@ import json
 import logging
 import os
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Self
 
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent
-from twin.service.store import Checkpoint, Store
+from twin.service.store import (Checkpoint, Continuity, NotFolded, Store, checkpoint_path, read_checkpoints,
+                                write_checkpoints)
 
 __all__ = ["AlarmJournal", "Recorded", "read_legacy_journal"]
 
@@ -55,7 +68,8 @@ class Recorded:
     new: bool
     """False: an alarm of the same identity was journaled before (do not publish it again)."""
     durable: bool
-    """False: the write failed; the alarm is pending in memory and retried."""
+    """False: the write failed; the alarm is pending in memory, retried, and must not be published until
+    :meth:`AlarmJournal.take_written` hands it over."""
 
 
 class AlarmJournal:
@@ -63,21 +77,39 @@ class AlarmJournal:
 
     :param path: the database file (created with its directory if missing).
     :param legacy: an old JSON-lines journal to import once if it exists.
+    :param witnesses: files whose existence says the journal's rigs ran before (a saved commissioning).
     :raises SourceError: the file cannot be opened or is locked by another writer.
-    :raises LogFormatError: the file (or the legacy journal) is corrupt; nothing is changed.
+    :raises LogFormatError: the file (or the legacy journal, or the checkpoint) is corrupt, or the journal
+        disagrees with its checkpoint or witnesses (module docstring); nothing is changed.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, legacy: str | os.PathLike[str] | None = None,
-                 lock_wait_s: float = 5.0) -> None:
+                 lock_wait_s: float = 5.0, witnesses: Iterable[str | os.PathLike[str]] = ()) -> None:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise SourceError(f"{self.path.parent}: cannot create the journal directory "
                               f"({exc.strerror or exc})") from None
-        self.store = Store(self.path, lock_wait_s=lock_wait_s)
+        self.checkpoint_path = checkpoint_path(self.path)
+        self._checkpoints: dict[str, Checkpoint] = {}
+        seen = [Path(w) for w in witnesses]
+
+        def expect() -> Continuity | None:  # read once the writer's lock is held: no writer changes it meanwhile
+            saved = read_checkpoints(self.checkpoint_path)
+            if saved is not None:
+                self._checkpoints = saved[1]
+                when = max((cp.saved_at for cp in self._checkpoints.values()), default=None)
+                stamp = f" of {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(when))}" if when is not None else ""
+                return Continuity(f"its checkpoint {self.checkpoint_path.name}{stamp}", saved[0],
+                                  {rig: cp.alarm_seq for rig, cp in self._checkpoints.items()})
+            there = [w for w in seen if w.exists()]
+            return Continuity(str(there[0])) if there else None
+
+        self.store = Store(self.path, lock_wait_s=lock_wait_s, expect=expect)
         self._lock = threading.Lock()
         self._pending: list[AlarmEvent] = []
+        self._written: list[AlarmEvent] = []
         self.write_error: str | None = None
         """While writes fail: one line naming the file and the cause; ``None`` when all is on disk."""
         self.imported = 0
@@ -103,8 +135,10 @@ class AlarmJournal:
         if not self.store.closed:
             self.retry()
             if self._pending:
-                log.error("%s: closing with %d alarm(s) not written (%s); they were published but are lost "
-                          "from the journal", self.path, len(self._pending), self.write_error)
+                log.error("%s: closing with %d alarm(s) not written (%s); they were not published, and no "
+                          "checkpoint was saved after them: a restart goes back to before them (a log is "
+                          "processed again and raises them; a live rig's detector resumes from there)", self.path,
+                          len(self._pending), self.write_error)
         self.store.close()
 
     @property
@@ -114,7 +148,8 @@ class AlarmJournal:
     # ------------------------------------------------------------------ writing
 
     def record(self, event: AlarmEvent) -> Recorded:
-        """Journal ``event`` (see the module docstring); never loses it on a write failure.
+        """Journal ``event`` (see the module docstring); on a write failure it is pending (not durable: do
+        not publish it before :meth:`take_written` returns it).
 
         :raises DataError: ``event.seq`` is not 0 and not the rig's next number.
         :raises SourceError: the journal is closed.
@@ -130,6 +165,12 @@ class AlarmJournal:
                 try:
                     ev, new = self.store.insert_alarm(event)
                     return Recorded(ev, new, True)
+                except NotFolded as exc:  # numbered and committed, not yet in the main file
+                    self._failed(exc)
+                    self._pending.append(exc.event)
+                    log.error("rig %s: alarm seq %d is in the WAL only, not published until it is in the main "
+                              "file: %s", exc.event.rig, exc.event.seq, self.write_error)
+                    return Recorded(exc.event, True, False)
                 except SourceError as exc:
                     self._failed(exc)
             try:
@@ -144,8 +185,8 @@ class AlarmJournal:
                                 f"(the next journal number) or 0 (assign) was expected")
             event = event.with_seq(nxt)
             self._pending.append(event)
-            log.error("rig %s: alarm seq %d kept in memory, not on disk: %s; retrying with every alarm and "
-                      "every checkpoint", event.rig, event.seq, self.write_error)
+            log.error("rig %s: alarm seq %d kept in memory, not on disk and not published yet: %s; retrying "
+                      "with every alarm and every block", event.rig, event.seq, self.write_error)
             return Recorded(event, True, False)
 
     def append(self, event: AlarmEvent) -> AlarmEvent:
@@ -160,11 +201,13 @@ class AlarmJournal:
     def _retry_locked(self) -> bool:
         while self._pending:
             try:
-                self.store.insert_alarm(self._pending[0])
+                self.store.insert_alarm(self._pending[0])  # a duplicate when it was committed, not folded
+                self.store.fold()
             except SourceError as exc:
                 self._failed(exc)
                 return False
             done = self._pending.pop(0)
+            self._written.append(done)
             log.warning("rig %s: pending alarm seq %d is now on disk in %s", done.rig, done.seq, self.path)
         if self.write_error is not None:
             log.warning("%s: journal writes work again", self.path)
@@ -174,20 +217,49 @@ class AlarmJournal:
     def _failed(self, exc: SourceError) -> None:
         self.write_error = str(exc)
 
+    def take_written(self) -> list[AlarmEvent]:
+        """Alarms that were pending and are journaled now (each handed over once): publish them."""
+        with self._lock:
+            done, self._written = self._written, []
+            return done
+
     @property
     def pending(self) -> int:
         """Alarms kept in memory because their write failed."""
         with self._lock:
             return len(self._pending)
 
+    def pending_alarms(self) -> list[AlarmEvent]:
+        """The alarms kept in memory (not journaled, not published), oldest first."""
+        with self._lock:
+            return list(self._pending)
+
     # ------------------------------------------------------------------ checkpoints
 
-    def save_checkpoint(self, cp: Checkpoint) -> None:
-        """Save a rig's checkpoint (raises SourceError naming the file if the write fails)."""
-        self.store.save_checkpoint(cp)
+    def save_checkpoint(self, cp: Checkpoint) -> Checkpoint:
+        """Save a rig's checkpoint with the journal's id and the rig's last journaled alarm number.
+
+        :returns: the checkpoint as saved.
+        :raises SourceError: alarms of the rig are pending (a checkpoint after them would keep a restart
+            from raising them again), or the file cannot be written (naming it).
+        :raises TypeError: the state holds something that is not plain data.
+        """
+        with self._lock:
+            held = [p.seq for p in self._pending if p.rig == cp.rig]
+            if held:
+                raise SourceError(f"{self.checkpoint_path}: checkpoint held while {len(held)} alarm(s) of rig "
+                                  f"{cp.rig} are not journaled ({self.write_error})")
+            if self.store.journal_id is None:
+                raise SourceError(f"{self.path}: the journal has no id")
+            cp = dataclasses.replace(cp, alarm_seq=self.store.last_seq(cp.rig), journal_id=self.store.journal_id)
+            write_checkpoints(self.checkpoint_path, self.store.journal_id, {**self._checkpoints, cp.rig: cp})
+            self._checkpoints[cp.rig] = cp
+            return cp
 
     def load_checkpoint(self, rig: str) -> Checkpoint | None:
-        return self.store.load_checkpoint(rig)
+        """The rig's checkpoint read at open (checked against the journal), ``None`` if it has none."""
+        with self._lock:
+            return self._checkpoints.get(rig)
 
     # ------------------------------------------------------------------ reading
 
@@ -202,16 +274,12 @@ class AlarmJournal:
 
     def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
              rig: str | None = None) -> list[AlarmEvent]:
-        """Journaled and pending alarms, by rig then seq, filtered (``since_*`` inclusive)."""
+        """Journaled alarms (not the pending ones: they are not published yet), by rig then seq, filtered
+        (``since_*`` inclusive)."""
         with self._lock:
-            pending = list(self._pending)
+            held = {(p.rig, p.seq) for p in self._pending}
         events = self.store.alarms(rig, since_seq, since_t_ns)
-        have = {(e.rig, e.seq) for e in events}
-        events += [p for p in pending if (p.rig, p.seq) not in have
-                   and (rig in (None, "*") or p.rig == rig)
-                   and (since_seq is None or p.seq >= since_seq)
-                   and (since_t_ns is None or p.t_ns >= since_t_ns)]
-        return sorted(events, key=lambda e: (e.rig, e.seq))
+        return [e for e in events if (e.rig, e.seq) not in held]  # committed to the WAL, not folded yet
 
     def __iter__(self) -> Iterator[AlarmEvent]:
         return iter(self.read())

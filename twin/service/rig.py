@@ -192,18 +192,19 @@ class RigTwin(Sink):
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
-        """Everything the twin's future output depends on (tracker and detector objects whole)."""
-        return {"tracker": self.tracker, "drift": self.drift, "t0_ns": self._t0_ns, "last_t_ns": self.last_t_ns,
-                "since_estimate": self._since_estimate, "samples": self.stats.samples}
+        """Everything the twin's future output depends on, as plain data (numbers, strings, lists, arrays)."""
+        return {"tracker": self.tracker.state(), "drift": self.drift.state(), "t0_ns": self._t0_ns,
+                "last_t_ns": self.last_t_ns, "since_estimate": self._since_estimate, "samples": self.stats.samples}
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Continue from :meth:`state` of an earlier twin of the same rig."""
-        self.tracker = state["tracker"]
-        self.drift = state["drift"]
+        """Continue from :meth:`state` of an earlier twin of the same rig (raises DataError, ValueError or
+        KeyError for a state of another configuration or version: discard the twin then)."""
+        self.tracker.restore(state["tracker"])
+        self.drift.restore(state["drift"])
         self._t0_ns = state["t0_ns"]
         self.last_t_ns = state["last_t_ns"]
-        self._since_estimate = state["since_estimate"]
-        self.stats.samples = state["samples"]
+        self._since_estimate = int(state["since_estimate"])
+        self.stats.samples = int(state["samples"])
 
     def restart_filter(self, start: dict[str, float] | None = None) -> None:
         """A fresh tracker starting from ``start`` (e.g. the last good estimates); the detector carries on.

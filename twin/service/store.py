@@ -7,12 +7,25 @@ One database per rig (``<journal_dir>/<rig>.db``) holds
   ``(rig, parameter, level, kind, t_ns)``: the same alarm is never stored
   twice, whatever re-processing raised it again. Each row carries the JSON
   payload and its CRC-32;
-* ``checkpoints``: the last checkpoint of each rig (the pickled tracker and
-  detector, the source position), replaced atomically;
-* ``meta``: schema version and the record of a legacy journal imported.
+* ``meta``: schema version, the journal's id (random, made with the journal)
+  and the record of a legacy journal imported.
 
-Durability: WAL mode with ``synchronous=FULL``: a commit is on disk when it
-returns (an alarm survives ``kill -9`` and a power cut once journaled).
+Durability: WAL mode with ``synchronous=FULL``, and every alarm commit is
+folded into the main database file at once (``PRAGMA wal_checkpoint(TRUNCATE)``):
+when :meth:`Store.insert_alarm` returns, the alarm is in the main file and the
+WAL is empty, so a lost, cut or damaged WAL cannot take a journaled alarm with
+it (an alarm survives ``kill -9`` and a power cut once journaled).
+
+Continuity: the files beside a journal (its checkpoint, a commissioning) say
+that a rig ran before, under which journal id and with how many alarms
+(:class:`Continuity`). A journal that is missing, empty, replaced (another id)
+or whose alarms end before those numbers is refused with one line naming the
+file: alarm numbering never restarts silently.
+
+Checkpoints are data only (:func:`encode_state`, :func:`read_checkpoints`): a
+versioned JSON document of numbers, strings, lists and numeric arrays (raw
+little-endian bytes in base64, bit for bit), with its SHA-256; nothing in it
+is ever executed. A checkpoint of an unknown format or version is refused.
 
 Corruption is detected, reported and never repaired: the open runs
 ``PRAGMA quick_check`` and verifies every alarm's CRC and the sequence numbers;
@@ -29,28 +42,37 @@ writer writes.
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import fcntl
+import hashlib
 import json
 import logging
+import math
 import os
 import sqlite3
 import threading
 import time
+import uuid
 import zlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO, Self
+from typing import Any, BinaryIO, Self
+
+import numpy as np
 
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent, AlarmIdentity, event_to_json
 
-__all__ = ["Checkpoint", "Store"]
+__all__ = ["Checkpoint", "Continuity", "Store", "checkpoint_path", "decode_state", "encode_state",
+           "read_checkpoints", "write_checkpoints"]
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"
+#: Schema versions this program opens: 1 (checkpoints inside the database, pickled; opened only without any) and 2.
+KNOWN_SCHEMAS = ("1", "2")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -61,10 +83,6 @@ CREATE TABLE IF NOT EXISTS alarms (
     PRIMARY KEY (rig, seq),
     UNIQUE (rig, parameter, level, kind, t_ns)
 );
-CREATE TABLE IF NOT EXISTS checkpoints (
-    rig TEXT PRIMARY KEY, t_ns INTEGER NOT NULL, samples INTEGER NOT NULL,
-    fingerprint TEXT NOT NULL, state BLOB NOT NULL, crc INTEGER NOT NULL, saved_at REAL NOT NULL
-);
 """
 
 
@@ -74,7 +92,7 @@ def _crc(data: str | bytes) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class Checkpoint:
-    """A rig's saved state: its pickled objects and where in its input it was taken."""
+    """A rig's saved state (plain data, see :func:`encode_state`) and where in its input it was taken."""
 
     rig: str
     t_ns: int
@@ -82,9 +100,25 @@ class Checkpoint:
     samples: int
     fingerprint: str
     """What the state was computed under (rig configuration); a mismatch invalidates it."""
-    state: bytes
+    state: dict[str, Any]
     saved_at: float
     """Wall-clock time of the save [s since the epoch]."""
+    alarm_seq: int = 0
+    """The rig's last alarm number in the journal when the checkpoint was taken."""
+    journal_id: str = ""
+    """The id of the journal those alarms are in."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Continuity:
+    """What the files beside a journal say about it; a journal that disagrees is refused (:class:`Store`)."""
+
+    evidence: str
+    """The file that says the rig ran before (named in the refusal)."""
+    journal_id: str | None = None
+    """The journal's id as that file knows it (``None``: unknown)."""
+    last_seqs: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    """Per rig: alarms that were journaled when that file was written."""
 
 
 class Store:
@@ -97,28 +131,57 @@ class Store:
     :raises SourceError: the file or its directory cannot be opened, or another
         process holds the writer lock.
     :raises LogFormatError: the file is not an intact journal (quick_check, a CRC
-        or the sequence numbers fail); the file is left as it is.
+        or the sequence numbers fail), has a schema version this program does not
+        know, holds a checkpoint of an earlier version (pickled: never loaded), or
+        disagrees with ``expect``; the file is left as it is.
+    :param expect: what the files beside the journal say (a writer checks it before writing anything), or a
+        function that reads them, called once the writer's lock is held.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, writer: bool = True, lock_wait_s: float = 5.0) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, writer: bool = True, lock_wait_s: float = 5.0,
+                 expect: Continuity | Callable[[], Continuity | None] | None = None) -> None:
         self.path = Path(path)
         self._lock = threading.RLock()
         self._lockfile: BinaryIO | None = None
         self._db: sqlite3.Connection | None = None
+        self.journal_id: str | None = None
+        """The journal's random id (made with the journal; ``None`` for a reader of a file without one)."""
         try:
             if writer:
                 self._take_lock(lock_wait_s)
+            if callable(expect):
+                expect = expect()
+            if expect is not None and (not self.path.exists() or self.path.stat().st_size == 0):
+                raise LogFormatError(self._refusal(expect, "is missing" if not self.path.exists()
+                                                   else "is empty (0 bytes)"))
             self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA busy_timeout = 30000")
+            self._check_integrity()
+            version = self._schema_version()
+            if expect is not None:
+                self._check_continuity(expect, version)
+            self._verify_alarms()  # all checks before anything is written
             mode = self._db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             if mode.lower() != "wal":
                 raise SourceError(f"{self.path}: cannot switch the journal to WAL mode (got {mode!r})")
             self._db.execute("PRAGMA synchronous = FULL")
-            self._check_integrity()
             if writer:
-                self._db.executescript(_SCHEMA)
-                self._db.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,))
-            self._verify_alarms()
+                db = self._db
+                db.execute("BEGIN IMMEDIATE")  # the schema, the id and the version together, or none of them
+                try:
+                    for statement in _SCHEMA.split(";"):
+                        if statement.strip():
+                            db.execute(statement)
+                    db.execute("INSERT OR IGNORE INTO meta VALUES ('journal_id', ?)", (uuid.uuid4().hex,))
+                    if version != SCHEMA_VERSION:
+                        db.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,))
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
+                    raise
+                self._fold()  # a WAL left by a killed writer goes into the main file now
+            self.journal_id = self.meta("journal_id")
         except sqlite3.DatabaseError as exc:
             self.close()
             raise self._error(exc, "cannot open") from exc
@@ -168,6 +231,23 @@ class Store:
             raise SourceError(f"{self.path}: journal is closed")
         return self._db
 
+    def fold(self) -> None:
+        """Move every committed transaction from the WAL into the main file and empty the WAL.
+
+        :raises SourceError: naming the file, when it cannot be done (disk full, I/O error, readers holding
+            the WAL for longer than the busy timeout).
+        """
+        with self._lock:
+            try:
+                self._fold()
+            except sqlite3.Error as exc:
+                raise self._error(exc, "cannot fold the WAL into") from exc
+
+    def _fold(self) -> None:
+        busy, _, _ = self._conn().execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        if busy:
+            raise sqlite3.OperationalError("readers kept the WAL busy; committed alarms are in the WAL only")
+
     def _error(self, exc: sqlite3.Error, what: str) -> SourceError | LogFormatError:
         text = str(exc)
         if isinstance(exc, sqlite3.DatabaseError) and ("not a database" in text or "malformed" in text):
@@ -176,6 +256,53 @@ class Store:
         return SourceError(f"{self.path}: {what} the journal: {text}")
 
     # ------------------------------------------------------------------ integrity
+
+    def _schema_version(self) -> str | None:
+        """The file's schema version (``None``: no journal in it yet); refuses unknown ones and pickled checkpoints."""
+        db = self._conn()
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'").fetchall()}
+        if "meta" not in tables:
+            if "alarms" in tables:
+                raise LogFormatError(f"{self.path}: an alarms table without a schema version; not a journal of "
+                                     "this program: left untouched")
+            return None
+        row = db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        version = None if row is None else str(row[0])
+        if version not in KNOWN_SCHEMAS:
+            raise LogFormatError(f"{self.path}: schema_version {version!r} is not one this program reads "
+                                 f"({', '.join(KNOWN_SCHEMAS)}); left untouched: open it with the program "
+                                 "that wrote it")
+        if "checkpoints" in tables and db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0]:
+            raise LogFormatError(f"{self.path}: holds checkpoints of an earlier version (pickled objects, never "
+                                 "loaded: they could run code); to start its rigs afresh from their journaled "
+                                 f"alarms, delete them: sqlite3 {self.path} 'DELETE FROM checkpoints'")
+        return version
+
+    def _refusal(self, expect: Continuity, what: str) -> str:
+        return (f"{self.path}: the journal {what}, but {expect.evidence} says the rig ran before; refused "
+                "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                "move that file aside to go on from this journal (numbers then follow its last alarm)")
+
+    def _check_continuity(self, expect: Continuity, version: str | None) -> None:
+        db = self._conn()
+        if version is None:
+            raise LogFormatError(self._refusal(expect, "holds no alarm journal (an empty or replaced database)"))
+        row = db.execute("SELECT value FROM meta WHERE key='journal_id'").fetchone()
+        have = None if row is None else str(row[0])
+        if expect.journal_id is not None and have != expect.journal_id:
+            raise LogFormatError(
+                f"{self.path}: the journal was replaced: its id is {have or 'missing'}, {expect.evidence} was "
+                f"written with journal {expect.journal_id}; refused "
+                "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                "move that file aside to go on from this journal (numbers then follow its last alarm)")
+        for rig, n in sorted(expect.last_seqs.items()):
+            last = self._last_seq(db, rig)
+            if last < n:
+                raise LogFormatError(
+                    f"{self.path}: the alarms of rig {rig!r} end at seq {last}, but {expect.evidence} says {n} "
+                    "were journaled (alarms were lost from the file); refused "
+                    "(alarm numbers never restart): put the rig's own journal back (a backup taken after that file), or "
+                    "move that file aside to go on from this journal (numbers then follow its last alarm)")
 
     def _check_integrity(self) -> None:
         rows = self._conn().execute("PRAGMA quick_check").fetchall()
@@ -216,8 +343,11 @@ class Store:
 
         ``seq=0`` takes the rig's next number; an explicit ``seq`` must be exactly it.
 
+        On return the alarm is in the main database file (the WAL folded into it).
+
         :returns: ``(journaled event, True)``, or ``(the stored one, False)`` for a duplicate.
         :raises DataError: an explicit ``seq`` that is not the next number.
+        :raises NotFolded: committed (numbered, in the WAL) but not yet in the main file; :meth:`fold` later.
         :raises SourceError: the write failed (disk full, read-only, I/O error), naming the file.
         """
         ident = event.identity
@@ -247,6 +377,11 @@ class Store:
                     raise
             except sqlite3.Error as exc:
                 raise self._error(exc, "cannot write to") from exc
+            try:
+                self._fold()
+            except sqlite3.Error as exc:
+                err = self._error(exc, "cannot fold the WAL into")
+                raise NotFolded(event, str(err)) from exc
             return event, True
 
     def insert_many(self, events: Iterable[AlarmEvent], meta: dict[str, str]) -> int:
@@ -274,6 +409,7 @@ class Store:
                     if db.in_transaction:
                         db.execute("ROLLBACK")
                     raise
+                self._fold()
             except sqlite3.IntegrityError as exc:
                 raise LogFormatError(f"{self.path}: import refused, the alarms collide with those "
                                      f"already journaled ({exc})") from exc
@@ -335,39 +471,205 @@ class Store:
         except sqlite3.Error as exc:
             raise self._error(exc, "cannot read") from exc
 
-    # ------------------------------------------------------------------ checkpoints
-
-    def save_checkpoint(self, cp: Checkpoint) -> None:
-        """Replace the rig's checkpoint (one transaction: the old one or the new one, never half)."""
-        with self._lock:
-            try:
-                self._conn().execute("INSERT OR REPLACE INTO checkpoints VALUES (?, ?, ?, ?, ?, ?, ?)",
-                                     (cp.rig, cp.t_ns, cp.samples, cp.fingerprint, cp.state, _crc(cp.state),
-                                      cp.saved_at))
-            except sqlite3.Error as exc:
-                raise self._error(exc, "cannot write a checkpoint to") from exc
-
-    def load_checkpoint(self, rig: str) -> Checkpoint | None:
-        """The rig's checkpoint, ``None`` if there is none or it is damaged (logged)."""
-        with self._lock:
-            row = self._read(lambda db: db.execute(
-                "SELECT t_ns, samples, fingerprint, state, crc, saved_at FROM checkpoints WHERE rig=?",
-                (rig,)).fetchone())
-        if row is None:
-            return None
-        t_ns, samples, fingerprint, state, crc, saved_at = row
-        if _crc(state) != crc:
-            log.error("%s: the checkpoint of rig %s is damaged (CRC mismatch); starting that rig afresh "
-                      "(journaled alarms are kept and not raised twice)", self.path, rig)
-            return None
-        return Checkpoint(rig, int(t_ns), int(samples), fingerprint, bytes(state), float(saved_at))
-
     # ------------------------------------------------------------------ meta
 
     def meta(self, key: str) -> str | None:
         with self._lock:
             row = self._read(lambda db: db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone())
         return row[0] if row else None
+
+
+class NotFolded(SourceError):
+    """An alarm committed to the WAL (numbered, journaled) that could not be folded into the main file yet."""
+
+    def __init__(self, event: AlarmEvent, message: str) -> None:
+        super().__init__(message)
+        self.event = event
+
+
+# --------------------------------------------------------------------------- checkpoints: data only
+
+CHECKPOINT_FORMAT = "fpdd-twin checkpoint"
+#: The checkpoint documents this program reads and writes.
+CHECKPOINT_VERSION = 1
+_ARRAY_DTYPES = {"float64": "<f8", "int64": "<i8", "bool": "|b1"}
+_SPECIAL_FLOATS = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+
+
+def checkpoint_path(journal: str | os.PathLike[str]) -> Path:
+    """Where the checkpoints of a journal's rigs are kept: ``<journal stem>.checkpoint.json`` beside it."""
+    p = Path(journal)
+    return p.with_name(p.stem + ".checkpoint.json")
+
+
+def encode_state(value: Any, where: str = "state") -> Any:
+    """Plain data as JSON values: ``None``, bools, ints, strings, floats (non-finite ones as ``{"$float": "nan"}``),
+    lists and tuples (as lists), dicts with string keys, numpy arrays of float64, int64 or bool (``{"$array":
+    {"dtype", "shape", "data"}}``, raw little-endian bytes in base64: bit for bit).
+
+    :raises TypeError: anything else (naming where in the state), so that only data is ever saved.
+    """
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, np.integer)) and not isinstance(value, np.bool_):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else {"$float": "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")}
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        name = value.dtype.name
+        if name not in _ARRAY_DTYPES:
+            raise TypeError(f"{where}: an array of {value.dtype} cannot be saved in a checkpoint "
+                            f"(only {', '.join(_ARRAY_DTYPES)})")
+        raw = np.ascontiguousarray(value, dtype=np.dtype(_ARRAY_DTYPES[name])).tobytes()
+        return {"$array": {"dtype": name, "shape": list(value.shape), "data": base64.b64encode(raw).decode("ascii")}}
+    if isinstance(value, (list, tuple)):
+        return [encode_state(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, Mapping):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str) or k.startswith("$"):
+                raise TypeError(f"{where}: key {k!r} (keys are strings not starting with '$')")
+            out[k] = encode_state(v, f"{where}.{k}")
+        return out
+    raise TypeError(f"{where}: a {type(value).__name__} cannot be saved in a checkpoint (data only)")
+
+
+def decode_state(value: Any, where: str = "state") -> Any:
+    """The inverse of :func:`encode_state`; raises ValueError naming where the document is not plain state."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, list):
+        return [decode_state(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if not isinstance(value, dict):
+        raise ValueError(f"{where}: unexpected {type(value).__name__}")
+    if "$float" in value:
+        if len(value) != 1 or value["$float"] not in _SPECIAL_FLOATS:
+            raise ValueError(f"{where}: a special float must be one of {', '.join(_SPECIAL_FLOATS)}")
+        return _SPECIAL_FLOATS[value["$float"]]
+    if "$array" in value:
+        a = value["$array"]
+        if len(value) != 1 or not isinstance(a, dict) or set(a) != {"dtype", "shape", "data"}:
+            raise ValueError(f"{where}: an array needs exactly dtype, shape and data")
+        if a["dtype"] not in _ARRAY_DTYPES:
+            raise ValueError(f"{where}: array dtype {a['dtype']!r} (one of {', '.join(_ARRAY_DTYPES)})")
+        shape = a["shape"]
+        if not (isinstance(shape, list) and len(shape) <= 8
+                and all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**31 for d in shape)):
+            raise ValueError(f"{where}: array shape {shape!r} (a list of sizes)")
+        dt = np.dtype(_ARRAY_DTYPES[a["dtype"]])
+        try:
+            raw = base64.b64decode(str(a["data"]), validate=True)
+        except ValueError as exc:
+            raise ValueError(f"{where}: array data is not base64 ({exc})") from None
+        if len(raw) != math.prod(shape) * dt.itemsize:
+            raise ValueError(f"{where}: array data of {len(raw)} bytes for shape {shape} of {a['dtype']}")
+        if a["dtype"] == "bool":
+            return np.frombuffer(raw, dtype=np.uint8).reshape(shape) != 0
+        return np.frombuffer(raw, dtype=dt).reshape(shape).astype(np.dtype(a["dtype"]), copy=True)
+    out = {}
+    for k, v in value.items():
+        if k.startswith("$"):
+            raise ValueError(f"{where}: unknown tag {k!r}")
+        out[k] = decode_state(v, f"{where}.{k}")
+    return out
+
+
+def _canonical(body: Any) -> bytes:
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode("utf-8")
+
+
+def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Checkpoint]) -> None:
+    """Write the checkpoints of a journal's rigs atomically (a temporary file, fsync, rename over the old one).
+
+    The folder is not synced after the rename: a power cut that loses the rename leaves the previous
+    checkpoint, which is consistent with the journal too (its alarm number is not larger), so one fsync a
+    checkpoint is enough (the cost of the SQLite commit it replaces).
+
+    :raises SourceError: the file cannot be written (naming it).
+    :raises TypeError: a state holds something that is not plain data.
+    """
+    rigs = {rig: {"t_ns": cp.t_ns, "samples": cp.samples, "fingerprint": cp.fingerprint, "saved_at": cp.saved_at,
+                  "alarm_seq": cp.alarm_seq, "state": encode_state(cp.state, f"{rig}.state")}
+            for rig, cp in sorted(checkpoints.items())}
+    body = {"journal_id": journal_id, "rigs": rigs}
+    data = _canonical(body)
+    head = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(data).hexdigest()}
+    doc = b'{"body":' + data + b"," + _canonical(head)[1:]  # the body serialised once
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(doc + b"\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise SourceError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
+
+
+def read_checkpoints(path: Path) -> tuple[str, dict[str, Checkpoint]] | None:
+    """The journal id and the checkpoints of a checkpoint file (``None`` when there is none).
+
+    Only data is read (JSON; arrays from raw bytes): nothing in the file can run code.
+
+    :raises LogFormatError: one line naming the file and what is wrong: not a checkpoint document (e.g. a
+        pickle of an earlier version), another format or an unknown version, a SHA-256 that does not match.
+    """
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
+    fix = "move it aside to start the rig afresh from its journal (its alarms are kept)"
+    try:
+        doc = json.loads(raw.decode("utf-8"), parse_constant=_no_constant)
+    except (UnicodeDecodeError, ValueError):
+        raise LogFormatError(f"{path}: not a checkpoint of this program (not a JSON checkpoint document; a "
+                             f"checkpoint is never unpickled or executed); refused: {fix}") from None
+    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
+        raise LogFormatError(f"{path}: not a checkpoint of this program (format "
+                             f"{doc.get('format') if isinstance(doc, dict) else None!r}, expected "
+                             f"{CHECKPOINT_FORMAT!r}); refused: {fix}")
+    if doc.get("version") != CHECKPOINT_VERSION:
+        raise LogFormatError(f"{path}: checkpoint version {doc.get('version')!r}, this program reads version "
+                             f"{CHECKPOINT_VERSION}; refused: {fix}")
+    body = doc.get("body")
+    if not isinstance(body, dict) or hashlib.sha256(_canonical(body)).hexdigest() != doc.get("sha256"):
+        raise LogFormatError(f"{path}: the checkpoint's SHA-256 does not match its content (the file is damaged); "
+                             f"refused: {fix}")
+    try:
+        jid = body["journal_id"]
+        if not isinstance(jid, str):
+            raise ValueError("journal_id is not a string")
+        out = {}
+        for rig, e in body["rigs"].items():
+            cp = Checkpoint(rig, _int(e["t_ns"]), _int(e["samples"]), str(e["fingerprint"]),
+                            decode_state(e["state"], f"{rig}.state"), float(e["saved_at"]), _int(e["alarm_seq"]),
+                            jid)
+            if not isinstance(cp.state, dict):
+                raise ValueError(f"{rig}.state is not a mapping")
+            out[rig] = cp
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise LogFormatError(f"{path}: not a valid checkpoint ({type(exc).__name__}: {exc}); refused: {fix}") \
+            from None
+    return jid, out
+
+
+def _int(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ValueError(f"{v!r} is not an integer")
+    return v
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not valid JSON")
 
 
 _EMPTY = sqlite3.connect(":memory:", check_same_thread=False)
