@@ -106,6 +106,9 @@ class ServiceConfig:
     block_s: float = 0.1
     lag_warn_s: float = 1.0
     stale_s: float = 1.0
+    signals_hz: float = 0.0
+    """Rig signals put on ``fpdd/<rig>/signals`` for live views, at most this many samples per second and rig
+    (0: none; ``twin serve --foxglove`` sets it)."""
 
 
 TOP_KEYS = ("zenoh", "service", "rig")
