@@ -286,3 +286,104 @@ def test_an_estimate_is_the_same_message_in_the_twins_mcap_and_live(tmp_path):
     text = twin._estimate_json(first["t_ns"], first["t_s"], values, stds, first["nis"], first["status"])
     assert json.loads(text) == {k: v for k, v in first.items() if k != "timestamp"}
     assert text == event_to_json(EstimateEvent.from_dict(json.loads(text)))
+
+
+def _field(msg: dict, path: list[str]):
+    for key in path:
+        assert isinstance(msg, dict) and key in msg, f"{'.'.join(path)} not in {sorted(msg)}"
+        msg = msg[key]
+    return msg
+
+
+def test_twin_serve_feeds_every_topic_and_field_of_its_layout_and_stops_cleanly_with_a_client(tmp_path):
+    """``twin serve --foxglove 0``: a Foxglove client (documented subprotocol) receives the rig's signals,
+    estimates, statuses and alarms, with every field the written layout's panels read, for the layout's rig
+    (the first served); Ctrl-C with the client connected ends the service cleanly (exit 0, no traceback)."""
+    import queue
+    import re
+    import signal
+    import subprocess
+    import threading
+
+    from mcap.reader import make_reader  # noqa: F401  (the log below is an MCAP file)
+
+    from replay.mcapio import McapSink
+    from twin.models import msp25 as M
+    from twin.models.scenario import Drift, simulate_wear
+    from twin.models.simulate import DEFAULT_NOISE, excite
+
+    log = tmp_path / "rig.mcap"
+    _, xr = excite(M.MODEL, 12.0, 1e-3, seed=1002)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 5.0, shape="step")],
+                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=1002)
+    with McapSink(str(log)) as sink:
+        sink.write(rec.to_samples())
+    cfg = tmp_path / "rigs.toml"
+    cfg.write_text(f"""[zenoh]
+mode = "peer"
+listen = ["tcp/127.0.0.1:{free_port()}"]
+[service]
+journal_dir = "{tmp_path / 'journal'}"
+estimate_every = 100
+[[rig]]
+name = "rig-a"
+source = "{log}"
+speed = 1.0
+[[rig]]
+name = "idle"
+source = "zenoh://fpdd/idle/samples"
+""", encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(cfg), "--foxglove", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    seen: list[str] = []
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    try:
+        while True:
+            line = lines.get(timeout=60.0)
+            seen.append(line)
+            m = re.search(r"Foxglove live view on (ws://\S+) \(layout for rig (\S+): (.+)\)$", line.strip())
+            if m:
+                break
+        url, rig, layout_path = m.groups()
+        assert rig == "rig-a"
+        layout = json.loads(Path(layout_path).read_text(encoding="utf-8"))
+        assert layout["globalVariables"]["rig"] == "rig-a"
+        client = Client(url)
+        try:
+            client.subscribe(list(client.channels))
+            got = client.messages({"/rig/signals": 20, "/twin/estimate": 2, "/twin/status": 1, "/twin/alarm": 1,
+                                   "/twin/alarm_log": 1}, timeout=60.0)
+            proc.send_signal(signal.SIGINT)  # Ctrl-C with the client still connected
+            assert proc.wait(timeout=60.0) == 0
+        finally:
+            client.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        reader.join(timeout=WAIT_S)
+        proc.stdout.close()  # type: ignore[union-attr]
+    out = "".join(seen)
+    while not lines.empty():
+        out += lines.get()
+    assert "Traceback" not in out and "Error" not in out, out[-3000:]
+    for topic, msgs in got.items():
+        for _, payload in msgs:
+            check(payload, client.channels[topic])
+    ours = {t: [m for _, m in msgs if m.get("rig", m.get("name")) == "rig-a"] for t, msgs in got.items()}
+    assert ours["/rig/signals"][0]["x_mm"] is not None and ours["/rig/signals"][0]["pA_MPa"] > 0
+    for panel in layout["configById"].values():
+        paths = [p["value"] for p in panel.get("paths", [])] + ([panel["topicPath"]] if "topicPath" in panel else [])
+        for p in paths:
+            topic, rest = p.split("{", 1)
+            assert rest.startswith("rig==$rig}"), p
+            field = [f for f in rest.split("}", 1)[1].split(".") if f]
+            assert ours[topic], f"no message of rig-a on {topic}"
+            for msg in ours[topic]:
+                value = _field(msg, field)
+                assert field == [] or isinstance(value, (int, float)) or value is None, p
+        if "topicToRender" in panel:
+            assert ours[panel["topicToRender"]], panel["topicToRender"]
+    assert ours["/twin/alarm"][0]["parameter"] == "Ffric"
