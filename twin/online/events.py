@@ -193,8 +193,10 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
         return text
 
     when = ""
-    if wall_clock and event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: the wall-clock time too
-        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=UTC)
+    wall = event.wall_ns if event.wall_ns is not None else (  # when raised; else an epoch record time after 2000
+        event.t_ns if event.t_ns >= 946_684_800 * 10**9 else None)
+    if wall_clock and wall is not None:
+        stamp = datetime.fromtimestamp(wall / 1e9, tz=UTC)
         when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
     text = (f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} {event.kind:9s} "
             f"{event.parameter} = {short(event.estimate)} ± {short(event.std)} "
@@ -230,7 +232,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
     "type": "object",
     "required": [
         "rig", "parameter", "level", "kind", "t_ns", "t_s", "estimate", "std",
-        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit",
+        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit", "wall_ns",
     ],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
@@ -250,6 +252,9 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "message": {"type": "string", "description": "one human-readable line"},
         "unit": {"type": "string", "description": "SI unit of estimate, std, baseline and band, e.g. 'N', "
                                                   "'m^2', 'rad/s', '1'"},
+        "wall_ns": {"type": ["integer", "null"], "minimum": 0, "maximum": INT64_MAX,
+                    "description": "wall-clock time the twin journaled the alarm [ns since the Unix epoch] (beside "
+                    "t_ns, the record's time: a replayed log's alarms are raised now about then); null: unknown"},
     },
 }
 
@@ -314,6 +319,7 @@ class AlarmEvent(_FromJson):
     :ivar statistic: value of the sequential test when the event fired [-].
     :ivar message: one human-readable line.
     :ivar seq: per-rig sequence number assigned by the journal; 0 = not journaled yet.
+    :ivar wall_ns: wall-clock time the journal recorded it [ns since the epoch]; ``None``: not journaled or unknown.
     """
 
     rig: str
@@ -331,6 +337,7 @@ class AlarmEvent(_FromJson):
     message: str = ""
     seq: int = 0
     unit: str = ""
+    wall_ns: int | None = None
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
@@ -367,14 +374,18 @@ class AlarmEvent(_FromJson):
             "statistic": self.statistic,
             "message": self.message,
             "unit": self.unit,
+            "wall_ns": self.wall_ns,
         }
 
     @classmethod
     def from_dict(cls, data: Any) -> Self:
-        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's."""
+        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's, one
+        journaled before wall-clock times were kept ``wall_ns=None``."""
         data = _as_mapping(data, cls.__name__)
         if "unit" not in data and isinstance(data.get("parameter"), str):
             data = {**data, "unit": _si_unit(data["parameter"])}
+        if "wall_ns" not in data:  # journaled before wall-clock times were kept: unknown
+            data = {**data, "wall_ns": None}
         # slots dataclass: no zero-argument super
         return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]
 

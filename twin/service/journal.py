@@ -32,6 +32,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
@@ -119,6 +120,8 @@ class AlarmJournal:
         :raises DataError: ``event.seq`` is not 0 and not the rig's next number.
         :raises SourceError: the journal is closed.
         """
+        if event.wall_ns is None:  # the wall-clock time beside the record's: when it was raised
+            event = dataclasses.replace(event, wall_ns=time.time_ns())
         with self._lock:
             if self.store.closed:
                 raise SourceError(f"{self.path}: alarm journal is closed")
