@@ -105,7 +105,7 @@ def open_rig_source(rig: RigConfig, session=None, timeout_s: float | None = None
     """The rig's source; a ``zenoh://`` input rides on the service's own Zenoh session."""
     from replay.factory import open_source
 
-    opts: dict[str, Any] = {"dbc": rig.dbc} if rig.dbc else {}
+    opts: dict[str, Any] = rig.source_options()
     if rig.source.startswith("zenoh://") and session is not None:
         opts["session"] = session
     if is_live(rig.source) and timeout_s is not None:

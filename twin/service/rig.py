@@ -145,7 +145,7 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
     """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
     d = dataclasses.asdict(rig)
     d.pop("speed")
-    for key, default in (("commission_s", None), ("baseline_set", ())):  # keys added later: their default is
+    for key, default in (("commission_s", None), ("baseline_set", ()), ("map", ())):  # keys added later: their default is
         if d.get(key) == default:                                          # no change (checkpoints still match)
             d.pop(key, None)
     d["estimate_every"] = estimate_every
