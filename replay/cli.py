@@ -5,7 +5,7 @@
     replay --version
     replay info LOG [--json] [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC]
     replay convert IN OUT [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC] [--json]
-    replay play LOG --to can --channel can://INTERFACE/CHANNEL | --to zenoh [--key K] [--speed 1.0]
+    replay [-q] play LOG --to can --channel can://INTERFACE/CHANNEL | --to zenoh [--key K] [--speed 1.0]
     replay record can://INTERFACE/CHANNEL|zenoh://KEY --out FILE [--duration S] [--limit N]
 
 ``info`` reads the whole log through the quality gate and prints its signals, sample
@@ -180,6 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                      epilog="exit status: 0 ok, 1 unusable input or output, 2 bad command line, "
                             "3 completed but input was lost (see the warning line)")
     parser.add_argument("--version", action="version", version=f"%(prog)s (fpdd-twin) {version()}")
+    parser.add_argument("-q", "--quiet", dest="quiet_all", action="store_true",
+                        help="no progress on stderr (any command; also after it: replay play -q ...)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     logs = ", ".join(formats.FILE_SUFFIXES)
     p = sub.add_parser("info", help="signals, duration, rates, gaps and bad records of a log",
@@ -204,6 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if getattr(args, "quiet_all", False):
+        args.quiet = True
     if args.command not in ("info", "convert"):
         return int(args.func(args) or 0)
     try:

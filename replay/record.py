@@ -341,6 +341,6 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", metavar="FILE", help="Zenoh json5 config file")
     p.add_argument("--json", action="store_true", help="print the recording's statistics as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_record)
     return p
