@@ -223,10 +223,10 @@ def _speed(text: str) -> float:
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``play`` to the ``replay`` command's subparsers."""
     from replay import formats
-    from replay.options import add_input_options
+    from replay.options import add_input_options, plain_text
 
     p = subparsers.add_parser("play", help="replay a log in real time to a CAN bus or Zenoh",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", help=f"log to replay ({', '.join(formats.FILE_SUFFIXES)})")
     p.add_argument("--to", choices=("can", "zenoh"), required=True, help="where to send the samples")
     p.add_argument("--speed", type=_speed, default=1.0, help="speed factor (default 1.0 = real time; 0 or inf: "

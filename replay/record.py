@@ -328,8 +328,10 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``record`` to the ``replay`` command's subparsers."""
+    from replay.options import plain_text
+
     p = subparsers.add_parser("record", help="record a live CAN bus or Zenoh input to a log file",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", metavar="INPUT", help="can://INTERFACE/CHANNEL or zenoh://KEYEXPR")
     p.add_argument("--out", "-o", required=True, metavar="FILE",
                    help=f"log to write ({', '.join(formats.FILE_SUFFIXES)}): CAN logs get the raw frames, "

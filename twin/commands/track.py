@@ -120,5 +120,6 @@ def run(args) -> int:
         show = specs.spec(n).show
         value, std = float(f"{d['value']:.5g}"), float(f"{d['std']:.2g}")
         print(f"  {n:8s} {show(value)} +- {show(std)}  [{result['status'][n]}]")
+    print(f"report: {result['files']['report']}", file=sys.stderr)
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
     return 0
