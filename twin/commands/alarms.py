@@ -118,7 +118,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true", help="print one AlarmEvent JSON object per line")
     parser.add_argument("--count", type=positive_int, metavar="N", help="exit after N alarms")
     parser.add_argument(
-        "--timeout", type=positive_seconds, metavar="S", help="exit after S seconds (default: run until stopped)"
+        "--for", "--timeout", dest="timeout", type=positive_seconds, metavar="S",
+        help="exit after S seconds (default: run until stopped; as twin top --for; --timeout is the old name)"
     )
     parser.add_argument(
         "--wait", type=non_negative_seconds, default=10.0, metavar="S",
