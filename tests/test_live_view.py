@@ -387,3 +387,10 @@ source = "zenoh://fpdd/idle/samples"
         if "topicToRender" in panel:
             assert ours[panel["topicToRender"]], panel["topicToRender"]
     assert ours["/twin/alarm"][0]["parameter"] == "Ffric"
+
+
+def test_a_port_in_use_is_one_line(view):
+    from twin.errors import SourceError
+
+    with pytest.raises(SourceError, match=rf"Foxglove live view: cannot listen on 127.0.0.1:{view.port}: "):
+        LiveView(port=view.port)

@@ -421,6 +421,11 @@ class _Front:
         self._ready.wait()
         if self._error is not None:
             self._thread.join()
+            if isinstance(self._error, OSError):  # a port in use, an address not here: one line
+                from twin.errors import SourceError
+
+                raise SourceError(f"Foxglove live view: cannot listen on {host}:{port}: "
+                                  f"{self._error.strerror or self._error}") from None
             raise self._error
 
     def _run(self, host: str, port: int) -> None:
