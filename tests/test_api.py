@@ -68,7 +68,7 @@ def test_the_api_reads_like_the_command_line(tmp_path):
     model = twin.get_model("msp25")
     ps = model.params(A="2000mm^2", wn="43Hz", Ffric="65 N")
     assert ps["A"] == pytest.approx(2e-3) and ps["wn"] == pytest.approx(2 * np.pi * 43) and ps["Ffric"] == 65.0
-    with pytest.raises(ParameterError, match="A: '2 kg' is not in a unit of m\\^2"):
+    with pytest.raises(ParameterError, match="A \\(='2 kg'\\) must be a number in m\\^2 or a value with a unit: '2 kg' is not in a unit of m\\^2"):
         model.params(A="2 kg")
 
     drive, x_ref = twin.excite(model, duration_s=4.0, seed=1003)

@@ -84,7 +84,12 @@ class ParamSpec:
         if isinstance(value, str):
             from twin.units import to_si
 
-            value = to_si(self.name, value, self.unit)
+            try:
+                value = to_si(self.name, value, self.unit)
+            except ParameterError as exc:
+                reason = str(exc).removeprefix(f"{self.name}: ")
+                raise ParameterError(f"{self.name} (={value!r}) must be a number in {self.unit} or a value with a "
+                                     f"unit: {reason}") from None
         try:
             v = float(value)
         except (TypeError, ValueError):
