@@ -74,3 +74,14 @@ def test_amplitude_takes_units(tmp_path, capsys):
     assert cli.main(["-q", "simulate", "-o", str(tmp_path / "x.csv"), "--amplitude", "5kg"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["twin simulate: error: --amplitude (x_ref): '5kg' is not in a unit of m (expected e.g. 2um)"]
+
+
+@pytest.mark.parametrize("command", ["", "info", "convert", "play", "record"])
+def test_replay_help_imports_no_heavy_library_nor_package_metadata(command):
+    probe = ("import json, sys\nfrom replay import cli\ntry:\n    cli.main({argv!r})\nexcept SystemExit:\n    pass\n"
+             "print(json.dumps(sorted(m for m in ('importlib.metadata', *{heavy!r}) if m in sys.modules)))")
+    argv = [a for a in (command, "--help") if a]
+    r = subprocess.run([sys.executable, "-c", probe.format(argv=argv, heavy=HEAVY)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == [], f"replay {command} --help"
