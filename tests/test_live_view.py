@@ -114,7 +114,7 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
         assert client.info["name"] == "fpdd-twin"
         names = {t: ch["schemaName"] for t, ch in client.channels.items()}
         assert names == {"/rig/signals": "fpdd.live.Signals", "/twin/estimate": "EstimateEvent",
-                         "/twin/status": "fpdd.live.Status", "/twin/alarm": "fpdd.live.Alarm",
+                         "/twin/status": "StatusEvent", "/twin/alarm": "AlarmEvent",
                          "/twin/alarm_log": "foxglove.Log"}
         client.subscribe(list(client.channels))
         for topic in client.channels:
@@ -155,6 +155,7 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
     assert est["CdAleak"]["band_lo"] == pytest.approx(band.lo) and est["zeta"]["unit"] == "1"
     a = got["/twin/alarm"][0][1]
     assert a["seq"] == 1 and a["level"] == "alarm" and a["rig"] == "rig-1"
+    assert a == {**published.to_dict(), "timestamp": a["timestamp"]}  # the AlarmEvent, as on Zenoh and in MCAP
     assert got["/twin/alarm_log"][0][1]["level"] == 4 and "ALARM" in got["/twin/alarm_log"][0][1]["message"]
     assert got["/twin/status"][0][1]["parameters"] == {"CdAleak": "alarm"}
 

@@ -15,9 +15,12 @@ kind of message, each with its JSON schema:
   Zenoh and in its MCAP (:class:`twin.online.events.EstimateEvent`, SI with the
   unit beside each parameter: ``value``, ``std``, ``lo95``/``hi95``, ``band_lo``/
   ``band_hi``, ``baseline``), plus the Foxglove ``timestamp``.
-* ``/twin/status`` (``fpdd.live.Status``): service state, per-parameter status words, counters, message.
-* ``/twin/alarm`` (``fpdd.live.Alarm``): every alarm event, values in display units with their unit.
-* ``/twin/alarm_log`` (``foxglove.Log``): the same alarms as Foxglove log lines (the Log panel lists them).
+* ``/twin/status`` (``StatusEvent``): service state, per-parameter status words, counters, message, as on
+  Zenoh and in the MCAP.
+* ``/twin/alarm`` (``AlarmEvent``): every alarm event as on Zenoh and in the MCAP (SI, unit beside, the
+  record's ``t_ns`` and the wall-clock ``wall_ns``).
+* ``/twin/alarm_log`` (``foxglove.Log``): the same alarms as the lines a person reads (display units, the
+  wall-clock time first); the Log panel lists them.
 
 Every message carries ``rig`` (several rigs share the topics; Foxglove filters
 with ``/twin/estimate{rig=="msp25-hall1-a"}``) and ``timestamp`` as Foxglove
@@ -45,7 +48,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
-from twin.reports.units import Shown, label, pretty_unit, signal_unit
+from twin.reports.units import Shown, label, signal_unit
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
@@ -72,32 +75,18 @@ SIGNALS_SCHEMA: dict = {
 }
 
 
-def _estimate_schema() -> dict:
+def _event_schema(kind: str) -> dict:
+    """The schema of a twin event (``EstimateEvent``, ``StatusEvent``, ``AlarmEvent``) with the Foxglove
+    ``timestamp``: as the twin's MCAP records it."""
     from replay.mcapio import with_time_schema
-    from twin.online.events import EstimateEvent
+    from twin.online import events
 
-    return dict(with_time_schema(EstimateEvent.SCHEMA))
+    return dict(with_time_schema(getattr(events, kind).SCHEMA))
 
 
-ESTIMATE_SCHEMA: dict = _estimate_schema()
-STATUS_SCHEMA: dict = {
-    "title": "fpdd.live.Status", "type": "object", "description": "Health of the twin serving one rig",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "state": {"type": "string"},
-                   "parameters": {"type": "object", "additionalProperties": {"type": "string"}},
-                   "counters": {"type": "object", "additionalProperties": {"type": "integer"}},
-                   "message": {"type": "string"}},
-    "required": ["timestamp", "rig", "state", "parameters", "counters", "message"],
-}
-ALARM_SCHEMA: dict = {
-    "title": "fpdd.live.Alarm", "type": "object", "description": "A drift alarm event, values in display units",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "seq": {"type": "integer"},
-                   "parameter": {"type": "string"}, "level": {"type": "string", "enum": ["ok", "warning", "alarm"]},
-                   "kind": {"type": "string"}, "t_s": _NUM, "estimate": _NUM, "std": _NUM, "baseline": _NUM,
-                   "band_lo": _NUM, "band_hi": _NUM, "unit": {"type": "string"}, "statistic": _NUM,
-                   "message": {"type": "string"}, "text": {"type": "string", "description": "one line"}},
-    "required": ["timestamp", "rig", "seq", "parameter", "level", "kind", "t_s", "estimate", "std", "band_lo",
-                 "band_hi", "unit", "message", "text"],
-}
+ESTIMATE_SCHEMA: dict = _event_schema("EstimateEvent")
+STATUS_SCHEMA: dict = _event_schema("StatusEvent")
+ALARM_SCHEMA: dict = _event_schema("AlarmEvent")
 LOG_SCHEMA: dict = {
     "title": "foxglove.Log", "type": "object",
     "description": "Foxglove's well-known log message (the Log panel lists them): one line per alarm event",
@@ -210,7 +199,6 @@ class LiveView:
         for rig, per in (bands or {}).items():
             for p, b in per.items():
                 self.set_band(rig, p, b)
-        self._shown: dict[str, Shown] = {}
         self._lock = threading.Lock()
         self._subs: list = []
         self.counts = {k: 0 for k in TOPICS}
@@ -271,12 +259,6 @@ class LiveView:
         lo, hi, *rest = band
         self._bands.setdefault(rig, {})[parameter] = (lo, hi, rest[0] if rest else None)
 
-    def _sh(self, name: str, unit: str | None) -> Shown:
-        sh = self._shown.get(name)
-        if sh is None:
-            sh = self._shown[name] = Shown(name, self.model, unit)
-        return sh
-
     def _log(self, kind: str, msg: dict, t_ns: int) -> None:
         self._channels[kind].log(msg, log_time=max(0, int(t_ns)))
         self.counts[kind] += 1
@@ -320,34 +302,27 @@ class LiveView:
             self._log("estimate", msg, e.t_ns)
 
     def status(self, ev) -> None:
-        """A :class:`~twin.online.events.StatusEvent` (or its dict)."""
-        d = _as_dict(ev)
-        msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": d["rig"], "state": d["state"],
-               "parameters": dict(d.get("parameters") or {}), "counters": dict(d.get("counters") or {}),
-               "message": d.get("message", "")}
+        """A :class:`~twin.online.events.StatusEvent` (or its dict): its message with the Foxglove ``timestamp``."""
+        from twin.online.events import StatusEvent
+
+        e = ev if isinstance(ev, StatusEvent) else StatusEvent.from_dict(_as_dict(ev))
         with self._lock:
-            self._log("status", msg, d["t_ns"])
+            self._log("status", {**e.to_dict(), "timestamp": foxglove_time(e.t_ns)}, e.t_ns)
 
     def alarm(self, ev) -> None:
-        """An :class:`~twin.online.events.AlarmEvent` (or its dict), in display units; its band becomes the rig's."""
-        d = _as_dict(ev)
-        name = d["parameter"]
-        sh = self._sh(name, None)
-        self.set_band(d["rig"], name, (d["band_lo"], d["band_hi"], d.get("baseline")))
-        u = pretty_unit(sh.unit)
-        text = (f"#{d.get('seq', 0)} t={d['t_s']:.3f} s {d['level'].upper()} {d['kind']} {name} = "
-                f"{sh.text(d['estimate'], 4, unit=False)} ± {sh.text(d['std'], 2)} (band {sh.text(d['band_lo'], 4, unit=False)}"
-                f" … {sh.text(d['band_hi'], 4)})")
-        msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": d["rig"], "seq": int(d.get("seq", 0)), "parameter": name,
-               "level": d["level"], "kind": d["kind"], "t_s": float(d["t_s"]), "estimate": sh(d["estimate"]),
-               "std": sh(d["std"]), "baseline": sh(d.get("baseline", float("nan"))) if d.get("baseline") is not None
-               else None, "band_lo": sh(d["band_lo"]), "band_hi": sh(d["band_hi"]), "unit": u,
-               "statistic": _finite(d.get("statistic")), "message": d.get("message", ""), "text": text}
-        log = {"timestamp": msg["timestamp"], "level": LOG_LEVEL.get(d["level"], 2), "message": text,
-               "name": d["rig"], "file": "", "line": 0}
+        """An :class:`~twin.online.events.AlarmEvent` (or its dict): on ``/twin/alarm`` the event's message (SI,
+        unit beside, with the Foxglove ``timestamp``), on ``/twin/alarm_log`` the line a person reads (display
+        units, :func:`twin.online.events.format_alarm`); its band becomes the rig's."""
+        from twin.online.events import AlarmEvent, format_alarm
+
+        e = ev if isinstance(ev, AlarmEvent) else AlarmEvent.from_dict(_as_dict(ev))
+        self.set_band(e.rig, e.parameter, (e.band_lo, e.band_hi, e.baseline))
+        stamp = foxglove_time(e.t_ns)
+        log = {"timestamp": stamp, "level": LOG_LEVEL.get(e.level, 2), "message": format_alarm(e, model=self.model),
+               "name": e.rig, "file": "", "line": 0}
         with self._lock:
-            self._log("alarm", msg, d["t_ns"])
-            self._log("alarm_log", log, d["t_ns"])
+            self._log("alarm", {**e.to_dict(), "timestamp": stamp}, e.t_ns)
+            self._log("alarm_log", log, e.t_ns)
 
     def payload(self, rig: str, kind: str, payload: str | bytes | Mapping) -> None:
         """A message as the service puts it on Zenoh: ``kind`` is ``estimate``, ``status`` or ``alarm``, the
