@@ -5,7 +5,7 @@
     replay --version
     replay info LOG [--json] [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC]
     replay convert IN OUT [--dbc FILE] [--map NAME=COLUMN[:UNIT] ...] [--topic TOPIC] [--json]
-    replay play LOG --to can --channel can://INTERFACE/CHANNEL | --to zenoh [--key K] [--speed 1.0]
+    replay [-q] play LOG --to can --channel can://INTERFACE/CHANNEL | --to zenoh [--key K] [--speed 1.0]
     replay record can://INTERFACE/CHANNEL|zenoh://KEY --out FILE [--duration S] [--limit N]
 
 ``info`` reads the whole log through the quality gate and prints its signals, sample
@@ -33,15 +33,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from importlib import metadata
 from typing import Any
 from collections.abc import Sequence
 
-import numpy as np
-
 from replay import formats
 from replay.options import add_input_options, loss_warning, source_options
-from replay.factory import open_sink, open_source
 from replay.errors import TwinError
 
 
@@ -54,6 +50,8 @@ except ModuleNotFoundError as exc:  # replay.play is written separately; only it
 
 
 def version() -> str:
+    from importlib import metadata
+
     try:
         return metadata.version("fpdd-twin")
     except metadata.PackageNotFoundError:  # running from a source tree
@@ -62,6 +60,10 @@ def version() -> str:
 
 def info(path: str, **options: Any) -> dict[str, Any]:
     """Read ``path`` completely and return what ``replay info`` prints (units: s, Hz, SI)."""
+    import numpy as np
+
+    from replay.factory import open_source
+
     if formats.suffix_of(path) == ".mcap" and "topic" not in options:
         from replay.factory import check_readable
         from replay.mcapio import inspect
@@ -160,11 +162,20 @@ def convert(src_path: str, dst_path: str, **options: Any) -> dict[str, Any]:
     The output is opened after the input (a bad input creates no file) and closed with
     what it got if the read fails part way.
     """
+    from replay.factory import open_sink, open_source
+
     with open_source(src_path, **options) as src:
         with open_sink(dst_path) as sink:
             for block in src.chunks():
                 sink.write(block)
         return {"input": src.report.to_dict(), "summary": src.report.summary(), "output": dst_path}
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked (``--help`` stays fast)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):  # noqa: D102
+        parser.exit(message=f"{parser.prog} (fpdd-twin) {version()}\n")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -179,7 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "(CSV, MCAP, CAN logs, live CAN and Zenoh) as one stream of samples in SI units.",
                      epilog="exit status: 0 ok, 1 unusable input or output, 2 bad command line, "
                             "3 completed but input was lost (see the warning line)")
-    parser.add_argument("--version", action="version", version=f"%(prog)s (fpdd-twin) {version()}")
+    parser.add_argument("--version", action=_Version, nargs=0, help="show the version and exit")
+    parser.add_argument("-q", "--quiet", dest="quiet_all", action="store_true",
+                        help="no progress on stderr (any command; also after it: replay play -q ...)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     logs = ", ".join(formats.FILE_SUFFIXES)
     p = sub.add_parser("info", help="signals, duration, rates, gaps and bad records of a log",
@@ -204,6 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if getattr(args, "quiet_all", False):
+        args.quiet = True
     if args.command not in ("info", "convert"):
         return int(args.func(args) or 0)
     try:

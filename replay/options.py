@@ -59,3 +59,15 @@ def loss_warning(report: dict[str, Any] | None) -> int:
         return 0
     print(f"replay: warning: {report['loss_line']}", file=sys.stderr)
     return EXIT_LOSS
+
+
+def plain_text(doc: str | None) -> str:
+    """A docstring as a command's help shows it: reStructuredText markup removed (````x```` and
+    ``:role:`x``` become ``x``; a ``.. directive::`` line and a lone ``::`` are dropped)."""
+    import re
+
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc or "")
+    text = re.sub(r"``([^`]+)``", r"\1", text)
+    text = re.sub(r"(?m)^\s*\.\. [a-z-]+::.*\n", "", text)
+    text = re.sub(r"(?m)^(\s*)::\s*$", "", text)
+    return re.sub(r"(\S)::(\s*)$", r"\1:\2", text, flags=re.M)

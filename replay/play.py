@@ -44,7 +44,11 @@ class PlayStats:
     early_max_s: float = 0.0  # a write before its due time would be a bug: kept to prove it is 0
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """As a JSON-ready dict (``speed`` null: as fast as possible)."""
+        d = dataclasses.asdict(self)
+        if not np.isfinite(d["speed"]):
+            d["speed"] = None
+        return d
 
 
 class _Lateness:
@@ -209,22 +213,24 @@ def _speed(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if v == 0:  # as in twin demo --speed 0
+        return float("inf")
     if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text}: expected a factor > 0 (inf: as fast as possible)")
+        raise argparse.ArgumentTypeError(f"{text}: expected a factor > 0, or 0 (or inf) for as fast as possible")
     return v
 
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``play`` to the ``replay`` command's subparsers."""
     from replay import formats
-    from replay.options import add_input_options
+    from replay.options import add_input_options, plain_text
 
     p = subparsers.add_parser("play", help="replay a log in real time to a CAN bus or Zenoh",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", help=f"log to replay ({', '.join(formats.FILE_SUFFIXES)})")
     p.add_argument("--to", choices=("can", "zenoh"), required=True, help="where to send the samples")
-    p.add_argument("--speed", type=_speed, default=1.0, help="speed factor (default 1.0 = real time; inf: "
-                   "as fast as possible)")
+    p.add_argument("--speed", type=_speed, default=1.0, help="speed factor (default 1.0 = real time; 0 or inf: "
+                   "as fast as possible, as in twin demo)")
     p.add_argument("--channel", metavar="can://INTERFACE/CHANNEL",
                    help="CAN bus, required with --to can, e.g. can://socketcan/can0, can://pcan/PCAN_USBBUS1")
     p.add_argument("--key", default="fpdd/msp25/samples", help="Zenoh key expression (default fpdd/msp25/samples)")
@@ -238,6 +244,6 @@ def register(subparsers) -> argparse.ArgumentParser:
     add_input_options(p)
     p.set_defaults(dbc=None)
     p.add_argument("--json", action="store_true", help="print the statistics and read report as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress display on stderr")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")
     p.set_defaults(func=cmd_play, parser=p)
     return p

@@ -328,8 +328,10 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``record`` to the ``replay`` command's subparsers."""
+    from replay.options import plain_text
+
     p = subparsers.add_parser("record", help="record a live CAN bus or Zenoh input to a log file",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", metavar="INPUT", help="can://INTERFACE/CHANNEL or zenoh://KEYEXPR")
     p.add_argument("--out", "-o", required=True, metavar="FILE",
                    help=f"log to write ({', '.join(formats.FILE_SUFFIXES)}): CAN logs get the raw frames, "
@@ -341,6 +343,6 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", metavar="FILE", help="Zenoh json5 config file")
     p.add_argument("--json", action="store_true", help="print the recording's statistics as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_record)
     return p

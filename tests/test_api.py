@@ -35,3 +35,57 @@ def test_api_functions_survive_their_modules_being_imported():
         importlib.import_module(mod)
     assert callable(twin.fit) and callable(twin.track) and callable(twin.diagnose)
     assert twin.fit.__module__ == "twin.estimation.fit" and twin.diagnose.__name__ == "diagnose"
+
+
+def test_the_api_reads_like_the_command_line(tmp_path):
+    """``load_records(map=...)`` in --map's direction (a dict or its strings), ``model.params`` with units as
+    ``--set``, ``FitResult.save()`` read back as ``--params``, ``report()``, short reprs."""
+    import dataclasses
+
+    import numpy as np
+    import pytest
+
+    from twin.commands.common import load_params_file
+    from twin.estimation.diagnose import Diagnosis
+    from twin.errors import DataError, ParameterError
+
+    here = pathlib.Path(__file__).parent
+    lines = (here / "data" / "reference.csv").read_text(encoding="utf-8").splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    with open(tmp_path / "foreign.csv", "w", encoding="utf-8") as f:
+        f.write("time,dem,u,pos_mm,pA,pB\n")
+        for r in rows:
+            f.write(",".join([r[0], r[1], r[2], repr(float(r[3]) * 1e3), r[4], r[5]]) + "\n")
+    want = twin.load_records(str(here / "data" / "reference.csv"))[0]
+    as_dict = twin.load_records(str(tmp_path / "foreign.csv"), map={"t": "time", "x_ref": "dem", "x": "pos_mm:mm"})
+    as_text = twin.load_records(str(tmp_path / "foreign.csv"), map=["t=time", "x_ref=dem", "x=pos_mm:mm"])
+    for got in (as_dict[0], as_text[0]):
+        for k in ("x", "x_ref", "u", "pA", "pB"):
+            np.testing.assert_allclose(got.signals[k], want.signals[k], rtol=1e-12)
+    with pytest.raises(DataError, match="did you mean map x=pos_mm"):
+        twin.load_records(str(tmp_path / "foreign.csv"), map="pos_mm=x")
+
+    model = twin.get_model("msp25")
+    ps = model.params(A="2000mm^2", wn="43Hz", Ffric="65 N")
+    assert ps["A"] == pytest.approx(2e-3) and ps["wn"] == pytest.approx(2 * np.pi * 43) and ps["Ffric"] == 65.0
+    with pytest.raises(ParameterError, match="A \\(='2 kg'\\) must be a number in m\\^2 or a value with a unit: '2 kg' is not in a unit of m\\^2"):
+        model.params(A="2 kg")
+
+    drive, x_ref = twin.excite(model, duration_s=4.0, seed=1003)
+    record = twin.measure(model, model.params(Ffric=65.0), drive, x_ref, dt=1e-3,
+                          noise={"x": 2e-6, "pA": 2e4, "pB": 2e4}, seed=1003)
+    result = twin.fit(model, record, ["Ffric"], start={"Ffric": 40.0})
+    text = repr(result)
+    assert len(text) < 300 and text.startswith("FitResult(model='msp25', Ffric=") and "converged" in text
+    saved = result.save(str(tmp_path / "fit.json"))
+    back = load_params_file(model, saved)
+    assert back["Ffric"] == pytest.approx(result.estimate["Ffric"])
+    html = result.report([record], str(tmp_path / "report"))
+    assert pathlib.Path(html).stat().st_size > 1000
+
+    diag = Diagnosis(model="msp25", causes=["spool_deadband"], unexplained=False, nominal=None, final=None,  # type: ignore[arg-type]
+                     path=[], screens=[[]] * 50, trials=[[]] * 50, gains={}, outputs=("x",), holdout=0.3, time_s=8.2,
+                     records=[record] * 5)
+    assert repr(diag) == ("Diagnosis(model='msp25', verdict='explained', causes=['spool_deadband'], records=5, "
+                          "time_s=8.2)")
+    assert dataclasses.is_dataclass(diag)

@@ -51,7 +51,7 @@ CASES = [
     ("rig-key-typo", edit("track =", "trak ="), r"rig 'msp25-a': unknown key 'trak' \(did you mean 'track'\?\)"),
     ("baseline-key-typo", edit("rel_band", "rel_bnd"),
      r"baseline\.Ffric: unknown key 'rel_bnd' \(did you mean 'rel_band'\?\)"),
-    ("param-not-a-number", edit("KP = 450", 'KP = "abc"'), r"params\.KP: expected a number, got 'abc'"),
+    ("param-not-a-number", edit("KP = 450", 'KP = "abc"'), r"params\.KP: expected a number or a value with a unit, got 'abc'"),
     ("param-typo", edit("KP = 450", "KPP = 450"), r"params: unknown parameter 'KPP' of model msp25 \(did you mean 'KP'\?\)"),
     ("param-nan", edit("KP = 450", "KP = nan"), r"params\.KP: expected a finite number, got nan"),
     ("param-inf", edit("KP = 450", "KP = inf"), r"params\.KP: expected a finite number, got inf"),

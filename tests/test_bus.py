@@ -446,3 +446,33 @@ def test_cli_argument_parsing_and_human_format() -> None:
     line = format_alarm(alarm("msp25", 3, seq=7))
     assert line.startswith("2025-02-19T21:20:03.000Z msp25 #7 t=3.000 s ALARM")
     assert "Kleak = 3e-12 ± 2e-13" in line and line.endswith("alarm 3")
+
+
+def test_alarms_of_a_replayed_log_carry_wall_clock_time_and_since_takes_both_clocks(
+    hub: zenoh.Session, endpoint: str, journal: AlarmJournal, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A replayed log's alarms are in its own (1970) time; the journal stamps when each was raised, so
+    ``--since 1h`` (wall clock) finds them, and ``--since t=SECONDS`` picks by the record's time."""
+    import dataclasses
+    import time
+
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
+    before = time.time_ns()
+    with TwinPublisher(hub, "r1", journal) as twin:
+        sent = [twin.publish_alarm(dataclasses.replace(alarm("r1", i), t_ns=i * 10**9, t_s=float(i)))
+                for i in (1, 2, 3)]
+        assert all(before <= a.wall_ns <= time.time_ns() for a in sent)
+        args = parser.parse_args(["--rig", "r1", "--connect", endpoint, "--json", "--count", "3", "--timeout",
+                                  str(WAIT_S), "--since", "1h"])
+        assert run_alarms_cli(args) == 0
+        got = [AlarmEvent.from_dict(json.loads(line)) for line in capsys.readouterr().out.splitlines()]
+        assert got == sent
+        args = parser.parse_args(["--rig", "r1", "--connect", endpoint, "--count", "1", "--timeout",
+                                  str(WAIT_S), "--since", "t=2.5"])
+        assert run_alarms_cli(args) == 0
+        lines = capsys.readouterr().out.splitlines()
+        assert len(lines) == 1 and " r1 #3 t=3.000 s " in lines[0]
+        assert lines[0].startswith(time.strftime("%Y-", time.gmtime()))  # the wall-clock time first
+        args = parser.parse_args(["--rig", "r1", "--connect", endpoint, "--count", "1", "--timeout", "0.5",
+                                  "--since", "2099-01-01T00:00:00Z"])
+        assert run_alarms_cli(args) == 1 and capsys.readouterr().out == ""

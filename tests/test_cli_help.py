@@ -44,3 +44,57 @@ def test_the_online_path_imports_neither_filterpy_nor_scipy(module):
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout.strip().splitlines()[-1]) == []
+
+
+RST = __import__("re").compile(r"``|:(mod|func|class|meth|attr|data|ref):`|^\s*\.\. [a-z]+::", __import__("re").M)
+
+
+@pytest.mark.parametrize("argv", [["twin", c] for c in ("", *COMMANDS)]
+                         + [["replay", c] for c in ("", "info", "convert", "play", "record")])
+def test_help_texts_are_plain_text(argv, capsys):
+    """What --help prints is read in a terminal: no reStructuredText markup (``x``, :mod:`x`, .. note::)."""
+    from replay import cli as replay_cli
+    from twin import cli as twin_cli
+
+    main = twin_cli.main if argv[0] == "twin" else replay_cli.main
+    with pytest.raises(SystemExit) as info:
+        main([a for a in (argv[1], "--help") if a])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage:") and RST.search(out) is None, RST.search(out)
+
+
+def test_params_table_shows_bounds_in_display_units(capsys):
+    from twin import cli
+
+    assert cli.main(["params"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:5] == ["parameter", "value", "min", "max", "unit"]
+    wn = next(line.split() for line in lines if line.startswith("wn "))
+    assert wn[2:5] == ["1", "1000", "Hz"]  # bounds 2 pi .. 2000 pi rad/s, in Hz
+    leak = next(line.split() for line in lines if line.startswith("CdAleak "))
+    assert leak[2:5] == ["1e-08", "10", "mm^2"]
+
+
+def test_amplitude_takes_units(tmp_path, capsys):
+    """--amplitude 5mm is the same experiment as --amplitude 0.005 (SI); a wrong unit is one line."""
+    from twin import cli
+
+    for name, amp in (("mm.csv", "5mm"), ("si.csv", "0.005")):
+        assert cli.main(["-q", "simulate", "-o", str(tmp_path / name), "--duration", "0.5", "--amplitude", amp]) == 0
+    assert (tmp_path / "mm.csv").read_text() == (tmp_path / "si.csv").read_text()
+    capsys.readouterr()
+    assert cli.main(["-q", "simulate", "-o", str(tmp_path / "x.csv"), "--amplitude", "5kg"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["twin simulate: error: --amplitude (x_ref): '5kg' is not in a unit of m (expected e.g. 2um)"]
+
+
+@pytest.mark.parametrize("command", ["", "info", "convert", "play", "record"])
+def test_replay_help_imports_no_heavy_library_nor_package_metadata(command):
+    probe = ("import json, sys\nfrom replay import cli\ntry:\n    cli.main({argv!r})\nexcept SystemExit:\n    pass\n"
+             "print(json.dumps(sorted(m for m in ('importlib.metadata', *{heavy!r}) if m in sys.modules)))")
+    argv = [a for a in (command, "--help") if a]
+    r = subprocess.run([sys.executable, "-c", probe.format(argv=argv, heavy=HEAVY)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == [], f"replay {command} --help"

@@ -113,3 +113,70 @@ def test_bad_commissioning_keys_name_the_key(tmp_path, rig_lines, message):
     (tmp_path / "rigs.toml").write_text(f'[[rig]]\nname = "a"\nsource = "rig.csv"\n{rig_lines}\n')
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
         load_config(str(tmp_path / "rigs.toml"))
+
+
+def _rig(tmp_path, lines: str, source: str = "rig.mcap"):
+    p = tmp_path / "rigs.toml"
+    p.write_text(f'[[rig]]\nname = "r"\nsource = "{source}"\n{lines}\n', encoding="utf-8")
+    return load_config(str(p)).rigs[0]
+
+
+def test_values_with_units_in_params_and_baselines(tmp_path):
+    rig = _rig(tmp_path, '[rig.params]\nA = "2000mm^2"\nKP = 450\n[rig.baseline.CdAleak]\nvalue = "0.0033mm^2"\n'
+                         'lo = "0.001 mm^2"\nhi = "0.01mm²"\n[rig.baseline.wn]\nvalue = "43Hz"\nrel_band = 0.2')
+    assert rig.params == {"A": pytest.approx(2e-3), "KP": 450.0}
+    b = rig.baseline["CdAleak"]
+    assert (b.value, b.lo, b.hi) == pytest.approx((3.3e-9, 1e-9, 1e-8))
+    assert rig.baseline["wn"].value == pytest.approx(2 * 3.141592653589793 * 43)
+
+
+@pytest.mark.parametrize("lines, message", [
+    ('[rig.baseline.CdAleak]\nvalue = 0.0033',
+     r"baseline\.CdAleak\.value: 0\.0033 m\^2 is outside CdAleak's bounds \[1e-14, 1e-05\] m\^2; a bare number is "
+     r"SI \(m\^2\): for 0\.0033 mm\^2 write \"0\.0033mm\^2\""),
+    ('[rig.baseline.Ffric]\nvalue = "50 bar"', r"baseline\.Ffric\.value: expected a number or a value with a unit, got '50 bar': '50 bar' is not in a unit of N"),
+    ('[rig.params]\nA = "2000 kg"', r"params\.A: expected a number or a value with a unit, got '2000 kg': '2000 kg' is not in a unit of m\^2"),
+    ('map = ["pos_mm=x:mm"]', r"rig 'r'\.map item 'pos_mm=x:mm': 'pos_mm' is not a signal name but 'x' is"),
+    ('map = ["x=pos_mm:mm"]', r"rig 'r'\.map: renames CSV columns; the source 'rig.mcap' is not a CSV log"),
+    ('dbc = "missing.dbc"', r"rig 'r'\.dbc: .*missing\.dbc is not a file"),
+])
+def test_bad_units_maps_and_dbcs_name_the_key(tmp_path, lines, message):
+    with pytest.raises(ConfigError, match=message):
+        _rig(tmp_path, lines)
+
+
+def test_a_csv_rig_with_foreign_columns_is_read_through_its_map(tmp_path):
+    """rigs.toml ``map`` (a list as --map, or a table) and a ``dbc`` relative to the file; the service's reader
+    of the rig reads the foreign CSV as the original."""
+    import shutil
+
+    import numpy as np
+
+    from replay.factory import open_source
+    from twin.service.fleet import open_rig_source
+
+    here = __import__("pathlib").Path(__file__).parent
+    text = (here / "data" / "reference.csv").read_text(encoding="utf-8").splitlines()
+    cols = text[0].split(",")
+    rows = [line.split(",") for line in text[1:]]
+    foreign = ["time_ms", "dem", "valve_V", "pos_mm", "pa", "pb"]
+    with open(tmp_path / "foreign.csv", "w", encoding="utf-8") as f:
+        f.write(",".join(foreign) + "\n")
+        for r in rows:
+            t = (float(r[0]) - float(rows[0][0])) * 1e3
+            f.write(",".join([repr(t), r[1], r[2], repr(float(r[3]) * 1e3), r[4], r[5]]) + "\n")
+    shutil.copy(here.parent / "replay" / "data" / "msp25.dbc", tmp_path / "site.dbc")
+    as_list = _rig(tmp_path, 'dbc = "site.dbc"\nmap = ["t=time_ms:ms", "x_ref=dem", "u=valve_V", "x=pos_mm:mm", '
+                             '"pA=pa", "pB=pb"]', source=str(tmp_path / "foreign.csv"))
+    assert as_list.dbc == str(tmp_path / "site.dbc")
+    as_table = _rig(tmp_path, 'map = { t = "time_ms:ms", x_ref = "dem", u = "valve_V", x = "pos_mm:mm", pA = "pa", '
+                              'pB = "pb" }', source=str(tmp_path / "foreign.csv"))
+    with open_source(str(here / "data" / "reference.csv")) as src:
+        want = src.read_all()
+    for rig in (as_list, as_table):
+        with open_rig_source(rig) as src:
+            got = src.read_all()
+        assert set(got.signals) >= set(cols[1:])
+        for k in cols[1:]:
+            np.testing.assert_allclose(got.signals[k], want.signals[k], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose((got.t_ns - got.t_ns[0]) * 1e-9, (want.t_ns - want.t_ns[0]) * 1e-9, atol=1e-6)

@@ -1,8 +1,8 @@
-"""The Foxglove live view on a real WebSocket connection (loopback, ``foxglove.websocket.v1``).
+"""The Foxglove live view on a real WebSocket connection (loopback).
 
-A client speaks the protocol itself (``websockets``; subprotocol
-``foxglove.websocket.v1``, which foxglove-sdk 0.30 servers call ``foxglove.sdk.v1``:
-they refuse the old name, the messages are the same): it receives ``serverInfo``
+A client speaks the documented Foxglove WebSocket protocol itself (``websockets``;
+subprotocol ``foxglove.websocket.v1`` alone, as Foxglove offers it; the view also
+accepts foxglove-sdk's own name ``foxglove.sdk.v1``): it receives ``serverInfo``
 and ``advertise``, subscribes, and decodes the binary message frames (opcode 1:
 subscription id, log time, JSON payload), which must validate against the
 schema the channel advertised.  Every wait is bounded; nothing sleeps a fixed time.
@@ -34,18 +34,18 @@ sys.path.insert(0, os.path.dirname(__file__))
 from event_helpers import T0_NS  # noqa: E402
 
 WAIT_S = 10.0
-#: the protocol's name, and the name foxglove-sdk >= 0.30 servers answer to (the same messages)
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+#: the documented protocol name, the one Foxglove offers
+SUBPROTOCOLS = ["foxglove.websocket.v1"]
 ROOT = Path(__file__).resolve().parents[1]
 
 
 class Client:
     """A minimal foxglove.websocket.v1 client."""
 
-    def __init__(self, url: str) -> None:
-        self._conn = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=WAIT_S)
+    def __init__(self, url: str, subprotocols=SUBPROTOCOLS) -> None:
+        self._conn = connect(url, subprotocols=subprotocols, open_timeout=WAIT_S, max_size=None)
         self.ws = self._conn.__enter__()
-        assert self.ws.subprotocol in SUBPROTOCOLS
+        assert self.ws.subprotocol == subprotocols[0]
         self.info = self.recv_json("serverInfo")
         self.channels: dict[str, dict] = {}
         while set(self.channels) != {t for t, _ in TOPICS.values()}:
@@ -113,8 +113,8 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
     try:
         assert client.info["name"] == "fpdd-twin"
         names = {t: ch["schemaName"] for t, ch in client.channels.items()}
-        assert names == {"/rig/signals": "fpdd.live.Signals", "/twin/estimate": "fpdd.live.Estimate",
-                         "/twin/status": "fpdd.live.Status", "/twin/alarm": "fpdd.live.Alarm",
+        assert names == {"/rig/signals": "fpdd.live.Signals", "/twin/estimate": "EstimateEvent",
+                         "/twin/status": "StatusEvent", "/twin/alarm": "AlarmEvent",
                          "/twin/alarm_log": "foxglove.Log"}
         client.subscribe(list(client.channels))
         for topic in client.channels:
@@ -148,13 +148,14 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
     assert sig0["rig"] == "rig-1" and sig0["pA_MPa"] == pytest.approx(10.0) and sig0["u_V"] == 0.5
     assert [m["t_s"] for _, m in got["/rig/signals"][:3]] == pytest.approx([0.0, 0.01, 0.02])
     est = got["/twin/estimate"][0][1]["params"]
-    assert est["wn"]["value"] == pytest.approx(43.0) and est["wn"]["unit"] == "Hz"  # display units
-    assert est["CdAleak"]["unit"] == "mm²" and est["CdAleak"]["value"] == pytest.approx(3.63e-3)
+    assert est["wn"]["value"] == pytest.approx(2 * np.pi * 43.0) and est["wn"]["unit"] == "rad/s"  # SI, unit named
+    assert est["CdAleak"]["unit"] == "m^2" and est["CdAleak"]["value"] == pytest.approx(3.63e-9)
     assert est["CdAleak"]["lo95"] < est["CdAleak"]["value"] < est["CdAleak"]["hi95"]
     band = default_baseline("msp25")["CdAleak"]
-    assert est["CdAleak"]["band_lo"] == pytest.approx(band.lo * 1e6) and est["zeta"]["unit"] == ""
+    assert est["CdAleak"]["band_lo"] == pytest.approx(band.lo) and est["zeta"]["unit"] == "1"
     a = got["/twin/alarm"][0][1]
     assert a["seq"] == 1 and a["level"] == "alarm" and a["rig"] == "rig-1"
+    assert a == {**published.to_dict(), "timestamp": a["timestamp"]}  # the AlarmEvent, as on Zenoh and in MCAP
     assert got["/twin/alarm_log"][0][1]["level"] == 4 and "ALARM" in got["/twin/alarm_log"][0][1]["message"]
     assert got["/twin/status"][0][1]["parameters"] == {"CdAleak": "alarm"}
 
@@ -222,3 +223,175 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
         assert field[0] in fields[topic] and (field[0] != "params" or field[2] in param_fields), p
     assert any(c.get("topicToRender") == "/twin/alarm_log" for c in shipped["configById"].values())
     assert shipped["globalVariables"]["rig"]
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.websocket.v1", "foxglove.sdk.v1"])
+def test_both_subprotocol_names_are_accepted(view, subprotocol):
+    """Foxglove offers the documented name; foxglove-sdk's own name works too; the same messages either way."""
+    client = Client(view.url, [subprotocol])
+    try:
+        assert client.ws.subprotocol == subprotocol and client.info["name"] == "fpdd-twin"
+        client.subscribe(["/twin/estimate"])
+        assert view.wait_subscribed("/twin/estimate", WAIT_S)
+        view.estimate(estimate("rig-1", 3))
+        got = client.messages({"/twin/estimate": 1})
+    finally:
+        client.close()
+    assert got["/twin/estimate"][0][1]["t_s"] == pytest.approx(0.15)
+
+
+def test_an_estimate_is_the_same_message_in_the_twins_mcap_and_live(tmp_path):
+    """A rig's twin records its estimates to MCAP and shows them live: equal messages (SI with units, 95 %
+    intervals and bands in both), and equal to what it puts on Zenoh."""
+    from mcap.reader import make_reader
+
+    from replay.mcapio import McapSink
+    from twin.models import msp25 as M
+    from twin.models.scenario import simulate_wear
+    from twin.models.simulate import DEFAULT_NOISE, excite
+    from twin.online.events import event_to_json
+    from twin.service.config import parse_config
+    from twin.service.rig import RigTwin
+
+    rig = parse_config({"rig": [{"name": "rig-m", "source": "x.mcap"}]}, "rigs.toml").rigs[0]
+    _, xr = excite(M.MODEL, 2.0, 1e-3, seed=1001)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+                           seed=1001)
+    path = tmp_path / "twin.mcap"
+    with LiveView(port=0) as view:
+        client = Client(view.url)
+        try:
+            client.subscribe(["/twin/estimate"])
+            assert view.wait_subscribed("/twin/estimate", WAIT_S)
+            with McapSink(str(path)) as recorder:
+                twin = RigTwin(rig, view.tee(None), recorder, estimate_every=200)
+                twin.write(rec.to_samples())
+                n = twin.stats.estimates
+            live = [m for _, m in client.messages({"/twin/estimate": n})["/twin/estimate"]]
+        finally:
+            client.close()
+    with open(path, "rb") as f:
+        recorded = [(ch.schema_id, json.loads(m.data)) for _, ch, m in
+                    make_reader(f).iter_messages(topics=["/twin/estimate"])]
+    assert n == 10 and len(recorded) == n
+    assert [m for _, m in recorded] == live
+    first = live[0]
+    assert set(first["params"]) == set(rig.track)
+    for name, p in first["params"].items():
+        b = rig.baseline[name]
+        assert p["lo95"] < p["value"] < p["hi95"] and p["unit"]
+        assert (p["band_lo"], p["band_hi"], p["baseline"]) == pytest.approx((b.lo, b.hi, b.value))
+    # the service's Zenoh payload of the same numbers is that message too (without the Foxglove time)
+    values = np.array([first["params"][n]["value"] for n in twin.tracker.tracked])
+    stds = np.array([first["params"][n]["std"] for n in twin.tracker.tracked])
+    text = twin._estimate_json(first["t_ns"], first["t_s"], values, stds, first["nis"], first["status"])
+    assert json.loads(text) == {k: v for k, v in first.items() if k != "timestamp"}
+    assert text == event_to_json(EstimateEvent.from_dict(json.loads(text)))
+
+
+def _field(msg: dict, path: list[str]):
+    for key in path:
+        assert isinstance(msg, dict) and key in msg, f"{'.'.join(path)} not in {sorted(msg)}"
+        msg = msg[key]
+    return msg
+
+
+def test_twin_serve_feeds_every_topic_and_field_of_its_layout_and_stops_cleanly_with_a_client(tmp_path):
+    """``twin serve --foxglove 0``: a Foxglove client (documented subprotocol) receives the rig's signals,
+    estimates, statuses and alarms, with every field the written layout's panels read, for the layout's rig
+    (the first served); Ctrl-C with the client connected ends the service cleanly (exit 0, no traceback)."""
+    import queue
+    import re
+    import signal
+    import subprocess
+    import threading
+
+    from mcap.reader import make_reader  # noqa: F401  (the log below is an MCAP file)
+
+    from replay.mcapio import McapSink
+    from twin.models import msp25 as M
+    from twin.models.scenario import Drift, simulate_wear
+    from twin.models.simulate import DEFAULT_NOISE, excite
+
+    log = tmp_path / "rig.mcap"
+    _, xr = excite(M.MODEL, 12.0, 1e-3, seed=1002)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 5.0, shape="step")],
+                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=1002)
+    with McapSink(str(log)) as sink:
+        sink.write(rec.to_samples())
+    cfg = tmp_path / "rigs.toml"
+    cfg.write_text(f"""[zenoh]
+mode = "peer"
+listen = ["tcp/127.0.0.1:{free_port()}"]
+[service]
+journal_dir = "{tmp_path / 'journal'}"
+estimate_every = 100
+[[rig]]
+name = "rig-a"
+source = "{log}"
+speed = 1.0
+[[rig]]
+name = "idle"
+source = "zenoh://fpdd/idle/samples"
+""", encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(cfg), "--foxglove", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    seen: list[str] = []
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    try:
+        while True:
+            line = lines.get(timeout=60.0)
+            seen.append(line)
+            m = re.search(r"Foxglove live view on (ws://\S+) \(layout for rig (\S+): (.+)\)$", line.strip())
+            if m:
+                break
+        url, rig, layout_path = m.groups()
+        assert rig == "rig-a"
+        layout = json.loads(Path(layout_path).read_text(encoding="utf-8"))
+        assert layout["globalVariables"]["rig"] == "rig-a"
+        client = Client(url)
+        try:
+            client.subscribe(list(client.channels))
+            got = client.messages({"/rig/signals": 20, "/twin/estimate": 2, "/twin/status": 1, "/twin/alarm": 1,
+                                   "/twin/alarm_log": 1}, timeout=60.0)
+            proc.send_signal(signal.SIGINT)  # Ctrl-C with the client still connected
+            assert proc.wait(timeout=60.0) == 0
+        finally:
+            client.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        reader.join(timeout=WAIT_S)
+        proc.stdout.close()  # type: ignore[union-attr]
+    out = "".join(seen)
+    while not lines.empty():
+        out += lines.get()
+    assert "Traceback" not in out and "Error" not in out, out[-3000:]
+    for topic, msgs in got.items():
+        for _, payload in msgs:
+            check(payload, client.channels[topic])
+    ours = {t: [m for _, m in msgs if m.get("rig", m.get("name")) == "rig-a"] for t, msgs in got.items()}
+    assert ours["/rig/signals"][0]["x_mm"] is not None and ours["/rig/signals"][0]["pA_MPa"] > 0
+    for panel in layout["configById"].values():
+        paths = [p["value"] for p in panel.get("paths", [])] + ([panel["topicPath"]] if "topicPath" in panel else [])
+        for p in paths:
+            topic, rest = p.split("{", 1)
+            assert rest.startswith("rig==$rig}"), p
+            field = [f for f in rest.split("}", 1)[1].split(".") if f]
+            assert ours[topic], f"no message of rig-a on {topic}"
+            for msg in ours[topic]:
+                value = _field(msg, field)
+                assert field == [] or isinstance(value, (int, float)) or value is None, p
+        if "topicToRender" in panel:
+            assert ours[panel["topicToRender"]], panel["topicToRender"]
+    assert ours["/twin/alarm"][0]["parameter"] == "Ffric"
+
+
+def test_a_port_in_use_is_one_line(view):
+    from twin.errors import SourceError
+
+    with pytest.raises(SourceError, match=rf"Foxglove live view: cannot listen on 127.0.0.1:{view.port}: "):
+        LiveView(port=view.port)

@@ -99,3 +99,27 @@ def test_every_command_has_help(capsys: pytest.CaptureFixture, argv: list[str]) 
         cli.main([*argv, "--help"])
     assert exc.value.code == 0
     assert "usage: replay" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv", [["-q", "play"], ["play", "-q"], ["--quiet", "play"]])
+def test_quiet_anywhere_and_speed_0_is_as_fast_as_possible(capsys: pytest.CaptureFixture, argv: list[str]) -> None:
+    """``replay -q`` (or ``play -q``) prints no progress; ``--speed 0`` plays as fast as possible, as in
+    ``twin demo --speed 0`` (a 1 s log takes no wall-clock second)."""
+    import can
+
+    channel = f"q{len(argv[0])}{argv[-1]}"
+    with can.Bus(interface="virtual", channel=channel) as rx:
+        code, out, err = run(capsys, *argv, str(DATA / "msp25_short.blf"), "--to", "can", "--channel",
+                             f"can://virtual/{channel}", "--speed", "0", "--json")
+        frames = 0
+        while rx.recv(timeout=0.0) is not None:
+            frames += 1
+    assert code == 0 and err == "", err
+    stats = json.loads(out)["stats"]
+    assert stats["speed"] is None and stats["samples"] > 0 and frames > stats["samples"]
+    assert stats["wall_s"] < stats["log_span_s"]
+    with pytest.raises(SystemExit) as info:
+        cli.main(["play", str(DATA / "msp25_short.blf"), "--to", "can", "--channel", f"can://virtual/{channel}",
+                  "--speed", "-1"])
+    assert info.value.code == 2
+    assert "expected a factor > 0, or 0 (or inf) for as fast as possible" in capsys.readouterr().err

@@ -7,6 +7,7 @@ import os
 import queue
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -48,6 +49,9 @@ def test_demo_end_to_end(tmp_path):
     assert any("subscriber: msp25-demo #1 " in line and "mm^2" in line for line in lines)  # display units
     for key in ("html", "trends_png", "rig_mcap", "twin_mcap"):
         assert os.path.getsize(s["files"][key]) > 1000, key
+    html = Path(s["files"]["html"]).read_text(encoding="utf-8")  # a person's page: display units, unit beside
+    assert "mm²" in html and "Hz" in html and "raised (UTC)" in html
+    assert "e-08" not in html and "e-09" not in html and "rad/s" not in html
     with open(s["files"]["twin_mcap"], "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         alarms = [json.loads(m.data) for _, ch, m in reader.iter_messages(topics=["/twin/alarm"])]

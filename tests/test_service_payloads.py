@@ -26,7 +26,7 @@ def test_estimate_payloads_written_from_the_numbers_are_the_event_paths_text():
         status = str(rng.choice(["ok", "gated", "repaired_covariance"]))
         got = twin._estimate_json(t_ns, t_s, vals, stds, nis, status)
         want = event_to_json(EstimateEvent.of_tracker(rig.name, t_ns, t_s, tr.tracked, vals, stds, tr.units,
-                                                      nis if np.isfinite(nis) else None, status))
+                                                      nis if np.isfinite(nis) else None, status, rig.baseline))
         assert got == want, k
         assert EstimateEvent.from_dict(json.loads(got)).rig == "rig-7.b"
     bad = np.ones(len(tr.tracked))

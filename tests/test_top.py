@@ -140,3 +140,90 @@ def test_help_and_json_needs_once():
     r = subprocess.run([*TWIN, "top", "--json", "--connect", "tcp/127.0.0.1:9"], capture_output=True, text=True,
                        timeout=WAIT_S)
     assert r.returncode == 2 and "--json needs --once" in r.stderr
+
+
+SERVING = """
+import sys, time, zenoh
+from replay.zenohconf import zenoh_config
+from twin.online.events import StatusEvent
+from twin.service.bus import TwinPublisher
+from twin.service.journal import AlarmJournal
+endpoint, db = sys.argv[1:3]
+with zenoh.open(zenoh_config(listen=[endpoint])) as s, AlarmJournal(db) as j, TwinPublisher(s, "rig-k", j) as pub:
+    print("serving", flush=True)
+    for i in range(100000):  # a twin's statuses, five a second, until killed
+        pub.publish_status(StatusEvent(rig="rig-k", t_ns=i * 200_000_000, state="running", counters={"samples": i}))
+        time.sleep(0.2)
+"""
+
+
+def test_a_killed_twin_is_shown_gone_within_5_s(tmp_path):
+    """kill -9 of the process serving a rig: its liveliness token leaves the bus and twin top marks it GONE
+    with the age of its last message, within 5 s."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    twin = subprocess.Popen([sys.executable, "-c", SERVING, endpoint, str(tmp_path / "j.db")], stdout=subprocess.PIPE,
+                            text=True)
+    pid = fd = None
+    try:
+        ready, _, _ = select.select([twin.stdout], [], [], WAIT_S)
+        assert ready and twin.stdout.readline().strip() == "serving"  # type: ignore[union-attr]
+        pid, fd = pty.fork()
+        if pid == 0:
+            os.environ["COLUMNS"], os.environ["LINES"] = "120", "40"
+            os.execv(sys.executable, [*TWIN, "top", "--connect", endpoint, "--wait", "30"])
+        screen = ""
+
+        def read_until(pattern: str, within: float = WAIT_S) -> str:
+            nonlocal screen
+            deadline = time.monotonic() + within
+            while not re.search(pattern, ANSI.sub("", screen)):
+                left = deadline - time.monotonic()
+                assert left > 0, f"{pattern!r} not on the terminal within {within} s:\n{ANSI.sub('', screen)[-3000:]}"
+                ready, _, _ = select.select([fd], [], [], left)
+                if ready:
+                    try:
+                        screen += os.read(fd, 65536).decode("utf-8", "replace")
+                    except OSError:
+                        break
+            return ANSI.sub("", screen)
+
+        text = read_until(r"rig rig-k\s+running")
+        assert "GONE" not in text and "STALE" not in text
+        screen = ""
+        twin.kill()  # SIGKILL: no goodbye on the bus
+        twin.wait(timeout=WAIT_S)
+        read_until(r"rig rig-k\s+running\s+GONE \(twin left the bus; last message \d+ s ago\)", within=5.0)
+    finally:
+        if twin.poll() is None:
+            twin.kill()
+            twin.wait()
+        twin.stdout.close()  # type: ignore[union-attr]
+        if pid:
+            try:
+                os.kill(pid, 9)
+                os.waitpid(pid, 0)
+            except (ProcessLookupError, ChildProcessError):
+                pass
+        if fd is not None:
+            os.close(fd)
+
+
+def test_a_silent_twin_is_stale_with_its_age():
+    from twin.commands.top import TopState, render
+
+    state = TopState(stale_s=3.0)
+    state.liveliness("rig-s", True)
+    state.put("status", {"rig": "rig-s", "t_ns": 0, "state": "running", "parameters": {}, "counters": {}})
+    now = state.seen["rig-s"]
+    assert state.presence("rig-s", now + 1.0) == ("live", 1.0)
+    assert state.presence("rig-s", now + 7.0) == ("stale", 7.0)
+    state.liveliness("rig-s", False)
+    assert state.presence("rig-s", now + 7.0)[0] == "gone"
+    state.seen["rig-s"] = now - 7.0
+    snap = state.snapshot()
+    assert snap["rig-s"]["presence"] == "gone" and snap["rig-s"]["age_s"] >= 7.0
+    from rich.console import Console
+
+    console = Console(width=120, record=True)
+    console.print(render(snap, "here", live=False))
+    assert "GONE (twin left the bus; last message 7 s ago)" in console.export_text()

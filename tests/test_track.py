@@ -120,6 +120,12 @@ def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys)
                    "digital:5000", "--out", str(tmp_path / "o"), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert doc["noise"]["x"]["nominal"] == pytest.approx(4e-6) and doc["timing"] == "digital:5000"
+    assert cli.main(["-q", "track", str(log), "--params", str(path), "--out", str(tmp_path / "o")]) == 0
+    out, err = capsys.readouterr()
+    said = err.splitlines()  # where its report is, for a person
+    wn = next(line for line in out.splitlines() if line.strip().startswith("wn "))
+    assert __import__("re").match(r"\s+wn\s+[\d.]+ Hz \+- (\d(\.\d)?|0\.0*[1-9]\d?)(e-\d+)? Hz ", wn), wn  # std rounded in Hz
+    assert f"report: {tmp_path / 'o' / 'track_report.html'}" in said and (tmp_path / "o" / "track_report.html").exists()
     rc = cli.main(["track", str(log), "--noise-levels", "y=1", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and err == ["twin track: error: --noise-levels: expected positive standard deviations of x, pA, "

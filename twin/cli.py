@@ -83,7 +83,7 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = _chosen(argv)
     common = _common()
-    ap = argparse.ArgumentParser(prog="twin", description=__doc__.split("\n")[0], parents=[common])
+    ap = argparse.ArgumentParser(prog="twin", description=__doc__.split("\n")[0].replace("``", ""), parents=[common])
     ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, add, run, help_) in COMMANDS.items():

@@ -78,8 +78,18 @@ class ParamSpec:
         """Whether a fit should move this parameter in log coordinates (wide positive range)."""
         return self.lo > 0.0 and self.hi / self.lo > 100.0
 
-    def check(self, value: float) -> float:
-        """Return ``value`` as float or raise a :class:`ParameterError` naming the parameter."""
+    def check(self, value: float | str) -> float:
+        """Return ``value`` as float or raise a :class:`ParameterError` naming the parameter; a string may carry
+        a unit (``"2000mm^2"``, ``"43Hz"``: converted to SI as ``--set`` does)."""
+        if isinstance(value, str):
+            from twin.units import to_si
+
+            try:
+                value = to_si(self.name, value, self.unit)
+            except ParameterError as exc:
+                reason = str(exc).removeprefix(f"{self.name}: ")
+                raise ParameterError(f"{self.name} (={value!r}) must be a number in {self.unit} or a value with a "
+                                     f"unit: {reason}") from None
         try:
             v = float(value)
         except (TypeError, ValueError):
@@ -166,14 +176,14 @@ class ParameterSet:
     def as_dict(self) -> dict[str, float]:
         return dict(zip(self.names, self.values))
 
-    def replace(self, **values: float) -> ParameterSet:
+    def replace(self, **values: float | str) -> ParameterSet:
         """A copy with some values changed (validated)."""
         return self.update(values)
 
-    def update(self, values: Mapping[str, float]) -> ParameterSet:
+    def update(self, values: Mapping[str, float | str]) -> ParameterSet:
         for k in values:
             self.spec(k)  # raises for unknown names
-        new = tuple(values.get(s.name, v) for s, v in zip(self.specs, self.values))
+        new = tuple(s.check(values[s.name]) if s.name in values else v for s, v in zip(self.specs, self.values))
         return dataclasses.replace(self, values=new)
 
     def by_category(self, *categories: str) -> tuple[str, ...]:

@@ -114,10 +114,28 @@ def signal_specs(model: str):
     return SIGNALS
 
 
-def load_records(path: str, name: str | None = None, model: str = "msp25", **options) -> list[Record]:
-    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``."""
+def load_records(path: str, name: str | None = None, model: str = "msp25", *, map=None,  # noqa: A002
+                 **options) -> list[Record]:
+    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``.
+
+    ``map``: a CSV's columns under other names or units, in the direction of ``--map``: ``{"x": "pos_mm:mm",
+    "t": "time:ms"}``, or ``--map``'s strings (``"x=pos_mm:mm"`` or a list of them). ``dbc=`` (CAN logs) and
+    other keyword options go to the reader.
+    """
     from replay.factory import open_source
     from replay.quality import QualityOptions
+
+    if map:
+        from replay.csvio import parse_map
+
+        if not str(path).lower().endswith(".csv"):
+            from twin.errors import DataError
+
+            raise DataError(f"{path}: map renames CSV columns; this file is not a CSV (its signals are named by "
+                            "its format)")
+        items = [map] if isinstance(map, str) else ([f"{k}={v}" for k, v in map.items()] if isinstance(map, dict)
+                                                     else list(map))
+        options["mapping"] = parse_map(items, option="map")
 
     if str(path).lower().endswith((".csv", ".mcap")) and "quality" not in options:
         options["quality"] = QualityOptions(specs=signal_specs(model))

@@ -59,11 +59,42 @@ def parse_since(text: str, *, now_ns: int | None = None) -> int:
     return int(round(moment.timestamp() * 1e9))
 
 
+class Since(int):
+    """A parsed ``--since`` (the int is ns): ``kind`` ``"wall"`` (a duration back from now or an ISO time: when
+    the alarm was raised, ``wall_ns``, or its ``t_ns`` when not known), ``"t_ns"`` (integer ns: the record's
+    time) or ``"t_s"`` (``t=SECONDS``: seconds from the start of the record, in :attr:`t_s`)."""
+
+    kind: str = "wall"
+    t_s: float = 0.0
+
+    def keeps(self, event) -> bool:
+        """Whether ``event`` (an AlarmEvent) is at or after this time."""
+        if self.kind == "t_s":
+            return event.t_s >= self.t_s
+        if self.kind == "t_ns":
+            return event.t_ns >= self
+        return (event.wall_ns if event.wall_ns is not None else event.t_ns) >= self
+
+
 def _since_argument(text: str) -> int:
+    t = text.strip()
+    if t.startswith("t="):  # record time from its start: t=90, t=90s, t=15m
+        rest = t[2:].strip()
+        match = _DURATION_RE.match(rest)
+        try:
+            t_s = float(match.group(1)) * _UNIT_S[match.group(2)] if match else float(rest)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--since: {text!r}: t= takes seconds from the start of the record, "
+                                             "e.g. t=90 or t=15m") from None
+        since = Since(int(t_s * 1e9))
+        since.kind, since.t_s = "t_s", t_s
+        return since
     try:
-        return parse_since(text)
+        since = Since(parse_since(t))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    since.kind = "t_ns" if t.isdigit() else "wall"
+    return since
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -71,7 +102,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
     parser.add_argument(
         "--since", type=_since_argument, metavar="T",
-        help="history from time T: ISO 8601, a duration back from now (15m, 2h, 1d), or t_ns",
+        help="alarms from time T: raised in the last 15m/2h/1d or since an ISO 8601 time (wall clock, as "
+        "printed first on each line); t=SECONDS from the start of the record (t=90, t=15m); or the record's t_ns",
     )
     parser.add_argument(
         "--since-seq", type=positive_int, metavar="N", help="history from sequence number N (per rig)"
@@ -105,7 +137,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         help="print one AlarmEvent JSON object per line, with \"verification\": verified|unverified")
     parser.add_argument("--count", type=positive_int, metavar="N", help="exit after N alarms")
     parser.add_argument(
-        "--timeout", type=positive_seconds, metavar="S", help="exit after S seconds (default: run until stopped)"
+        "--for", "--timeout", dest="timeout", type=positive_seconds, metavar="S",
+        help="exit after S seconds (default: run until stopped; as twin top --for; --timeout is the old name)"
     )
     parser.add_argument(
         "--wait", type=non_negative_seconds, default=10.0, metavar="S",
@@ -163,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
             session,
             rig=args.rig,
             since_seq=args.since_seq,
-            since_t_ns=args.since,
+            since_t_ns=args.since if getattr(args.since, "kind", "t_ns") == "t_ns" else None,
             history=not args.no_history,
             trust=trust,
             require_signed=args.require_signed,
@@ -181,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
                 for rig, first, last in subscriber.missed[reported:]:
                     print(f"warning: {rig} alarms seq {first}..{last} lost and not in history", file=sys.stderr)
                 reported = len(subscriber.missed)
+                if args.since is not None and isinstance(args.since, Since) and not args.since.keeps(event):
+                    continue
                 checked = subscriber.verification.get((event.rig, event.seq), "unverified")
                 if args.json:
                     line = jsonio.dumps({**event.to_dict(), "verification": checked}, indent=None, sort_keys=True)

@@ -140,10 +140,26 @@ def report(out_dir, rec, P, twin, drift, baseline) -> dict:
 
     png = parameter_trends(twin, baseline, os.path.join(out_dir, "parameter_trends.png"), rec.t_s, P,
                            title="Tracked parameters of the wearing rig (cf. paper Fig. 4)")
-    rows = [{"seq": a.seq, "t [s]": round(a.t_s, 3), "parameter": a.parameter, "level": a.level, "kind": a.kind,
-             "estimate": a.estimate, "std": a.std, "band": f"{a.band_lo:.4g} .. {a.band_hi:.4g}"}
+    from datetime import UTC, datetime
+
+    from twin.reports.units import Shown, fmt
+
+    def shown(name: str, unit: str | None = None) -> Shown:  # a person reads display units (wn in Hz, mm²)
+        return Shown(name, twin.rig.model, unit)
+
+    def when(a) -> str:
+        if a.wall_ns is None:
+            return ""
+        return datetime.fromtimestamp(a.wall_ns / 1e9, tz=UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+    rows = [{"seq": a.seq, "raised (UTC)": when(a), "t [s]": round(a.t_s, 3), "parameter": a.parameter,
+             "level": a.level, "kind": a.kind, "estimate": fmt(shown(a.parameter)(a.estimate), 4),
+             "std": fmt(shown(a.parameter)(a.std), 2),
+             "band": f"{fmt(shown(a.parameter)(a.band_lo), 4)} .. {fmt(shown(a.parameter)(a.band_hi), 4)}",
+             "unit": shown(a.parameter).unit_text}
             for a in twin.alarms]
-    final = [{"parameter": n, "estimate": d["value"], "std": d["std"], "unit": d["unit"]}
+    final = [{"parameter": n, "estimate": fmt(shown(n, d["unit"])(d["value"]), 5),
+              "std": fmt(shown(n, d["unit"])(d["std"]), 2), "unit": shown(n, d["unit"]).unit_text}
              for n, d in twin.final_estimates().items()]
     html = html_report.write(os.path.join(out_dir, "report.html"), "fpdd-twin demo: a wearing MSP25 rig", [
         ("Scenario", f"<p>Cross-piston leakage CdAleak grows x{drift.factor:g} from t = {drift.t_start:g} s "

@@ -15,6 +15,19 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true")
 
 
+def table(ps) -> str:
+    """The parameters in their display units: value, bounds, unit, category, meaning."""
+    from twin.reports.units import fmt
+
+    rows = [f"{'parameter':<12} {'value':>11} {'min':>11} {'max':>11}  {'unit':<10} {'category':<16} meaning"]
+    for s, v in zip(ps.specs, ps.values):
+        unit = s.display_unit or s.unit
+        k = s.display_scale
+        rows.append(f"{s.name:<12} {fmt(v * k, 6):>11} {fmt(s.lo * k, 4):>11} {fmt(s.hi * k, 4):>11}  "
+                    f"{'' if unit == '1' else unit:<10} {s.category:<16} {s.meaning}")
+    return "\n".join(rows)
+
+
 def run(args) -> int:
     from twin.models import get_model
 
@@ -26,7 +39,7 @@ def run(args) -> int:
                                "params": list(e.names), "mimicked_by": list(e.mimicked_by),
                                "mimicry": e.mimicry} for n, e in model.EFFECTS.items()}})
         return 0
-    print(ps.table())
+    print(table(ps))
     print("\neffects (switch on with --effects NAME,...):")
     for n, e in model.EFFECTS.items():
         print(f"  {n:<22} {e.description}  [{', '.join(e.names)}]")

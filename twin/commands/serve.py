@@ -19,7 +19,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
                    help="console messages from this level up (default info)")
     p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
-                   "ws://HOST:PORT (0: any free port; layout in deploy/foxglove-layout.json)")
+                   "ws://HOST:PORT (0: any free port), rig signals included; a layout whose rig is the first "
+                   "rig served is written to the journal directory")
+    p.add_argument("--foxglove-signals-hz", type=float, default=50.0, metavar="HZ",
+                   help="with --foxglove: rig signal samples shown per second and rig (default 50)")
     p.add_argument("--foxglove-host", default="127.0.0.1", help="address of the Foxglove server (default loopback)")
     p.add_argument("--commission-s", type=float, metavar="SECONDS",
                    help="commission every rig without commission/commission_s on its first SECONDS in service "
@@ -62,6 +65,8 @@ def _run(args, console) -> int:
     from twin.service.fleet import Fleet, check_journal_dir, check_sources
 
     cfg = with_commission_s(load_config(args.config), getattr(args, "commission_s", None))
+    if args.foxglove is not None:  # the runners put their rig's signals on the bus for the view
+        cfg = dataclasses.replace(cfg, signals_hz=max(0.0, args.foxglove_signals_hz))
     check_journal_dir(cfg)
     check_sources(cfg)
     stop = threading.Event()
@@ -83,10 +88,17 @@ def _run(args, console) -> int:
         if args.foxglove is not None:
             from twin.service.live_view import LiveView
 
+            from pathlib import Path
+
+            from twin.service.live_view import write_layout
+
             view = LiveView(args.foxglove_host, args.foxglove, bands={r.name: r.baseline for r in cfg.rigs},
-                            model=cfg.rigs[0].model)
-            view.follow(session)  # every rig's estimate, status and alarm as published, workers included
-            console.line(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port}")
+                            model=cfg.rigs[0].model, signal_rate_hz=max(0.0, args.foxglove_signals_hz))
+            view.follow(session)  # every rig's estimate, status, alarm and signals as published, workers included
+            layout = write_layout(str(Path(cfg.journal_dir) / "foxglove-layout.json"), rig=cfg.rigs[0].name,
+                                  model=cfg.rigs[0].model)
+            console.line(f"twin serve: Foxglove live view on ws://{args.foxglove_host}:{view.port} "
+                         f"(layout for rig {cfg.rigs[0].name}: {layout})")
         workers = Fleet(cfg, session, stop).worker_count
         console.line(f"twin serve: {startup_line(cfg, workers)}")
         error = None

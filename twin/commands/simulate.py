@@ -19,7 +19,8 @@ def add_arguments(p) -> None:
     p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
     p.add_argument("--dt", type=float, default=1e-3, help="sample time in s (default 1e-3)")
     p.add_argument("--excitation", default=None, choices=("multisine", "chirp", "steps"))
-    p.add_argument("--amplitude", type=float, default=None, help="peak of the drive (m for x_ref, N for force)")
+    p.add_argument("--amplitude", default=None, metavar="PEAK",
+                   help="peak of the drive, with a unit or SI: 5mm (x_ref, m) or 800N (force)")
     p.add_argument("--f-lo", type=float, default=None, help="lowest frequency in Hz")
     p.add_argument("--f-hi", type=float, default=None, help="highest frequency in Hz")
     p.add_argument("--seed", type=int, default=0)
@@ -40,7 +41,14 @@ def run(args) -> int:
 
     model = get_model(args.model)
     ps = model.params(effects=_names(args.effects), **_kv(args.set))
-    name, drive = excite(model, args.duration, args.dt, args.excitation, args.amplitude, args.seed,
+    amplitude = None
+    if args.amplitude is not None:
+        from twin.models.simulate import DEFAULT_EXPERIMENT
+        from twin.units import to_si
+
+        drive_name = DEFAULT_EXPERIMENT[model.name]["drive"]
+        amplitude = to_si(f"--amplitude ({drive_name})", args.amplitude, "N" if drive_name == "force" else "m")
+    name, drive = excite(model, args.duration, args.dt, args.excitation, amplitude, args.seed,
                          args.f_lo, args.f_hi)
     noise = {} if args.noise == "none" else default_noise(model)
     noise.update(_kv(args.noise_levels))

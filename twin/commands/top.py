@@ -7,8 +7,13 @@ Zenoh to ``fpdd/<rig>/{estimate,status,alarm}`` (the key space of
 :mod:`twin.service.bus`), after fetching each twin's latest estimate and status and
 its last journaled alarm, so the screen is filled at once.
 
+Each rig's title says whether its twin is still there: ``gone`` when its
+liveliness token ``fpdd/<rig>/twin`` went away (the process died or lost the
+bus), ``stale`` when nothing came from it for :data:`STALE_PERIODS` status
+periods, with the age of its last message either way.
+
 ``--once --json`` prints one snapshot as JSON and exits (for scripts).  When
-no twin answers within ``--timeout`` it exits with status 2 and one line
+no twin answers within ``--wait`` it exits with status 2 and one line
 naming the endpoint.
 """
 
@@ -30,6 +35,8 @@ from twin.reports.units import Shown, pretty_unit
 LEVEL_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green"}
 STATUS_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green", "frozen": "cyan",
                 "unresolved": "magenta", "inconsistent": "magenta"}
+#: a twin publishes its status at least every STATUS_S; silent for this many periods it is shown ``stale``
+STALE_PERIODS = 3
 STATE_STYLE = {"running": "green", "finished": "blue", "degraded": "yellow", "stale_input": "yellow",
                "failed": "bold red", "stopped": "dim", "starting": "cyan"}
 
@@ -44,8 +51,9 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
     p.add_argument("--model", default="msp25", choices=MODELS,
                    help="the rigs' model, for display units (default msp25)")
-    p.add_argument("--timeout", type=positive_seconds, default=10.0, metavar="S",
-                   help="give up (exit status 2) when no twin answers within S seconds (default 10)")
+    p.add_argument("--wait", "--timeout", dest="wait", type=positive_seconds, default=10.0, metavar="S",
+                   help="give up (exit status 2) when no twin answers within S seconds (default 10; as in "
+                   "twin alarms; --timeout is the old name)")
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--json", action="store_true", help="with --once: the snapshot as JSON")
     p.add_argument("--for", dest="duration", type=positive_seconds, metavar="S", help="exit after S seconds (default: "
@@ -55,14 +63,30 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
 class TopState:
     """The latest estimate, status and alarm of each rig (thread-safe; callbacks of Zenoh write here)."""
 
-    def __init__(self, model: str = "msp25") -> None:
+    def __init__(self, model: str = "msp25", stale_s: float | None = None) -> None:
+        from twin.service.rig import STATUS_S
+
         self.model = model
+        self.stale_s = STALE_PERIODS * STATUS_S if stale_s is None else stale_s
         self.rigs: dict[str, dict[str, Any]] = {}
+        self.seen: dict[str, float] = {}
+        """rig -> wall-clock time [s] of its last message received here"""
+        self.alive: dict[str, bool] = {}
+        """rig -> whether its liveliness token is there (unknown rigs: not asked yet)"""
         self.lock = threading.Lock()
         self.changed = threading.Event()
 
+    def liveliness(self, rig: str, alive: bool) -> None:
+        """The twin of ``rig`` declared (``True``) or lost (``False``) its liveliness token."""
+        with self.lock:
+            self.alive[rig] = alive
+            if alive:
+                self.seen.setdefault(rig, time.time())
+        self.changed.set()
+
     def put(self, kind: str, d: dict) -> None:
         with self.lock:
+            self.seen[d["rig"]] = time.time()
             r = self.rigs.setdefault(d["rig"], {"estimate": None, "status": None, "alarm": None})
             old = r[kind]
             if kind == "alarm":
@@ -76,9 +100,23 @@ class TopState:
     def _shown(self, name: str, unit: str | None) -> Shown:
         return Shown(name, self.model, unit)
 
+    def presence(self, rig: str, now: float | None = None) -> tuple[str, float | None]:
+        """``("live" | "stale" | "gone", age of the last message [s])``."""
+        now = time.time() if now is None else now
+        with self.lock:
+            seen, alive = self.seen.get(rig), self.alive.get(rig)
+        age = None if seen is None else max(0.0, now - seen)
+        if alive is False:
+            return "gone", age
+        if age is not None and age > self.stale_s:
+            return "stale", age
+        return "live", age
+
     def snapshot(self) -> dict:
-        """JSON-ready: per rig its state, parameters (SI value, std, unit and the display text) and last alarm."""
+        """JSON-ready: per rig its state, presence (live/stale/gone with the age of its last message),
+        parameters (SI value, std, unit and the display text) and last alarm."""
         out = {}
+        now = time.time()
         with self.lock:
             rigs = {k: dict(v) for k, v in self.rigs.items()}
         for rig in sorted(rigs):
@@ -95,7 +133,9 @@ class TopState:
                                 "status": words.get(name, "")}
             for name, w in words.items():
                 params.setdefault(name, {"status": w})
-            out[rig] = {"state": (st or {}).get("state"), "message": (st or {}).get("message", ""),
+            presence, age = self.presence(rig, now)
+            out[rig] = {"state": (st or {}).get("state"), "presence": presence, "age_s": age,
+                        "message": (st or {}).get("message", ""),
                         "t_s": (est or {}).get("t_s"), "filter": (est or {}).get("status"),
                         "samples": ((st or {}).get("counters") or {}).get("samples"),
                         "params": params, "last_alarm": self.alarm_text(al) if al else None,
@@ -118,7 +158,14 @@ def render(snap: dict, where: str, live: bool = True):
     parts: list[Text | Table] = [Text(f"twin top · {len(snap)} rig(s) via {where}" + (" · Ctrl-C to quit" if live else ""), style="dim")]
     for rig, r in snap.items():
         state = r["state"] or "?"
-        title = Text.assemble(("rig ", "bold"), (rig, "bold"), "  ", (state, STATE_STYLE.get(state, "")),
+        presence, age = r.get("presence", "live"), r.get("age_s")
+        mark: tuple[str, str] | str = ""
+        if presence == "gone":
+            mark = (f"  GONE (twin left the bus; last message {age:.0f} s ago)" if age is not None
+                    else "  GONE (twin left the bus)", "bold red")
+        elif presence == "stale":
+            mark = (f"  STALE (no message for {age:.0f} s)", "bold yellow")
+        title = Text.assemble(("rig ", "bold"), (rig, "bold"), "  ", (state, STATE_STYLE.get(state, "")), mark,
                               f"  t = {r['t_s']:.2f} s" if r["t_s"] is not None else "",
                               f"  samples {r['samples']}" if r["samples"] is not None else "",
                               f"  filter {r['filter']}" if r["filter"] else "")
@@ -207,7 +254,18 @@ def run_top(args) -> int:
 
         for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm)):
             subs.append(session.declare_subscriber(key, handler(kind)))
-        deadline = time.monotonic() + args.timeout
+
+        def on_token(sample) -> None:
+            import zenoh
+
+            try:
+                rig = RigKeys.rig_of(sample.key_expr)
+            except Exception:  # not a twin's token
+                return
+            state.liveliness(rig, sample.kind == zenoh.SampleKind.PUT)
+
+        subs.append(session.liveliness().declare_subscriber(keys.twin, on_token, history=True))
+        deadline = time.monotonic() + args.wait
         while True:
             _fill(session, state, args.rig, timeout=max(0.2, min(2.0, deadline - time.monotonic())))
             with state.lock:
@@ -215,7 +273,7 @@ def run_top(args) -> int:
             if have:
                 break
             if time.monotonic() >= deadline:
-                raise SourceError(f"no twin answered through {where} within {args.timeout:g} s "
+                raise SourceError(f"no twin answered through {where} within {args.wait:g} s "
                                   f"(nothing on {keys.estimate} or {keys.status})")
             state.changed.wait(timeout=max(0.0, min(0.5, deadline - time.monotonic())))
         if args.once:
@@ -248,7 +306,7 @@ def _live(state: TopState, where: str, duration: float | None) -> int:
                 wait = 0.5 if end is None else max(0.0, min(0.5, end - time.monotonic()))
                 if state.changed.wait(timeout=wait):
                     state.changed.clear()
-                    live.update(render(state.snapshot(), where))
+                live.update(render(state.snapshot(), where))  # ages grow without messages too
     except KeyboardInterrupt:
         pass
     return 0

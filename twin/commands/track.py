@@ -115,10 +115,12 @@ def run(args) -> int:
         print(f"  sensors: {note}")
     if result["consistency"] != "consistent":
         print(f"  filter not consistent with the data at the end: {result['consistency']}")
+    from twin.reports.units import Shown
+
     specs = twin.tracker.ps
-    for n, d in result["final"].items():  # display units (JSON above stays SI)
-        show = specs.spec(n).show
-        value, std = float(f"{d['value']:.5g}"), float(f"{d['std']:.2g}")
-        print(f"  {n:8s} {show(value)} +- {show(std)}  [{result['status'][n]}]")
+    for n, d in result["final"].items():  # display units, rounded after the conversion (JSON above stays SI)
+        sh = Shown(n, spec=specs.spec(n))
+        print(f"  {n:8s} {sh.text(d['value'], 5)} +- {sh.text(d['std'], 2)}  [{result['status'][n]}]")
+    print(f"report: {result['files']['report']}", file=sys.stderr)
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
     return 0

@@ -339,6 +339,30 @@ class Diagnosis:
     #: effects not tested because free parameters mimic them: effect -> {"mimicked_by": [...], "why": text}
     not_testable: dict[str, dict] = dataclasses.field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """One line: verdict, causes, the records' count and time (``text()`` has the whole story)."""
+        return (f"Diagnosis(model={self.model!r}, verdict={self.verdict()!r}, causes={list(self.causes)}, "
+                f"records={len(self.records)}, time_s={self.time_s:.1f})")
+
+    def save(self, path: str) -> str:
+        """Write the extended parameter set (as ``twin diagnose --save``: JSON for twin fit / the tracker)."""
+        from replay import jsonio
+
+        return jsonio.write(path, self.extended_params())
+
+    def report(self, out_dir: str = "diagnosis_report") -> str:
+        """Write the HTML diagnosis report with its plots (as ``twin diagnose --report``); returns its path."""
+        import os
+
+        from replay import jsonio
+        from twin.reports import diagnose_report
+        from twin.reports.plots import diagnosis_plots
+
+        self.plots = diagnosis_plots(self, out_dir)
+        jsonio.write(os.path.join(out_dir, "extended_params.json"), self.extended_params())
+        jsonio.write(os.path.join(out_dir, "diagnosis.json"), self.to_dict())
+        return diagnose_report(self, out_dir)
+
     def effect_params(self, effect: str) -> dict:
         return _effect_params(self.final, effect)
 

@@ -116,6 +116,33 @@ class FitResult:
             "history": self.history,
         }
 
+    def __repr__(self) -> str:
+        """One line: the estimates ± std in display units, Fit % per output, converged or not."""
+        specs = {s.name: s for s in self.params.specs}
+        est = ", ".join(f"{n}={specs[n].show(self.estimate[n])} ± {specs[n].show(self.std[n])}" for n in self.free)
+        fits = ", ".join(f"{k} {self.fit_pct[k]:.1f} %" for k in self.outputs)
+        return (f"FitResult(model={self.model!r}, {est}; Fit: {fits}; "
+                f"{'converged' if self.success else 'NOT converged'}, nfev={self.nfev}, {self.time_s:.2f} s)")
+
+    def saved(self) -> dict:
+        """What :meth:`save` writes (``twin fit --save``): the parameter set, its stds, loop timing and the
+        residual noise levels, read back by ``--params`` and the tracker."""
+        return {"model": self.model, "effects": list(self.params.effects), "params": self.params.as_dict(),
+                "std": self.std, "timing": self.timing,
+                "noise": {o: float(np.sqrt(self.mse[o])) for o in self.outputs}}
+
+    def save(self, path: str) -> str:
+        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
+        from replay import jsonio
+
+        return jsonio.write(path, self.saved())
+
+    def report(self, records, out_dir: str = "fit_report") -> str:
+        """Write the HTML fit report (as ``twin fit --report``) of the ``records`` fitted; returns its path."""
+        from twin.reports import fit_report
+
+        return fit_report(self, records, self.model, out_dir)
+
     def table(self) -> str:
         specs = {s.name: s for s in self.params.specs}
         rows = [f"{'parameter':<10} {'estimate':>16} {'std':>14} {'rel std':>9}"]

@@ -181,7 +181,7 @@ class Model(abc.ABC):
             raise ParameterError(f"{self.name} has no parameter {name!r}; known: {', '.join(names)}")
         return names.index(name)
 
-    def params(self, effects: Iterable[str] = (), **values: float) -> ParameterSet:
+    def params(self, effects: Iterable[str] = (), **values: float | str) -> ParameterSet:
         """The nominal parameter set with ``effects`` switched on and ``values`` overriding."""
         effects = tuple(dict.fromkeys(effects))
         check_names(self.EFFECTS, effects, f"effect of model {self.name}")

@@ -43,10 +43,12 @@ __all__ = [
     "SERVICE_STATES",
     "AlarmEvent",
     "AlarmIdentity",
+    "EstimateEncoder",
     "EstimateEvent",
     "ParamEstimate",
     "StatusEvent",
     "event_to_json",
+    "interval95",
     "validate",
 ]
 
@@ -191,8 +193,10 @@ def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = 
         return text
 
     when = ""
-    if wall_clock and event.t_ns >= 946_684_800 * 10**9:  # an epoch time after 2000: the wall-clock time too
-        stamp = datetime.fromtimestamp(event.t_ns / 1e9, tz=UTC)
+    wall = event.wall_ns if event.wall_ns is not None else (  # when raised; else an epoch record time after 2000
+        event.t_ns if event.t_ns >= 946_684_800 * 10**9 else None)
+    if wall_clock and wall is not None:
+        stamp = datetime.fromtimestamp(wall / 1e9, tz=UTC)
         when = stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z") + " "
     text = (f"{when}{event.rig} #{event.seq} t={event.t_s:.3f} s {event.level.upper():7s} {event.kind:9s} "
             f"{event.parameter} = {short(event.estimate)} ± {short(event.std)} "
@@ -228,7 +232,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
     "type": "object",
     "required": [
         "rig", "parameter", "level", "kind", "t_ns", "t_s", "estimate", "std",
-        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit",
+        "baseline", "band_lo", "band_hi", "seq", "statistic", "message", "unit", "wall_ns",
     ],
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
@@ -250,6 +254,9 @@ _ALARM_SCHEMA: dict[str, Any] = {
                                                   "'m^2', 'rad/s', '1'"},
         "signature": {"type": "string", "description": "optional: base64 Ed25519 signature of the rig's key "
                       "over the canonical JSON of every other field (twin.service.signing)"},
+        "wall_ns": {"type": ["integer", "null"], "minimum": 0, "maximum": INT64_MAX,
+                    "description": "wall-clock time the twin journaled the alarm [ns since the Unix epoch] (beside "
+                    "t_ns, the record's time: a replayed log's alarms are raised now about then); null: unknown"},
     },
 }
 
@@ -316,6 +323,7 @@ class AlarmEvent(_FromJson):
     :ivar seq: per-rig sequence number assigned by the journal; 0 = not journaled yet.
     :ivar signature: base64 Ed25519 signature of the rig's key over every other field
         (:mod:`twin.service.signing`); ``""``: unsigned (the field is then left out of the payload).
+    :ivar wall_ns: wall-clock time the journal recorded it [ns since the epoch]; ``None``: not journaled or unknown.
     """
 
     rig: str
@@ -334,6 +342,7 @@ class AlarmEvent(_FromJson):
     seq: int = 0
     unit: str = ""
     signature: str = ""
+    wall_ns: int | None = None
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
@@ -370,6 +379,7 @@ class AlarmEvent(_FromJson):
             "statistic": self.statistic,
             "message": self.message,
             "unit": self.unit,
+            "wall_ns": self.wall_ns,
         }
         if self.signature:  # an unsigned alarm's payload is as before signatures existed
             data["signature"] = self.signature
@@ -377,10 +387,13 @@ class AlarmEvent(_FromJson):
 
     @classmethod
     def from_dict(cls, data: Any) -> Self:
-        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's."""
+        """As :meth:`_FromJson.from_dict`; an alarm journaled before units were named gets its parameter's, one
+        journaled before wall-clock times were kept ``wall_ns=None``."""
         data = _as_mapping(data, cls.__name__)
         if "unit" not in data and isinstance(data.get("parameter"), str):
             data = {**data, "unit": _si_unit(data["parameter"])}
+        if "wall_ns" not in data:  # journaled before wall-clock times were kept: unknown
+            data = {**data, "wall_ns": None}
         # slots dataclass: no zero-argument super
         return _FromJson.from_dict.__func__(cls, data)  # type: ignore[attr-defined]
 
@@ -401,11 +414,43 @@ _PARAM_ESTIMATE_SCHEMA: dict[str, Any] = {
     "required": ["value", "std", "unit"],
     "properties": {
         "value": _num("estimate in the SI unit given by 'unit'"),
-        "std": _num("standard deviation of the estimate's error while the parameter holds still (value +- 1.96 std "
-                    "is the 95 % interval), same unit", minimum=0),
-        "unit": {"type": "string", "description": "SI unit, e.g. 'N', 'm^3/(s*Pa)', '1', 'rad/s'"},
+        "std": _num("standard deviation of the estimate's error while the parameter holds still, same unit",
+                    minimum=0),
+        "unit": {"type": "string", "description": "SI unit of every number of the parameter, e.g. 'N', "
+                                                  "'m^3/(s*Pa)', '1', 'rad/s'"},
+        "lo95": _num("lower end of the 95 % interval, same unit (log-normal for a positive value: "
+                     "value*exp(-1.96 std/value), else value - 1.96 std)"),
+        "hi95": _num("upper end of the 95 % interval, same unit"),
+        "band_lo": {"type": ["number", "null"], "description": "lower edge of the healthy band, same unit "
+                                                               "(null: no band)"},
+        "band_hi": {"type": ["number", "null"], "description": "upper edge of the healthy band, same unit"},
+        "baseline": {"type": ["number", "null"], "description": "healthy baseline value, same unit"},
     },
 }
+
+Z95 = 1.959963984540054
+"""The two-sided 95 % quantile of the standard normal."""
+
+
+def interval95(value: float, std: float) -> tuple[float, float]:
+    """The 95 % interval of an estimate: log-normal for a positive value (the tracker works in log coordinates),
+    ``value*exp(+-1.96 std/value)``; symmetric ``value +- 1.96 std`` otherwise (and for std > 25 value)."""
+    if value > 0 and std <= 25.0 * value:  # beyond, exp(1.96 std/value) says nothing and overflows soon
+        rel = Z95 * std / value
+        return value * math.exp(-rel), value * math.exp(rel)
+    return value - Z95 * std, value + Z95 * std
+
+
+def _band(band: Any) -> tuple[float | None, float | None, float | None]:
+    """``(lo, hi, baseline)`` of a band given as a Baseline, ``(lo, hi)``, ``(lo, hi, baseline)`` or ``None``."""
+    if band is None:
+        return None, None, None
+    if hasattr(band, "lo"):
+        return float(band.lo), float(band.hi), float(band.value)
+    lo, hi, *rest = band
+    return (None if lo is None else float(lo), None if hi is None else float(hi),
+            float(rest[0]) if rest and rest[0] is not None else None)
+
 
 _ESTIMATE_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -422,7 +467,7 @@ _ESTIMATE_SCHEMA: dict[str, Any] = {
             "type": "object",
             "propertyNames": {"pattern": NAME_PATTERN},
             "additionalProperties": _PARAM_ESTIMATE_SCHEMA,
-            "description": "parameter name -> {value, std, unit}",
+            "description": "parameter name -> {value, std, lo95, hi95, band_lo, band_hi, baseline, unit} (SI)",
         },
         "nis": {"type": ["number", "null"], "minimum": 0, "description": "normalised innovation squared of this step, null before the first update"},
         "status": {"type": "string", "pattern": STATUS_PATTERN, "description": "filter status: ok, gated, repaired_covariance, stale_input, ..."},
@@ -432,18 +477,33 @@ _ESTIMATE_SCHEMA: dict[str, Any] = {
 
 @dataclass(frozen=True, slots=True)
 class ParamEstimate:
-    """One tracked parameter: value and standard deviation in SI ``unit``."""
+    """One tracked parameter: value and standard deviation in SI ``unit``, and the rig's healthy band
+    (``band_lo``, ``band_hi``, ``baseline``; ``None`` when the twin has none). Its 95 % interval is
+    :func:`interval95` of value and std (:attr:`lo95`, :attr:`hi95`)."""
 
     value: float
     std: float
     unit: str
+    band_lo: float | None = None
+    band_hi: float | None = None
+    baseline: float | None = None
 
     def __post_init__(self) -> None:
         _check("ParamEstimate", _PARAM_ESTIMATE_SCHEMA, self.to_dict())
 
+    @property
+    def lo95(self) -> float:
+        return interval95(self.value, self.std)[0]
+
+    @property
+    def hi95(self) -> float:
+        return interval95(self.value, self.std)[1]
+
     def to_dict(self) -> dict[str, Any]:
-        """``{"value": ..., "std": ..., "unit": ...}``."""
-        return {"value": self.value, "std": self.std, "unit": self.unit}
+        """``{"value", "std", "lo95", "hi95", "band_lo", "band_hi", "baseline", "unit"}`` (SI, ``unit`` names it)."""
+        lo, hi = interval95(self.value, self.std)
+        return {"value": self.value, "std": self.std, "lo95": lo, "hi95": hi, "band_lo": self.band_lo,
+                "band_hi": self.band_hi, "baseline": self.baseline, "unit": self.unit}
 
 
 @dataclass(frozen=True, slots=True)
@@ -454,7 +514,8 @@ class EstimateEvent(_FromJson):
     :ivar t_ns: ingest time [ns].
     :ivar t_s: time from the start of the record [s].
     :ivar params: parameter name -> :class:`ParamEstimate` (read-only mapping;
-        plain ``{"value", "std", "unit"}`` dicts are accepted and converted).
+        plain ``{"value", "std", "unit"}`` dicts, with ``band_lo``, ``band_hi``, ``baseline`` if known, are
+        accepted and converted; ``lo95``/``hi95`` in them are ignored: they follow from value and std).
     :ivar nis: normalised innovation squared of the step, ``None`` before the first update.
     :ivar status: filter status (``ok``, ``gated``, ``repaired_covariance``, ``stale_input``, ...).
     """
@@ -477,7 +538,8 @@ class EstimateEvent(_FromJson):
                 converted[name] = item
             elif isinstance(item, Mapping):
                 validate(item, _PARAM_ESTIMATE_SCHEMA, f"EstimateEvent.params.{name}")
-                converted[name] = ParamEstimate(item["value"], item["std"], item["unit"])
+                converted[name] = ParamEstimate(item["value"], item["std"], item["unit"], item.get("band_lo"),
+                                                item.get("band_hi"), item.get("baseline"))
             else:
                 raise DataError(f"EstimateEvent.params.{name}: {item!r} must be an object")
         object.__setattr__(self, "params", MappingProxyType(converted))
@@ -485,8 +547,10 @@ class EstimateEvent(_FromJson):
 
     @classmethod
     def of_tracker(cls, rig: str, t_ns: int, t_s: float, names: tuple[str, ...], values, stds,
-                   units: tuple[str, ...], nis: float | None, status: str) -> Self:
+                   units: tuple[str, ...], nis: float | None, status: str, bands: Mapping | None = None) -> Self:
         """An estimate from the tracker's arrays, built without the schema walk when every number is finite.
+
+        ``bands``: parameter name -> its healthy band (a Baseline, ``(lo, hi)`` or ``(lo, hi, baseline)``, SI).
 
         The service builds one per published estimate of every rig (20 per
         second per rig by default); the full validation of ``__init__`` is kept
@@ -495,19 +559,21 @@ class EstimateEvent(_FromJson):
         """
         vals = [float(v) for v in values]
         sds = [float(v) for v in stds]
+        bs = [_band((bands or {}).get(n)) for n in names]
         if (not all(math.isfinite(v) for v in vals) or not all(math.isfinite(v) and v >= 0 for v in sds)
                 or not 0 <= t_ns <= INT64_MAX or not math.isfinite(t_s)
                 or (nis is not None and not (math.isfinite(nis) and nis >= 0))):
-            plain: dict[str, Any] = {n: {"value": v, "std": sd, "unit": u}  # converted by __post_init__
-                                     for n, v, sd, u in zip(names, vals, sds, units)}
+            plain: dict[str, Any] = {n: {"value": v, "std": sd, "unit": u, "band_lo": b[0], "band_hi": b[1],
+                                         "baseline": b[2]}  # converted by __post_init__
+                                     for n, v, sd, u, b in zip(names, vals, sds, units, bs)}
             return cls(rig, t_ns, t_s, plain, nis, status)
         ev = object.__new__(cls)
         params = {}
-        for n, v, sd, u in zip(names, vals, sds, units):
+        for n, v, sd, u, b in zip(names, vals, sds, units, bs):
             p = object.__new__(ParamEstimate)
-            object.__setattr__(p, "value", v)
-            object.__setattr__(p, "std", sd)
-            object.__setattr__(p, "unit", u)
+            for field_name, x in (("value", v), ("std", sd), ("unit", u), ("band_lo", b[0]), ("band_hi", b[1]),
+                                  ("baseline", b[2])):
+                object.__setattr__(p, field_name, x)
             params[n] = p
         for name, value in (("rig", rig), ("t_ns", int(t_ns)), ("t_s", float(t_s)),
                             ("params", MappingProxyType(params)), ("nis", nis), ("status", status)):
@@ -524,6 +590,58 @@ class EstimateEvent(_FromJson):
             "nis": self.nis,
             "status": self.status,
         }
+
+    def with_bands(self, bands: Mapping) -> Self:
+        """A copy whose parameters without a band take theirs from ``bands`` (name -> Baseline or
+        ``(lo, hi[, baseline])``, SI)."""
+        params = {}
+        for name, p in self.params.items():
+            b = _band(bands.get(name)) if p.band_lo is None and p.band_hi is None else None
+            params[name] = replace(p, band_lo=b[0], band_hi=b[1], baseline=b[2]) if b and b[0] is not None else p
+        return replace(self, params=params)
+
+
+def _json_number(x: float | None) -> str:
+    """A number as ``json.dumps`` of a finite float writes it; ``null`` for ``None`` or non-finite."""
+    return "null" if x is None or not math.isfinite(x) else repr(float(x))
+
+
+class EstimateEncoder:
+    """The ``EstimateEvent`` payload of one rig's tracker written straight from its numbers: the very text of
+    ``event_to_json(EstimateEvent.of_tracker(rig, ..., bands=bands))`` (sorted keys, compact, floats by
+    ``repr``, intervals and bands included) without building the event, for the service's hot path."""
+
+    def __init__(self, rig: str, names: tuple[str, ...], units: tuple[str, ...], bands: Mapping | None = None):
+        import json
+
+        def text(v: str) -> str:  # a JSON string constant inside a %-format
+            return json.dumps(v).replace("%", "%%")
+
+        self.names = tuple(names)
+        self._order = sorted(range(len(names)), key=lambda j: names[j])
+        parts = []
+        for j in self._order:
+            lo, hi, base = _band((bands or {}).get(names[j]))
+            parts.append(f'{text(names[j])}:{{"band_hi":{_json_number(hi)},"band_lo":{_json_number(lo)},'
+                         f'"baseline":{_json_number(base)},"hi95":%r,"lo95":%r,"std":%r,"unit":{text(units[j])},'
+                         '"value":%r}')
+        self._fmt = ('{"nis":%s,"params":{' + ",".join(parts)
+                     + f'}},"rig":{text(rig)},"status":"%s","t_ns":%d,"t_s":%r}}')
+
+    def __call__(self, t_ns: int, t_s: float, values, stds, nis: float, status: str) -> str | None:
+        """The payload; ``None`` for anything the schema checks would refuse (the event path then runs)."""
+        vals = values.tolist() if hasattr(values, "tolist") else list(values)
+        sds = stds.tolist() if hasattr(stds, "tolist") else list(stds)
+        if not (all(map(math.isfinite, vals)) and all(math.isfinite(v) and v >= 0 for v in sds) and t_ns >= 0
+                and math.isfinite(t_s) and not nis < 0):
+            return None
+        nums: list[Any] = ["null" if not math.isfinite(nis) else repr(nis)]
+        for j in self._order:
+            lo, hi = interval95(vals[j], sds[j])
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                return None
+            nums += [hi, lo, sds[j], vals[j]]
+        return self._fmt % (*nums, status, t_ns, t_s)
 
 
 # --------------------------------------------------------------------------- status

@@ -22,7 +22,9 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     name = "msp25-a"
     model = "msp25"
     source = "can://socketcan/can0"     # or zenoh://KEYEXPR, or a log file (replayed)
-    dbc = ""                            # default: the MSP25 DBC shipped with replay
+    dbc = ""                            # default: the MSP25 DBC shipped with replay (relative to this file)
+    map = ["x=pos_mm:mm", "t=time:ms"]  # a CSV log's columns under other names or units (as --map;
+                                        #   or a table: map = { x = "pos_mm:mm", t = "time:ms" })
     speed = 1.0                         # replay speed for log sources (0 = as fast as possible)
     track = ["Ffric", "CdAleak", "Cd", "zeta", "wn"]
     commission = "commissioning.json"   # a `twin fit --save` file (relative to this file): bands
@@ -35,10 +37,10 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
     [rig.params]                        # known parameters that differ from the nominal MSP25
-    KP = 400.0
+    KP = 400.0                          # a bare number is SI; or with a unit: A = "2000mm^2"
     [rig.baseline.Ffric]                # healthy band (default: nominal value, the parameter's tracking band)
-    value = 50.0
-    rel_band = 0.3                      # or lo = ..., hi = ...
+    value = 50.0                        # SI, or with a unit ("50N"; CdAleak = "0.0033mm^2"); a value outside
+    rel_band = 0.3                      #   the parameter's bounds is refused; or lo = ..., hi = ...
 
 Every error is one line naming the file, the key and what was expected; an
 unknown key is an error that suggests the closest known one
@@ -89,6 +91,20 @@ class RigConfig:
     """The parameters whose band ``[rig.baseline.NAME]`` sets explicitly (a commissioning keeps them)."""
     signing_key: str | None = None
     """The rig's private Ed25519 key file: its alarms are signed (``None``: unsigned; see twin.service.signing)."""
+    map: tuple[str, ...] = ()
+    """A CSV log's column mapping, ``NAME=COLUMN[:UNIT]`` items as ``--map`` takes them."""
+
+    def source_options(self) -> dict:
+        """Reader options of the rig's source from ``dbc`` and ``map``."""
+        from replay.formats import CAN_LOG_SUFFIXES
+
+        is_can = self.source.lower().startswith("can://") or self.source.lower().endswith(CAN_LOG_SUFFIXES)
+        opts: dict[str, Any] = {"dbc": self.dbc} if self.dbc and is_can else {}  # a DBC decodes CAN frames only
+        if self.map:
+            from replay.csvio import parse_map
+
+            opts["mapping"] = parse_map(self.map)
+        return opts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,13 +124,16 @@ class ServiceConfig:
     block_s: float = 0.1
     lag_warn_s: float = 1.0
     stale_s: float = 1.0
+    signals_hz: float = 0.0
+    """Rig signals put on ``fpdd/<rig>/signals`` for live views, at most this many samples per second and rig
+    (0: none; ``twin serve --foxglove`` sets it)."""
 
 
 TOP_KEYS = ("zenoh", "service", "rig")
 ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s", "signing_keys")
-RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
+RIG_KEYS = ("name", "model", "source", "dbc", "map", "speed", "track", "params", "baseline", "noise", "controller",
             "intersample", "commission", "commission_s", "signing_key")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
@@ -162,6 +181,36 @@ def _number(d: dict, key: str, where: str, default: Any = ..., *, lo: float | No
     if (lo_open and not v > lo) or (not lo_open and not v >= lo):
         op = ">" if lo_open else ">="
         raise ConfigError(f"{where}.{key}: must be {op} {lo:g}{what}, got {v:g}")
+    return v
+
+
+def _si(d: dict, key: str, where: str, pname: str, spec=None, default: Any = ..., positive: bool = False) -> float:
+    """``d[key]``: a number (SI) or a string with a unit (``"2000mm^2"``) for parameter ``pname``, in SI; with
+    ``spec`` it must lie within the parameter's bounds (a bare number that does not is most often a value in
+    display units: the message says how to write one)."""
+    v = d.get(key, default)
+    if v is ...:
+        raise ConfigError(f"{where}: missing key {key!r}")
+    if isinstance(v, str):
+        from twin.units import to_si
+
+        try:
+            v = to_si(pname, v, spec.unit if spec is not None else None)
+        except ParameterError as exc:
+            reason = str(exc).removeprefix(f"{pname}: ")
+            raise ConfigError(f"{where}.{key}: expected a number or a value with a unit, got {d[key]!r}: "
+                              f"{reason}") from None
+    else:
+        v = _get(d, key, float, where, default)
+    if positive and not v > 0:
+        raise ConfigError(f"{where}.{key}: must be > 0, got {v:g}")
+    if spec is not None and not spec.lo <= v <= spec.hi:
+        hint = ""
+        if not isinstance(d.get(key), str) and spec.display_unit and spec.lo <= v / spec.display_scale <= spec.hi:
+            hint = (f"; a bare number is SI ({spec.unit}): for {v:g} {spec.display_unit} write "
+                    f"\"{v:g}{spec.display_unit}\"")
+        raise ConfigError(f"{where}.{key}: {v:g} {spec.unit} is outside {pname}'s bounds "
+                          f"[{spec.lo:g}, {spec.hi:g}] {spec.unit}{hint}")
     return v
 
 
@@ -283,11 +332,11 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     model = get_model(model_name)
     params_doc = _get(r, "params", dict, where, {})
     names = model.params().names
-    params = {}
+    params: dict[str, Any] = {}
     for k in params_doc:
         if k not in names:
             raise ConfigError(f"{where}.params: unknown parameter {k!r} of model {model_name}{suggest(k, names)}")
-        params[k] = _get(params_doc, k, float, f"{where}.params")
+        params[k] = _si(params_doc, k, f"{where}.params", k)
     try:
         model.params(**params)
     except ParameterError as exc:
@@ -349,12 +398,13 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         if not isinstance(b, dict):
             raise ConfigError(f"{bw}: expected a table with value and rel_band, or lo and hi")
         _check_keys(b, BASELINE_KEYS, bw)
-        v = _number(b, "value", bw, baseline[pname].value, lo=0.0, lo_open=True)
+        spec = model.params().spec(pname)
+        v = _si(b, "value", bw, pname, spec, baseline[pname].value, positive=True)
         if "lo" in b or "hi" in b:
             if "rel_band" in b:
                 raise ConfigError(f"{bw}: give either rel_band or lo and hi, not both")
-            lo = _number(b, "lo", bw, lo=0.0, lo_open=True)
-            hi = _number(b, "hi", bw, lo=0.0, lo_open=True)
+            lo = _si(b, "lo", bw, pname, spec, positive=True)
+            hi = _si(b, "hi", bw, pname, spec, positive=True)
         else:
             rb = _number(b, "rel_band", bw, default_band(model_name, pname), lo=0.0, lo_open=True,
                          what=" (the band is value/(1+rel_band) .. value*(1+rel_band))")
@@ -364,6 +414,12 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         baseline[pname] = Baseline(v, lo, hi)
     speed = _number(r, "speed", where, 1.0, lo=0.0, what=" (0 = as fast as possible)")
     dbc = _get(r, "dbc", str, where, "") or None
+    if dbc is not None:
+        if not os.path.isabs(dbc):  # relative to the configuration, as commission
+            dbc = os.path.join(os.path.dirname(os.path.abspath(path)), dbc)
+        if not os.path.isfile(dbc):
+            raise ConfigError(f"{where}.dbc: {dbc} is not a file (a CAN database, .dbc)")
+    col_map = _map(r, where)
     source = _get(r, "source", str, where)
     if not source.strip():
         raise ConfigError(f"{where}.source: expected a log file, can://INTERFACE/CHANNEL or zenoh://KEYEXPR, "
@@ -375,9 +431,12 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
+    if col_map and (source.lower().startswith(("can://", "zenoh://")) or not source.lower().endswith(".csv")):
+        raise ConfigError(f"{where}.map: renames CSV columns; the source {source!r} is not a CSV log (its "
+                          "signals are named by its format)")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
                      commission_s, tuple(_get(r, "baseline", dict, where, {})),
-                     signing_key=_get(r, "signing_key", str, where, "") or None)
+                     signing_key=_get(r, "signing_key", str, where, "") or None, map=col_map)
 
 
 def _signing_keys(rigs: list[RigConfig], directory: str | None, path: str) -> list[RigConfig]:
@@ -394,6 +453,29 @@ def _signing_keys(rigs: list[RigConfig], directory: str | None, path: str) -> li
             r = dataclasses.replace(r, signing_key=key)
         out.append(r)
     return out
+
+
+def _map(r: dict, where: str) -> tuple[str, ...]:
+    """``map``: ``["x=pos_mm:mm", ...]`` or ``{x = "pos_mm:mm", ...}`` as ``NAME=COLUMN[:UNIT]`` items, checked."""
+    if "map" not in r:
+        return ()
+    raw = r["map"]
+    if isinstance(raw, dict):
+        items = []
+        for k, v in raw.items():
+            if not isinstance(v, str):
+                raise ConfigError(f"{where}.map.{k}: expected \"COLUMN[:UNIT]\", got {v!r}")
+            items.append(f"{k}={v}")
+    else:
+        items = _strings(r, "map", where)
+    from replay.csvio import parse_map
+    from twin.errors import DataError
+
+    try:
+        parse_map(items, option="map item")
+    except DataError as exc:
+        raise ConfigError(f"{where}.{exc}") from None
+    return tuple(items)
 
 
 def with_commission_s(cfg: ServiceConfig, seconds: float | None) -> ServiceConfig:

@@ -107,7 +107,7 @@ def open_rig_source(rig: RigConfig, session=None, timeout_s: float | None = None
     """The rig's source; a ``zenoh://`` input rides on the service's own Zenoh session."""
     from replay.factory import open_source
 
-    opts: dict[str, Any] = {"dbc": rig.dbc} if rig.dbc else {}
+    opts: dict[str, Any] = rig.source_options()
     if rig.source.startswith("zenoh://") and session is not None:
         opts["session"] = session
     if is_live(rig.source) and timeout_s is not None:
@@ -177,10 +177,15 @@ class Outbox:
     ``("status", json, state, message)``.
     """
 
-    def __init__(self, rig: str, journal: AlarmJournal, out) -> None:
+    def __init__(self, rig: str, journal: AlarmJournal, out, signals_hz: float = 0.0) -> None:
         self.rig = rig
         self.journal = journal
         self.out = out
+        self._decimate = None
+        if signals_hz > 0:  # the rig's signals for live views, ("signals", json) on fpdd/<rig>/signals
+            from twin.service.live_view import SignalDecimator
+
+            self._decimate = SignalDecimator(signals_hz)
         self._batch: list[tuple] = []
         self._last_flush = time.monotonic()
         self._seq = journal.last_seq(rig)
@@ -201,6 +206,15 @@ class Outbox:
     def publish_estimate_json(self, payload: str) -> None:
         """An estimate already written as its JSON payload (:meth:`twin.service.rig.RigTwin._estimate_json`)."""
         self._batch.append(("estimate", payload))
+
+    def publish_signals(self, samples: Samples) -> None:
+        """The rig's samples, decimated to ``signals_hz`` (nothing when it is 0)."""
+        if self._decimate is not None:
+            kept = self._decimate(samples)
+            if kept is not None:
+                from twin.service.live_view import signals_to_json
+
+                self._batch.append(("signals", signals_to_json(self.rig, kept)))
 
     def status_counters(self) -> dict[str, int]:
         """``alarm_seq``: the last number the journal gave an alarm of this rig (this runner is its one writer)."""
@@ -361,7 +375,7 @@ class RigRunner:
         self.session = session
         self.keep = keep
         self.summary = RigSummary(rig.name)
-        self.outbox = Outbox(rig.name, journal, out)
+        self.outbox = Outbox(rig.name, journal, out, cfg.signals_hz)
         self.twin: RigTwin | None = None
         self.recorder: McapSink | None = None
         self._fp = fingerprint(rig, cfg.estimate_every)
@@ -804,6 +818,7 @@ class RigRunner:
             gap = (int(block.t_ns[0]) - last) * 1e-9
             self.summary.input_gaps += 1
             self._restart_filter(f"{gap:.1f} s without samples before t_ns={int(block.t_ns[0])}")
+        self.outbox.publish_signals(block)
         try:
             twin.write(block)
         except FilterError as exc:
@@ -1067,6 +1082,8 @@ class BusFront:
         from twin.service.signing import load_signer
 
         self._pubs: dict[str, TwinPublisher] = {}
+        self._signal_pubs: dict[str, Any] = {}
+        self._session = session
         self._histories = histories
         self._store_history = StoreHistory
         self.on_alarm = on_alarm
@@ -1090,6 +1107,13 @@ class BusFront:
                 elif kind == "status":
                     pub.put_payload("status", item[1])
                     self.state[rig] = (item[2], item[3])
+                elif kind == "signals":
+                    sp = self._signal_pubs.get(rig)
+                    if sp is None:
+                        from twin.service.live_view import signals_key
+
+                        sp = self._signal_pubs[rig] = self._session.declare_publisher(signals_key(rig))
+                    sp.put(item[1])
                 elif kind == "alarm":
                     event, durable = item[1], item[2]
                     history = self._histories[rig]
@@ -1105,6 +1129,9 @@ class BusFront:
         for pub in self._pubs.values():
             pub.close()
         self._pubs.clear()
+        for sp in self._signal_pubs.values():
+            sp.undeclare()
+        self._signal_pubs.clear()
 
 
 class Fleet:

@@ -154,6 +154,8 @@ class AlarmJournal:
         :raises DataError: ``event.seq`` is not 0 and not the rig's next number.
         :raises SourceError: the journal is closed.
         """
+        if event.wall_ns is None:  # the wall-clock time beside the record's: when it was raised
+            event = dataclasses.replace(event, wall_ns=time.time_ns())
         with self._lock:
             if self.store.closed:
                 raise SourceError(f"{self.path}: alarm journal is closed")

@@ -1,34 +1,43 @@
-"""Live view of the twins in Foxglove: rig signals, estimates with their bands, statuses and alarms.
+"""Live view of the twins in Foxglove: rig signals, estimates with their intervals and bands, statuses and alarms.
 
-:class:`LiveView` runs a Foxglove WebSocket server (``foxglove-sdk``,
-protocol ``foxglove.websocket.v1``; loopback ``127.0.0.1`` by default) with one
-JSON channel per kind of message, each with its JSON schema:
+:class:`LiveView` serves the Foxglove WebSocket protocol (loopback ``127.0.0.1``
+by default) under both subprotocol names: ``foxglove.websocket.v1`` (the
+documented one, which Foxglove and most clients offer) and ``foxglove.sdk.v1``
+(the name ``foxglove-sdk`` >= 0.30 servers answer to).  The SDK's server runs
+on an internal loopback port; a small WebSocket front on the public port
+accepts either name and relays the frames unchanged.  One JSON channel per
+kind of message, each with its JSON schema:
 
-================  ====================  ==============================================================
-topic             schema                content (display units: x in mm, pressures in MPa, wn in Hz)
-================  ====================  ==============================================================
-``/rig/signals``  ``fpdd.live.Signals``  rig signals, decimated to ``signal_rate_hz``: ``x_mm``, ``x_ref_mm``,
-                                         ``u_V``, ``pA_MPa``, ``pB_MPa`` (whatever the rig logs)
-``/twin/estimate`` ``fpdd.live.Estimate`` per parameter ``value``, ``std``, ``lo95``/``hi95`` (95 % interval,
-                                         log-normal as the tracker's), ``band_lo``/``band_hi`` (healthy band)
-``/twin/status``  ``fpdd.live.Status``   service state, per-parameter status words, counters, message
-``/twin/alarm``   ``fpdd.live.Alarm``    every alarm event: seq, level, kind, estimate ± std, band, message
-``/twin/alarm_log`` ``foxglove.Log``     the same alarms as Foxglove log lines (the Log panel lists them)
-================  ====================  ==============================================================
+* ``/rig/signals`` (``fpdd.live.Signals``): the rig's signals, decimated to
+  ``signal_rate_hz``, in display units named in the field (``x_mm``,
+  ``x_ref_mm``, ``u_V``, ``pA_MPa``, ``pB_MPa``: whatever the rig logs).
+* ``/twin/estimate`` (``EstimateEvent``): the very message the twin puts on
+  Zenoh and in its MCAP (:class:`twin.online.events.EstimateEvent`, SI with the
+  unit beside each parameter: ``value``, ``std``, ``lo95``/``hi95``, ``band_lo``/
+  ``band_hi``, ``baseline``), plus the Foxglove ``timestamp``.
+* ``/twin/status`` (``StatusEvent``): service state, per-parameter status words, counters, message, as on
+  Zenoh and in the MCAP.
+* ``/twin/alarm`` (``AlarmEvent``): every alarm event as on Zenoh and in the MCAP (SI, unit beside, the
+  record's ``t_ns`` and the wall-clock ``wall_ns``).
+* ``/twin/alarm_log`` (``foxglove.Log``): the same alarms as the lines a person reads (display units, the
+  wall-clock time first); the Log panel lists them.
 
 Every message carries ``rig`` (several rigs share the topics; Foxglove filters
-with ``/twin/estimate{rig=="msp25-01"}``) and ``timestamp`` as Foxglove time
-``{sec, nsec}``; its log time is the sample's ``t_ns``.  The layout
+with ``/twin/estimate{rig=="msp25-hall1-a"}``) and ``timestamp`` as Foxglove
+time ``{sec, nsec}``; its log time is the sample's ``t_ns``.  The layout
 ``deploy/foxglove-layout.json`` plots each parameter's trend with its band and
-interval and lists the alarms (open it in Foxglove: Layouts, Import from file;
-connect to ``ws://127.0.0.1:PORT``).
+interval, the rig's position and pressures, and lists the alarms (open it in
+Foxglove: Layouts, Import from file; connect to ``ws://127.0.0.1:PORT``);
+``twin serve --foxglove`` writes one whose variable ``rig`` is the first rig served.
 
 Feeding it: :meth:`LiveView.signals` with sample blocks, :meth:`estimate`,
 :meth:`status`, :meth:`alarm` with the events of :mod:`twin.online.events` (or their
 dicts), :meth:`payload` with the JSON the service puts on Zenoh;
 :meth:`tee` wraps a :class:`twin.service.rig.RigTwin` publisher so everything it
 publishes is shown too; :meth:`follow` subscribes to a Zenoh session's
-``fpdd/<rig>/{estimate,status,alarm}`` (any process, any number of twins).
+``fpdd/<rig>/{estimate,status,alarm,signals}`` (any process, any number of twins;
+a service puts ``signals`` when its ``signals_hz`` is set, as ``twin serve
+--foxglove`` does).
 """
 
 from __future__ import annotations
@@ -39,12 +48,15 @@ import threading
 from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
-from twin.reports.units import Shown, pretty_unit, signal_unit
+from twin.reports.units import Shown, label, signal_unit
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
 
-Z95 = 1.959963984540054
+SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
+"""The subprotocol names the live view accepts: the documented one first, then foxglove-sdk's own."""
+EXAMPLE_RIG = "msp25-hall1-a"
+"""The first rig of ``deploy/rigs.example.toml``: the shipped layout's default ``rig``."""
 
 _TIME = {"type": "object", "title": "time", "description": "Foxglove time: seconds and nanoseconds since the epoch "
          "(of the ingest clock: a replayed log's own time)",
@@ -61,35 +73,20 @@ SIGNALS_SCHEMA: dict = {
                    "x_mm": _NUM, "x_ref_mm": _NUM, "u_V": _NUM, "pA_MPa": _NUM, "pB_MPa": _NUM, "y_mm": _NUM},
     "additionalProperties": _NUM_OR_NULL, "required": ["timestamp", "rig", "t_s"],
 }
-_PARAM = {"type": "object", "properties": {
-    "value": _NUM, "std": _NUM, "lo95": _NUM, "hi95": _NUM, "band_lo": _NUM_OR_NULL, "band_hi": _NUM_OR_NULL,
-    "baseline": _NUM_OR_NULL, "unit": {"type": "string", "description": "display unit ('' for dimensionless)"}},
-    "required": ["value", "std", "lo95", "hi95", "band_lo", "band_hi", "unit"]}
-ESTIMATE_SCHEMA: dict = {
-    "title": "fpdd.live.Estimate", "type": "object",
-    "description": "Tracked parameters in display units with their 95 % interval and healthy band",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "t_s": _NUM, "status": {"type": "string"},
-                   "nis": _NUM_OR_NULL, "params": {"type": "object", "additionalProperties": _PARAM}},
-    "required": ["timestamp", "rig", "t_s", "status", "params"],
-}
-STATUS_SCHEMA: dict = {
-    "title": "fpdd.live.Status", "type": "object", "description": "Health of the twin serving one rig",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "state": {"type": "string"},
-                   "parameters": {"type": "object", "additionalProperties": {"type": "string"}},
-                   "counters": {"type": "object", "additionalProperties": {"type": "integer"}},
-                   "message": {"type": "string"}},
-    "required": ["timestamp", "rig", "state", "parameters", "counters", "message"],
-}
-ALARM_SCHEMA: dict = {
-    "title": "fpdd.live.Alarm", "type": "object", "description": "A drift alarm event, values in display units",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "seq": {"type": "integer"},
-                   "parameter": {"type": "string"}, "level": {"type": "string", "enum": ["ok", "warning", "alarm"]},
-                   "kind": {"type": "string"}, "t_s": _NUM, "estimate": _NUM, "std": _NUM, "baseline": _NUM,
-                   "band_lo": _NUM, "band_hi": _NUM, "unit": {"type": "string"}, "statistic": _NUM,
-                   "message": {"type": "string"}, "text": {"type": "string", "description": "one line"}},
-    "required": ["timestamp", "rig", "seq", "parameter", "level", "kind", "t_s", "estimate", "std", "band_lo",
-                 "band_hi", "unit", "message", "text"],
-}
+
+
+def _event_schema(kind: str) -> dict:
+    """The schema of a twin event (``EstimateEvent``, ``StatusEvent``, ``AlarmEvent``) with the Foxglove
+    ``timestamp``: as the twin's MCAP records it."""
+    from replay.mcapio import with_time_schema
+    from twin.online import events
+
+    return dict(with_time_schema(getattr(events, kind).SCHEMA))
+
+
+ESTIMATE_SCHEMA: dict = _event_schema("EstimateEvent")
+STATUS_SCHEMA: dict = _event_schema("StatusEvent")
+ALARM_SCHEMA: dict = _event_schema("AlarmEvent")
 LOG_SCHEMA: dict = {
     "title": "foxglove.Log", "type": "object",
     "description": "Foxglove's well-known log message (the Log panel lists them): one line per alarm event",
@@ -109,6 +106,67 @@ def foxglove_time(t_ns: int) -> dict:
     """``{"sec", "nsec"}`` of integer nanoseconds."""
     t_ns = max(0, int(t_ns))
     return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+
+
+def estimate_message(ev) -> dict:
+    """The message of an :class:`~twin.online.events.EstimateEvent` on ``/twin/estimate``, live and in the
+    twin's MCAP alike: the event's dict (SI, unit beside each parameter, 95 % interval, band) and its Foxglove
+    ``timestamp``."""
+    return {**ev.to_dict(), "timestamp": foxglove_time(ev.t_ns)}
+
+
+# --------------------------------------------------------------------------- rig signals over Zenoh
+
+def signals_key(rig: str = "*") -> str:
+    """``fpdd/<rig>/signals``: a service's decimated rig signals (JSON, :func:`signals_to_json`)."""
+    return f"fpdd/{rig}/signals"
+
+
+def signals_to_json(rig: str, samples) -> bytes:
+    """A block of samples as the service puts it on :func:`signals_key`: ``{"rig", "t_ns": [...], "signals":
+    {name: [...]}, "units": {name: SI unit}}`` (SI; a non-finite sample is ``null``)."""
+    from replay import jsonio
+    from twin.units import SIGNAL_UNITS
+
+    return jsonio.compact({"rig": rig, "t_ns": [int(t) for t in samples.t_ns],
+                           "signals": {k: v.tolist() for k, v in samples.signals.items()},
+                           "units": {k: SIGNAL_UNITS.get(k, "") for k in samples.signals}})
+
+
+def signals_from_json(payload: bytes | str):
+    """The :class:`replay.base.Samples` of a :func:`signals_to_json` payload."""
+    import numpy as np
+
+    from replay.base import Samples
+
+    d = json.loads(payload)
+    return Samples(np.asarray(d["t_ns"], dtype=np.int64),
+                   {k: np.asarray([np.nan if x is None else x for x in v], dtype=float)
+                    for k, v in d["signals"].items()})
+
+
+class SignalDecimator:
+    """At most ``rate_hz`` samples per second of a stream of blocks: the first sample of every new period
+    (``t_ns // period``), across block boundaries."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_ns = max(1, int(round(1e9 / rate_hz)))
+        self._last = None
+
+    def __call__(self, samples):
+        """The kept samples of one block (``None`` when none)."""
+        import numpy as np
+
+        if len(samples) == 0:
+            return None
+        k = np.asarray(samples.t_ns, dtype=np.int64) // self.period_ns
+        keep = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        if self._last is not None:
+            keep = keep[k[keep] > self._last]
+        if len(keep) == 0:
+            return None
+        self._last = int(k[keep[-1]])
+        return type(samples)(samples.t_ns[keep], {n: v[keep] for n, v in samples.signals.items()})
 
 
 def _finite(v) -> float | None:
@@ -141,7 +199,6 @@ class LiveView:
         for rig, per in (bands or {}).items():
             for p, b in per.items():
                 self.set_band(rig, p, b)
-        self._shown: dict[str, Shown] = {}
         self._lock = threading.Lock()
         self._subs: list = []
         self.counts = {k: 0 for k in TOPICS}
@@ -149,16 +206,20 @@ class LiveView:
         self._channels = {k: foxglove.Channel(topic, schema=schema, context=self._ctx)
                           for k, (topic, schema) in TOPICS.items()}
         self._subscribed: dict[str, threading.Event] = {topic: threading.Event() for topic, _ in TOPICS.values()}
-        # _Listener implements only on_subscribe of foxglove's ServerListener protocol, the one callback used
         self._server: WebSocketServer | None = foxglove.start_server(
-            name=name, host=host, port=port, context=self._ctx,
-            server_listener=_Listener(self._subscribed))  # type: ignore[arg-type]
+            name=name, host="127.0.0.1", port=0, context=self._ctx, server_listener=_listener(self._subscribed))
+        try:
+            self._front: _Front | None = _Front(host, port, int(self._server.port))
+        except BaseException:
+            self._server.stop()
+            raise
 
     # ------------------------------------------------------------------ life
     @property
     def port(self) -> int:
-        assert self._server is not None, "the live view is closed"
-        return int(self._server.port)
+        """The public port (both subprotocols)."""
+        assert self._front is not None, "the live view is closed"
+        return self._front.port
 
     @property
     def url(self) -> str:
@@ -171,6 +232,9 @@ class LiveView:
             except Exception:  # the session may be closed already
                 pass
         self._subs.clear()
+        if self._front is not None:  # the clients first, then the server they were relayed to
+            self._front.close()
+            self._front = None
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -194,12 +258,6 @@ class LiveView:
             band = (band.lo, band.hi, band.value)
         lo, hi, *rest = band
         self._bands.setdefault(rig, {})[parameter] = (lo, hi, rest[0] if rest else None)
-
-    def _sh(self, name: str, unit: str | None) -> Shown:
-        sh = self._shown.get(name)
-        if sh is None:
-            sh = self._shown[name] = Shown(name, self.model, unit)
-        return sh
 
     def _log(self, kind: str, msg: dict, t_ns: int) -> None:
         self._channels[kind].log(msg, log_time=max(0, int(t_ns)))
@@ -231,53 +289,40 @@ class LiveView:
         return sent
 
     def estimate(self, ev) -> None:
-        """An :class:`~twin.online.events.EstimateEvent` (or its dict): values, 95 % interval and band, display units."""
-        d = _as_dict(ev)
-        rig = d["rig"]
-        bands = self._bands.get(rig, {})
-        params = {}
-        for name, p in d["params"].items():
-            sh = self._sh(name, p.get("unit"))
-            v, s = float(p["value"]), float(p["std"])
-            rel = s / abs(v) if v else 0.0
-            lo, hi = (v * math.exp(-Z95 * rel), v * math.exp(Z95 * rel)) if v > 0 else (v - Z95 * s, v + Z95 * s)
-            b = bands.get(name, (None, None, None))
-            params[name] = {"value": sh(v), "std": sh(s), "lo95": sh(lo), "hi95": sh(hi), "band_lo": sh(b[0]),
-                            "band_hi": sh(b[1]), "baseline": sh(b[2]), "unit": pretty_unit(sh.unit)}
-        msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": rig, "t_s": float(d["t_s"]),
-               "status": str(d.get("status", "ok")), "nis": _finite(d.get("nis")), "params": params}
+        """An :class:`~twin.online.events.EstimateEvent` (or its dict), shown as :func:`estimate_message` (a
+        parameter without a band takes the one the view was given for the rig)."""
+        from twin.online.events import EstimateEvent
+
+        e = ev if isinstance(ev, EstimateEvent) else EstimateEvent.from_dict(_as_dict(ev))
+        bands = self._bands.get(e.rig)
+        if bands:
+            e = e.with_bands(bands)
+        msg = estimate_message(e)
         with self._lock:
-            self._log("estimate", msg, d["t_ns"])
+            self._log("estimate", msg, e.t_ns)
 
     def status(self, ev) -> None:
-        """A :class:`~twin.online.events.StatusEvent` (or its dict)."""
-        d = _as_dict(ev)
-        msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": d["rig"], "state": d["state"],
-               "parameters": dict(d.get("parameters") or {}), "counters": dict(d.get("counters") or {}),
-               "message": d.get("message", "")}
+        """A :class:`~twin.online.events.StatusEvent` (or its dict): its message with the Foxglove ``timestamp``."""
+        from twin.online.events import StatusEvent
+
+        e = ev if isinstance(ev, StatusEvent) else StatusEvent.from_dict(_as_dict(ev))
         with self._lock:
-            self._log("status", msg, d["t_ns"])
+            self._log("status", {**e.to_dict(), "timestamp": foxglove_time(e.t_ns)}, e.t_ns)
 
     def alarm(self, ev) -> None:
-        """An :class:`~twin.online.events.AlarmEvent` (or its dict), in display units; its band becomes the rig's."""
-        d = _as_dict(ev)
-        name = d["parameter"]
-        sh = self._sh(name, None)
-        self.set_band(d["rig"], name, (d["band_lo"], d["band_hi"], d.get("baseline")))
-        u = pretty_unit(sh.unit)
-        text = (f"#{d.get('seq', 0)} t={d['t_s']:.3f} s {d['level'].upper()} {d['kind']} {name} = "
-                f"{sh.text(d['estimate'], 4, unit=False)} ± {sh.text(d['std'], 2)} (band {sh.text(d['band_lo'], 4, unit=False)}"
-                f" … {sh.text(d['band_hi'], 4)})")
-        msg = {"timestamp": foxglove_time(d["t_ns"]), "rig": d["rig"], "seq": int(d.get("seq", 0)), "parameter": name,
-               "level": d["level"], "kind": d["kind"], "t_s": float(d["t_s"]), "estimate": sh(d["estimate"]),
-               "std": sh(d["std"]), "baseline": sh(d.get("baseline", float("nan"))) if d.get("baseline") is not None
-               else None, "band_lo": sh(d["band_lo"]), "band_hi": sh(d["band_hi"]), "unit": u,
-               "statistic": _finite(d.get("statistic")), "message": d.get("message", ""), "text": text}
-        log = {"timestamp": msg["timestamp"], "level": LOG_LEVEL.get(d["level"], 2), "message": text,
-               "name": d["rig"], "file": "", "line": 0}
+        """An :class:`~twin.online.events.AlarmEvent` (or its dict): on ``/twin/alarm`` the event's message (SI,
+        unit beside, with the Foxglove ``timestamp``), on ``/twin/alarm_log`` the line a person reads (display
+        units, :func:`twin.online.events.format_alarm`); its band becomes the rig's."""
+        from twin.online.events import AlarmEvent, format_alarm
+
+        e = ev if isinstance(ev, AlarmEvent) else AlarmEvent.from_dict(_as_dict(ev))
+        self.set_band(e.rig, e.parameter, (e.band_lo, e.band_hi, e.baseline))
+        stamp = foxglove_time(e.t_ns)
+        log = {"timestamp": stamp, "level": LOG_LEVEL.get(e.level, 2), "message": format_alarm(e, model=self.model),
+               "name": e.rig, "file": "", "line": 0}
         with self._lock:
-            self._log("alarm", msg, d["t_ns"])
-            self._log("alarm_log", log, d["t_ns"])
+            self._log("alarm", {**e.to_dict(), "timestamp": stamp}, e.t_ns)
+            self._log("alarm_log", log, e.t_ns)
 
     def payload(self, rig: str, kind: str, payload: str | bytes | Mapping) -> None:
         """A message as the service puts it on Zenoh: ``kind`` is ``estimate``, ``status`` or ``alarm``, the
@@ -293,7 +338,7 @@ class LiveView:
         return _Tee(self, publisher)
 
     def follow(self, session, rig: str = "*") -> None:
-        """Show what the twins publish on a Zenoh session: ``fpdd/<rig>/{estimate,status,alarm}``."""
+        """Show what the twins publish on a Zenoh session: ``fpdd/<rig>/{estimate,status,alarm,signals}``."""
         from twin.service.bus import RigKeys
 
         keys = RigKeys(rig)
@@ -301,27 +346,115 @@ class LiveView:
         def handler(kind):
             def on_sample(sample) -> None:
                 try:
-                    self.payload(RigKeys.rig_of(sample.key_expr), kind, sample.payload.to_bytes())
+                    rig_of = RigKeys.rig_of(sample.key_expr)
+                    if kind == "signals":
+                        self.signals(rig_of, signals_from_json(sample.payload.to_bytes()))
+                    else:
+                        self.payload(rig_of, kind, sample.payload.to_bytes())
                 except Exception:  # a malformed payload is the subscriber's problem, not the view's
                     import logging
 
                     logging.getLogger(__name__).debug("live view: bad %s payload", kind, exc_info=True)
             return on_sample
 
-        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm)):
+        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm),
+                          ("signals", signals_key(rig))):
             self._subs.append(session.declare_subscriber(key, handler(kind)))
 
 
-class _Listener:
-    """Server callbacks: notes which topics have a subscriber."""
+def _listener(events: dict[str, threading.Event]):
+    """Server callbacks: notes which topics have a subscriber; every other callback of foxglove's
+    ``ServerListener`` (``on_unsubscribe`` when a client leaves or the server stops, ...) is its no-op."""
+    from foxglove.websocket import ServerListener
 
-    def __init__(self, events: dict[str, threading.Event]) -> None:
-        self.events = events
+    class _Listener(ServerListener):
+        def on_subscribe(self, client, channel) -> None:
+            ev = events.get(channel.topic)
+            if ev is not None:
+                ev.set()
 
-    def on_subscribe(self, client, channel) -> None:
-        ev = self.events.get(channel.topic)
-        if ev is not None:
-            ev.set()
+    return _Listener()
+
+
+class _Front:
+    """The public WebSocket endpoint: accepts both subprotocol names (:data:`SUBPROTOCOLS`) and relays every
+    frame unchanged, both ways, to the SDK's server on an internal loopback port (``foxglove.sdk.v1``).
+    Its asyncio loop runs in a daemon thread; :meth:`close` ends the connections and the thread."""
+
+    def __init__(self, host: str, port: int, inner_port: int) -> None:
+        import asyncio
+
+        self.inner_url = f"ws://127.0.0.1:{inner_port}"
+        self.port = 0
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._server: Any = None
+        self._stopped: Any = None
+        self._thread = threading.Thread(target=self._run, args=(host, port), name="foxglove-front", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            self._thread.join()
+            if isinstance(self._error, OSError):  # a port in use, an address not here: one line
+                from twin.errors import SourceError
+
+                raise SourceError(f"Foxglove live view: cannot listen on {host}:{port}: "
+                                  f"{self._error.strerror or self._error}") from None
+            raise self._error
+
+    def _run(self, host: str, port: int) -> None:
+        import asyncio
+
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._loop.run_until_complete(self._main(host, port))
+        except BaseException as exc:  # a port in use: raised in the caller's thread
+            self._error = exc
+            self._ready.set()
+        finally:
+            self._loop.close()
+
+    async def _main(self, host: str, port: int) -> None:
+        import asyncio
+
+        from websockets.asyncio.server import serve
+
+        self._stopped = asyncio.Event()
+        async with serve(self._relay, host, port, subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
+                         max_size=None, compression=None, ping_interval=None) as server:
+            self._server = server
+            self.port = int(server.sockets[0].getsockname()[1])
+            self._ready.set()
+            await self._stopped.wait()
+            server.close()
+            await server.wait_closed()
+
+    async def _relay(self, client) -> None:
+        import asyncio
+
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import WebSocketException
+
+        async def pump(a, b) -> None:
+            async for frame in a:
+                await b.send(frame)
+
+        try:
+            async with connect(self.inner_url, subprotocols=["foxglove.sdk.v1"],  # type: ignore[list-item]
+                               max_size=None, compression=None, ping_interval=None) as inner:
+                tasks = {asyncio.ensure_future(pump(client, inner)), asyncio.ensure_future(pump(inner, client))}
+                done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                for t in pending:
+                    t.cancel()
+                await asyncio.gather(*pending, return_exceptions=True)
+        except (OSError, WebSocketException):  # one side went away: the other is closed with it
+            pass
+
+    def close(self) -> None:
+        if self._thread.is_alive() and self._stopped is not None:
+            self._loop.call_soon_threadsafe(self._stopped.set)
+            self._thread.join(timeout=10.0)
 
 
 class _Tee:
@@ -360,10 +493,11 @@ def _plot(title: str, series: list[tuple[str, str, str]], *, ylabel: str = "") -
             "sidebarDimension": 240, **({"yAxisLabel": ylabel} if ylabel else {})}
 
 
-def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = "msp25-01") -> dict:
+def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAMPLE_RIG) -> dict:
     """The Foxglove layout of the live view (``deploy/foxglove-layout.json``): per parameter its estimate,
-    95 % interval and healthy band over time; the rig's signals; the alarms (Log panel) and the last status.
-    The variable ``rig`` selects the rig shown."""
+    95 % interval and healthy band over time (SI, as the twin publishes them, the unit in the title); the rig's
+    position and pressures (display units); the alarms (Log panel) and the last status.
+    The variable ``rig`` selects the rig shown (default: the first rig of ``deploy/rigs.example.toml``)."""
     sel = "{rig==$rig}"
     config: dict = {}
     plots = []
@@ -371,7 +505,7 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = "msp
         sh = Shown(name, model)
         base = f"/twin/estimate{sel}.params.{name}"
         pid = f"Plot!param{i}"
-        config[pid] = _plot(sh.label, [
+        config[pid] = _plot(label(name, sh.si_unit), [
             (f"{base}.value", "estimate", "#0072BD"), (f"{base}.lo95", "95 % low", "#4DBEEE"),
             (f"{base}.hi95", "95 % high", "#4DBEEE"), (f"{base}.band_lo", "band low", "#77AC30"),
             (f"{base}.band_hi", "band high", "#77AC30")])
@@ -401,10 +535,10 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = "msp
             "layout": layout}
 
 
-def write_layout(path: str) -> str:
+def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = "msp25") -> str:
     """Write :func:`foxglove_layout` as JSON (``python -m twin.service.live_view --layout deploy/foxglove-layout.json``)."""
     with open(path, "w", encoding="utf-8") as f:
-        json.dump(foxglove_layout(), f, indent=2, ensure_ascii=False)
+        json.dump(foxglove_layout(model=model, rig=rig), f, indent=2, ensure_ascii=False)
         f.write("\n")
     return path
 

@@ -145,7 +145,7 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
     """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
     d = dataclasses.asdict(rig)
     d.pop("speed")
-    for key, default in (("commission_s", None), ("baseline_set", ())):  # keys added later: their default is
+    for key, default in (("commission_s", None), ("baseline_set", ()), ("map", ())):  # keys added later: their default is
         if d.get(key) == default:                                          # no change (checkpoints still match)
             d.pop(key, None)
     d["estimate_every"] = estimate_every
@@ -348,7 +348,8 @@ class RigTwin(Sink):
                 return
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
                                       out.estimates[i], sd, self.tracker.units,
-                                      float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]))
+                                      float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]),
+                                      self.rig.baseline)
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
         if self.recorder is not None:
@@ -357,34 +358,15 @@ class RigTwin(Sink):
 
     def _estimate_json(self, t_ns: int, t_s: float, values: np.ndarray, stds: np.ndarray, nis: float,
                        status: str) -> str | None:
-        """The ``EstimateEvent`` payload, written straight from the numbers: the same text as
-        ``event_to_json(EstimateEvent.of_tracker(...))`` (sorted keys, compact, floats by ``repr``) without
-        building the event; ``None`` for anything the schema checks would refuse (the event path then runs)."""
-        import math
+        """The ``EstimateEvent`` payload (intervals and bands included) written straight from the numbers by
+        :class:`twin.online.events.EstimateEncoder`; ``None`` when the event path must run."""
+        enc = self._est_template
+        if enc is None or enc[0] is not self.rig or enc[1].names != self.tracker.tracked:
+            from twin.online.events import EstimateEncoder
 
-        vals = values.tolist()
-        sds = stds.tolist()
-        if not (all(map(math.isfinite, vals)) and all(math.isfinite(v) and v >= 0 for v in sds) and t_ns >= 0
-                and math.isfinite(t_s) and not nis < 0):
-            return None
-        template = self._est_template
-        if template is None or template[0] != self.tracker.tracked:
-            import json
-
-            def text(v: str) -> str:  # a JSON string constant inside a %-format
-                return json.dumps(v).replace("%", "%%")
-
-            names, units = self.tracker.tracked, self.tracker.units
-            order = sorted(range(len(names)), key=lambda j: names[j])
-            parts = [f'{text(names[j])}:{{"std":%r,"unit":{text(units[j])},"value":%r}}' for j in order]
-            template = (names, order, '{"nis":%s,"params":{' + ",".join(parts)
-                        + f'}},"rig":{text(self.rig.name)},"status":"%s","t_ns":%d,"t_s":%r}}')
-            self._est_template = template
-        _, order, fmt = template
-        nums: list[Any] = [repr(nis) if math.isfinite(nis) else "null"]
-        for j in order:
-            nums += [sds[j], vals[j]]
-        return fmt % (*nums, status, t_ns, t_s)
+            enc = self._est_template = (self.rig, EstimateEncoder(self.rig.name, self.tracker.tracked,
+                                                                  self.tracker.units, self.rig.baseline))
+        return enc[1](t_ns, t_s, values, stds, nis, status)
 
     def publish_status(self, force: bool = False) -> None:
         """Publish a status now if it changed or a second has passed (``force``: now)."""
