@@ -123,7 +123,7 @@ def test_every_field_of_a_signed_alarm_is_covered(keys: Path) -> None:
     assert signer.sign(alarm("r1", 3, seq=3)).signature == payload["signature"]  # deterministic: live = history
     changed = {"rig": "r2", "parameter": "Ffric", "level": "warning", "kind": "returned", "t_ns": payload["t_ns"] + 1,
                "t_s": 3.5, "estimate": 4e-12, "std": 1e-13, "baseline": 2e-12, "band_lo": 1e-13, "band_hi": 3e-12,
-               "seq": 4, "statistic": 99.0, "message": "fine", "unit": "N"}
+               "seq": 4, "statistic": 99.0, "message": "fine", "unit": "N", "wall_ns": 1_700_000_000_000_000_000}
     assert set(changed) == set(payload) - {"signature"}  # a field added to the payload must be tried here too
     for field, value in changed.items():
         tampered = {**payload, field: value}
@@ -391,8 +391,9 @@ def test_alarms_cli_unsigned_rig_is_unverified_or_refused(
         common = ["--rig", "r2", "--connect", endpoint, "--keys", str(keys)]
         assert run_alarms_cli(parser.parse_args([*common, "--count", "1", "--timeout", str(WAIT_S)])) == 0
         out = capsys.readouterr().out.splitlines()
-        assert len(out) == 1 and out[0].startswith("2025-02-19T21:20:01.000Z r2 #1 ") and out[0].endswith(
-            " [unverified]")
+        # the line starts with the wall-clock time the journal recorded the alarm, then the record's time
+        assert len(out) == 1 and re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z r2 #1 t=1\.000 s ", out[0]) \
+            and out[0].endswith(" [unverified]"), out
         assert run_alarms_cli(parser.parse_args([*common, "--require-signed", "--timeout", "1"])) == 0
         refused = capsys.readouterr()
     assert refused.out == ""
