@@ -444,10 +444,11 @@ class _Front:
             async with connect(self.inner_url, subprotocols=["foxglove.sdk.v1"],  # type: ignore[list-item]
                                max_size=None, compression=None, ping_interval=None) as inner:
                 tasks = {asyncio.ensure_future(pump(client, inner)), asyncio.ensure_future(pump(inner, client))}
-                done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                _, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for t in pending:
                     t.cancel()
-                await asyncio.gather(*pending, return_exceptions=True)
+                # every pump's end is collected, the finished one's too: a side closed mid-send is a normal end
+                await asyncio.gather(*tasks, return_exceptions=True)
         except (OSError, WebSocketException):  # one side went away: the other is closed with it
             pass
 
