@@ -1,0 +1,196 @@
+"""Time on a live input: a block stamped in the future costs only itself (also after a restart), and a
+held stream does not leave the rig behind real time for good. Real Zenoh sessions on loopback."""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+
+import zenoh
+
+from net_helpers import free_port
+from replay.base import Samples
+from replay.live import ZenohSampleSink
+from replay.zenohconf import zenoh_config
+from twin.models import msp25 as M
+from twin.models.scenario import simulate_wear
+from twin.models.simulate import DEFAULT_NOISE, excite
+from twin.online.events import StatusEvent
+from twin.service.config import parse_config
+from twin.service.fleet import TIME_JUMP_S
+from twin.service.serve import serve
+from twin.service.store import Store
+
+RIG = "rig-t"
+KEY = f"fpdd/{RIG}/samples"
+HOUR_NS = 3600 * 10**9
+
+
+def _samples(seconds: float, seed: int) -> Samples:
+    """A rig record at 1 kHz, stamped on an epoch-like clock (a day into 2026)."""
+    _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+                           seed=seed)
+    s = rec.to_samples()
+    return Samples(s.t_ns + 1_767_225_600 * 10**9, s.signals)
+
+
+def _config(tmp_path, port: int, **service):
+    return parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "stale_s": 0.3, "estimate_every": 100, **service},
+        "rig": [{"name": RIG, "source": f"zenoh://{KEY}"}],
+    }, "<live-time>")
+
+
+class Watch:
+    """Statuses and estimates of the rig as they are published."""
+
+    def __init__(self, session) -> None:
+        self.statuses: queue.Queue[StatusEvent] = queue.Queue()
+        self.estimates: list[int] = []  # t_ns of each estimate received
+        self._lock = threading.Lock()
+        self.subs = [
+            session.declare_subscriber(f"fpdd/{RIG}/status", lambda s: self.statuses.put(
+                StatusEvent.from_dict(json.loads(s.payload.to_string())))),
+            session.declare_subscriber(f"fpdd/{RIG}/estimate", self._estimate),
+        ]
+
+    def _estimate(self, sample) -> None:
+        t_ns = json.loads(sample.payload.to_string())["t_ns"]
+        with self._lock:
+            self.estimates.append(t_ns)
+
+    def count(self, after_ns: int = 0) -> int:
+        """Estimates received of samples after ``after_ns``."""
+        with self._lock:
+            return sum(t > after_ns for t in self.estimates)
+
+    def until(self, predicate, timeout: float = 60.0) -> StatusEvent:
+        deadline = time.monotonic() + timeout
+        while True:
+            status = self.statuses.get(timeout=max(0.01, deadline - time.monotonic()))
+            if predicate(status):
+                return status
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+
+
+def _run(cfg, feed):
+    """The service in a thread while ``feed(watch, sink)`` publishes; returns (summary, feed's result)."""
+    stop = threading.Event()
+    summaries: dict = {}
+    th = threading.Thread(target=serve, args=(cfg, stop), kwargs={"summaries": summaries})
+    th.start()
+    try:
+        with zenoh.open(zenoh_config("peer", connect=list(cfg.listen))) as session:
+            watch = Watch(session)
+            try:
+                with ZenohSampleSink(KEY, session=session, end_marker=False, max_block=100) as sink:
+                    assert sink.wait_for_subscriber(20.0), "the service did not subscribe to its input"
+                    result = feed(watch, sink)
+            finally:
+                watch.close()
+    finally:
+        stop.set()
+        th.join(timeout=60.0)
+    assert not th.is_alive()
+    return summaries[RIG], result
+
+
+def _write(sink, block: Samples, speed: float = 5.0) -> None:
+    """``block`` in payloads of 0.1 s of samples, at ``speed`` times real time (estimates are put on the bus
+    with congestion control DROP: a burst of them may lose some)."""
+    start = time.monotonic()
+    for i in range(0, len(block), 100):
+        sink.write(block.slice(i, i + 100))
+        time.sleep(max(0.0, start + (i + 100) * 1e-3 / speed - time.monotonic()))
+
+
+def _ahead(block: Samples, ns: int) -> Samples:
+    return Samples(block.t_ns + ns, {k: v.copy() for k, v in block.signals.items()})
+
+
+def test_a_block_stamped_an_hour_ahead_costs_only_itself_also_after_a_restart(tmp_path):
+    samples = _samples(12.0, seed=1021)
+    cfg = _config(tmp_path, free_port())
+    bad = samples.slice(4000, 4500)
+
+    def first_run(watch, sink):
+        _write(sink, samples.slice(0, 4000))
+        watch.until(lambda s: s.counters.get("samples") == 4000)
+        before = watch.count()
+        _write(sink, _ahead(bad, HOUR_NS))  # one block a clock glitch stamped an hour ahead
+        _write(sink, samples.slice(4000, 8000))  # then the correct samples, those of the bad block included
+        status = watch.until(lambda s: s.counters.get("samples") == 8000)
+        return before, watch.count(after_ns=int(samples.t_ns[3999])), status
+
+    s1, (before, after, status) = _run(cfg, first_run)
+    assert before >= 30  # one estimate per 100 samples (40), a few may be dropped on the bus
+    assert after >= 30, "estimates keep coming after the future block"
+    assert s1.stats.estimates == 80
+    assert status.counters["time_jump"] == len(bad) and s1.time_jump == len(bad)
+    assert "time_backwards" not in status.counters and s1.time_backwards == 0
+    assert s1.samples == 8000 and s1.state == "stopped"
+    with Store(tmp_path / "journal" / f"{RIG}.db", writer=False) as store:
+        cp = store.load_checkpoint(RIG)
+    assert cp is not None and cp.t_ns == int(samples.t_ns[7999]), "the future time never reaches a checkpoint"
+
+    def second_run(watch, sink):
+        _write(sink, samples.slice(8000, 10000))
+        watch.until(lambda s: s.counters.get("samples") == 10000)
+        before = watch.count()
+        _write(sink, _ahead(samples.slice(10000, 10200), HOUR_NS))
+        said = watch.until(lambda s: s.counters.get("time_jump") == 200 and s.state == "running")
+        _write(sink, samples.slice(10000, 12000))
+        watch.until(lambda s: s.counters.get("samples") == 12000)
+        return before, watch.count(after_ns=int(samples.t_ns[9999])), said
+
+    s2, (before, after, status) = _run(cfg, second_run)
+    assert s2.resumed_samples == 8000
+    assert before >= 15 and after >= 15, "estimates come after a restart and after a second bad block"
+    assert s2.stats.estimates == 40
+    assert s2.time_jump == 200 and s2.time_backwards == 0
+    assert "time_jump 200" in status.message and "after the rig's present" in status.message
+    assert s2.samples == 4000
+
+
+def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):
+    """A block half the tolerance ahead is processed (a clock glitch below it costs the samples before it)."""
+    samples = _samples(4.0, seed=1022)
+    cfg = _config(tmp_path, free_port())
+    lead = int(TIME_JUMP_S / 2 * 1e9)
+
+    def feed(watch, sink):
+        _write(sink, samples.slice(0, 2000))
+        watch.until(lambda s: s.counters.get("samples") == 2000)
+        _write(sink, _ahead(samples.slice(2000, 2100), lead))
+        _write(sink, samples.slice(2100, 4000))
+        return watch.until(lambda s: s.counters.get("time_backwards") == 1900)
+
+    summary, status = _run(cfg, feed)
+    assert summary.time_jump == 0 and summary.time_backwards == 1900 and summary.samples == 2100
+    assert "time_jump" not in status.counters
+
+
+def test_after_a_held_stream_the_lag_is_re_based(tmp_path):
+    """A sender that holds its stream for 4 s and goes on where it stopped: the rig waited, it is not behind."""
+    samples = _samples(3.0, seed=1023)
+    cfg = _config(tmp_path, free_port(), lag_warn_s=2.0)
+    hold_s = 4.0
+
+    def feed(watch, sink):
+        _write(sink, samples.slice(0, 1500), speed=1.0)  # as a rig sends them
+        watch.until(lambda s: s.counters.get("samples") == 1500)
+        time.sleep(hold_s)
+        _write(sink, samples.slice(1500, 3000), speed=1.0)
+        return watch.until(lambda s: s.counters.get("samples") == 3000)
+
+    summary, status = _run(cfg, feed)
+    assert summary.samples == 3000
+    assert status.counters["lag_ms"] < hold_s * 1000 / 2, status.counters
+    assert "behind real time" not in status.message and status.state != "degraded"
