@@ -165,6 +165,9 @@ class RigSummary:
     filter_resets: int = 0
     input_dropped: int = 0
     """Messages or samples the live source dropped (its counts per cause are in the status)."""
+    input_lost: str = ""
+    """What the reader of a replayed log lost on the way (its loss line; "" when nothing): ``twin serve`` warns
+    and exits 3."""
     busy_s: float = 0.0
     stats: RigStats = dataclasses.field(default_factory=RigStats)
 
@@ -180,7 +183,8 @@ class RigSummary:
             if getattr(self, name):
                 parts.append(f"{name} {getattr(self, name)}")
         text = ", ".join(parts)
-        return f"{text}: {self.message}" if self.message else text
+        text = f"{text}: {self.message}" if self.message else text
+        return f"{text}; input lost: {self.input_lost}" if self.input_lost and self.input_lost not in text else text
 
 
 #: Counters of a :class:`RigSummary` that go into the rig's status when not zero.
@@ -442,7 +446,10 @@ class RigRunner:
                 self._run_live()
             else:
                 yield from self._log_steps()
-            self._set_state("finished" if not is_live(self.rig.source) else "stopped")
+            if is_live(self.rig.source):
+                self._set_state("stopped")
+            else:  # what the log's reader lost stays the rig's last word
+                self._set_state("finished", self.summary.input_lost)
         except _Stopped:
             self._set_state("stopped")
         except RigFailure as exc:
@@ -654,6 +661,12 @@ class RigRunner:
         pacer = Pacer(self.rig.speed)
         span = self.cfg.block_s * self.rig.speed if self.rig.speed > 0 else math.inf
         with src:
+            from twin.record import check_signals
+
+            try:
+                check_signals(self.rig.source, src.signals, self.rig.model)
+            except TwinError as exc:
+                raise RigFailure(str(exc)) from None
             chunks = src.chunks(READ_CHUNK)
             while True:
                 try:
@@ -685,10 +698,12 @@ class RigRunner:
             twin.commissioning.window.full = True
             yield from self._commission_steps()
         report = getattr(src, "report", None)
-        skipped = sum(report.skipped.values()) if report is not None else 0
-        if skipped and report is not None:
-            self._notes = f"the log had {skipped} unusable record(s): {report.summary()}"
-            self.summary.message = self._notes
+        if twin.stats.samples == 0:
+            raise RigFailure(f"{self.rig.source}: no usable samples"
+                             + (f" ({report.summary()})" if report is not None else ""))
+        if report is not None and report.lossy:
+            self.summary.input_lost = self._notes = report.loss_line()
+            log.warning("rig %s: %s", self.rig.name, self._notes)
 
     # ------------------------------------------------------------------ a live input
 
