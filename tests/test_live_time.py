@@ -80,7 +80,7 @@ class Watch:
             sub.undeclare()
 
 
-def _run(cfg, feed):
+def _run(cfg, feed, max_block: int = 100):
     """The service in a thread while ``feed(watch, sink)`` publishes; returns (summary, feed's result)."""
     stop = threading.Event()
     summaries: dict = {}
@@ -90,7 +90,7 @@ def _run(cfg, feed):
         with zenoh.open(zenoh_config("peer", connect=list(cfg.listen))) as session:
             watch = Watch(session)
             try:
-                with ZenohSampleSink(KEY, session=session, end_marker=False, max_block=100) as sink:
+                with ZenohSampleSink(KEY, session=session, end_marker=False, max_block=max_block) as sink:
                     assert sink.wait_for_subscriber(20.0), "the service did not subscribe to its input"
                     result = feed(watch, sink)
             finally:
@@ -175,6 +175,23 @@ def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):
     summary, status = _run(cfg, feed)
     assert summary.time_jump == 0 and summary.time_backwards == 1900 and summary.samples == 2100
     assert "time_jump" not in status.counters
+
+
+def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
+    """8 s of 100 Hz samples in one payload, sent at once (one block of the rig, reaching 8 s past the rig's
+    present): they run on from the last processed sample without a gap, so they are processed."""
+    full = _samples(9.0, seed=1024)
+    samples = Samples(full.t_ns[::10], {k: v[::10] for k, v in full.signals.items()})
+    cfg = _config(tmp_path, free_port())
+
+    def feed(watch, sink):
+        sink.write(samples.slice(0, 100))
+        watch.until(lambda s: s.counters.get("samples") == 100)
+        sink.write(samples.slice(100, 900))
+        return watch.until(lambda s: s.counters.get("samples") == 900)
+
+    summary, status = _run(cfg, feed, max_block=1000)
+    assert summary.time_jump == 0 and summary.time_backwards == 0 and "time_jump" not in status.counters
 
 
 def test_after_a_held_stream_the_lag_is_re_based(tmp_path):

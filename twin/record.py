@@ -135,7 +135,9 @@ def check_signals(path: str, names, model: str = "msp25", needed=()) -> None:
     missing = [n for n in rig if n not in have]
     lacks = []
     if not have & set(m.INPUTS):
-        lacks.append(f"a drive ({' or '.join(m.INPUTS)})")
+        words = {"u": "the controller output 'u'", "x_ref": "the demand 'x_ref'"} if model != "oscillator" else {}
+        drives = sorted(m.INPUTS, key=lambda n: n != "u")
+        lacks.append(f"a drive ({' or '.join(words.get(n, repr(n)) for n in drives)})")
     if not have & set(m.OUTPUTS):
         lacks.append(f"a measured output (any of {', '.join(m.OUTPUTS)})")
     stems = {n: re.split(r"[\[\(\s]", n, maxsplit=1)[0] for n in foreign}

@@ -15,6 +15,9 @@ from twin.commands.common import names as _names
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
     p.add_argument("--model", default="msp25", choices=MODELS)
     p.add_argument("--outputs", help="outputs used, e.g. x or x,pA,pB (default: all present)")

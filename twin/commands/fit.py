@@ -20,6 +20,9 @@ HELP = "fit free parameters to measured records (output error)"
 
 
 def add_arguments(p) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
     p.add_argument("--model", default="msp25", choices=MODELS)
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")

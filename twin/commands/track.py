@@ -14,6 +14,9 @@ from twin.service.track import track
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
     p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
     p.add_argument("--track", help="parameters to track (default Ffric,CdAleak,Cd,zeta,wn)")

@@ -940,9 +940,12 @@ class RigRunner:
     def _future(self, t: np.ndarray, last: int | None) -> np.ndarray:
         """Mask of live samples stamped more than ``TIME_JUMP_S`` after the rig's present (as the best delay
         seen places it on our clock) and after the last processed time plus the time passed since it was
-        processed: they cannot have been measured yet. Not judged before this run processed a sample (the
-        first samples define the offset). A rig whose every sample is ahead for ``CLOCK_STEP_S`` stepped its
-        clock: the step is adopted (nothing is masked, the lag re-based, ``clock_steps`` counted)."""
+        processed: they cannot have been measured yet. What leaps is judged, not what runs on: a run of
+        samples without a gap (``GAP_S`` or 20 sample periods) is dropped when its first sample is beyond that
+        bound, kept when it started within it (a sender faster than real time). Not judged before this run
+        processed a sample (the first samples define the offset). A rig whose every sample is ahead for
+        ``CLOCK_STEP_S`` stepped its clock: the step is adopted (nothing is masked, the lag re-based,
+        ``clock_steps`` counted)."""
         none = np.zeros(len(t), dtype=bool)
         lag = self._live_lag
         present = lag.now_ns() if lag is not None else None
@@ -952,7 +955,17 @@ class RigRunner:
         since = 0.0 if self._accepted_at is None else now - self._accepted_at
         tol = TIME_JUMP_S * 1e9
         limit = max(present + tol, int(last) + since * 1e9 + tol)
-        jump = t > limit
+        beyond = t > limit
+        if not beyond.any():
+            return none
+        dt = self.twin.tracker.dt if self.twin is not None else None
+        step = np.diff(np.concatenate((np.array([int(last)], dtype=np.int64), t)))
+        starts = (step <= 0) | (step > max(GAP_S, 20 * (dt or 0.0)) * 1e9)  # each run of samples begins at one
+        run = np.cumsum(starts)  # the run of each sample (0: the one continuing the last processed sample)
+        first = np.flatnonzero(starts)
+        leaped = np.zeros(run[-1] + 1, dtype=bool)
+        leaped[run[first]] = beyond[first]
+        jump = leaped[run]
         if not jump.any():
             return none
         self._lead_s = (float(t[jump].max()) - present) * 1e-9
