@@ -130,8 +130,8 @@ def test_a_block_stamped_an_hour_ahead_costs_only_itself_also_after_a_restart(tm
         return before, watch.count(after_ns=int(samples.t_ns[3999])), status
 
     s1, (before, after, status) = _run(cfg, first_run)
-    assert before >= 30  # one estimate per 100 samples (40), a few may be dropped on the bus
-    assert after >= 30, "estimates keep coming after the future block"
+    assert before >= 20  # one estimate per 100 samples (40); the bus may drop some (congestion control DROP)
+    assert after >= 20, "estimates keep coming after the future block"
     assert s1.stats.estimates == 80
     assert status.counters["time_jump"] == len(bad) and s1.time_jump == len(bad)
     assert "time_backwards" not in status.counters and s1.time_backwards == 0
@@ -152,7 +152,7 @@ def test_a_block_stamped_an_hour_ahead_costs_only_itself_also_after_a_restart(tm
 
     s2, (before, after, status) = _run(cfg, second_run)
     assert s2.resumed_samples == 8000
-    assert before >= 15 and after >= 15, "estimates come after a restart and after a second bad block"
+    assert before >= 10 and after >= 10, "estimates come after a restart and after a second bad block"
     assert s2.stats.estimates == 40
     assert s2.time_jump == 200 and s2.time_backwards == 0
     assert "time_jump 200" in status.message and "after the rig's present" in status.message
@@ -192,6 +192,27 @@ def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
 
     summary, status = _run(cfg, feed, max_block=1000)
     assert summary.time_jump == 0 and summary.time_backwards == 0 and "time_jump" not in status.counters
+
+
+def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
+    """A sender whose clock stepped an hour ahead and stays there: after CLOCK_STEP_S (2 s here) of nothing but
+    samples from the future its time is adopted (counted), and the rig goes on."""
+    import twin.service.fleet as fleet
+
+    monkeypatch.setattr(fleet, "CLOCK_STEP_S", 2.0)
+    samples = _samples(6.0, seed=1025)
+    cfg = _config(tmp_path, free_port())
+
+    def feed(watch, sink):
+        _write(sink, samples.slice(0, 1000), speed=1.0)
+        watch.until(lambda s: s.counters.get("samples") == 1000)
+        _write(sink, _ahead(samples.slice(1000, 6000), HOUR_NS), speed=1.0)
+        return watch.until(lambda s: s.counters.get("clock_steps") == 1
+                           and s.counters["samples"] + s.counters["time_jump"] == 6000)
+
+    summary, status = _run(cfg, feed)
+    assert summary.clock_steps == 1 and summary.time_jump > 0 and summary.samples > 1000
+    assert summary.samples + summary.time_jump == 6000 and summary.input_gaps == 1
 
 
 def test_after_a_held_stream_the_lag_is_re_based(tmp_path):

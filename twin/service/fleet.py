@@ -422,6 +422,7 @@ class RigRunner:
         self._accepted_at: float | None = None  # monotonic time the last live samples were processed
         self._jump_since: float | None = None  # monotonic time of the first time_jump since samples were processed
         self._lead_s = 0.0  # how far the last time_jump was ahead of the rig's present [s]
+        self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
 
     # ------------------------------------------------------------------ life
 
@@ -931,7 +932,8 @@ class RigRunner:
             if self.summary.time_jump:
                 self._notes += (f" (the last stamped {self._lead_s:.1f} s after the rig's present: a clock glitch, "
                                 "not processed, not checkpointed)")
-            if counts["time_jump"]:
+            self._jump_blocks += bool(counts["time_jump"])
+            if counts["time_jump"] and (self._jump_blocks <= 3 or self._jump_blocks % 100 == 0):
                 log.warning("rig %s: %d sample(s) from t_ns=%d stamped %.1f s after the rig's present: dropped "
                             "(time_jump)", self.rig.name, counts["time_jump"], int(t[jump][0]), self._lead_s)
             block = Samples(t[keep], {k: v[keep] for k, v in block.signals.items()})
