@@ -29,12 +29,13 @@ HOUR_NS = 3600 * 10**9
 
 
 def _samples(seconds: float, seed: int) -> Samples:
-    """A rig record at 1 kHz, stamped on an epoch-like clock (a day into 2026)."""
+    """A rig record at 1 kHz stamped in UNIX time, as a rig on a synchronised clock does, starting a minute ago."""
     _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=seed)
     s = rec.to_samples()
-    return Samples(s.t_ns + 1_767_225_600 * 10**9, s.signals)
+    start = (time.time_ns() // 10**6 - 60_000) * 10**6
+    return Samples(s.t_ns + start, s.signals)
 
 
 def _config(tmp_path, port: int, **service):
@@ -140,23 +141,34 @@ def test_a_block_stamped_an_hour_ahead_costs_only_itself_also_after_a_restart(tm
         cp = store.load_checkpoint(RIG)
     assert cp is not None and cp.t_ns == int(samples.t_ns[7999]), "the future time never reaches a checkpoint"
 
-    def second_run(watch, sink):
-        _write(sink, samples.slice(8000, 10000))
-        watch.until(lambda s: s.counters.get("samples") == 10000)
-        before = watch.count()
-        _write(sink, _ahead(samples.slice(10000, 10200), HOUR_NS))
+    def second_run(watch, sink):  # the first block after the restart is from the future
+        _write(sink, _ahead(samples.slice(8000, 8200), HOUR_NS))
         said = watch.until(lambda s: s.counters.get("time_jump") == 200 and s.state == "running")
-        _write(sink, samples.slice(10000, 12000))
+        _write(sink, samples.slice(8000, 12000))
         watch.until(lambda s: s.counters.get("samples") == 12000)
-        return before, watch.count(after_ns=int(samples.t_ns[9999])), said
+        return watch.count(after_ns=int(samples.t_ns[7999])), said
 
-    s2, (before, after, status) = _run(cfg, second_run)
+    s2, (after, status) = _run(cfg, second_run)
     assert s2.resumed_samples == 8000
-    assert before >= 10 and after >= 10, "estimates come after a restart and after a second bad block"
+    assert after >= 20, "estimates come after a restart whose first block is from the future"
     assert s2.stats.estimates == 40
     assert s2.time_jump == 200 and s2.time_backwards == 0
     assert "time_jump 200" in status.message and "after the rig's present" in status.message
     assert s2.samples == 4000
+
+
+def test_a_fresh_rig_whose_first_block_is_from_the_future_is_not_blinded(tmp_path):
+    samples = _samples(3.0, seed=1026)
+    cfg = _config(tmp_path, free_port())
+
+    def feed(watch, sink):
+        _write(sink, _ahead(samples.slice(0, 300), HOUR_NS))
+        _write(sink, samples.slice(0, 3000))
+        return watch.until(lambda s: s.counters.get("samples") == 3000)
+
+    summary, status = _run(cfg, feed)
+    assert summary.time_jump == 300 and summary.time_backwards == 0 and summary.samples == 3000
+    assert summary.stats.estimates == 30
 
 
 def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):

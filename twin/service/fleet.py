@@ -8,11 +8,12 @@ A rig never stops silently:
   the tracker cannot use is counted (``source_errors``, ``bad_blocks``,
   ``bad_samples``), logged and skipped;
 * a live sample's time is judged before it is processed: one at or before the
-  last processed (or not increasing) is dropped as ``time_backwards``; one
-  stamped more than ``TIME_JUMP_S`` after the rig's present (our clock now, less
-  the best delivery delay seen) and after the last processed time is dropped as
-  ``time_jump`` (a clock glitch of the sender); neither moves the rig's time nor
-  reaches a checkpoint, so the correct samples that follow are processed. A
+  last processed (or not increasing) is dropped as ``time_backwards``; a run of
+  samples that leaps more than ``TIME_JUMP_S`` past the rig's present (our clock
+  now, less the best delivery delay seen; the host's UNIX time before the first
+  sample) and past the last processed time is dropped as ``time_jump`` (a clock
+  glitch of the sender, :meth:`RigRunner._future`); neither moves the rig's time
+  nor reaches a checkpoint, so the correct samples that follow are processed. A
   rig whose every sample is stamped ahead for ``CLOCK_STEP_S`` stepped its clock:
   that time is adopted (``clock_steps``, the filter restarts as after a gap);
 * a **replayed log** is paced in blocks of ``block_s`` and ends normally
@@ -944,24 +945,28 @@ class RigRunner:
         seen places it on our clock) and after the last processed time plus the time passed since it was
         processed: they cannot have been measured yet. What leaps is judged, not what runs on: a run of
         samples without a gap (``GAP_S`` or 20 sample periods) is dropped when its first sample is beyond that
-        bound, kept when it started within it (a sender faster than real time). Not judged before this run
-        processed a sample (the first samples define the offset). A rig whose every sample is ahead for
-        ``CLOCK_STEP_S`` stepped its clock: the step is adopted (nothing is masked, the lag re-based,
-        ``clock_steps`` counted)."""
+        bound, kept when it started within it (a sender faster than real time). Before this run processed a
+        sample (no offset learnt yet) the rig's present is the host's UNIX time (a rig stamping UNIX time,
+        as a live input should; other clocks are far behind it and never judged so). A rig whose every sample
+        is ahead for ``CLOCK_STEP_S`` stepped its clock (or disagrees with ours): its time is adopted
+        (nothing is masked, the lag re-based, ``clock_steps`` counted)."""
         none = np.zeros(len(t), dtype=bool)
+        if not len(t):
+            return none
         lag = self._live_lag
         present = lag.now_ns() if lag is not None else None
-        if last is None or present is None or not len(t):
-            return none
+        if present is None:
+            present = float(time.time_ns())
         now = time.monotonic()
         since = 0.0 if self._accepted_at is None else now - self._accepted_at
         tol = TIME_JUMP_S * 1e9
-        limit = max(present + tol, int(last) + since * 1e9 + tol)
+        limit = present + tol if last is None else max(present + tol, int(last) + since * 1e9 + tol)
         beyond = t > limit
         if not beyond.any():
             return none
         dt = self.twin.tracker.dt if self.twin is not None else None
-        step = np.diff(np.concatenate((np.array([int(last)], dtype=np.int64), t)))
+        base = int(last) if last is not None else int(t[0])  # no sample before: the first one begins a run
+        step = np.diff(np.concatenate((np.array([base], dtype=np.int64), t)))
         starts = (step <= 0) | (step > max(GAP_S, 20 * (dt or 0.0)) * 1e9)  # each run of samples begins at one
         run = np.cumsum(starts)  # the run of each sample (0: the one continuing the last processed sample)
         first = np.flatnonzero(starts)
@@ -974,8 +979,8 @@ class RigRunner:
         if self._jump_since is None:
             self._jump_since = now
         elif now - self._jump_since >= CLOCK_STEP_S and not (~jump).any():
-            assert lag is not None
-            lag.rebase()
+            if lag is not None:
+                lag.rebase()
             self._jump_since = None
             self.summary.clock_steps += 1
             log.warning("rig %s: every sample for %.0f s is stamped ahead (the last %.1f s): its clock stepped; "
