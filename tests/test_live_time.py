@@ -52,6 +52,7 @@ class Watch:
     def __init__(self, session) -> None:
         self.statuses: queue.Queue[StatusEvent] = queue.Queue()
         self.estimates: list[int] = []  # t_ns of each estimate received
+        self.t_s: list[float] = []  # and its record time
         self._lock = threading.Lock()
         self.subs = [
             session.declare_subscriber(f"fpdd/{RIG}/status", lambda s: self.statuses.put(
@@ -60,9 +61,10 @@ class Watch:
         ]
 
     def _estimate(self, sample) -> None:
-        t_ns = json.loads(sample.payload.to_string())["t_ns"]
+        doc = json.loads(sample.payload.to_string())
         with self._lock:
-            self.estimates.append(t_ns)
+            self.estimates.append(doc["t_ns"])
+            self.t_s.append(doc["t_s"])
 
     def count(self, after_ns: int = 0) -> int:
         """Estimates received of samples after ``after_ns``."""
@@ -225,6 +227,33 @@ def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
     summary, status = _run(cfg, feed)
     assert summary.clock_steps == 1 and summary.time_jump > 0 and summary.samples > 1000
     assert summary.samples + summary.time_jump == 6000 and summary.input_gaps == 1
+
+
+def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_path, monkeypatch):
+    """A rig controller that restarts its clock an hour back: after CLOCK_STEP_S (2 s here) of nothing but
+    samples before the last processed one, its time is adopted; the events' record time t_s runs on."""
+    import twin.service.fleet as fleet
+
+    monkeypatch.setattr(fleet, "CLOCK_STEP_S", 2.0)
+    samples = _samples(6.0, seed=1027)
+    cfg = _config(tmp_path, free_port())
+
+    def feed(watch, sink):
+        _write(sink, samples.slice(0, 1000), speed=1.0)
+        watch.until(lambda s: s.counters.get("samples") == 1000)
+        _write(sink, _ahead(samples.slice(1000, 6000), -HOUR_NS), speed=1.0)
+        watch.until(lambda s: s.counters.get("clock_steps") == 1
+                    and s.counters["samples"] + s.counters["time_backwards"] == 6000)
+        with watch._lock:
+            return list(watch.estimates), list(watch.t_s)
+
+    summary, (t_ns, t_s) = _run(cfg, feed)
+    assert summary.clock_steps == 1 and summary.time_backwards > 0 and summary.samples > 1000
+    assert summary.samples + summary.time_backwards == 6000 and summary.time_jump == 0
+    assert summary.stats.estimates == summary.samples // 100
+    later = [s for t, s in zip(t_ns, t_s) if t < int(samples.t_ns[0])]  # estimates on the new clock
+    assert later and min(later) > max(s for t, s in zip(t_ns, t_s) if t >= int(samples.t_ns[0]))
+    assert all(b > a for a, b in zip(t_s, t_s[1:])), "the record time runs on across the step"
 
 
 def test_after_a_held_stream_the_lag_is_re_based(tmp_path):

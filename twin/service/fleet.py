@@ -14,8 +14,9 @@ A rig never stops silently:
   sample) and past the last processed time is dropped as ``time_jump`` (a clock
   glitch of the sender, :meth:`RigRunner._future`); neither moves the rig's time
   nor reaches a checkpoint, so the correct samples that follow are processed. A
-  rig whose every sample is stamped ahead for ``CLOCK_STEP_S`` stepped its clock:
-  that time is adopted (``clock_steps``, the filter restarts as after a gap);
+  rig whose every sample is stamped ahead, or behind the last processed, for
+  ``CLOCK_STEP_S`` stepped its clock: that time is adopted (``clock_steps``, the
+  filter restarts as after a gap, the events' record time runs on);
 * a **replayed log** is paced in blocks of ``block_s`` and ends normally
   (state ``finished``);
 * an unrecoverable error (a log that cannot be read, a filter that diverged,
@@ -424,6 +425,7 @@ class RigRunner:
         self._jump_since: float | None = None  # monotonic time of the first time_jump since samples were processed
         self._lead_s = 0.0  # how far the last time_jump was ahead of the rig's present [s]
         self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
+        self._back_since: float | None = None  # monotonic time of the first block all time_backwards since then
 
     # ------------------------------------------------------------------ life
 
@@ -828,7 +830,7 @@ class RigRunner:
         self._commission(wait=False)
         if self.twin.last_t_ns is not None and self.twin.last_t_ns != before:  # samples were processed
             self._accepted_at = time.monotonic()
-            self._jump_since = None
+            self._jump_since = self._back_since = None
             if self._held:
                 lag.rebase()
                 self._held = False
@@ -920,6 +922,8 @@ class RigRunner:
             start = np.iinfo(np.int64).min if last is None else int(last)
             tk = t[ok]
             back[ok] = tk <= np.maximum.accumulate(np.concatenate((np.array([start], dtype=np.int64), tk[:-1])))
+        if len(t) and back.all() and self._stepped_back(t, last):
+            back[:] = False
         keep = ~(jump | back)
         drive = [block.signals[k] for k in ("u", "x_ref") if k in block.signals]
         no_drive = keep & ~np.any(np.isfinite(np.stack(drive)), axis=0) if drive else np.zeros(len(t), dtype=bool)
@@ -939,6 +943,28 @@ class RigRunner:
                             "(time_jump)", self.rig.name, counts["time_jump"], int(t[jump][0]), self._lead_s)
             block = Samples(t[keep], {k: v[keep] for k, v in block.signals.items()})
         return block if len(block) else None
+
+    def _stepped_back(self, t: np.ndarray, last: int | None) -> bool:
+        """A block all before the last processed sample: after ``CLOCK_STEP_S`` of nothing else (and the block in
+        order), the input's clock stepped back (a rig controller restarted, say): its time is adopted (the
+        filter restarts, the record time runs on, ``clock_steps`` counted) and ``True`` returned."""
+        now = time.monotonic()
+        if self._back_since is None:
+            self._back_since = now
+            return False
+        if now - self._back_since < CLOCK_STEP_S or last is None or not bool(np.all(np.diff(t) > 0)):
+            return False
+        twin = self.twin
+        assert twin is not None  # made by _open
+        back_s = (int(last) - int(t[0])) * 1e-9
+        twin.step_clock(int(t[0]))
+        self._restart_filter(f"the input's clock stepped back {back_s:.1f} s (every sample for {CLOCK_STEP_S:.0f} s "
+                             "was before the last one processed); its time is adopted")
+        if self._live_lag is not None:
+            self._live_lag.rebase()
+        self._back_since = None
+        self.summary.clock_steps += 1
+        return True
 
     def _future(self, t: np.ndarray, last: int | None) -> np.ndarray:
         """Mask of live samples stamped more than ``TIME_JUMP_S`` after the rig's present (as the best delay

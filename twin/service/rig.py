@@ -220,6 +220,14 @@ class RigTwin(Sink):
         for k, v in old.counters.items():
             self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
 
+    def step_clock(self, t_ns: int) -> None:
+        """Go on from ``t_ns`` on a sample clock that stepped back: the next sample may be at or after it, and the
+        record time ``t_s`` of events runs on from the last one (the drift test's schedule is in it)."""
+        if self.last_t_ns is not None and self._t0_ns is not None:
+            step = int(round((self.tracker.dt or 1e-3) * 1e9))
+            self._t0_ns = int(t_ns) - (self.last_t_ns - self._t0_ns) - step
+        self.last_t_ns = int(t_ns) - 1
+
     # -- commissioning ---------------------------------------------------------------------
     def _gather(self, samples: Samples) -> None:
         c = self.commissioning
