@@ -179,3 +179,23 @@ def test_serve_keeps_the_loss_in_its_summary_and_exits_3_or_refuses(damage, good
     else:
         assert code == 2, err
         assert "rig-a: failed" in summary and damage.says in summary, summary
+
+
+def test_the_python_api_never_passes_a_loss_over_in_silence(good, tmp_path, caplog):
+    import logging
+
+    import twin
+
+    path = csv_nan_every_other_x(good, tmp_path)
+    caplog.set_level(logging.WARNING)
+    records = twin.load_records(str(path))
+    assert sum(len(r) for r in records) == N // 2
+    assert [r.getMessage() for r in caplog.records if "input lost (nan=1000" in r.getMessage()]
+    caplog.clear()
+    reports: list = []
+    twin.load_records(str(path), reports=reports)
+    assert len(reports) == 1 and reports[0].lossy and reports[0].skipped["nan"] == N // 2
+    assert not caplog.records  # the caller that asked for the report says it
+    tracked = twin.track(str(path))
+    assert tracked.read_report is not None and tracked.read_report.skipped["nan"] == N // 2
+    assert [r.getMessage() for r in caplog.records if "input lost (nan=1000" in r.getMessage()]

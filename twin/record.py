@@ -167,7 +167,8 @@ def load_records(path: str, name: str | None = None, model: str = "msp25", repor
 
     Refused (:class:`DataError`): a record without the signals a fit needs (:func:`check_signals`) or
     without a usable sample. ``reports``: receives the reader's :class:`replay.base.ReadReport` (what
-    was lost on the way: ``report.lossy``, ``report.loss_line()``).
+    was lost on the way: ``report.lossy``, ``report.loss_line()``); without it a loss is logged as a
+    warning (logger ``twin.record``), never passed over in silence.
     """
     from replay.factory import open_source
     from replay.quality import QualityOptions
@@ -180,6 +181,10 @@ def load_records(path: str, name: str | None = None, model: str = "msp25", repor
         report = src.report
     if reports is not None:
         reports.append(report)
+    elif report.lossy:
+        import logging
+
+        logging.getLogger(__name__).warning("%s", report.loss_line())
     if len(samples) == 0:
         raise DataError(f"{path}: no usable samples ({report.summary()})")
     return records_from_samples(samples, name or str(path))

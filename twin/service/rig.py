@@ -33,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from replay.base import Samples, Sink
+from replay.base import ReadReport, Samples, Sink
 from twin.service.config import RigConfig
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 
@@ -189,6 +189,8 @@ class RigTwin(Sink):
         """Check the status after every block (``False``: the caller does, as a runner does after its block)."""
         self.commissioning: Commissioning | None = None
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
+        self.read_report: ReadReport | None = None
+        """What the reader of its log lost on the way (set by :func:`twin.service.track.track` for a log path)."""
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
