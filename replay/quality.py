@@ -173,7 +173,10 @@ class QualityOptions:
     ``keep_nan``: pass NaN through as a missing value (live streams: ``null``); infinite
     values are still dropped.  ``systematic``: ``"raise"`` (files: a wrong unit refuses
     the read) or ``"drop"`` (live streams: the block is dropped and counted under
-    ``wrong_unit`` with the same message; the gate never raises).
+    ``wrong_unit`` with the same message; the gate never raises).  ``order_across_blocks``:
+    ``False`` orders each block by itself (a live consumer that orders the blocks against what
+    it processed and judges a block stamped in the future itself: one such block then does
+    not make every later sample "backwards" here).
     """
 
     required: tuple[str, ...] = ()
@@ -184,6 +187,7 @@ class QualityOptions:
     specs: Mapping[str, SignalSpec] | None = None
     keep_nan: bool = False
     systematic: str = "raise"
+    order_across_blocks: bool = True
 
     def __post_init__(self) -> None:
         if self.max_gap_s is not None and not self.max_gap_s > 0:
@@ -293,7 +297,8 @@ class QualityGate:
                 keep[idx[pos]] = False
                 idx = idx[~spikes]
                 t = t[~spikes]
-        first = np.iinfo(np.int64).min if self._last_t_ns is None else self._last_t_ns
+        carry = self._last_t_ns is not None and self.options.order_across_blocks
+        first = int(self._last_t_ns) if carry and self._last_t_ns is not None else np.iinfo(np.int64).min
         prev_max = np.maximum.accumulate(np.concatenate(([first], t[:-1])))
         backwards = t < prev_max
         repeated = t == prev_max

@@ -35,6 +35,21 @@ def progress(args):
     return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
+#: The exit statuses of the commands that read records (their ``--help`` ends with it).
+EXIT_HELP = ("exit status: 0 ok, 2 refused input or configuration (one line naming file and cause) or bad command "
+             "line, 3 completed but a reader lost input on the way (a warning line on stderr says what; "
+             "input_lost in --json)")
+
+
+def loss_lines(command: str, reports) -> list[str]:
+    """What the readers lost (one line per damaged input, :meth:`replay.base.ReadReport.loss_line`), each also
+    said on stderr as ``twin COMMAND: warning: ...``; the command then exits with ``EXIT_LOSS`` (3)."""
+    lines = [r.loss_line() for r in reports if r.lossy]
+    for line in lines:
+        print(f"twin {command}: warning: {line}", file=sys.stderr, flush=True)
+    return lines
+
+
 def dump(obj) -> None:
     """Print ``obj`` as strict JSON (NaN and infinities become null)."""
     print(jsonio.dumps(obj))

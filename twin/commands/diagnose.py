@@ -8,12 +8,16 @@ import sys
 
 from replay import jsonio
 from twin.models import MODELS
-from twin.commands.common import add_map_argument, add_timing_arguments, dump, source_options, timing_of
+from replay.options import EXIT_LOSS
+from twin.commands.common import add_map_argument, add_timing_arguments, dump, loss_lines, source_options, timing_of
 from twin.commands.common import kv as _kv
 from twin.commands.common import names as _names
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
     p.add_argument("--model", default="msp25", choices=MODELS)
     p.add_argument("--outputs", help="outputs used, e.g. x or x,pA,pB (default: all present)")
@@ -46,8 +50,10 @@ def run(args) -> int:
 
     model = get_model(args.model)
     records: list[Record] = []
+    reports: list = []
     for path in args.data:
-        records.extend(load_records(path, model=model.name, **source_options(args, path)))
+        records.extend(load_records(path, model=model.name, reports=reports, **source_options(args, path)))
+    lost = loss_lines("diagnose", reports)
     base = model.params(effects=_names(args.effects), **_kv(args.set))
     quiet = getattr(args, "quiet", False)
     progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
@@ -69,7 +75,9 @@ def run(args) -> int:
     if args.save:
         jsonio.write(args.save, diag.extended_params())
     if args.json:
-        dump(diag.to_dict())
+        dump({**diag.to_dict(), "input_lost": lost})
     else:
         print(diag.text())
-    return 0
+        for line in lost:
+            print(f"input lost: {line}")
+    return EXIT_LOSS if lost else 0

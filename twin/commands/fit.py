@@ -8,8 +8,9 @@ import numpy as np
 
 from replay import jsonio
 from twin.models import MODELS
-from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, source_options,
-                          timing_of)
+from replay.options import EXIT_LOSS
+from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, loss_lines,
+                                  source_options, timing_of)
 from twin.commands.common import dump as _dump
 from twin.commands.common import kv as _kv
 from twin.commands.common import names as _names
@@ -19,6 +20,9 @@ HELP = "fit free parameters to measured records (output error)"
 
 
 def add_arguments(p) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
     p.add_argument("--model", default="msp25", choices=MODELS)
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
@@ -50,8 +54,10 @@ def run(args) -> int:
 
     model = get_model(args.model)
     records = []
+    reports: list = []
     for path in args.data:
-        records.extend(load_records(path, model=model.name, **source_options(args, path)))
+        records.extend(load_records(path, model=model.name, reports=reports, **source_options(args, path)))
+    lost = loss_lines("fit", reports)
     base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
                                           with_timing=True)
     timing = timing_of(args, saved_timing)
@@ -79,13 +85,16 @@ def run(args) -> int:
         d = res.to_dict()
         d["plots"] = plots
         d["records"] = [r.name for r in records]
+        d["input_lost"] = lost
         if report:
             d["report"] = report
         _dump(d)
     else:
         print(res.table())
+        for line in lost:
+            print(f"input lost: {line}")
         for p in plots:
             print(f"plot: {p}", file=sys.stderr)
         if report:
             print(f"report: {report}", file=sys.stderr)
-    return 0
+    return EXIT_LOSS if lost else 0

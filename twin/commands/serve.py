@@ -8,14 +8,19 @@ import dataclasses
 import logging
 import threading
 
+from replay.options import EXIT_LOSS
 from twin.errors import TwinError
 from twin.online.events import AlarmEvent, format_alarm
 from twin.service.config import ServiceConfig, load_config, with_commission_s
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/service/config.py)")
-    p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end")
+    p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end (input_lost: "
+                   "what a replayed log's reader lost, \"\" when nothing)")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
                    help="console messages from this level up (default info)")
     p.add_argument("--foxglove", type=int, metavar="PORT", help="also serve a live view to Foxglove on "
@@ -112,11 +117,17 @@ def _run(args, console) -> int:
         session.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    lost = {}
     for name in (r.name for r in cfg.rigs):
         if name in summaries:
             console.line(f"twin serve: summary {summaries[name].line()}")
+            if summaries[name].input_lost:
+                lost[name] = summaries[name].input_lost
+    for name, line in lost.items():
+        console.line(f"twin serve: warning: rig {name}: {line}")
     if args.json:
-        print(json.dumps({k: dataclasses.asdict(v) for k, v in stats.items()}, indent=2))
+        print(json.dumps({k: {**dataclasses.asdict(v), "input_lost": lost.get(k, "")} for k, v in stats.items()},
+                         indent=2))
     if error is not None:
         raise error
-    return 0
+    return EXIT_LOSS if lost else 0

@@ -6,12 +6,17 @@ import argparse
 import os
 import sys
 
-from twin.commands.common import add_map_argument, add_timing_arguments, dump, kv, names, source_options, timing_of
+from replay.options import EXIT_LOSS
+from twin.commands.common import (add_map_argument, add_timing_arguments, dump, kv, loss_lines, names, source_options,
+                                  timing_of)
 from twin.online.events import format_alarm
-from twin.service.track import _mapped, track
+from twin.service.track import track
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from twin.commands.common import EXIT_HELP
+
+    p.epilog = EXIT_HELP
     p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
     p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
     p.add_argument("--track", help="parameters to track (default Ffric,CdAleak,Cd,zeta,wn)")
@@ -44,6 +49,17 @@ def _check_rig_log(path: str) -> None:
 
         raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the msp25 "
                         "rig model (it needs u or x_ref and at least one of x, pA, pB)")
+
+
+def _read(path: str, opts: dict, reports: list):
+    """Blocks of the log; its signals checked first (:func:`twin.record.check_signals`), its read report kept."""
+    from replay.factory import open_source
+    from twin.record import check_signals
+
+    with open_source(path, **opts) as src:
+        check_signals(path, src.signals, "msp25")
+        reports.append(src.report)
+        yield from src.chunks(10000)
 
 
 def run(args) -> int:
@@ -80,13 +96,19 @@ def run(args) -> int:
                                  f"{args.noise_levels!r}")
     timing = timing_of(args) if (args.controller or args.intersample) else None
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
-    log = args.log
-    if getattr(args, "map", None):
-        log = _mapped(args.log, source_options(args, args.log))
-    twin = track(log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
-                 timing=timing, commission=commission)
+    opts = source_options(args, args.log)
+    if args.dbc:
+        opts["dbc"] = args.dbc
+    reports: list = []
+    twin = track(_read(args.log, opts, reports), args.rig, params, tracked, baseline, args.out, progress=say,
+                 noise=noise, timing=timing, commission=commission)
     if say:
         print(file=sys.stderr)
+    if twin.stats.samples == 0:
+        from twin.errors import DataError
+
+        raise DataError(f"{args.log}: no usable samples ({reports[0].summary() if reports else 'nothing read'})")
+    lost = loss_lines("track", reports)
     png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
                            title=f"Tracked parameters of {args.rig} ({os.path.basename(args.log)})")
     result = {
@@ -100,13 +122,14 @@ def run(args) -> int:
         "noise": twin.tracker.noise_levels(),
         "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
+        "input_lost": lost,
     }
     from twin.reports import track_report
 
     result["files"]["report"] = track_report(twin, args.out, log=args.log)
     if args.json:
         dump(result)
-        return 0
+        return EXIT_LOSS if lost else 0
     for a in twin.alarms:
         print(format_alarm(a, wall_clock=False))
     print(f"{twin.stats.samples} samples, {len(twin.alarms)} alarm event(s); timing {result['timing']}")
@@ -121,6 +144,8 @@ def run(args) -> int:
     for n, d in result["final"].items():  # display units, rounded after the conversion (JSON above stays SI)
         sh = Shown(n, spec=specs.spec(n))
         print(f"  {n:8s} {sh.text(d['value'], 5)} +- {sh.text(d['std'], 2)}  [{result['status'][n]}]")
+    for line in lost:
+        print(f"  input lost: {line}")
     print(f"report: {result['files']['report']}", file=sys.stderr)
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
-    return 0
+    return EXIT_LOSS if lost else 0

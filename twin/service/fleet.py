@@ -7,6 +7,16 @@ A rig never stops silently:
   waits and re-opens its input; a message that breaks the source or a block
   the tracker cannot use is counted (``source_errors``, ``bad_blocks``,
   ``bad_samples``), logged and skipped;
+* a live sample's time is judged before it is processed: one at or before the
+  last processed (or not increasing) is dropped as ``time_backwards``; a run of
+  samples that leaps more than ``TIME_JUMP_S`` past the rig's present (our clock
+  now, less the best delivery delay seen; the host's UNIX time before the first
+  sample) and past the last processed time is dropped as ``time_jump`` (a clock
+  glitch of the sender, :meth:`RigRunner._future`); neither moves the rig's time
+  nor reaches a checkpoint, so the correct samples that follow are processed. A
+  rig whose every sample is stamped ahead, or behind the last processed, for
+  ``CLOCK_STEP_S`` stepped its clock: that time is adopted (``clock_steps``, the
+  filter restarts as after a gap, the events' record time runs on);
 * a **replayed log** is paced in blocks of ``block_s`` and ends normally
   (state ``finished``);
 * an unrecoverable error (a log that cannot be read, a filter that diverged,
@@ -82,6 +92,14 @@ GAP_S = 0.5
 MAX_BLOCK_S = 1.0
 #: A filter that diverges again within this long of a restart is a failure of the rig [s].
 RESET_WINDOW_S = 10.0
+#: A live sample stamped more than this after the rig's present (our clock now, less the best delivery delay
+#: seen) cannot have been measured yet: a clock glitch, dropped as ``time_jump`` [s]. Far beyond delivery
+#: jitter and the corrections a synchronised clock makes (milliseconds); an accepted sample at most this far
+#: ahead costs the correct samples of at most this long (they come before it).
+TIME_JUMP_S = 5.0
+#: A live input whose every sample is stamped ahead (``time_jump``) for this long stepped its clock: the new
+#: time is adopted (counted ``clock_steps``) rather than blinding the rig for ever [s].
+CLOCK_STEP_S = 30.0
 
 
 def is_live(uri: str) -> bool:
@@ -112,6 +130,10 @@ def open_rig_source(rig: RigConfig, session=None, timeout_s: float | None = None
         opts["session"] = session
     if is_live(rig.source) and timeout_s is not None:
         opts["timeout_s"] = timeout_s
+    if rig.source.startswith("zenoh://"):  # the runner orders blocks itself and judges a block from the future
+        from replay.quality import QualityOptions
+
+        opts["quality"] = QualityOptions(order_across_blocks=False)
     return open_source(rig.source, **opts)
 
 
@@ -136,10 +158,20 @@ class RigSummary:
     source_errors: int = 0
     bad_blocks: int = 0
     bad_samples: int = 0
+    """Live samples without a finite drive (dropped)."""
+    time_backwards: int = 0
+    """Live samples at or before the last one processed, or not increasing (dropped)."""
+    time_jump: int = 0
+    """Live samples stamped far ahead of the rig's present (dropped, see ``TIME_JUMP_S``)."""
+    clock_steps: int = 0
+    """Times the live input's clock stepped ahead and its new time was adopted (``CLOCK_STEP_S``)."""
     input_gaps: int = 0
     filter_resets: int = 0
     input_dropped: int = 0
     """Messages or samples the live source dropped (its counts per cause are in the status)."""
+    input_lost: str = ""
+    """What the reader of a replayed log lost on the way (its loss line; "" when nothing): ``twin serve`` warns
+    and exits 3."""
     busy_s: float = 0.0
     stats: RigStats = dataclasses.field(default_factory=RigStats)
 
@@ -151,11 +183,17 @@ class RigSummary:
             parts.append(f"{self.duplicates} alarm(s) already journaled")
         if self.lag_max_s is not None:
             parts.append(f"lag max {self.lag_max_s:.3f} s")
-        for name in ("source_errors", "bad_blocks", "bad_samples", "input_gaps", "filter_resets", "input_dropped"):
+        for name in _COUNTED + ("input_dropped",):
             if getattr(self, name):
                 parts.append(f"{name} {getattr(self, name)}")
         text = ", ".join(parts)
-        return f"{text}: {self.message}" if self.message else text
+        text = f"{text}: {self.message}" if self.message else text
+        return f"{text}; input lost: {self.input_lost}" if self.input_lost and self.input_lost not in text else text
+
+
+#: Counters of a :class:`RigSummary` that go into the rig's status when not zero.
+_COUNTED = ("source_errors", "bad_blocks", "bad_samples", "time_backwards", "time_jump", "clock_steps", "input_gaps",
+            "filter_resets")
 
 
 class RigFailure(TwinError):
@@ -272,17 +310,30 @@ class Pacer:
 class LiveLag:
     """Lag of a live input: the arrival delay of the latest sample beyond the smallest one seen.
 
-    The rig's clock and ours need not agree: ``wall - t`` is their offset plus
-    the delay; its minimum over the run is the offset plus the best delay.
+    The rig's clock and ours need not agree: ``now - t`` is their offset plus
+    the delay; its minimum since the last :meth:`rebase` is the offset plus the
+    best delay. Our clock is the monotonic one (a step of the host's wall clock
+    is neither lag nor a sample from the future). After a hold of the input the
+    runner re-bases: the samples that follow define the offset again (a rig that
+    waited for its input was not behind it).
     """
 
     def __init__(self) -> None:
         self._best: float | None = None
 
     def lag(self, t_ns: int) -> float:
-        d = time.time() - int(t_ns) * 1e-9
+        d = time.monotonic() - int(t_ns) * 1e-9
         self._best = d if self._best is None else min(self._best, d)
         return d - self._best
+
+    def rebase(self) -> None:
+        """Forget the offset: the next sample's delay is the new best."""
+        self._best = None
+
+    def now_ns(self) -> float | None:
+        """The rig's present as our clock sees it [ns of the rig's clock] (``None`` before the first sample):
+        a sample measured by now has at most this time (plus the best delivery delay)."""
+        return None if self._best is None else (time.monotonic() - self._best) * 1e9
 
 
 def blocks_by_time(block: Samples, span_s: float, pacer: Pacer | None = None, max_span_s: float = MAX_BLOCK_S):
@@ -391,6 +442,13 @@ class RigRunner:
         self._dropped: dict[str, int] = {}
         self._dropped_base: dict[str, int] = {}
         self._fit: FitJob | None = None
+        self._live_lag: LiveLag | None = None
+        self._held = False  # the live input paused: the lag is re-based on the next samples processed
+        self._accepted_at: float | None = None  # monotonic time the last live samples were processed
+        self._jump_since: float | None = None  # monotonic time of the first time_jump since samples were processed
+        self._lead_s = 0.0  # how far the last time_jump was ahead of the rig's present [s]
+        self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
+        self._back_since: float | None = None  # monotonic time of the first block all time_backwards since then
 
     # ------------------------------------------------------------------ life
 
@@ -415,7 +473,10 @@ class RigRunner:
                 self._run_live()
             else:
                 yield from self._log_steps()
-            self._set_state("finished" if not is_live(self.rig.source) else "stopped")
+            if is_live(self.rig.source):
+                self._set_state("stopped")
+            else:  # what the log's reader lost stays the rig's last word
+                self._set_state("finished", self.summary.input_lost)
         except _Stopped:
             self._set_state("stopped")
         except RigFailure as exc:
@@ -623,6 +684,12 @@ class RigRunner:
         pacer = Pacer(self.rig.speed)
         span = self.cfg.block_s * self.rig.speed if self.rig.speed > 0 else math.inf
         with src:
+            from twin.record import check_signals
+
+            try:
+                check_signals(self.rig.source, src.signals, self.rig.model)
+            except TwinError as exc:
+                raise RigFailure(str(exc)) from None
             chunks = src.chunks(READ_CHUNK)
             while True:
                 try:
@@ -654,10 +721,12 @@ class RigRunner:
             twin.commissioning.window.full = True
             yield from self._commission_steps()
         report = getattr(src, "report", None)
-        skipped = sum(report.skipped.values()) if report is not None else 0
-        if skipped and report is not None:
-            self._notes = f"the log had {skipped} unusable record(s): {report.summary()}"
-            self.summary.message = self._notes
+        if twin.stats.samples == 0:
+            raise RigFailure(f"{self.rig.source}: no usable samples"
+                             + (f" ({report.summary()})" if report is not None else ""))
+        if report is not None and report.lossy:
+            self.summary.input_lost = self._notes = report.loss_line()
+            log.warning("rig %s: %s", self.rig.name, self._notes)
 
     # ------------------------------------------------------------------ a live input
 
@@ -670,7 +739,7 @@ class RigRunner:
         """
         stale_s = self.cfg.stale_s
         self._last_data = time.monotonic()
-        lag = LiveLag()
+        lag = self._live_lag = LiveLag()
         backoff = 0.0
         while not self.stop.is_set():
             try:
@@ -732,7 +801,10 @@ class RigRunner:
                     if self._idle(src) >= self.cfg.stale_s:
                         self._quiet(src, "")
                     continue
-                self._last_data = time.monotonic()
+                now = time.monotonic()
+                if now - self._last_data >= min(self.cfg.stale_s, self.cfg.lag_warn_s):
+                    self._held = True  # the input paused: the delays after it are not the rig's backlog
+                self._last_data = now
                 if not pending:
                     first_wall = self._last_data
                 pending.append(block)
@@ -771,10 +843,16 @@ class RigRunner:
             self.summary.bad_blocks += 1
             return
         self._stale_since = None
+        assert self.twin is not None  # made by _open
+        before = self.twin.last_t_ns
         self._process(block, live=True)
         self._commission(wait=False)
-        assert self.twin is not None  # made by _open
-        if self.twin.last_t_ns is not None:
+        if self.twin.last_t_ns is not None and self.twin.last_t_ns != before:  # samples were processed
+            self._accepted_at = time.monotonic()
+            self._jump_since = self._back_since = None
+            if self._held:
+                lag.rebase()
+                self._held = False
             self._lag = lag.lag(self.twin.last_t_ns)
         self._tick()
 
@@ -851,23 +929,110 @@ class RigRunner:
         log.warning("rig %s: %s", self.rig.name, self._notes)
 
     def _clean(self, block: Samples) -> Samples | None:
-        """A live block without samples at or before the last one processed, or without a finite drive."""
+        """A live block without the samples it cannot use, each counted: stamped far in the future
+        (``time_jump``, :meth:`_future`), at or before the last one processed or not increasing
+        (``time_backwards``), without a finite drive (``bad_samples``)."""
         t = block.t_ns
-        keep = np.ones(len(block), dtype=bool)
         assert self.twin is not None  # made by _open
         last = self.twin.last_t_ns
-        if last is not None:
-            keep &= t > last
-        keep[1:] &= np.diff(t) > 0
+        jump = self._future(t, last)
+        ok = np.flatnonzero(~jump)
+        back = np.zeros(len(t), dtype=bool)
+        if ok.size:
+            start = np.iinfo(np.int64).min if last is None else int(last)
+            tk = t[ok]
+            back[ok] = tk <= np.maximum.accumulate(np.concatenate((np.array([start], dtype=np.int64), tk[:-1])))
+        if len(t) and back.all() and self._stepped_back(t, last):
+            back[:] = False
+        keep = ~(jump | back)
         drive = [block.signals[k] for k in ("u", "x_ref") if k in block.signals]
-        if drive:
-            keep &= np.any(np.isfinite(np.stack(drive)), axis=0)
-        dropped = int(len(block) - keep.sum())
-        if dropped:
-            self.summary.bad_samples += dropped
-            self._notes = f"{self.summary.bad_samples} sample(s) dropped (time not increasing or no finite drive)"
+        no_drive = keep & ~np.any(np.isfinite(np.stack(drive)), axis=0) if drive else np.zeros(len(t), dtype=bool)
+        keep &= ~no_drive
+        counts = {"time_jump": int(jump.sum()), "time_backwards": int(back.sum()), "bad_samples": int(no_drive.sum())}
+        if any(counts.values()):
+            for name, n in counts.items():
+                setattr(self.summary, name, getattr(self.summary, name) + n)
+            said = [f"{name} {getattr(self.summary, name)}" for name in counts if getattr(self.summary, name)]
+            self._notes = "live samples dropped: " + ", ".join(said)
+            if self.summary.time_jump:
+                self._notes += (f" (the last stamped {self._lead_s:.1f} s after the rig's present: a clock glitch, "
+                                "not processed, not checkpointed)")
+            self._jump_blocks += bool(counts["time_jump"])
+            if counts["time_jump"] and (self._jump_blocks <= 3 or self._jump_blocks % 100 == 0):
+                log.warning("rig %s: %d sample(s) from t_ns=%d stamped %.1f s after the rig's present: dropped "
+                            "(time_jump)", self.rig.name, counts["time_jump"], int(t[jump][0]), self._lead_s)
             block = Samples(t[keep], {k: v[keep] for k, v in block.signals.items()})
         return block if len(block) else None
+
+    def _stepped_back(self, t: np.ndarray, last: int | None) -> bool:
+        """A block all before the last processed sample: after ``CLOCK_STEP_S`` of nothing else (and the block in
+        order), the input's clock stepped back (a rig controller restarted, say): its time is adopted (the
+        filter restarts, the record time runs on, ``clock_steps`` counted) and ``True`` returned."""
+        now = time.monotonic()
+        if self._back_since is None:
+            self._back_since = now
+            return False
+        if now - self._back_since < CLOCK_STEP_S or last is None or not bool(np.all(np.diff(t) > 0)):
+            return False
+        twin = self.twin
+        assert twin is not None  # made by _open
+        back_s = (int(last) - int(t[0])) * 1e-9
+        twin.step_clock(int(t[0]))
+        self._restart_filter(f"the input's clock stepped back {back_s:.1f} s (every sample for {CLOCK_STEP_S:.0f} s "
+                             "was before the last one processed); its time is adopted")
+        if self._live_lag is not None:
+            self._live_lag.rebase()
+        self._back_since = None
+        self.summary.clock_steps += 1
+        return True
+
+    def _future(self, t: np.ndarray, last: int | None) -> np.ndarray:
+        """Mask of live samples stamped more than ``TIME_JUMP_S`` after the rig's present (as the best delay
+        seen places it on our clock) and after the last processed time plus the time passed since it was
+        processed: they cannot have been measured yet. What leaps is judged, not what runs on: a run of
+        samples without a gap (``GAP_S`` or 20 sample periods) is dropped when its first sample is beyond that
+        bound, kept when it started within it (a sender faster than real time). Before this run processed a
+        sample (no offset learnt yet) the rig's present is the host's UNIX time (a rig stamping UNIX time,
+        as a live input should; other clocks are far behind it and never judged so). A rig whose every sample
+        is ahead for ``CLOCK_STEP_S`` stepped its clock (or disagrees with ours): its time is adopted
+        (nothing is masked, the lag re-based, ``clock_steps`` counted)."""
+        none = np.zeros(len(t), dtype=bool)
+        if not len(t):
+            return none
+        lag = self._live_lag
+        present = lag.now_ns() if lag is not None else None
+        if present is None:
+            present = float(time.time_ns())
+        now = time.monotonic()
+        since = 0.0 if self._accepted_at is None else now - self._accepted_at
+        tol = TIME_JUMP_S * 1e9
+        limit = present + tol if last is None else max(present + tol, int(last) + since * 1e9 + tol)
+        beyond = t > limit
+        if not beyond.any():
+            return none
+        dt = self.twin.tracker.dt if self.twin is not None else None
+        base = int(last) if last is not None else int(t[0])  # no sample before: the first one begins a run
+        step = np.diff(np.concatenate((np.array([base], dtype=np.int64), t)))
+        starts = (step <= 0) | (step > max(GAP_S, 20 * (dt or 0.0)) * 1e9)  # each run of samples begins at one
+        run = np.cumsum(starts)  # the run of each sample (0: the one continuing the last processed sample)
+        first = np.flatnonzero(starts)
+        leaped = np.zeros(run[-1] + 1, dtype=bool)
+        leaped[run[first]] = beyond[first]
+        jump = leaped[run]
+        if not jump.any():
+            return none
+        self._lead_s = (float(t[jump].max()) - present) * 1e-9
+        if self._jump_since is None:
+            self._jump_since = now
+        elif now - self._jump_since >= CLOCK_STEP_S and not (~jump).any():
+            if lag is not None:
+                lag.rebase()
+            self._jump_since = None
+            self.summary.clock_steps += 1
+            log.warning("rig %s: every sample for %.0f s is stamped ahead (the last %.1f s): its clock stepped; "
+                        "that time is adopted", self.rig.name, CLOCK_STEP_S, self._lead_s)
+            return none
+        return jump
 
     def _tick(self) -> None:
         """After each block: health into the status, a checkpoint when due, the batch to the bus."""
@@ -881,7 +1046,7 @@ class RigRunner:
             if self._lag > self.cfg.lag_warn_s:
                 warn.append(f"{self._lag:.1f} s behind real time (warning above {self.cfg.lag_warn_s:g} s)")
         h.counters.pop("stale_ms", None)
-        for name in ("source_errors", "bad_blocks", "bad_samples", "input_gaps", "filter_resets"):
+        for name in _COUNTED:
             if getattr(self.summary, name):
                 h.counters[name] = getattr(self.summary, name)
         pending = self.journal.pending

@@ -33,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from replay.base import Samples, Sink
+from replay.base import ReadReport, Samples, Sink
 from twin.service.config import RigConfig
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 
@@ -189,6 +189,8 @@ class RigTwin(Sink):
         """Check the status after every block (``False``: the caller does, as a runner does after its block)."""
         self.commissioning: Commissioning | None = None
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
+        self.read_report: ReadReport | None = None
+        """What the reader of its log lost on the way (set by :func:`twin.service.track.track` for a log path)."""
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -220,6 +222,14 @@ class RigTwin(Sink):
         self.tracker = tracker_for(self.rig, dt=old.dt, start=start or None)
         for k, v in old.counters.items():
             self.tracker.counters[k] = self.tracker.counters.get(k, 0) + v
+
+    def step_clock(self, t_ns: int) -> None:
+        """Go on from ``t_ns`` on a sample clock that stepped back: the next sample may be at or after it, and the
+        record time ``t_s`` of events runs on from the last one (the drift test's schedule is in it)."""
+        if self.last_t_ns is not None and self._t0_ns is not None:
+            step = int(round((self.tracker.dt or 1e-3) * 1e9))
+            self._t0_ns = int(t_ns) - (self.last_t_ns - self._t0_ns) - step
+        self.last_t_ns = int(t_ns) - 1
 
     # -- commissioning ---------------------------------------------------------------------
     def _gather(self, samples: Samples) -> None:

@@ -46,8 +46,9 @@ def _mapped(path: str, opts: dict):
         yield from src.chunks(10000)
 
 
-def _blocks(source, chunk: int, dbc: str | None):
-    """Blocks of :class:`replay.base.Samples` from a path, a Record, Samples or an iterable of them."""
+def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
+    """Blocks of :class:`replay.base.Samples` from a path, a Record, Samples or an iterable of them (the read
+    report of a path goes to ``reports``)."""
     from replay.base import Samples
     from replay.factory import open_source
     from twin.record import Record
@@ -55,6 +56,8 @@ def _blocks(source, chunk: int, dbc: str | None):
     if isinstance(source, (str, os.PathLike)):
         opts = {"dbc": dbc} if dbc else {}
         with open_source(os.fspath(source), **opts) as src:
+            if reports is not None:
+                reports.append(src.report)
             yield from src.chunks(chunk)
         return
     items = [source] if isinstance(source, (Record, Samples)) else source
@@ -88,7 +91,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     samples.  The twin holds the results:
     ``alarms`` (events with ``t_s`` from the start of the record),
     ``final_estimates()``, ``history_arrays()``, ``drift.statuses()``,
-    ``tracker.counters``.
+    ``tracker.counters``; for a log path ``read_report`` (:class:`replay.base.ReadReport`: what its reader
+    lost on the way, also logged as a warning).
     """
     from replay.mcapio import McapSink
     from twin.online.baseline import default_baseline
@@ -118,8 +122,9 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         r = SimpleNamespace(model="msp25", params=dict(params or {}), track=tracked,
                             noise=dict(noise or {}), timing=timing, commission=commission)
         twin.tracker = tracker_for(r)
+    reports: list = []
     try:
-        for block in _blocks(source, chunk, dbc):
+        for block in _blocks(source, chunk, dbc, reports):
             twin.write(block)
             if progress:
                 progress(f"{twin.stats.samples} samples, {twin.stats.alarms} alarm event(s)")
@@ -127,4 +132,9 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     finally:
         if rec is not None:
             rec.close()
+    twin.read_report = reports[0] if reports else None  # what the log's reader lost on the way (a path's)
+    if twin.read_report is not None and twin.read_report.lossy:
+        import logging
+
+        logging.getLogger(__name__).warning("%s", twin.read_report.loss_line())
     return twin
