@@ -181,8 +181,6 @@ def load_records(path: str, name: str | None = None, model: str = "msp25", repor
         from replay.csvio import parse_map
 
         if not str(path).lower().endswith(".csv"):
-            from twin.errors import DataError
-
             raise DataError(f"{path}: map renames CSV columns; this file is not a CSV (its signals are named by "
                             "its format)")
         items = [map] if isinstance(map, str) else ([f"{k}={v}" for k, v in map.items()] if isinstance(map, dict)
