@@ -18,6 +18,7 @@ from mcap.stream_reader import StreamReader
 from replay.base import Samples
 from replay.csvio import CsvSink, CsvSource
 from replay.factory import open_sink, open_source
+from replay.quality import QualityOptions
 from replay.mcapio import (BLOCK_SCHEMA, BLOCK_TOPIC, LAYOUT_METADATA, SIGNALS_SCHEMA, SIGNALS_TOPIC, McapSink,
                            McapSource)
 from roundtrip_base import DATA, RoundTripBase
@@ -154,6 +155,155 @@ def test_csv_header_problems(tmp_path: Path) -> None:
     dup.write_text("t,x,x\n0,1,2\n")
     with pytest.raises(LogFormatError, match="column.* x appear more than once"):
         CsvSource(dup)
+
+
+# --- CSV the way real data come -----------------------------------------------------------------
+
+#: The published Silverbox record (Wigren & Schoukens, ECC 2013): header '"V1","V2",', no time column,
+#: sampled at 10^7/2^14 Hz.  Read where it lies (``realdata/silverbox/`` beside the project, or the folder
+#: FPDD_REALDATA names), never copied into the project.
+SILVERBOX_RATE_HZ = 1e7 / 2**14
+
+
+def _silverbox() -> Path:
+    import os
+
+    roots = [Path(os.environ["FPDD_REALDATA"])] if os.environ.get("FPDD_REALDATA") else [
+        p / "shared" / "realdata" for p in Path(__file__).resolve().parents]
+    for root in roots:
+        path = root / "silverbox" / "SNLS80mV.csv.gz"
+        if path.is_file():
+            return path
+    pytest.fail("the published Silverbox record realdata/silverbox/SNLS80mV.csv.gz is not beside the project "
+                "(set FPDD_REALDATA to the realdata folder)")
+
+
+def test_silverbox_as_published_is_read_with_a_rate(tmp_path: Path) -> None:
+    import gzip
+
+    from twin.record import load_records
+
+    path = _silverbox()
+    with gzip.open(path, "rt") as f:
+        head = [next(f) for _ in range(3)]
+    assert head[0].strip() == '"V1","V2",'  # the trailing empty column is in the file as published
+    first = [float(v) for v in head[1].strip().rstrip(",").split(",")]
+    # without a rate: refused with one line that says to pass it
+    with pytest.raises(DataError, match=r"no time column 't'.*--rate HZ"):
+        CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V")})
+    records = load_records(str(path), model="oscillator", mapping={"V1": ("u", "V"), "V2": ("y", "V")},
+                           rate_hz=SILVERBOX_RATE_HZ)
+    assert len(records) == 1
+    rec = records[0]
+    assert len(rec) == 131072 and rec.dt == pytest.approx(2**14 / 1e7, rel=1e-9)
+    assert [rec["u"][0], rec["y"][0]] == first
+    # the sample time as --dt gives the same record; the map may name the unit or not
+    with CsvSource(path, mapping={"V1": "u", "V2": "y"}, dt_s=2**14 / 1e7) as src:
+        got = src.read_all()
+        assert not src.report.lossy
+    assert np.array_equal(got["y"], rec["y"]) and got.t_ns[1] == 1_638_400
+
+
+def test_silverbox_replay_info_and_twin_fit_flags(capsys: pytest.CaptureFixture) -> None:
+    from replay import cli
+
+    path = str(_silverbox())
+    code = cli.main(["info", path, "--rate", "610.3515625", "--map", "u=V1:V", "--map", "y=V2:V", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["signals"] == ["u", "y"] and info["samples"] == 131072
+    assert info["rate_hz"] == pytest.approx(SILVERBOX_RATE_HZ, rel=1e-6)
+    code = cli.main(["info", path, "--map", "u=V1:V", "--map", "y=V2:V"])
+    _, err = capsys.readouterr()
+    assert code != 0 and len(err.strip().splitlines()) == 1 and "--rate HZ" in err and "Traceback" not in err
+
+
+def test_csv_trailing_empty_columns_and_quotes(tmp_path: Path) -> None:
+    path = tmp_path / "quoted.csv"
+    path.write_text('"t","x",\n0.000,0.001,\n0.001,0.002\n"0.002","0.003",\n0.003,0.004,,\n0.004,0.005,7\n')
+    with CsvSource(path) as src:
+        assert src.signals == ("x",)
+        got = src.read_all()
+        report = src.report
+    assert got.t_ns.tolist() == [0, 1_000_000, 2_000_000, 3_000_000]
+    np.testing.assert_array_equal(got["x"], [0.001, 0.002, 0.003, 0.004])
+    assert report.skipped["bad_row"] == 1  # a value in the unnamed column is not a trailing delimiter
+    assert "line 6: 3 fields, expected 2" in "\n".join(map(str, report.problems))
+
+
+def test_csv_without_time_column_takes_a_rate(tmp_path: Path) -> None:
+    path = tmp_path / "norate.csv"
+    path.write_text("x,pA\n" + "".join(f"{1e-4 * i},{1e6}\n" for i in range(5)) + "oops,1e6\n0.0006,1e6\n")
+    with pytest.raises(DataError, match=r"no time column 't' \(s\); .*a file without a time column needs its "
+                       r"sample rate: --rate HZ \(or --dt S\)"):
+        CsvSource(path)
+    with CsvSource(path, rate_hz=2000.0) as src:
+        got = src.read_all()
+    # a bad row keeps its slot in time: the sample after it is at 6 / 2000 s
+    assert got.t_ns.tolist() == [0, 500_000, 1_000_000, 1_500_000, 2_000_000, 3_000_000]
+    for bad, match in (({"rate_hz": 1.0}, r"--rate 1.0 Hz: expected a sample rate from 10 Hz to 1e\+07 Hz"),
+                       ({"rate_hz": float("nan")}, "expected a sample rate"),
+                       ({"dt_s": 0.0}, "expected a sample rate"),
+                       ({"rate_hz": 1e3, "dt_s": 1e-3}, "give one")):
+        with pytest.raises(DataError, match=match):
+            CsvSource(path, **bad)
+    timed = tmp_path / "timed.csv"
+    timed.write_text("t,x\n0,0\n0.001,0\n")
+    with pytest.raises(DataError, match=r"has a time column 't'; a sample rate .* is for a file without one"):
+        CsvSource(timed, rate_hz=1000.0)
+
+
+def test_csv_units_in_the_header_are_read(tmp_path: Path) -> None:
+    path = tmp_path / "units.csv"
+    path.write_text("t [ms],x_ref[mm],x (mm),pA[bar]\n0,1,2,100\n1,1,2.5,101\n")
+    with CsvSource(path) as src:
+        assert src.signals == ("x_ref", "x", "pA")
+        got = src.read_all()
+    assert got.t_ns.tolist() == [0, 1_000_000]
+    np.testing.assert_allclose(got["x"], [2e-3, 2.5e-3], rtol=1e-15)
+    np.testing.assert_allclose(got["pA"], [100e5, 101e5], rtol=1e-15)
+    wrong = tmp_path / "wrong.csv"
+    wrong.write_text("t,x[bar]\n0,1\n")
+    with pytest.raises(DataError, match=r"'x\[bar\]'.*bar converts to Pa, but 'x' is in m"):
+        CsvSource(wrong)
+
+
+def test_csv_unit_check_is_dimensional_per_model(tmp_path: Path) -> None:
+    from twin.record import signal_specs
+
+    path = tmp_path / "volts.csv"
+    path.write_text("t,V1,V2\n" + "".join(f"{i / 1000},{0.01 * i},{0.02 * i}\n" for i in range(20)))
+    quality = QualityOptions(specs=signal_specs("oscillator"))
+    with CsvSource(path, mapping={"V1": ("u", "mV"), "V2": ("y", "V")}, quality=quality) as src:
+        got = src.read_all()
+    np.testing.assert_allclose(got["u"][1], 1e-5, rtol=1e-12)  # mV converted to V, kept in V
+    np.testing.assert_allclose(got["y"][1], 0.02, rtol=1e-12)
+    with pytest.raises(DataError, match=r"V converts to V, but 'x' is in m"):
+        CsvSource(path, mapping={"V2": ("x", "V")})
+
+
+def test_csv_foreign_columns_hint_is_right_and_works(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from replay import cli
+
+    path = tmp_path / "foreign.csv"
+    path.write_text("time_ms,dem_mm,pos_mm,pa_bar,pb_bar\n"
+                    + "".join(f"{i},{0.01 * i},{0.01 * i - 0.001},{100 + i % 3},{90 - i % 3}\n" for i in range(60)))
+    with pytest.raises(DataError) as err:
+        CsvSource(path)
+    msg = str(err.value)
+    hint = msg.split("e.g. ", 1)[1].split(";")[0]
+    assert hint == ("--map t=time_ms:ms --map x_ref=dem_mm:mm --map x=pos_mm:mm --map pA=pa_bar:bar "
+                    "--map pB=pb_bar:bar")
+    argv = ["info", str(path), "--json", *hint.split()]
+    assert cli.main(argv) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["signals"] == ["x_ref", "x", "pA", "pB"] and info["rate_hz"] == pytest.approx(1000.0)
+    # a time unit that reads the record at an absurd rate is refused with the unit that fits
+    with pytest.raises(DataError, match=r"'time_ms' read in s: .*\(1 Hz\) is not a rig record's rate.*"
+                       r"--map t=time_ms:ms"):
+        with CsvSource(path, mapping={"time_ms": ("t", "s"), "pos_mm": ("x", "mm")}) as src:
+            src.read_all()
 
 
 def test_csv_sink_writes_exact_decimal_seconds(tmp_path: Path) -> None:

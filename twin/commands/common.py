@@ -100,18 +100,29 @@ def add_map_argument(p) -> None:
     p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT]",
                    help="a CSV column under another name or unit, e.g. --map x=pos_mm:mm --map t=time:ms "
                         "(repeatable; CSV files only)")
+    from replay.options import add_rate_options
+
+    add_rate_options(p)
 
 
 def source_options(args, path: str) -> dict:
-    """Reader options for ``path`` from ``--map`` (a CSV column mapping), checked."""
+    """Reader options for ``path`` from ``--map`` (a CSV column mapping) and ``--rate``/``--dt``, checked."""
+    from replay.options import rate_options
+
+    try:
+        rate = rate_options(args, path)
+    except Exception as exc:  # argparse.ArgumentTypeError: a plain one-line message
+        from twin.errors import DataError
+
+        raise DataError(str(exc)) from None
     items = getattr(args, "map", None)
     if not items:
-        return {}
-    if not str(path).lower().endswith(".csv"):
+        return rate
+    if not str(path).lower().endswith((".csv", ".csv.gz")):
         from twin.errors import DataError
 
         raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
                         "its format)")
     from replay.csvio import parse_map
 
-    return {"mapping": parse_map(items)}
+    return {"mapping": parse_map(items), **rate}

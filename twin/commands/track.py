@@ -81,7 +81,7 @@ def run(args) -> int:
     timing = timing_of(args) if (args.controller or args.intersample) else None
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
     log = args.log
-    if getattr(args, "map", None):
+    if getattr(args, "map", None) or getattr(args, "rate", None) or getattr(args, "dt", None):
         log = _mapped(args.log, source_options(args, args.log))
     twin = track(log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
                  timing=timing, commission=commission)
