@@ -554,6 +554,9 @@ class CsvSource(Source):
             for start in range(0, len(samples), size):
                 yield samples.slice(start, start + size) if len(samples) > size else samples
         self._done = True
+        if self._row == 0:
+            raise LogFormatError(f"{self.path}: no data rows after the header (line {self._header_line}): an empty "
+                                 "record (file cut after its header?); expected one row per sample")
 
     # -- parsing -------------------------------------------------------------------------------
 

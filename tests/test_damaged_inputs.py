@@ -365,7 +365,8 @@ add(Case("csv-utf8-bom", lambda tmp: csv_text(tmp, "b.csv", b"\xef\xbb\xbf" + (D
          kept=(N_REF, N_REF), lossy=False))
 add(Case("csv-empty", lambda tmp: csv_text(tmp, "e.csv", b""), error="empty file (0 bytes)"))
 add(Case("csv-blank-lines-only", lambda tmp: csv_text(tmp, "b.csv", "\n\n# c\n"), error="empty file (only blank"))
-add(Case("csv-header-only", lambda tmp: csv_text(tmp, "h.csv", "t,x\n"), kept=(0, 0), lossy=False))
+add(Case("csv-header-only", lambda tmp: csv_text(tmp, "h.csv", "t,x\n"), error="no data rows after the header "
+         "(line 1): an empty record"))
 add(Case("csv-wrong-columns", csv_edit(lambda ls: ls.__setitem__(0, "time,dem,out,pos,pa,pb")),
          error="no time column 't' (s) and no column that is a known signal; found columns 'time', 'dem'"))
 add(Case("csv-no-time-column", csv_edit(lambda ls: ls.__setitem__(0, "time,x_ref,u,x,pA,pB")),
