@@ -402,8 +402,8 @@ class CsvSource(Source):
             if cut < 0 and not self._eof:
                 if len(text) > MAX_LINE_CHARS:  # one line longer than the limit: skip to its end
                     lines.append("\0")
-                    self._skip_long_line()
                     self._carry = ""
+                    self._skip_long_line()
                     size += MAX_LINE_CHARS
                 else:
                     self._carry = text
@@ -420,8 +420,8 @@ class CsvSource(Source):
                 size += len(body)
             if len(self._carry) > MAX_LINE_CHARS:
                 lines.append("\0")
-                self._skip_long_line()
                 self._carry = ""
+                self._skip_long_line()
         return lines
 
     def _skip_long_line(self) -> None:
@@ -509,7 +509,8 @@ class CsvSource(Source):
         step = float(np.median(steps))
         lo, hi = PLAUSIBLE_RATE_HZ
         rate = 1.0 / step
-        big = float(np.max(np.abs(t))) >= _MAX_T_S  # beyond what int64 ns holds as seconds
+        typical = float(np.median(np.abs(t)))
+        big = typical >= _MAX_T_S  # most times beyond what int64 ns holds as seconds (a single one: bad_time)
         if lo <= rate <= hi and not big:
             return
         assert self._t_col is not None
@@ -517,13 +518,13 @@ class CsvSource(Source):
         fits = []
         for unit in _TIME_UNITS:
             f = UNITS[unit][0]
-            if lo <= 1.0 / (step * f) <= hi and float(np.max(np.abs(t))) * f < _MAX_T_S:
+            if lo <= 1.0 / (step * f) <= hi and typical * f < _MAX_T_S:
                 fits.append(f"{unit} ({1.0 / (step * f):.6g} Hz)")
         hint = (f"; the times look like {' or '.join(fits)}: give the unit with --map t={col}:{fits[0].split()[0]}"
                 if fits else "")
         high_ok = hi < rate <= ACCEPTED_RATE_HZ[1] and not big
         raise DataError(f"{self.path}: column {col!r}: median time step {step:.6g} s ({rate:.6g} Hz"
-                        + (f", times up to {float(np.max(np.abs(t))):.6g} s" if big else "")
+                        + (f", times about {typical:.6g} s" if big else "")
                         + f") is implausible for a rig record (expected {lo:g} Hz to {hi:g} Hz in seconds)"
                         + hint + (f"; if seconds are right, say so with --map t={col}:s" if high_ok else ""))
 
