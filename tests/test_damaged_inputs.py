@@ -609,3 +609,20 @@ def test_damaged_input_on_the_command_line(tmp_path, capsys, make, code, message
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err and str(path) in err, err
     assert "Traceback" not in err
+
+
+def test_track_takes_a_huge_time_jump_and_a_pretrigger_record(tmp_path, capsys) -> None:
+    """A 1e9 s jump in the middle of a record (the drift test once sized a buffer by the time spanned: 4.37 TiB)
+    and a record whose times start at -50 ms (events need ingest times >= 0: shifted to start at 0) both run."""
+    import json
+
+    from twin import cli as twin_cli
+
+    jump = csv_edit(lambda ls: ls.__setitem__(slice(101, None), [
+        f"{float(x.split(',')[0]) + 1e9:.9f},{x.split(',', 1)[1]}" for x in ls[101:]]), "jump.csv")(tmp_path)
+    pre = csv_edit(lambda ls: ls.__setitem__(slice(1, None), [
+        f"{(i - 50) * 1e-3:.3f},{x.split(',', 1)[1]}" for i, x in enumerate(ls[1:])]), "pre.csv")(tmp_path)
+    for path in (jump, pre):
+        assert twin_cli.main(["track", str(path), "--out", str(tmp_path / path.stem), "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["samples"] == N_REF
