@@ -92,7 +92,15 @@ def timing_of(args, default=None):
     intersample = getattr(args, "intersample", None)
     if controller is None and intersample is None and default is not None:
         return default
-    return Timing.parse(controller, intersample)
+    timing = Timing.parse(controller, intersample)
+    from twin.service.config import MAX_CONTROLLER_HZ
+
+    if timing.rate_hz is not None and timing.rate_hz > MAX_CONTROLLER_HZ:
+        from twin.errors import ParameterError
+
+        raise ParameterError(f"--controller: a digital controller at {timing.rate_hz:g} Hz; at most "
+                             f"{MAX_CONTROLLER_HZ:g} Hz (servo-hydraulic controllers run at 1-10 kHz)")
+    return timing
 
 
 def add_map_argument(p) -> None:
