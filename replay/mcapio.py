@@ -647,6 +647,7 @@ class McapSource(Source):
                     self.report.problems.append(p)
             for k, v in probe.skipped.items():
                 self.report.skipped[k] += v
+            self.report.truncated = self.report.truncated or probe.truncated  # a cut file says so here too
         else:
             counts = dict(self._summary.statistics.channel_message_counts)
         out = []
