@@ -72,6 +72,7 @@ MAP_SYNTAX = "--map NAME=COLUMN[:UNIT]"
 MAX_COLUMNS = 4096
 MAX_LINE_CHARS = 1 << 20
 _MAX_T_S = 9.2e9  # what int64 nanoseconds hold, in seconds
+_CUT = "\x01"  # marks the last line of a file that ends without a line end
 _UNIT_IN_NAME = re.compile(r"^(?P<name>.*?)\s*[\[(](?P<unit>[^\[\]()]*)[\])]\s*$")
 
 
@@ -394,7 +395,7 @@ class CsvSource(Source):
         lines: list[str] = []
         size = 0
         while size < budget and not (self._eof and not self._carry):
-            block = "" if self._eof else self._file.read(min(budget, MAX_LINE_CHARS))
+            block = "" if self._eof else self._read(min(budget, MAX_LINE_CHARS))
             if not block:
                 self._eof = True
             text = self._carry + block
@@ -416,6 +417,8 @@ class CsvSource(Source):
                 got = body.split("\n")
                 if len(body) > MAX_LINE_CHARS:
                     got = [ln if len(ln) <= MAX_LINE_CHARS else "\0" for ln in got]
+                if self._eof and got[-1].strip():  # the file ends inside this line: it may be cut
+                    got[-1] = _CUT + got[-1]
                 lines.extend(got)
                 size += len(body)
             if len(self._carry) > MAX_LINE_CHARS:
@@ -424,10 +427,20 @@ class CsvSource(Source):
                 self._skip_long_line()
         return lines
 
+    def _read(self, n: int) -> str:
+        """Up to ``n`` characters; a gzip stream that is cut or corrupt ends here, said in the report."""
+        try:
+            return self._file.read(n)
+        except (EOFError, gzip.BadGzipFile, zlib_error) as exc:
+            self.report.truncated = True
+            self.report.skip("damaged_record", f"line {self._line + 1}",
+                             f"the gzip stream is cut or corrupt ({exc}); the rows before are kept")
+            return ""
+
     def _skip_long_line(self) -> None:
         """Read on to the end of the current (over-long) line, holding at most one block."""
         while True:
-            block = self._file.read(1 << 16)
+            block = self._read(1 << 16)
             if not block:
                 self._eof = True
                 return
@@ -446,7 +459,7 @@ class CsvSource(Source):
             for i, line in enumerate(lines):
                 self._line += 1
                 line_no = self._line
-                text = line.strip()
+                text = line.removeprefix(_CUT).strip()
                 if not text or text.startswith("#"):
                     continue
                 if text == "\0":
@@ -566,8 +579,8 @@ class CsvSource(Source):
         trailing = self._n_fields > ncol
         row0 = self._row
         try:
-            if "\0" in lines:
-                raise ValueError("over-long line")
+            if "\0" in lines or lines[-1].startswith(_CUT):
+                raise ValueError("over-long or unterminated line")
             if trailing:  # the unnamed trailing columns must be empty (usecols alone would drop any value)
                 d = self._delimiter
                 if any(ln.rstrip().rstrip(d).count(d) != ncol - 1 for ln in lines
@@ -646,13 +659,19 @@ class CsvSource(Source):
         labels: list[int] = []
         index: list[int] = []
         for i, line in enumerate(lines):
-            text = line.strip()
+            cut = line.startswith(_CUT)
+            text = line.removeprefix(_CUT).strip()
             if not text or text.startswith("#"):
                 continue
             self.report.records_read += 1
             row = self._row
             self._row += 1
             where = f"line {first + i}"
+            if cut:
+                self.report.truncated = True
+                self.report.skip("bad_row", where, "the file ends inside this line (no line end): the row may be "
+                                 "cut (file cut or writer killed), dropped")
+                continue
             if text == "\0":
                 self.report.skip("bad_row", where, f"line longer than {MAX_LINE_CHARS} characters, expected "
                                  f"{ncol} fields ({_show_columns(self._columns, 6)})")

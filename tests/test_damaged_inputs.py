@@ -450,6 +450,16 @@ add(Case("csv-trailing-delimiters-and-quotes", csv_edit(lambda ls: ls.__setitem_
     lossy=False))
 add(Case("csv-gzip", lambda tmp: csv_text(tmp, "r.csv.gz", __import__("gzip").compress(
     (DATA / "reference.csv").read_bytes())), kept=(N_REF, N_REF), lossy=False))
+def gzip_cut(tmp: Path) -> Path:
+    import gzip
+
+    rows = [f"{i * 1e-3:.3f},0.0,0.0,{1e-6 * (i % 97)!r},1e7,1e7" for i in range(20000)]
+    data = gzip.compress(("t,x_ref,u,x,pA,pB\n" + "\n".join(rows) + "\n").encode())
+    return csv_text(tmp, "cut.csv.gz", data[: len(data) * 3 // 5])
+
+
+add(Case("csv-gzip-cut-after-the-first-block", gzip_cut, kept=(1000, 19999), truncated=True, lossy=True,
+         problem="the gzip stream is cut or corrupt", same_times=False))
 add(Case("csv-gzip-not-gzip", lambda tmp: csv_text(tmp, "r.csv.gz", (DATA / "reference.csv").read_bytes()),
          error="not a readable gzip file"))
 add(Case("csv-no-time-column-and-no-rate", csv_edit(lambda ls: ls.__setitem__(slice(None), [
