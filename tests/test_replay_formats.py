@@ -306,6 +306,43 @@ def test_csv_foreign_columns_hint_is_right_and_works(tmp_path: Path, capsys: pyt
             src.read_all()
 
 
+def test_csv_header_parser_is_bounded(tmp_path: Path) -> None:
+    """A 200 000-column header (once quadratic: 32 000 columns took 17 s) is refused at once, and the message
+    does not repeat the header; a line over the limit costs one row, never the rows after it."""
+    wide = tmp_path / "wide.csv"
+    wide.write_text(",".join("a" * 3 for _ in range(200_000)) + "\n0\n")
+    with pytest.raises(LogFormatError) as err:
+        CsvSource(wide)
+    assert "header has 200000 columns, more than 4096" in str(err.value) and len(str(err.value)) < 300
+    dup = tmp_path / "dup.csv"
+    dup.write_text("t," + ",".join(["x"] * 4000) + "\n")
+    with pytest.raises(LogFormatError) as err:
+        CsvSource(dup)
+    assert "column(s) x appear more than once" in str(err.value) and len(str(err.value)) < 600
+    long = tmp_path / "long.csv"
+    long.write_text("t,x\n0.000,0.1\n" + "9" * (2 << 20) + "\n0.002,0.3\n0.003,0.4\n")
+    with CsvSource(long) as src:
+        got = src.read_all()
+        assert src.report.skipped["bad_row"] == 1
+    assert got.t_ns.tolist() == [0, 2_000_000, 3_000_000]
+
+
+def test_csv_last_line_without_line_end_is_not_trusted(tmp_path: Path) -> None:
+    path = tmp_path / "cut.csv"
+    path.write_text("t,x\n0.000,0.25\n0.001,0.25\n0.002,0.2")  # cut inside the last number
+    with CsvSource(path) as src:
+        got = src.read_all()
+        report = src.report
+    assert got["x"].tolist() == [0.25, 0.25] and report.truncated and report.lossy
+    assert "line 4: the file ends inside this line (no line end)" in "\n".join(map(str, report.problems))
+    crlf = tmp_path / "crlf.csv"
+    crlf.write_bytes(b"t,x\r\n# a comment\r\n0.000,0.25\r\n\r\n0.001,0.5\r\n")
+    with CsvSource(crlf) as src:
+        got = src.read_all()
+        assert not src.report.lossy
+    assert got["x"].tolist() == [0.25, 0.5]
+
+
 def test_csv_sink_writes_exact_decimal_seconds(tmp_path: Path) -> None:
     path = tmp_path / "neg.csv"
     with CsvSink(path) as sink:

@@ -337,6 +337,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     import re
 
     from replay.factory import FILE_SUFFIXES, URI_SCHEMES
+    from replay.formats import suffix_of
 
     where = f"{path}: rig[{i}]"
     if not isinstance(r, dict):
@@ -458,7 +459,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         if scheme not in URI_SCHEMES or not source.split("://", 1)[1].strip("/"):
             raise ConfigError(f"{where}.source: {source!r} is not can://INTERFACE/CHANNEL or zenoh://KEYEXPR")
         _check_source(source, where)
-    elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
+    elif suffix_of(source) not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
