@@ -636,3 +636,17 @@ def test_track_takes_a_huge_time_jump_and_a_pretrigger_record(tmp_path, capsys) 
         assert twin_cli.main(["track", str(path), "--out", str(tmp_path / path.stem), "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["samples"] == N_REF
+
+
+def test_serve_replays_a_pretrigger_record(tmp_path, capsys) -> None:
+    """``twin serve`` replays a log whose times start below 0 from 0 (it failed on the first estimate's time)."""
+    from net_helpers import free_port
+    from twin import cli as twin_cli
+
+    pre = csv_edit(lambda ls: ls.__setitem__(slice(1, None), [
+        f"{(i - 50) * 1e-3:.3f},{x.split(',', 1)[1]}" for i, x in enumerate(ls[1:])]), "pre.csv")(tmp_path)
+    config = tmp_path / "rigs.toml"
+    config.write_text(f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n[service]\n'
+                      f'journal_dir = "{tmp_path / "journal"}"\n[[rig]]\nname = "pre"\nsource = "{pre}"\nspeed = 0\n')
+    assert twin_cli.main(["serve", "--config", str(config)]) == 0
+    assert f"summary pre: finished, {N_REF} samples" in capsys.readouterr().err
