@@ -248,6 +248,9 @@ def inputs() -> list[Input]:
     for k in range(16):
         r = _rng(f"csv-cut-{k}")
         byte_edit(f"csv-cut-{k}", ".csv", _cut(float(r.uniform(0.01, 0.999)), avoid_line_end=True))
+    for k in range(4):  # inside the last number of a row: the row still parses, to a smaller value
+        byte_edit(f"csv-cut-in-last-field-{k}", ".csv", lambda b, k=k: b[:[i for i, c in enumerate(b) if c == 10][
+            int(_rng(f"csv-cut-last-{k}").integers(5, 400))] - 3])
     for k in range(6):
         byte_edit(f"csv-nul-run-{k}", ".csv", _zero(float(_rng(f"csv-nul-{k}").uniform(0.05, 0.95)), 8))
 
