@@ -151,7 +151,7 @@ class Problem:
 #: Skip reasons that are informational, not a loss (see :meth:`ReadReport.losses`).
 INFO_REASONS = frozenset({"warmup", "asc_date", "ignored_line", "counter_gap"})
 INFO_PREFIXES = ("unknown_id", "stale ")
-_NOT_LOSS_WHERE = ("footer and summary",)
+_NOT_LOSS_WHERE = ("footer and summary", "header")
 
 
 @dataclasses.dataclass

@@ -10,7 +10,15 @@ Layout::
   (``round(t * 1e9)``).  A float64 holds epoch seconds to about 0.2 us, record-relative
   seconds exactly enough for any rig rate.
 * Every other column is a signal in the SI unit of :data:`replay.base.SIGNALS`
-  (columns not in that table are kept as extra signals, unchecked).
+  (columns not in that table are kept as extra signals, unchecked; with a
+  ``mapping``, such a column that is not mapped is not read, and the report's
+  ``header`` problem names it).
+* No time column: ``rate_hz`` (or ``dt_s``) gives the sample rate (row i at i/rate;
+  a bad row keeps its slot).  Trailing empty columns (``"V1","V2",``), quoted names
+  and values, units in the header (``x[mm]``, ``pA (bar)``) and ``.csv.gz`` are read.
+* Bounds: at most :data:`MAX_COLUMNS` columns and :data:`MAX_LINE_CHARS` characters a
+  line (a longer line is one bad row, never held whole); a last line without line end
+  is dropped and counted (it may be cut); a header with no rows is refused.
 * The oscillator contract is the same layout with the columns ``t, u, y``.
 * ``mapping`` renames foreign columns and converts units at ingest, e.g.
   ``{"pos_mm": ("x", "mm"), "p_a_bar": ("pA", "bar"), "time": ("t", "ms")}``; a plain
@@ -50,7 +58,7 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from replay.base import SIGNALS, ReadReport, Samples, SignalSpec, Sink, Source
+from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec, Sink, Source
 from replay.quality import UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
 from replay.errors import DataError, LogFormatError, SourceError
 
@@ -381,7 +389,18 @@ class CsvSource(Source):
         self._names = names
         self._units = units
         self._t_col: int | None = names.index(TIME_COLUMN) if has_time else None
-        self._signals = tuple(n for n in names if n != TIME_COLUMN)
+        # with a mapping, a column that is neither mapped nor a known signal is not read (an empty overload
+        # flag column, say, would spoil every row); it is named in the report
+        known = set(specs) | set(SIGNALS) | {TIME_COLUMN}
+        self._use = [j for j, (c, n) in enumerate(zip(columns, names)) if not mapped or c in mapped or n in known]
+        used = set(self._use)
+        skipped = [c for j, c in enumerate(columns) if j not in used]
+        if skipped:
+            self.report.problems.append(Problem(
+                self.path, "header", f"column(s) {_show_columns(skipped, 8)} not read: neither a known signal nor "
+                f"mapped (map them with {MAP_SYNTAX} to read them)"))
+        self._t_pos = self._use.index(self._t_col) if self._t_col is not None else None
+        self._signals = tuple(names[j] for j in self._use if names[j] != TIME_COLUMN)
         require_signals(self.path, self._signals, self._options.required)
 
     # -- lines, bounded ------------------------------------------------------------------------
@@ -576,12 +595,14 @@ class CsvSource(Source):
 
     def _parse(self, lines: list[str], first: int) -> tuple[Samples, np.ndarray] | None:
         ncol = len(self._columns)
-        trailing = self._n_fields > ncol
+        some = len(self._use) < ncol
         row0 = self._row
         try:
             if "\0" in lines or lines[-1].startswith(_CUT):
                 raise ValueError("over-long or unterminated line")
-            if trailing:  # the unnamed trailing columns must be empty (usecols alone would drop any value)
+            if self._n_fields > ncol or some:
+                # usecols alone would take a row of any field count: every row has the header's (the unnamed
+                # trailing columns empty); a row this quick test doubts is parsed line by line
                 d = self._delimiter
                 if any(ln.rstrip().rstrip(d).count(d) != ncol - 1 for ln in lines
                        if ln.strip() and not ln.lstrip().startswith("#")):
@@ -589,8 +610,8 @@ class CsvSource(Source):
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message=".*input contained no data", category=UserWarning)
                 table = np.loadtxt(lines, delimiter=self._delimiter, dtype=np.float64, ndmin=2, comments="#",
-                                   quotechar='"', usecols=range(ncol) if trailing else None)
-            if table.shape[0] and table.shape[1] != ncol:
+                                   quotechar='"', usecols=self._use if (self._n_fields > ncol or some) else None)
+            if table.shape[0] and table.shape[1] != len(self._use):
                 raise ValueError("column count")
         except ValueError:
             table, labels, rows = self._parse_slowly(lines, first)
@@ -616,10 +637,11 @@ class CsvSource(Source):
         else:
             t_ns, table, labels = self._times(table, labels)
         signals: dict[str, np.ndarray] = {}
-        for j, (name, unit) in enumerate(zip(self._names, self._units)):
+        for pos, j in enumerate(self._use):
+            name, unit = self._names[j], self._units[j]
             if j == self._t_col:
                 continue
-            col = table[:, j]
+            col = table[:, pos]
             if unit is not None:
                 col = to_si(col, unit, what=f"{self.path}: column {self._columns[j]!r}")
             signals[name] = np.ascontiguousarray(col)
@@ -627,8 +649,8 @@ class CsvSource(Source):
 
     def _times(self, table: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The time column in int64 ns (rows whose time is not a finite time in range dropped and counted)."""
-        assert self._t_col is not None
-        t_s = table[:, self._t_col]
+        assert self._t_col is not None and self._t_pos is not None
+        t_s = table[:, self._t_pos]
         if not self._time_checked:
             self._check_time_unit(t_s)
         t_unit = self._units[self._t_col]
@@ -684,11 +706,11 @@ class CsvSource(Source):
                 self.report.skip("bad_row", where, f"{count} fields, expected {ncol} "
                                  f"({','.join(self._columns) if ncol <= 12 else _show_columns(self._columns, 6)})")
                 continue
-            fields = [f.strip().strip('"') for f in fields]
+            fields = [fields[j].strip().strip('"') for j in self._use]
             try:
                 rows.append([float(f) for f in fields])
             except ValueError:
-                for col, f in zip(self._columns, fields):
+                for col, f in zip((self._columns[j] for j in self._use), fields):
                     try:
                         float(f)
                     except ValueError:
@@ -698,7 +720,7 @@ class CsvSource(Source):
                 continue
             labels.append(first + i)
             index.append(row)
-        table = np.array(rows, dtype=np.float64).reshape(len(rows), ncol)
+        table = np.array(rows, dtype=np.float64).reshape(len(rows), len(self._use))
         return table, np.array(labels, dtype=np.int64), np.array(index, dtype=np.int64)
 
 

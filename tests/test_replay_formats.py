@@ -165,16 +165,16 @@ def test_csv_header_problems(tmp_path: Path) -> None:
 SILVERBOX_RATE_HZ = 1e7 / 2**14
 
 
-def _silverbox() -> Path:
+def _silverbox(name: str = "SNLS80mV.csv.gz") -> Path:
     import os
 
     roots = [Path(os.environ["FPDD_REALDATA"])] if os.environ.get("FPDD_REALDATA") else [
         p / "shared" / "realdata" for p in Path(__file__).resolve().parents]
     for root in roots:
-        path = root / "silverbox" / "SNLS80mV.csv.gz"
+        path = root / "silverbox" / name
         if path.is_file():
             return path
-    pytest.fail("the published Silverbox record realdata/silverbox/SNLS80mV.csv.gz is not beside the project "
+    pytest.fail(f"the published Silverbox record realdata/silverbox/{name} is not beside the project "
                 "(set FPDD_REALDATA to the realdata folder)")
 
 
@@ -217,6 +217,21 @@ def test_silverbox_replay_info_and_twin_fit_flags(capsys: pytest.CaptureFixture)
     code = cli.main(["info", path, "--map", "u=V1:V", "--map", "y=V2:V"])
     _, err = capsys.readouterr()
     assert code != 0 and len(err.strip().splitlines()) == 1 and "--rate HZ" in err and "Traceback" not in err
+
+
+def test_silverbox_schroeder_record_with_flag_columns() -> None:
+    """The archive's second record: header 'Ovld2,Ovld1,V1,V2,' with the overload flags only in the first row.
+    Mapped columns are read; the unmapped flag columns (empty in every other row) are not, and the report
+    names them."""
+    path = _silverbox("Schroeder80mV.csv.gz")
+    with CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V")}, rate_hz=SILVERBOX_RATE_HZ) as src:
+        got = src.read_all()
+        report = src.report
+    assert got.names == ("u", "y") and len(got) > 100_000 and not report.lossy
+    assert "column(s) 'Ovld2', 'Ovld1' not read: neither a known signal nor mapped" in str(report.problems[0])
+    with CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V"), "Ovld1": "ovld"},
+                   rate_hz=SILVERBOX_RATE_HZ) as src:  # mapped, the flag column is read: its empty fields say so
+        assert len(src.read_all()) <= 1 and src.report.skipped["bad_row"] > 100_000
 
 
 def test_csv_trailing_empty_columns_and_quotes(tmp_path: Path) -> None:
