@@ -278,6 +278,13 @@ def test_csv_units_in_the_header_are_read(tmp_path: Path) -> None:
     assert got.t_ns.tolist() == [0, 1_000_000]
     np.testing.assert_allclose(got["x"], [2e-3, 2.5e-3], rtol=1e-15)
     np.testing.assert_allclose(got["pA"], [100e5, 101e5], rtol=1e-15)
+    extra = tmp_path / "extra.csv"
+    extra.write_text("t,x,x_ref[furlong]\n0,0.001,1\n0.001,0.002,1\n")
+    with CsvSource(extra) as src:
+        assert src.signals == ("x", "x_ref[furlong]")
+        src.read_all()
+        assert not src.report.lossy
+        assert "header: column(s) 'x_ref[furlong]' not understood: no known signal" in str(src.report.problems[0])
     wrong = tmp_path / "wrong.csv"
     wrong.write_text("t,x[bar]\n0,1\n")
     with pytest.raises(DataError, match=r"'x\[bar\]'.*bar converts to Pa, but 'x' is in m"):
