@@ -744,14 +744,17 @@ class CsvSink(Sink):
     in SI with the shortest repr that reads back to the same float64 (``nan``/``inf`` as is).
 
     ``signals``: column order; default: the signals of the first block written.  Every
-    block must carry these signals.  The file is flushed after each :meth:`write`.
+    block must carry these signals.  The file is flushed after each :meth:`write`.  A path
+    ending in ``.gz`` is written through gzip.
     """
 
     def __init__(self, path: str | os.PathLike, signals: Sequence[str] | None = None) -> None:
         self.path = str(path)
         self._signals: tuple[str, ...] | None = tuple(signals) if signals is not None else None
         try:
-            self._file: IO[str] = open(self.path, "w", encoding="utf-8", newline="")
+            self._file: IO[str] = (gzip.open(self.path, "wt", encoding="utf-8", newline="")
+                                   if self.path.lower().endswith(".gz") else
+                                   open(self.path, "w", encoding="utf-8", newline=""))
         except OSError as exc:
             raise SourceError(f"{self.path}: cannot create CSV file: {exc.strerror or exc}") from exc
         self._header_written = False

@@ -365,6 +365,17 @@ def test_csv_last_line_without_line_end_is_not_trusted(tmp_path: Path) -> None:
     assert got["x"].tolist() == [0.25, 0.5]
 
 
+def test_csv_gzip_round_trip(tmp_path: Path) -> None:
+    path = tmp_path / "rig.csv.gz"
+    want = _rig(300)
+    with open_sink(path) as sink:
+        sink.write(want)
+    assert path.read_bytes()[:2] == b"\x1f\x8b"  # gzip
+    with open_source(path) as src:
+        got = src.read_all()
+    assert np.array_equal(got.t_ns, want.t_ns) and all(np.array_equal(got[k], want[k]) for k in want.names)
+
+
 def test_csv_sink_writes_exact_decimal_seconds(tmp_path: Path) -> None:
     path = tmp_path / "neg.csv"
     with CsvSink(path) as sink:
