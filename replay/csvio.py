@@ -59,7 +59,7 @@ from collections.abc import Iterator, Mapping, Sequence
 import numpy as np
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec, Sink, Source
-from replay.quality import UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
+from replay.quality import ACCEPTED_RATE_HZ, UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
 from replay.errors import DataError, LogFormatError, SourceError
 
 #: Name of the time column (seconds).
@@ -69,9 +69,6 @@ ColumnMap = Mapping[str, "str | tuple[str, str]"]
 
 #: Sample rates a rig record plausibly has (Hz); a time column outside is taken as a wrong unit.
 PLAUSIBLE_RATE_HZ = (10.0, 200.0e3)
-#: Sample rates accepted at all (Hz), also with an explicit time unit or ``--rate``: below 10 Hz no
-#: rig dynamics (tens to hundreds of Hz) is observable; above 10 MHz no rig DAQ samples.
-ACCEPTED_RATE_HZ = (10.0, 10.0e6)
 _TIME_UNITS = ("ms", "us", "ns")
 _SNIFF_BYTES = 1 << 16
 MAP_SYNTAX = "--map NAME=COLUMN[:UNIT]"

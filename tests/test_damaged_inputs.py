@@ -430,6 +430,8 @@ add(Case("mcap-log-time-2^63", mcap_times([T0 + i * 10**6 if i != 20 else 1 << 6
          kept=(49, 49), skipped={"bad_time": 1}, problem="beyond the int64 ns range", lossy=True, same_times=False))
 add(Case("mcap-log-time-2^64-1", mcap_times([T0 + i * 10**6 if i != 20 else (1 << 64) - 1 for i in range(50)]),
          kept=(49, 49), skipped={"bad_time": 1}, lossy=True, same_times=False))
+add(Case("mcap-log-time-in-ms", mcap_times([1_700_000_000_000 + i for i in range(50)]),
+         error="median time step 1e-09 s (1e+09 Hz) over the first 50 samples is not a rig record's rate"))
 add(Case("csv-header-200000-columns", lambda tmp: csv_text(tmp, "w.csv", ",".join(f"c{i}" for i in range(200_000))
                                                            + "\n"), error="header longer than 1048576 characters"))
 add(Case("csv-header-5000-columns", lambda tmp: csv_text(tmp, "w.csv", "t," + ",".join(f"c{i}" for i in range(4999))
