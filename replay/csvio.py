@@ -50,6 +50,7 @@ import dataclasses
 import gzip
 import os
 import re
+import shlex
 import warnings
 from zlib import error as zlib_error
 from collections import Counter
@@ -252,7 +253,7 @@ def suggest_map(columns: Sequence[str], needed: Sequence[str]) -> str:
         if name is None or name in taken or name not in needed:
             continue
         taken.add(name)
-        out.append(f"--map {name}={column}" + (f":{unit}" if unit else ""))
+        out.append("--map " + shlex.quote(f"{name}={column}" + (f":{unit}" if unit else "")))
     return " ".join(out)
 
 

@@ -321,6 +321,17 @@ def test_csv_foreign_columns_hint_is_right_and_works(tmp_path: Path, capsys: pyt
     assert cli.main(argv) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["signals"] == ["x_ref", "x", "pA", "pB"] and info["rate_hz"] == pytest.approx(1000.0)
+    # names with spaces and units in brackets: the hint is quoted for a shell and works as typed
+    import shlex
+
+    spaced = tmp_path / "spaced.csv"
+    spaced.write_text("Zeit [ms],Position (mm)\n" + "".join(f"{i},{0.01 * i}\n" for i in range(60)))
+    with pytest.raises(DataError) as err:
+        CsvSource(spaced)
+    hint = str(err.value).split("e.g. ", 1)[1].split(";")[0]
+    assert hint == "--map 't=Zeit [ms]:ms' --map 'x=Position (mm):mm'"
+    assert cli.main(["info", str(spaced), "--json", *shlex.split(hint)]) == 0
+    assert json.loads(capsys.readouterr().out)["rate_hz"] == pytest.approx(1000.0)
     # a time unit that reads the record at an absurd rate is refused with the unit that fits
     with pytest.raises(DataError, match=r"'time_ms' read in s: .*\(1 Hz\) is not a rig record's rate.*"
                        r"--map t=time_ms:ms"):
