@@ -399,9 +399,11 @@ class CsvSource(Source):
                 f"mapped (map them with {MAP_SYNTAX} to read them)"))
         extra = [columns[j] for j in self._use if names[j] not in known and columns[j] not in mapped]
         if extra:
+            hint = suggest_map(extra, [n for n in (TIME_COLUMN, *SIGNALS) if n not in counts])
             self.report.problems.append(Problem(
                 self.path, "header", f"column(s) {_show_columns(extra, 8)} not understood: no known signal "
-                f"(kept as extra signals, unchecked; map them with {MAP_SYNTAX})"))
+                f"(kept as extra signals, unchecked; map them with {MAP_SYNTAX}"
+                + (f", e.g. {hint})" if hint else ")")))
         self._t_pos = self._use.index(self._t_col) if self._t_col is not None else None
         self._signals = tuple(names[j] for j in self._use if names[j] != TIME_COLUMN)
         require_signals(self.path, self._signals, self._options.required)
