@@ -24,13 +24,23 @@ import numpy as np
 
 @dataclasses.dataclass(frozen=True)
 class SignalSpec:
-    """One rig signal: SI unit, plausible physical range in that unit, meaning."""
+    """One rig signal: SI unit, plausible physical range in that unit, meaning.
+
+    ``accepts``: other SI units a column mapped onto this signal may be in (``"*"``: any,
+    a generic signal such as the oscillator's ``y``); the value is converted to that
+    unit's SI unit and kept in it.
+    """
 
     name: str
     unit: str
     lo: float
     hi: float
     meaning: str
+    accepts: tuple[str, ...] = ()
+
+    def takes(self, si: str) -> bool:
+        """True when a column in SI unit ``si`` may be mapped onto this signal."""
+        return si == self.unit or si in self.accepts or "*" in self.accepts
 
 
 #: The rig signals every source maps onto (names of the fit issue), SI units.
@@ -46,7 +56,8 @@ SIGNALS: dict[str, SignalSpec] = {
         SignalSpec("T_oil", "K", 233.15, 423.15, "oil temperature"),
         SignalSpec("pP", "Pa", -1.0e6, 60.0e6, "supply pressure"),
         # the oscillator's signals (the paper's basic demonstration)
-        SignalSpec("y", "m", -10.0, 10.0, "oscillator displacement"),
+        SignalSpec("y", "m", -10.0, 10.0, "oscillator output (displacement, or any quantity: volts "
+                   "of a circuit)", accepts=("*",)),
     )
 }
 
@@ -140,7 +151,7 @@ class Problem:
 #: Skip reasons that are informational, not a loss (see :meth:`ReadReport.losses`).
 INFO_REASONS = frozenset({"warmup", "asc_date", "ignored_line", "counter_gap"})
 INFO_PREFIXES = ("unknown_id", "stale ")
-_NOT_LOSS_WHERE = ("footer and summary",)
+_NOT_LOSS_WHERE = ("footer and summary", "header")
 
 
 @dataclasses.dataclass

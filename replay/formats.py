@@ -82,7 +82,12 @@ def known() -> str:
 
 
 def suffix_of(path: str | os.PathLike) -> str:
-    return Path(os.fspath(path)).suffix.lower()
+    """The format suffix of ``path``, lower case; a gzip'd CSV (``.csv.gz``) is ``.csv``."""
+    p = Path(os.fspath(path))
+    suffix = p.suffix.lower()
+    if suffix == ".gz" and Path(p.stem).suffix.lower() == ".csv":
+        return ".csv"
+    return suffix
 
 
 def lookup(path: str | os.PathLike, *, kind: str | None = None, what: str = "log") -> Format:

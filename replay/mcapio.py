@@ -132,6 +132,7 @@ _TIME_FIELDS = frozenset({"t", "t_ns", "timestamp"})
 #: Errors a damaged file raises inside ``mcap`` (CRC mismatch is a ValueError there).
 _DAMAGE = (McapError, ValueError, struct.error, EOFError, zstandard.ZstdError)
 _RECORD_SIZE_LIMIT = 1 << 30  # 1 GiB: a damaged length field must not allocate more
+_INT64_MAX = (1 << 63) - 1
 
 
 # --- schemas -------------------------------------------------------------------------------
@@ -507,6 +508,9 @@ class McapSource(Source):
                 raise LogFormatError(f"{self.path}: empty file (0 bytes), expected an MCAP file")
             raise LogFormatError(f"{self.path}: not an MCAP file: starts with {magic!r}, "
                                  f"expected the MCAP magic {MCAP_MAGIC!r}")
+        if self._size <= len(MCAP_MAGIC):
+            raise LogFormatError(f"{self.path}: MCAP file of {self._size} bytes ends right after its magic: no "
+                                 "header and no records; the writer was killed at once or the file was cut")
         self._summary: Summary | None = None
         self._reader: SeekingReader | None = None
         try:
@@ -514,7 +518,7 @@ class McapSource(Source):
             self._summary = reader.get_summary()
             if self._summary is not None:
                 self._check_summary_crc()
-        except _DAMAGE as exc:
+        except (*_DAMAGE, OSError) as exc:
             self.report.problems.append(Problem(
                 self.path, "footer and summary", f"unreadable ({type(exc).__name__}: "
                 f"{exc or 'file ends early'}): writer killed or file cut; reading the file as a stream"))
@@ -643,6 +647,7 @@ class McapSource(Source):
                     self.report.problems.append(p)
             for k, v in probe.skipped.items():
                 self.report.skipped[k] += v
+            self.report.truncated = self.report.truncated or probe.truncated  # a cut file says so here too
         else:
             counts = dict(self._summary.statistics.channel_message_counts)
         out = []
@@ -1033,6 +1038,11 @@ class McapSource(Source):
             if channel is None:
                 if msg.messages and count_lost:
                     self.report.samples_lost += msg.messages
+                continue
+            if msg.log_time > _INT64_MAX:  # a uint64 MCAP time no int64 ns holds: never allocated or converted
+                self.report.skip("bad_time", f"topic {topic or channel.topic!r} message at {msg.log_time} ns",
+                                 f"log_time {msg.log_time} is beyond the int64 ns range (2^63 - 1), expected a "
+                                 "time in ns since the UNIX epoch or the record's start")
                 continue
             datas.append(msg.data)
             times.append(msg.log_time)

@@ -1,9 +1,11 @@
 """What every ``replay`` command that reads a record shares: its input options (``--dbc``, ``--map``,
-``--topic``) and the loss warning with its exit status."""
+``--rate``/``--dt``, ``--topic``) and the loss warning with its exit status."""
 
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import sys
 from typing import Any
 
@@ -36,6 +38,7 @@ def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
             options["mapping"] = parse_map(args.map)
         except TwinError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
+    options.update(rate_options(args, path))
     if getattr(args, "topic", None):
         if suffix != ".mcap":
             raise argparse.ArgumentTypeError(f"--topic applies to MCAP input, not to {path}")
@@ -43,12 +46,66 @@ def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
     return options
 
 
+def rate_options(args: argparse.Namespace, path: str) -> dict[str, float]:
+    """``rate_hz`` / ``dt_s`` of a CSV without a time column, from ``--rate`` / ``--dt`` (checked by the reader).
+
+    Raises :class:`argparse.ArgumentTypeError` when both are given or the input is not a CSV.
+    """
+    rate, dt = getattr(args, "rate", None), getattr(args, "dt", None)
+    if rate is None and dt is None:
+        return {}
+    if rate is not None and dt is not None:
+        raise argparse.ArgumentTypeError("--rate and --dt say the same thing: give one")
+    if formats.suffix_of(path) != ".csv":
+        raise argparse.ArgumentTypeError(f"--rate/--dt apply to CSV input without a time column, not to {path}")
+    return {"rate_hz": float(rate)} if rate is not None else {"dt_s": float(dt or 0.0)}
+
+
+_RATE_UNITS = {"hz": 1.0, "khz": 1e3}
+_DT_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9}
+
+
+def _with_unit(text: str, units: dict[str, float], what: str, default: str) -> float:
+    """A positive finite number, optionally followed by one of ``units`` (``"1.6384ms"``)."""
+    m = re.fullmatch(r"\s*([-+0-9.eE]+|[a-zA-Z]+)\s*([a-zA-Zµ]*)\s*", text)
+    try:
+        value = float(m.group(1)) if m else float("nan")
+    except ValueError:
+        value = float("nan")
+    unit = (m.group(2) if m else "").lower() or default
+    if not (math.isfinite(value) and value > 0) or unit not in units:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {what} > 0, optionally with a unit "
+                                         f"({', '.join(units)}), e.g. 610.35{default.replace('hz', 'Hz')}")
+    return value * units[unit]
+
+
+def rate_hz(text: str) -> float:
+    """``--rate``: a sample rate in Hz (``610.35``, ``1kHz``)."""
+    return _with_unit(text, _RATE_UNITS, "a sample rate", "hz")
+
+
+def dt_s(text: str) -> float:
+    """``--dt``: a sample time in s (``0.0016384``, ``1.6384ms``)."""
+    return _with_unit(text, _DT_UNITS, "a sample time", "s")
+
+
+def add_rate_options(p: argparse.ArgumentParser) -> None:
+    """``--rate HZ`` / ``--dt S``: the sample rate of a CSV that has no time column."""
+    p.add_argument("--rate", metavar="HZ", type=rate_hz, default=None,
+                   help="CSV input without a time column: its sample rate (Hz, or with a unit: 1kHz); row i is "
+                        "at i/HZ s, e.g. --rate 610.3515625")
+    p.add_argument("--dt", metavar="S", type=dt_s, default=None,
+                   help="CSV input without a time column: its sample time (s, or with a unit: 1ms), instead of "
+                        "--rate")
+
+
 def add_input_options(p: argparse.ArgumentParser) -> None:
-    """``--dbc``, ``--map``, ``--topic``: the options of a command that reads a record."""
+    """``--dbc``, ``--map``, ``--rate``/``--dt``, ``--topic``: the options of a command that reads a record."""
     p.add_argument("--dbc", metavar="FILE", help="DBC file for CAN logs (default: the MSP25 DBC shipped)")
     p.add_argument("--map", metavar="NAME=COLUMN[:UNIT]", action="append", default=[],
                    help="CSV input: signal NAME is in column COLUMN, in UNIT (converted to SI), e.g. x=pos_mm:mm, "
                         "t=time:ms (repeatable)")
+    add_rate_options(p)
     p.add_argument("--topic", metavar="TOPIC", help="MCAP input: the samples topic (default: "
                    "/rig/signals_block if present, else /rig/signals)")
 

@@ -23,7 +23,9 @@ What the gate does to a block (all vectorised with numpy, in this order):
    a wrong unit: a real transducer read in Pa has more offset and noise than that.
 4. **Gaps** (time step longer than ``max_gap_s``, or, when not given, ``gap_factor``
    times the median step of the first samples): reported in ``ReadReport.gaps`` as
-   ``(t_ns before, t_ns after)``; never interpolated across.
+   ``(t_ns before, t_ns after)``; never interpolated across.  A file whose median step
+   over the first samples gives a rate outside :data:`ACCEPTED_RATE_HZ` is refused
+   (times in another unit: an MCAP ``log_time`` in us read as ns is 1 MHz times 1000).
 
 A **missing required signal** is checked once, when a source knows its columns:
 :func:`require_signals` raises :class:`~twin.errors.DataError` naming file, signal
@@ -37,12 +39,17 @@ lost.  The unit table :data:`UNITS` converts foreign units to SI at one boundary
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec
 from replay.errors import DataError
+
+#: Sample rates a record may have at all (Hz): below 10 Hz no rig dynamics (tens to hundreds of Hz) is
+#: observable; above 10 MHz no rig data acquisition samples.  A file read at a rate outside is refused.
+ACCEPTED_RATE_HZ = (10.0, 10.0e6)
 
 # --- units ---------------------------------------------------------------------------------
 
@@ -392,6 +399,12 @@ class QualityGate:
                 return
             self._early_t = []
             median_dt = float(np.median(np.diff(early)))
+            rate = 1e9 / median_dt if median_dt > 0 else math.inf
+            lo, hi = ACCEPTED_RATE_HZ
+            if self.options.systematic == "raise" and not lo <= rate <= hi:
+                raise DataError(f"{self.report.file}: median time step {median_dt * 1e-9:.6g} s ({rate:.6g} Hz) "
+                                f"over the first {early.size} samples is not a rig record's rate (expected {lo:g} Hz "
+                                f"to {hi:g} Hz): the times are in another unit or not sample times")
             self._max_gap_ns = max(1, int(round(self.options.gap_factor * median_dt)))
             t = early
             start = None

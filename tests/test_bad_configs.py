@@ -124,6 +124,40 @@ CASES = [
      r"service\.journal_dir: '.*afile/journal' cannot be a directory: '.*afile' is a file"),
     ("out-dir-under-a-file", edit("estimate_every = 50", 'out_dir = "AFILE/out"'),
      r"service\.out_dir: '.*afile/out' cannot be a directory: '.*afile' is a file"),
+    # values that would start a service that never works (a dead thread, a hang, a band that cannot alarm)
+    ("speed-1e308", edit("speed = 1.0", "speed = 1e308"),
+     r"speed: 1e\+308; expected 0 \(as fast as possible\) or 0\.001 to 10000 times real time"),
+    ("speed-1e-300", edit("speed = 1.0", "speed = 1e-300"), r"speed: 1e-300; expected 0 .* or 0\.001 to 10000"),
+    ("controller-1e12", edit("speed = 1.0", 'speed = 1.0\ncontroller = "digital:1e12"'),
+     r"controller: a digital controller at 1e\+12 Hz; at most 100000 Hz"),
+    ("rel-band-1e308", edit("rel_band = 0.5", "rel_band = 1e308"),
+     r"baseline\.Ffric: the band's upper edge 6e\+309|baseline\.Ffric: the band's (upper|lower) edge .* is beyond "
+     r"what the twin can estimate"),
+    ("rel-band-100", edit("rel_band = 0.5", "rel_band = 100.0"),
+     r"baseline\.Ffric: the band's (upper|lower) edge .* is beyond what the twin can estimate .*: that side could "
+     r"never alarm"),
+    ("rig-name-300", edit('name = "msp25-a"', f'name = "{"r" * 300}"'), r"rig\[0\]\.name: 'r+'\.\.\. has 300 "
+     r"characters, at most 64"),
+    ("journal-dir-nul", edit('journal_dir = "JOURNAL"', 'journal_dir = "JOURNAL\\u0000x"'),
+     r"service\.journal_dir: control character '\\x00' at position \d+ of the path"),
+    ("journal-dir-5000", edit('journal_dir = "JOURNAL"', f'journal_dir = "JOURNAL/{"a" * 5000}"'),
+     r"service\.journal_dir: path of \d+ characters, at most 4096"),
+    ("source-nul", edit('source = "LOG"', 'source = "LOG\\u0000.mcap"'), r"\.source: control character '\\x00'"),
+    ("source-component-300", edit('source = "LOG"', f'source = "{"s" * 300}.mcap"'),
+     r"\.source: a path component of 305 bytes .*, at most 255"),
+    ("can-unknown-interface", edit('source = "LOG"', 'source = "can://nosuchbus/0"'),
+     r"\.source: can://nosuchbus/0: unknown CAN interface 'nosuchbus'; python-can knows .*socketcan"),
+    ("can-interface-typo", edit('source = "LOG"', 'source = "can://virtul/rig1"'),
+     r"unknown CAN interface 'virtul' \(did you mean 'virtual'\?\)"),
+    ("zenoh-own-outputs", edit('source = "LOG"', 'source = "zenoh://fpdd/**"'),
+     r"\.source: 'zenoh://fpdd/\*\*' would read the service's own outputs \(fpdd/\*/estimate\)"),
+    ("zenoh-own-alarms", edit('source = "LOG"', 'source = "zenoh://fpdd/*/alarm/**"'),
+     r"would read the service's own outputs \(fpdd/\*/alarm\)"),
+    ("zenoh-bad-keyexpr", edit('source = "LOG"', 'source = "zenoh://a//b"'),
+     r"\.source: 'zenoh://a//b': not a valid Zenoh key expression"),
+    ("checkpoint-1e308", edit("estimate_every = 50", "checkpoint_s = 1e308"),
+     r"service\.checkpoint_s: 1e\+308 seconds; at most 3600"),
+    ("toml-nested-too-deep", lambda t: "a = " + "[" * 5000 + "]" * 5000 + "\n", r"nested too deeply"),
 ]
 
 
@@ -159,6 +193,33 @@ def test_bad_rigs_toml(files, capsys, name, change, message) -> None:
     line = one_line_error(capsys, "serve")
     assert str(path) in line
     assert __import__("re").search(message, line), line
+
+
+def test_generated_configurations(tmp_path: Path) -> None:
+    """The configuration corpus of ``python -m benchmarks.damage`` (>= 80): every valid one loads, every bad one
+    is refused with one line naming the file and the key; none is accepted silently, none raises anything else."""
+    from benchmarks import damage
+    from twin.errors import ConfigError
+    from twin.service.config import load_config
+
+    log = tmp_path / "rig.mcap"
+    log.write_bytes(b"")
+    cases = damage.configs()
+    assert len(cases) >= 80 and len({c.id for c in cases}) == len(cases)
+    wrong = []
+    for case in cases:
+        path = tmp_path / f"{case.id}.toml"
+        path.write_text(case.text.replace("JOURNAL", str(tmp_path / "journal")).replace("LOG", str(log))
+                        .replace("ROOT", str(tmp_path)), encoding="utf-8")
+        try:
+            load_config(str(path))
+        except ConfigError as exc:
+            if case.valid or "\n" in str(exc) or str(path) not in str(exc):
+                wrong.append(f"{case.id}: {exc}")
+        else:
+            if not case.valid:
+                wrong.append(f"{case.id}: accepted")
+    assert not wrong, "\n".join(wrong)
 
 
 def test_commission_s_flag_too_short(files, capsys) -> None:

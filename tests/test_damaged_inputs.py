@@ -365,7 +365,8 @@ add(Case("csv-utf8-bom", lambda tmp: csv_text(tmp, "b.csv", b"\xef\xbb\xbf" + (D
          kept=(N_REF, N_REF), lossy=False))
 add(Case("csv-empty", lambda tmp: csv_text(tmp, "e.csv", b""), error="empty file (0 bytes)"))
 add(Case("csv-blank-lines-only", lambda tmp: csv_text(tmp, "b.csv", "\n\n# c\n"), error="empty file (only blank"))
-add(Case("csv-header-only", lambda tmp: csv_text(tmp, "h.csv", "t,x\n"), kept=(0, 0), lossy=False))
+add(Case("csv-header-only", lambda tmp: csv_text(tmp, "h.csv", "t,x\n"), error="no data rows after the header "
+         "(line 1): an empty record"))
 add(Case("csv-wrong-columns", csv_edit(lambda ls: ls.__setitem__(0, "time,dem,out,pos,pa,pb")),
          error="no time column 't' (s) and no column that is a known signal; found columns 'time', 'dem'"))
 add(Case("csv-no-time-column", csv_edit(lambda ls: ls.__setitem__(0, "time,x_ref,u,x,pA,pB")),
@@ -405,6 +406,78 @@ add(Case("csv-directory", lambda tmp: (tmp / "dir.csv").mkdir() or tmp / "dir.cs
 add(Case("csv-missing", lambda tmp: tmp / "missing.csv", error="does not exist"))
 
 
+# hostile and unusual inputs: bounds before allocation, times beyond int64, real-world CSV shapes
+def mcap_times(times: list[int]) -> Callable[[Path], Path]:
+    def make(tmp: Path) -> Path:
+        from mcap.writer import Writer
+
+        p = tmp / "times.mcap"
+        with open(p, "wb") as f:
+            w = Writer(f)
+            w.start()
+            cid = w.register_channel(SIGNALS_TOPIC, "json", w.register_schema("rig", "jsonschema", b"{}"))
+            for i, t in enumerate(times):
+                w.add_message(cid, log_time=t, publish_time=t, data=b'{"x": %r}' % (1e-4 * i))
+            w.finish()
+        return p
+    return make
+
+
+T0 = 1_700_000_000_000_000_000
+add(Case("mcap-only-its-magic", lambda tmp: csv_text(tmp, "m.mcap", b"\x89MCAP0\r\n"),
+         error="MCAP file of 8 bytes ends right after its magic"))
+add(Case("mcap-log-time-2^63", mcap_times([T0 + i * 10**6 if i != 20 else 1 << 63 for i in range(50)]),
+         kept=(49, 49), skipped={"bad_time": 1}, problem="beyond the int64 ns range", lossy=True, same_times=False))
+add(Case("mcap-log-time-2^64-1", mcap_times([T0 + i * 10**6 if i != 20 else (1 << 64) - 1 for i in range(50)]),
+         kept=(49, 49), skipped={"bad_time": 1}, lossy=True, same_times=False))
+add(Case("mcap-log-time-in-ms", mcap_times([1_700_000_000_000 + i for i in range(50)]),
+         error="median time step 1e-09 s (1e+09 Hz) over the first 50 samples is not a rig record's rate"))
+add(Case("csv-header-200000-columns", lambda tmp: csv_text(tmp, "w.csv", ",".join(f"c{i}" for i in range(200_000))
+                                                           + "\n"), error="header longer than 1048576 characters"))
+add(Case("csv-header-5000-columns", lambda tmp: csv_text(tmp, "w.csv", "t," + ",".join(f"c{i}" for i in range(4999))
+                                                         + "\n0" + ",1" * 4999 + "\n"),
+         error="header has 5000 columns, more than 4096"))
+add(Case("csv-line-of-3-MB", csv_edit(lambda ls: ls.insert(50, "1" * (3 << 20))), kept=(N_REF, N_REF),
+         skipped={"bad_row": 1}, problem="line 51: line longer than 1048576 characters", lossy=True))
+add(Case("csv-time-jump-1e9-s", csv_edit(lambda ls: ls.__setitem__(slice(101, None), [
+    f"{float(x.split(',')[0]) + 1e9:.9f},{x.split(',', 1)[1]}" for x in ls[101:]])), kept=(N_REF, N_REF),
+    lossy=False, same_times=False))
+add(Case("csv-time-beyond-int64", csv_edit(set_cell(30, 0, "9.3e9")), kept=(N_REF - 1, N_REF - 1),
+         skipped={"bad_time": 1}, problem="is not a finite time in seconds within +-9.2e+09 s"))
+add(Case("csv-pretrigger-negative-times", csv_edit(lambda ls: ls.__setitem__(slice(1, None), [
+    f"{(i - 50) * 1e-3:.3f},{x.split(',', 1)[1]}" for i, x in enumerate(ls[1:])])), kept=(N_REF, N_REF),
+    lossy=False, same_times=False))
+add(Case("csv-trailing-delimiters-and-quotes", csv_edit(lambda ls: ls.__setitem__(slice(None), [
+    ",".join(f'"{c}"' for c in ls[0].split(",")) + ","] + [x + "," for x in ls[1:]])), kept=(N_REF, N_REF),
+    lossy=False))
+add(Case("csv-gzip", lambda tmp: csv_text(tmp, "r.csv.gz", __import__("gzip").compress(
+    (DATA / "reference.csv").read_bytes())), kept=(N_REF, N_REF), lossy=False))
+def gzip_cut(tmp: Path) -> Path:
+    import gzip
+
+    rows = [f"{i * 1e-3:.3f},0.0,0.0,{1e-6 * (i % 97)!r},1e7,1e7" for i in range(20000)]
+    data = gzip.compress(("t,x_ref,u,x,pA,pB\n" + "\n".join(rows) + "\n").encode())
+    return csv_text(tmp, "cut.csv.gz", data[: len(data) * 3 // 5])
+
+
+add(Case("csv-gzip-cut-after-the-first-block", gzip_cut, kept=(1000, 19999), truncated=True, lossy=True,
+         problem="the gzip stream is cut or corrupt", same_times=False))
+add(Case("csv-gzip-not-gzip", lambda tmp: csv_text(tmp, "r.csv.gz", (DATA / "reference.csv").read_bytes()),
+         error="not a readable gzip file"))
+add(Case("csv-no-time-column-and-no-rate", csv_edit(lambda ls: ls.__setitem__(slice(None), [
+    x.split(",", 1)[1] for x in ls])), error="a file without a time column needs its sample rate: --rate HZ"))
+add(Case("csv-no-time-column-absurd-rate", csv_edit(lambda ls: ls.__setitem__(slice(None), [
+    x.split(",", 1)[1] for x in ls])), options={"rate_hz": 1e15}, error="expected a sample rate from 10 Hz"))
+add(Case("asc-nul-bytes-in-a-frame-line", text_edit(".asc", lambda ls, fr, r: ls.__setitem__(
+    fr[20], ls[fr[20]][:12] + "\x00\x00\x00" + ls[fr[20]][15:]), "ascnul"), kept=(N_CAN - 1, N_CAN),
+    skipped={"bad_line": 1}, lossy=True))
+add(Case("log-timestamp-1e300", text_edit(".log", lambda ls, fr, r: ls.__setitem__(
+    fr[30], "(1e300)" + ls[fr[30]].split(")", 1)[1]), "log1e300"), kept=(N_CAN - 1, N_CAN),
+    skipped={"bad_time": 1}, problem="is not a time within", lossy=True))
+add(Case("trc-line-of-3-MB", text_edit(".trc", lambda ls, fr, r: ls.insert(fr[10], "1" * (3 << 20)), "trclong"),
+         kept=(N_CAN - 1, N_CAN), skipped={"bad_line": 1}, lossy=True))
+
+
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
 def test_damaged_input(tmp_path: Path, case: Case) -> None:
     path = case.make(tmp_path)
@@ -423,7 +496,7 @@ def test_damaged_input(tmp_path: Path, case: Case) -> None:
     problems = "\n".join(map(str, report.problems))
     lo, hi = case.kept
     assert lo <= len(got) <= hi, (len(got), report.summary(), problems)
-    ref_t = {".csv": ref().t_ns, ".mcap": ref_mcap().t_ns}.get(path.suffix)
+    ref_t = {".csv": ref().t_ns, ".mcap": ref_mcap().t_ns, ".gz": ref().t_ns}.get(path.suffix)
     if ref_t is not None and len(got) and case.same_times:  # nothing invented: every time kept is a reference time
         assert np.isin(got.t_ns, ref_t).all() and (np.diff(got.t_ns) > 0).all()
     for reason, n in case.skipped.items():
@@ -440,6 +513,38 @@ def test_damaged_input(tmp_path: Path, case: Case) -> None:
 
 def test_the_corpus_is_large_enough() -> None:
     assert len(CASES) + len(PAYLOADS) + len(CLI) >= 60
+
+
+def test_generated_corpus_is_never_silent(tmp_path: Path) -> None:
+    """The generated corpus of ``python -m benchmarks.damage`` (>= 300 damaged inputs of every format): each one
+    is refused with one line naming the file, read with its loss reported, or read equal to the undamaged
+    record; none takes longer than 30 s (a hang), none raises anything else."""
+    import concurrent.futures
+
+    from benchmarks import damage
+
+    bases = damage.write_bases_cached(tmp_path)
+    refs = {k: damage._read(p, {}) for k, p in bases.items()}
+    cases = damage.inputs()
+    assert len(cases) >= 300 and len({c.id for c in cases}) == len(cases)
+    outcomes: dict[str, list[str]] = {k: [] for k in damage.OUTCOMES}
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        for case in cases:
+            path = case.make(tmp_path)
+            ref = refs.get(".csv" if case.id.startswith(("csv-no-time-column-rate", "csv-crlf", "csv-bom",
+                                                         "csv-quoted", "csv-trailing")) or case.id == "csv-gzip"
+                           else case.base)
+            try:
+                result = pool.submit(damage._read, path, case.options).result(timeout=30)
+            except concurrent.futures.TimeoutError:
+                result = None
+            outcome, note = damage.classify_read(result, path, ref)
+            outcomes[outcome].append(f"{case.id}: {note}")
+            if result is None:
+                break  # the worker is stuck: the rest cannot run
+    bad = outcomes["silent"] + outcomes["traceback"] + outcomes["hang"]
+    assert not bad, "\n".join(bad)
+    assert len(outcomes["clear"]) >= 200 and len(outcomes["ok"]) >= 20  # damage is found, benign edits pass
 
 
 # --- live payloads ---------------------------------------------------------------------------------
@@ -516,3 +621,34 @@ def test_damaged_input_on_the_command_line(tmp_path, capsys, make, code, message
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err and str(path) in err, err
     assert "Traceback" not in err
+
+
+def test_track_takes_a_huge_time_jump_and_a_pretrigger_record(tmp_path, capsys) -> None:
+    """A 1e9 s jump in the middle of a record (the drift test once sized a buffer by the time spanned: 4.37 TiB)
+    and a record whose times start at -50 ms (events need ingest times >= 0: shifted to start at 0) both run."""
+    import json
+
+    from twin import cli as twin_cli
+
+    jump = csv_edit(lambda ls: ls.__setitem__(slice(101, None), [
+        f"{float(x.split(',')[0]) + 1e9:.9f},{x.split(',', 1)[1]}" for x in ls[101:]]), "jump.csv")(tmp_path)
+    pre = csv_edit(lambda ls: ls.__setitem__(slice(1, None), [
+        f"{(i - 50) * 1e-3:.3f},{x.split(',', 1)[1]}" for i, x in enumerate(ls[1:])]), "pre.csv")(tmp_path)
+    for path in (jump, pre):
+        assert twin_cli.main(["track", str(path), "--out", str(tmp_path / path.stem), "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["samples"] == N_REF
+
+
+def test_serve_replays_a_pretrigger_record(tmp_path, capsys) -> None:
+    """``twin serve`` replays a log whose times start below 0 from 0 (it failed on the first estimate's time)."""
+    from net_helpers import free_port
+    from twin import cli as twin_cli
+
+    pre = csv_edit(lambda ls: ls.__setitem__(slice(1, None), [
+        f"{(i - 50) * 1e-3:.3f},{x.split(',', 1)[1]}" for i, x in enumerate(ls[1:])]), "pre.csv")(tmp_path)
+    config = tmp_path / "rigs.toml"
+    config.write_text(f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n[service]\n'
+                      f'journal_dir = "{tmp_path / "journal"}"\n[[rig]]\nname = "pre"\nsource = "{pre}"\nspeed = 0\n')
+    assert twin_cli.main(["serve", "--config", str(config)]) == 0
+    assert f"summary pre: finished, {N_REF} samples" in capsys.readouterr().err

@@ -18,6 +18,7 @@ from mcap.stream_reader import StreamReader
 from replay.base import Samples
 from replay.csvio import CsvSink, CsvSource
 from replay.factory import open_sink, open_source
+from replay.quality import QualityOptions
 from replay.mcapio import (BLOCK_SCHEMA, BLOCK_TOPIC, LAYOUT_METADATA, SIGNALS_SCHEMA, SIGNALS_TOPIC, McapSink,
                            McapSource)
 from roundtrip_base import DATA, RoundTripBase
@@ -154,6 +155,236 @@ def test_csv_header_problems(tmp_path: Path) -> None:
     dup.write_text("t,x,x\n0,1,2\n")
     with pytest.raises(LogFormatError, match="column.* x appear more than once"):
         CsvSource(dup)
+
+
+# --- CSV the way real data come -----------------------------------------------------------------
+
+#: The published Silverbox record (Wigren & Schoukens, ECC 2013): header '"V1","V2",', no time column,
+#: sampled at 10^7/2^14 Hz.  Read where it lies (``realdata/silverbox/`` beside the project, or the folder
+#: FPDD_REALDATA names), never copied into the project.
+SILVERBOX_RATE_HZ = 1e7 / 2**14
+
+
+def _silverbox(name: str = "SNLS80mV.csv.gz") -> Path:
+    import os
+
+    roots = [Path(os.environ["FPDD_REALDATA"])] if os.environ.get("FPDD_REALDATA") else [
+        p / "shared" / "realdata" for p in Path(__file__).resolve().parents]
+    for root in roots:
+        path = root / "silverbox" / name
+        if path.is_file():
+            return path
+    pytest.fail(f"the published Silverbox record realdata/silverbox/{name} is not beside the project "
+                "(set FPDD_REALDATA to the realdata folder)")
+
+
+def test_silverbox_as_published_is_read_with_a_rate(tmp_path: Path) -> None:
+    import gzip
+
+    from twin.record import load_records
+
+    path = _silverbox()
+    with gzip.open(path, "rt") as f:
+        head = [next(f) for _ in range(3)]
+    assert head[0].strip() == '"V1","V2",'  # the trailing empty column is in the file as published
+    first = [float(v) for v in head[1].strip().rstrip(",").split(",")]
+    # without a rate: refused with one line that says to pass it
+    with pytest.raises(DataError, match=r"no time column 't'.*--rate HZ"):
+        CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V")})
+    records = load_records(str(path), model="oscillator", mapping={"V1": ("u", "V"), "V2": ("y", "V")},
+                           rate_hz=SILVERBOX_RATE_HZ)
+    assert len(records) == 1
+    rec = records[0]
+    assert len(rec) == 131072 and rec.dt == pytest.approx(2**14 / 1e7, rel=1e-9)
+    assert [rec["u"][0], rec["y"][0]] == first
+    # the sample time as --dt gives the same record; the map may name the unit or not
+    with CsvSource(path, mapping={"V1": "u", "V2": "y"}, dt_s=2**14 / 1e7) as src:
+        got = src.read_all()
+        assert not src.report.lossy
+    assert np.array_equal(got["y"], rec["y"]) and got.t_ns[1] == 1_638_400
+
+
+def test_silverbox_replay_info_and_twin_fit_flags(capsys: pytest.CaptureFixture) -> None:
+    from replay import cli
+
+    path = str(_silverbox())
+    code = cli.main(["info", path, "--rate", "610.3515625", "--map", "u=V1:V", "--map", "y=V2:V", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["signals"] == ["u", "y"] and info["samples"] == 131072
+    assert info["rate_hz"] == pytest.approx(SILVERBOX_RATE_HZ, rel=1e-6)
+    code = cli.main(["info", path, "--map", "u=V1:V", "--map", "y=V2:V"])
+    _, err = capsys.readouterr()
+    assert code != 0 and len(err.strip().splitlines()) == 1 and "--rate HZ" in err and "Traceback" not in err
+
+
+def test_silverbox_schroeder_record_with_flag_columns() -> None:
+    """The archive's second record: header 'Ovld2,Ovld1,V1,V2,' with the overload flags only in the first row.
+    Mapped columns are read; the unmapped flag columns (empty in every other row) are not, and the report
+    names them."""
+    path = _silverbox("Schroeder80mV.csv.gz")
+    with CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V")}, rate_hz=SILVERBOX_RATE_HZ) as src:
+        got = src.read_all()
+        report = src.report
+    assert got.names == ("u", "y") and len(got) > 100_000 and not report.lossy
+    assert "column(s) 'Ovld2', 'Ovld1' not read: neither a known signal nor mapped" in str(report.problems[0])
+    with CsvSource(path, mapping={"V1": ("u", "V"), "V2": ("y", "V"), "Ovld1": "ovld"},
+                   rate_hz=SILVERBOX_RATE_HZ) as src:  # mapped, the flag column is read: its empty fields say so
+        assert len(src.read_all()) <= 1 and src.report.skipped["bad_row"] > 100_000
+
+
+def test_csv_trailing_empty_columns_and_quotes(tmp_path: Path) -> None:
+    path = tmp_path / "quoted.csv"
+    path.write_text('"t","x",\n0.000,0.001,\n0.001,0.002\n"0.002","0.003",\n0.003,0.004,,\n0.004,0.005,7\n')
+    with CsvSource(path) as src:
+        assert src.signals == ("x",)
+        got = src.read_all()
+        report = src.report
+    assert got.t_ns.tolist() == [0, 1_000_000, 2_000_000, 3_000_000]
+    np.testing.assert_array_equal(got["x"], [0.001, 0.002, 0.003, 0.004])
+    assert report.skipped["bad_row"] == 1  # a value in the unnamed column is not a trailing delimiter
+    assert "line 6: 3 fields, expected 2" in "\n".join(map(str, report.problems))
+
+
+def test_csv_without_time_column_takes_a_rate(tmp_path: Path) -> None:
+    path = tmp_path / "norate.csv"
+    path.write_text("x,pA\n" + "".join(f"{1e-4 * i},{1e6}\n" for i in range(5)) + "oops,1e6\n0.0006,1e6\n")
+    with pytest.raises(DataError, match=r"no time column 't' \(s\); .*a file without a time column needs its "
+                       r"sample rate: --rate HZ \(or --dt S\)"):
+        CsvSource(path)
+    with CsvSource(path, rate_hz=2000.0) as src:
+        got = src.read_all()
+    # a bad row keeps its slot in time: the sample after it is at 6 / 2000 s
+    assert got.t_ns.tolist() == [0, 500_000, 1_000_000, 1_500_000, 2_000_000, 3_000_000]
+    for bad, match in (({"rate_hz": 1.0}, r"--rate 1.0 Hz: expected a sample rate from 10 Hz to 1e\+07 Hz"),
+                       ({"rate_hz": float("nan")}, "expected a sample rate"),
+                       ({"dt_s": 0.0}, "expected a sample rate"),
+                       ({"rate_hz": 1e3, "dt_s": 1e-3}, "give one")):
+        with pytest.raises(DataError, match=match):
+            CsvSource(path, **bad)
+    timed = tmp_path / "timed.csv"
+    timed.write_text("t,x\n0,0\n0.001,0\n")
+    with pytest.raises(DataError, match=r"has a time column 't'; a sample rate .* is for a file without one"):
+        CsvSource(timed, rate_hz=1000.0)
+
+
+def test_csv_units_in_the_header_are_read(tmp_path: Path) -> None:
+    path = tmp_path / "units.csv"
+    path.write_text("t [ms],x_ref[mm],x (mm),pA[bar]\n0,1,2,100\n1,1,2.5,101\n")
+    with CsvSource(path) as src:
+        assert src.signals == ("x_ref", "x", "pA")
+        got = src.read_all()
+    assert got.t_ns.tolist() == [0, 1_000_000]
+    np.testing.assert_allclose(got["x"], [2e-3, 2.5e-3], rtol=1e-15)
+    np.testing.assert_allclose(got["pA"], [100e5, 101e5], rtol=1e-15)
+    extra = tmp_path / "extra.csv"
+    extra.write_text("t,x,x_ref[furlong]\n0,0.001,1\n0.001,0.002,1\n")
+    with CsvSource(extra) as src:
+        assert src.signals == ("x", "x_ref[furlong]")
+        src.read_all()
+        assert not src.report.lossy
+        assert "header: column(s) 'x_ref[furlong]' not understood: no known signal" in str(src.report.problems[0])
+    wrong = tmp_path / "wrong.csv"
+    wrong.write_text("t,x[bar]\n0,1\n")
+    with pytest.raises(DataError, match=r"'x\[bar\]'.*bar converts to Pa, but 'x' is in m"):
+        CsvSource(wrong)
+
+
+def test_csv_unit_check_is_dimensional_per_model(tmp_path: Path) -> None:
+    from twin.record import signal_specs
+
+    path = tmp_path / "volts.csv"
+    path.write_text("t,V1,V2\n" + "".join(f"{i / 1000},{0.01 * i},{0.02 * i}\n" for i in range(20)))
+    quality = QualityOptions(specs=signal_specs("oscillator"))
+    with CsvSource(path, mapping={"V1": ("u", "mV"), "V2": ("y", "V")}, quality=quality) as src:
+        got = src.read_all()
+    np.testing.assert_allclose(got["u"][1], 1e-5, rtol=1e-12)  # mV converted to V, kept in V
+    np.testing.assert_allclose(got["y"][1], 0.02, rtol=1e-12)
+    with pytest.raises(DataError, match=r"V converts to V, but 'x' is in m"):
+        CsvSource(path, mapping={"V2": ("x", "V")})
+
+
+def test_csv_foreign_columns_hint_is_right_and_works(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from replay import cli
+
+    path = tmp_path / "foreign.csv"
+    path.write_text("time_ms,dem_mm,pos_mm,pa_bar,pb_bar\n"
+                    + "".join(f"{i},{0.01 * i},{0.01 * i - 0.001},{100 + i % 3},{90 - i % 3}\n" for i in range(60)))
+    with pytest.raises(DataError) as err:
+        CsvSource(path)
+    msg = str(err.value)
+    hint = msg.split("e.g. ", 1)[1].split(";")[0]
+    assert hint == ("--map t=time_ms:ms --map x_ref=dem_mm:mm --map x=pos_mm:mm --map pA=pa_bar:bar "
+                    "--map pB=pb_bar:bar")
+    argv = ["info", str(path), "--json", *hint.split()]
+    assert cli.main(argv) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["signals"] == ["x_ref", "x", "pA", "pB"] and info["rate_hz"] == pytest.approx(1000.0)
+    # names with spaces and units in brackets: the hint is quoted for a shell and works as typed
+    import shlex
+
+    spaced = tmp_path / "spaced.csv"
+    spaced.write_text("Zeit [ms],Position (mm)\n" + "".join(f"{i},{0.01 * i}\n" for i in range(60)))
+    with pytest.raises(DataError) as err:
+        CsvSource(spaced)
+    hint = str(err.value).split("e.g. ", 1)[1].split(";")[0]
+    assert hint == "--map 't=Zeit [ms]:ms' --map 'x=Position (mm):mm'"
+    assert cli.main(["info", str(spaced), "--json", *shlex.split(hint)]) == 0
+    assert json.loads(capsys.readouterr().out)["rate_hz"] == pytest.approx(1000.0)
+    # a time unit that reads the record at an absurd rate is refused with the unit that fits
+    with pytest.raises(DataError, match=r"'time_ms' read in s: .*\(1 Hz\) is not a rig record's rate.*"
+                       r"--map t=time_ms:ms"):
+        with CsvSource(path, mapping={"time_ms": ("t", "s"), "pos_mm": ("x", "mm")}) as src:
+            src.read_all()
+
+
+def test_csv_header_parser_is_bounded(tmp_path: Path) -> None:
+    """A 200 000-column header (once quadratic: 32 000 columns took 17 s) is refused at once, and the message
+    does not repeat the header; a line over the limit costs one row, never the rows after it."""
+    wide = tmp_path / "wide.csv"
+    wide.write_text(",".join("a" * 3 for _ in range(200_000)) + "\n0\n")
+    with pytest.raises(LogFormatError) as err:
+        CsvSource(wide)
+    assert "header has 200000 columns, more than 4096" in str(err.value) and len(str(err.value)) < 300
+    dup = tmp_path / "dup.csv"
+    dup.write_text("t," + ",".join(["x"] * 4000) + "\n")
+    with pytest.raises(LogFormatError) as err:
+        CsvSource(dup)
+    assert "column(s) x appear more than once" in str(err.value) and len(str(err.value)) < 600
+    long = tmp_path / "long.csv"
+    long.write_text("t,x\n0.000,0.1\n" + "9" * (2 << 20) + "\n0.002,0.3\n0.003,0.4\n")
+    with CsvSource(long) as src:
+        got = src.read_all()
+        assert src.report.skipped["bad_row"] == 1
+    assert got.t_ns.tolist() == [0, 2_000_000, 3_000_000]
+
+
+def test_csv_last_line_without_line_end_is_not_trusted(tmp_path: Path) -> None:
+    path = tmp_path / "cut.csv"
+    path.write_text("t,x\n0.000,0.25\n0.001,0.25\n0.002,0.2")  # cut inside the last number
+    with CsvSource(path) as src:
+        got = src.read_all()
+        report = src.report
+    assert got["x"].tolist() == [0.25, 0.25] and report.truncated and report.lossy
+    assert "line 4: the file ends inside this line (no line end)" in "\n".join(map(str, report.problems))
+    crlf = tmp_path / "crlf.csv"
+    crlf.write_bytes(b"t,x\r\n# a comment\r\n0.000,0.25\r\n\r\n0.001,0.5\r\n")
+    with CsvSource(crlf) as src:
+        got = src.read_all()
+        assert not src.report.lossy
+    assert got["x"].tolist() == [0.25, 0.5]
+
+
+def test_csv_gzip_round_trip(tmp_path: Path) -> None:
+    path = tmp_path / "rig.csv.gz"
+    want = _rig(300)
+    with open_sink(path) as sink:
+        sink.write(want)
+    assert path.read_bytes()[:2] == b"\x1f\x8b"  # gzip
+    with open_source(path) as src:
+        got = src.read_all()
+    assert np.array_equal(got.t_ns, want.t_ns) and all(np.array_equal(got[k], want[k]) for k in want.names)
 
 
 def test_csv_sink_writes_exact_decimal_seconds(tmp_path: Path) -> None:

@@ -106,11 +106,13 @@ def records_from_samples(samples, name: str = "record", min_samples: int = 50,
 
 def signal_specs(model: str):
     """The signal vocabulary of ``model``'s records: the rig's, except that the
-    oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage."""
+    oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage; its
+    ``u`` and ``y`` are generic (a circuit's volts are read as volts)."""
     from replay.base import SIGNALS, SignalSpec
 
     if model == "oscillator":
-        return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input force")}
+        return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input (force, or any quantity)",
+                                           accepts=("*",))}
     return SIGNALS
 
 
@@ -180,14 +182,14 @@ def load_records(path: str, name: str | None = None, model: str = "msp25", repor
     if map:
         from replay.csvio import parse_map
 
-        if not str(path).lower().endswith(".csv"):
+        if not str(path).lower().endswith((".csv", ".csv.gz")):
             raise DataError(f"{path}: map renames CSV columns; this file is not a CSV (its signals are named by "
                             "its format)")
         items = [map] if isinstance(map, str) else ([f"{k}={v}" for k, v in map.items()] if isinstance(map, dict)
                                                      else list(map))
         options["mapping"] = parse_map(items, option="map")
 
-    if str(path).lower().endswith((".csv", ".mcap")) and "quality" not in options:
+    if str(path).lower().endswith((".csv", ".csv.gz", ".mcap")) and "quality" not in options:
         options["quality"] = QualityOptions(specs=signal_specs(model))
     with open_source(path, **options) as src:
         check_signals(str(path), src.signals, model)

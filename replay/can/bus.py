@@ -5,6 +5,7 @@ Frames are decoded and aligned exactly as a CAN log's (:mod:`replay.can.decode`)
 
 from __future__ import annotations
 
+import difflib
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -31,11 +32,24 @@ def parse_can_uri(uri: str) -> tuple[str, str]:
     return u.netloc, chan
 
 
+def check_can_uri(uri: str) -> tuple[str, str]:
+    """``can://INTERFACE/CHANNEL`` with an INTERFACE python-can knows -> (interface, channel); SourceError naming
+    the known interfaces otherwise (checked before anything waits on the bus)."""
+    interface, channel = parse_can_uri(uri)
+    known = sorted(can.interfaces.VALID_INTERFACES)
+    if interface not in known:
+        close = difflib.get_close_matches(interface, known, n=1)
+        raise SourceError(f"{uri}: unknown CAN interface {interface!r}"
+                          + (f" (did you mean {close[0]!r}?)" if close else "")
+                          + f"; python-can knows {', '.join(known)}")
+    return interface, channel
+
+
 def open_bus(uri_or_bus: str | can.BusABC, **kwargs) -> tuple[can.BusABC, bool]:
     """A python-can bus from a URI (owned: shut down by the caller) or the bus itself (not owned)."""
     if isinstance(uri_or_bus, can.BusABC):
         return uri_or_bus, False
-    interface, channel = parse_can_uri(uri_or_bus)
+    interface, channel = check_can_uri(uri_or_bus)
     try:
         return can.Bus(interface=interface, channel=channel, **kwargs), True
     except Exception as e:  # CanError, OSError (no such device), ImportError, ValueError, ...

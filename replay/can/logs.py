@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import re
 from collections import Counter
@@ -61,6 +62,10 @@ class _ReadState:
 
 
 _ASC_FRAME_START = re.compile(r"^\S+\s+(\d+|canfd)\s+\S+", re.IGNORECASE)  # time, channel, id
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")  # control characters: damage, never an event line
+_MAX_T_S = 9.2e9  # what int64 nanoseconds hold, in seconds
+#: A text-log line longer than this is damage (a frame line is under 200 characters); it is never held whole.
+MAX_LINE_BYTES = 1 << 16
 _ASC_EVENT = re.compile(r"statistic|status|j1939|chip|error ?frame|swstat|log trigger")
 
 
@@ -76,7 +81,7 @@ def _classify_line(suf: str, text: str) -> str | None:
         if low.startswith(("date ", "base ", "//", "begin triggerblock", "end triggerblock", "internal events",
                            "no internal events")) or "start of measurement" in low:
             return None
-        if "\ufffd" in t or (_ASC_FRAME_START.match(t) and not _ASC_EVENT.search(low)):
+        if "\ufffd" in t or _CONTROL.search(t) or (_ASC_FRAME_START.match(t) and not _ASC_EVENT.search(low)):
             return "bad_line"
         return "ignored_line"
     return "bad_line"  # candump: every line is a frame
@@ -110,10 +115,14 @@ class _Lines:
         self.settle()
         if self.replay:
             return self.replay.pop(0)
-        raw = self.raw.readline()
+        raw = self.raw.readline(MAX_LINE_BYTES)
         if not raw:
             raise StopIteration
         self.line_no += 1
+        if len(raw) == MAX_LINE_BYTES and not raw.endswith(b"\n"):  # an over-long line: skip to its end
+            while (more := self.raw.readline(MAX_LINE_BYTES)) and not more.endswith(b"\n"):
+                pass
+            raw = b"\x00line longer than %d bytes: " % MAX_LINE_BYTES + raw[:40]
         self.current = raw.decode("utf-8", "replace")
         if not self.any_frame:
             self.head.append(self.current)
@@ -389,6 +398,11 @@ def iter_frames(path: str | Path, report: ReadReport, block_frames: int = BLOCK_
         lg.addFilter(quiet)
     try:
         for msg in messages:
+            t = msg.timestamp
+            if not (math.isfinite(t) and abs(t) < _MAX_T_S):  # never converted to int64 ns (undefined beyond)
+                report.skip("bad_time", f"frame {state.n} (id 0x{msg.arbitration_id:x})",
+                            f"timestamp {t!r} s is not a time within +-{_MAX_T_S:g} s; that frame is lost")
+                continue
             coll.add(msg)
             if len(coll) >= block_frames:
                 yield coll.take()

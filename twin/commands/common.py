@@ -107,7 +107,15 @@ def timing_of(args, default=None):
     intersample = getattr(args, "intersample", None)
     if controller is None and intersample is None and default is not None:
         return default
-    return Timing.parse(controller, intersample)
+    timing = Timing.parse(controller, intersample)
+    from twin.service.config import MAX_CONTROLLER_HZ
+
+    if timing.rate_hz is not None and timing.rate_hz > MAX_CONTROLLER_HZ:
+        from twin.errors import ParameterError
+
+        raise ParameterError(f"--controller: a digital controller at {timing.rate_hz:g} Hz; at most "
+                             f"{MAX_CONTROLLER_HZ:g} Hz (servo-hydraulic controllers run at 1-10 kHz)")
+    return timing
 
 
 def add_map_argument(p) -> None:
@@ -115,18 +123,29 @@ def add_map_argument(p) -> None:
     p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT]",
                    help="a CSV column under another name or unit, e.g. --map x=pos_mm:mm --map t=time:ms "
                         "(repeatable; CSV files only)")
+    from replay.options import add_rate_options
+
+    add_rate_options(p)
 
 
 def source_options(args, path: str) -> dict:
-    """Reader options for ``path`` from ``--map`` (a CSV column mapping), checked."""
+    """Reader options for ``path`` from ``--map`` (a CSV column mapping) and ``--rate``/``--dt``, checked."""
+    from replay.options import rate_options
+
+    try:
+        rate = rate_options(args, path)
+    except Exception as exc:  # argparse.ArgumentTypeError: a plain one-line message
+        from twin.errors import DataError
+
+        raise DataError(str(exc)) from None
     items = getattr(args, "map", None)
     if not items:
-        return {}
-    if not str(path).lower().endswith(".csv"):
+        return rate
+    if not str(path).lower().endswith((".csv", ".csv.gz")):
         from twin.errors import DataError
 
         raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
                         "its format)")
     from replay.csvio import parse_map
 
-    return {"mapping": parse_map(items)}
+    return {"mapping": parse_map(items), **rate}

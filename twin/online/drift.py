@@ -136,7 +136,8 @@ class DriftMonitor:
             S = np.ascontiguousarray(log_std[:, jj], dtype=float)
             F = np.ascontiguousarray(frozen[:, jj], dtype=np.bool_)
         H = np.zeros(T, np.bool_) if hold is None else np.ascontiguousarray(hold, dtype=np.bool_)
-        ev = self._buffer(len(ps) * (int((float(t_s[-1]) - float(t_s[0])) * self.rate_hz) + 2))
+        # at most one evaluation per sample (a time gap adds none): sized by samples, not by the time spanned
+        ev = self._buffer(len(ps) * (min(T, int((float(t_s[-1]) - float(t_s[0])) * self.rate_hz) + 2)))
         cfg = np.array([self._next_t, 1.0 / self.rate_hz, self.rate_hz, self.kappa, self.h_warn, self.h_alarm,
                         3.0 * self.h_alarm, self.hold_s, self.resolve, self.max_ess_factor])
         n_ev, next_t, last_i = _cusum_block(np.ascontiguousarray(t_s, dtype=float), E, S, F, H, cfg, const, state, ev)

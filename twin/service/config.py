@@ -65,6 +65,17 @@ from twin.models.base import Timing
 
 #: The shortest commissioning window ``commission_s`` [s].
 MIN_COMMISSION_S = 5.0
+#: Replay speeds a log source may have (besides 0 = as fast as possible): a thousandth to ten thousand times
+#: real time (beyond, a sample interval is below a microsecond of wall clock or above an hour).
+SPEED_RANGE = (1e-3, 1e4)
+#: The fastest digital controller accepted [Hz]: ten times the fastest servo-hydraulic test controllers
+#: (5-10 kHz); the loop model integrates every controller period, so a faster one never finishes a sample.
+MAX_CONTROLLER_HZ = 100e3
+#: Longest rig name (one Zenoh key chunk, also a file name of the journal) and longest path, in characters;
+#: one path component at most NAME_MAX (255 bytes on Linux).
+MAX_RIG_NAME = 64
+MAX_PATH = 4096
+MAX_PATH_COMPONENT = 255
 
 if TYPE_CHECKING:
     from twin.online.commission import Commission
@@ -214,12 +225,67 @@ def _si(d: dict, key: str, where: str, pname: str, spec=None, default: Any = ...
     return v
 
 
+def _at_most(v: float, hi: float, where: str, why: str) -> float:
+    if v > hi:
+        raise ConfigError(f"{where}: {v:g} seconds; at most {hi:g} ({why})")
+    return v
+
+
 def _strings(d: dict, key: str, where: str) -> list[str]:
     items = _get(d, key, list, where, [])
     for i, item in enumerate(items):
         if not isinstance(item, str):
             raise ConfigError(f"{where}.{key}[{i}]: expected a string, got {item!r}")
     return items
+
+
+def _path(d: dict, key: str, where: str, default: Any = ...) -> Any:
+    """A path string: no NUL or other control character, at most MAX_PATH characters, each component at most
+    MAX_PATH_COMPONENT bytes (what the operating system would refuse later, refused here with the key)."""
+    v = _get(d, key, str, where, default)
+    if not isinstance(v, str) or not v:
+        return v
+    bad = next((c for c in v if ord(c) < 32 or ord(c) == 127), None)
+    if bad is not None:
+        raise ConfigError(f"{where}.{key}: control character {bad!r} at position {v.index(bad)} of the path; "
+                          "expected a file or directory path")
+    if len(v) > MAX_PATH:
+        raise ConfigError(f"{where}.{key}: path of {len(v)} characters, at most {MAX_PATH}")
+    long = next((c for c in v.replace("\\", "/").split("/") if len(c.encode("utf-8")) > MAX_PATH_COMPONENT), None)
+    if long is not None:
+        raise ConfigError(f"{where}.{key}: a path component of {len(long.encode('utf-8'))} bytes "
+                          f"({long[:20]!r}...), at most {MAX_PATH_COMPONENT}")
+    return v
+
+
+def _check_source(source: str, where: str) -> None:
+    """A live source that can be opened: a CAN interface python-can knows; a Zenoh key expression that is
+    valid and does not reach the service's own outputs (``fpdd/<rig>/estimate`` ...)."""
+    scheme, rest = source.split("://", 1)
+    scheme = scheme.lower()
+    if scheme == "can":
+        from replay.can.bus import check_can_uri
+
+        try:
+            check_can_uri(source)
+        except Exception as exc:  # SourceError: one line naming the URI and the known interfaces
+            raise ConfigError(f"{where}.source: {exc}") from None
+    elif scheme == "zenoh":
+        import zenoh
+
+        from twin.service.bus import RigKeys
+
+        try:
+            key = zenoh.KeyExpr(rest)
+        except Exception as exc:  # zenoh.ZError
+            raise ConfigError(f"{where}.source: {source!r}: not a valid Zenoh key expression "
+                              f"({str(exc).split(' at ', 1)[0]})") from None
+        outs = RigKeys("*")
+        hit = next((k for k in (outs.estimate, outs.status, outs.alarm, outs.history, outs.twin)
+                    if key.intersects(zenoh.KeyExpr(k))), None)
+        if hit is not None:
+            raise ConfigError(f"{where}.source: {source!r} would read the service's own outputs ({hit}); "
+                              "publish the rig's samples on a key of their own, e.g. zenoh://fpdd/RIG/samples")
 
 
 def _endpoints(z: dict, key: str, where: str) -> tuple[str, ...]:
@@ -252,6 +318,8 @@ def load_config(path: str) -> ServiceConfig:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not a rig configuration: arrays or tables nested too deeply") from None
     return parse_config(doc, path)
 
 
@@ -287,6 +355,9 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     every = _get(s, "estimate_every", int, sw, 50)
     if every < 1:
         raise ConfigError(f"{path}: service.estimate_every must be >= 1, got {every}")
+    if every > 1_000_000:
+        raise ConfigError(f"{path}: service.estimate_every: {every} samples; at most 1000000 (an estimate every "
+                          "17 min at 1 kHz)")
     workers_raw = s.get("workers", "auto")
     if workers_raw == "auto":
         workers = None
@@ -295,18 +366,22 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     else:
         raise ConfigError(f"{path}: service.workers: expected \"auto\" or an integer 0..256 "
                           f"(0 = threads in the service's process), got {workers_raw!r}")
-    journal_dir = _get(s, "journal_dir", str, sw, os.path.join(".", "fpdd-journal"))
+    journal_dir = _path(s, "journal_dir", sw, os.path.join(".", "fpdd-journal"))
     if not journal_dir.strip():
         raise ConfigError(f"{path}: service.journal_dir: expected a directory path, got an empty string")
     return ServiceConfig(
         path=path, zenoh_mode=mode, listen=listen, connect=connect,
         journal_dir=journal_dir,
-        out_dir=_get(s, "out_dir", str, sw, "") or None,
+        out_dir=_path(s, "out_dir", sw, "") or None,
         estimate_every=every, rigs=tuple(rigs), workers=workers,
-        checkpoint_s=_number(s, "checkpoint_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
-        block_s=_number(s, "block_s", sw, 0.1, lo=0.001, what=" seconds"),
-        lag_warn_s=_number(s, "lag_warn_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
-        stale_s=_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"),
+        checkpoint_s=_at_most(_number(s, "checkpoint_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"),
+                              3600.0, f"{sw}.checkpoint_s", "an hour: the state a restart would lose"),
+        block_s=_at_most(_number(s, "block_s", sw, 0.1, lo=0.001, what=" seconds"), 10.0, f"{sw}.block_s",
+                         "the latency of every estimate and alarm"),
+        lag_warn_s=_at_most(_number(s, "lag_warn_s", sw, 1.0, lo=0.0, lo_open=True, what=" seconds"), 86400.0,
+                            f"{sw}.lag_warn_s", "a day"),
+        stale_s=_at_most(_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"), 86400.0, f"{sw}.stale_s",
+                         "a day: a dead input must be noticed"),
     )
 
 
@@ -314,11 +389,14 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     import re
 
     from replay.factory import FILE_SUFFIXES, URI_SCHEMES
+    from replay.formats import suffix_of
 
     where = f"{path}: rig[{i}]"
     if not isinstance(r, dict):
         raise ConfigError(f"{where}: expected a table")
     name = _get(r, "name", str, where)
+    if len(name) > MAX_RIG_NAME:
+        raise ConfigError(f"{where}.name: {name[:20]!r}... has {len(name)} characters, at most {MAX_RIG_NAME}")
     if re.match(RIG_PATTERN, name) is None or name in seen:
         raise ConfigError(f"{where}.name: {name!r} must be unique, non-empty, without '/' or '*' "
                           "(letters, digits, _ . -)")
@@ -351,7 +429,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
                           f"{suggest(bad[0], model.PHENOMENOLOGICAL) if len(bad) == 1 else ''}")
     if len(set(track)) != len(track):
         raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
-    commission = _get(r, "commission", str, where, "") or None
+    commission = _path(r, "commission", where, "") or None
     commission_s = _number(r, "commission_s", where, None, lo=MIN_COMMISSION_S,
                            what=" seconds (the commissioning fit needs a few periods of the demand)")
     if commission is not None and commission_s is not None:
@@ -390,6 +468,9 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
                                   _get(r, "intersample", str, where, "") or None)
         except ParameterError as exc:
             raise ConfigError(f"{where}.controller: {exc}") from None
+        if timing.rate_hz is not None and timing.rate_hz > MAX_CONTROLLER_HZ:
+            raise ConfigError(f"{where}.controller: a digital controller at {timing.rate_hz:g} Hz; at most "
+                              f"{MAX_CONTROLLER_HZ:g} Hz (servo-hydraulic controllers run at 1-10 kHz)")
     for pname, b in _get(r, "baseline", dict, where, {}).items():
         if pname not in track:
             raise ConfigError(f"{where}.baseline.{pname}: not a tracked parameter ({', '.join(track)})"
@@ -411,16 +492,24 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
             lo, hi = v / (1 + rb), v * (1 + rb)
         if not lo < v < hi:
             raise ConfigError(f"{bw}: the band [{lo:g}, {hi:g}] must contain the value {v:g}")
+        t_lo, t_hi = model.tracking_bounds(model.params(**params), pname)
+        if not t_lo < lo or not hi < t_hi:
+            side, edge, limit = ("lower", lo, t_lo) if not t_lo < lo else ("upper", hi, t_hi)
+            raise ConfigError(f"{bw}: the band's {side} edge {edge:g} is beyond what the twin can estimate "
+                              f"({t_lo:g} .. {t_hi:g} SI): that side could never alarm; give a narrower band")
         baseline[pname] = Baseline(v, lo, hi)
     speed = _number(r, "speed", where, 1.0, lo=0.0, what=" (0 = as fast as possible)")
-    dbc = _get(r, "dbc", str, where, "") or None
+    if speed != 0 and not SPEED_RANGE[0] <= speed <= SPEED_RANGE[1]:
+        raise ConfigError(f"{where}.speed: {speed:g}; expected 0 (as fast as possible) or {SPEED_RANGE[0]:g} to "
+                          f"{SPEED_RANGE[1]:g} times real time")
+    dbc = _path(r, "dbc", where, "") or None
     if dbc is not None:
         if not os.path.isabs(dbc):  # relative to the configuration, as commission
             dbc = os.path.join(os.path.dirname(os.path.abspath(path)), dbc)
         if not os.path.isfile(dbc):
             raise ConfigError(f"{where}.dbc: {dbc} is not a file (a CAN database, .dbc)")
     col_map = _map(r, where)
-    source = _get(r, "source", str, where)
+    source = _path(r, "source", where)
     if not source.strip():
         raise ConfigError(f"{where}.source: expected a log file, can://INTERFACE/CHANNEL or zenoh://KEYEXPR, "
                           "got an empty string")
@@ -428,10 +517,11 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         scheme = source.split("://", 1)[0].lower()
         if scheme not in URI_SCHEMES or not source.split("://", 1)[1].strip("/"):
             raise ConfigError(f"{where}.source: {source!r} is not can://INTERFACE/CHANNEL or zenoh://KEYEXPR")
-    elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
+        _check_source(source, where)
+    elif suffix_of(source) not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
-    if col_map and (source.lower().startswith(("can://", "zenoh://")) or not source.lower().endswith(".csv")):
+    if col_map and (source.lower().startswith(("can://", "zenoh://")) or not source.lower().endswith((".csv", ".csv.gz"))):
         raise ConfigError(f"{where}.map: renames CSV columns; the source {source!r} is not a CSV log (its "
                           "signals are named by its format)")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,

@@ -683,6 +683,7 @@ class RigRunner:
             raise RigFailure(f"cannot open its log: {exc}") from None
         pacer = Pacer(self.rig.speed)
         span = self.cfg.block_s * self.rig.speed if self.rig.speed > 0 else math.inf
+        shift: int | None = None
         with src:
             from twin.record import check_signals
 
@@ -698,6 +699,10 @@ class RigRunner:
                     break
                 except (TwinError, OSError, ValueError) as exc:
                     raise RigFailure(f"{self.rig.source}: cannot read on: {exc}") from None
+                if shift is None and len(chunk):  # a pre-trigger record (times from -t0) runs from 0
+                    shift = -int(chunk.t_ns[0]) if int(chunk.t_ns[0]) < 0 else 0
+                if shift:
+                    chunk = Samples(chunk.t_ns + shift, chunk.signals)
                 if position is not None:
                     k = int(np.searchsorted(chunk.t_ns, position, side="right"))
                     if k >= len(chunk):

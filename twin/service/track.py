@@ -38,12 +38,16 @@ class SequenceNumbers:
         return ev
 
 
-def _mapped(path: str, opts: dict):
-    """Blocks of a CSV read with a column mapping (``--map``)."""
-    from replay.factory import open_source
-
-    with open_source(path, **opts) as src:
-        yield from src.chunks(10000)
+def _from_zero(blocks):
+    """Blocks of a record whose times start below 0 (a pre-trigger record, times from the trigger) shifted to
+    start at 0: events carry ingest times >= 0; ``t_s`` from the record's start is the same either way."""
+    shift = None
+    for block in blocks:
+        if shift is None and len(block):
+            shift = -int(block.t_ns[0]) if int(block.t_ns[0]) < 0 else 0
+        if shift:
+            block = type(block)(block.t_ns + shift, block.signals)
+        yield block
 
 
 def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
@@ -124,7 +128,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         twin.tracker = tracker_for(r)
     reports: list = []
     try:
-        for block in _blocks(source, chunk, dbc, reports):
+        for block in _from_zero(_blocks(source, chunk, dbc, reports)):
             twin.write(block)
             if progress:
                 progress(f"{twin.stats.samples} samples, {twin.stats.alarms} alarm event(s)")
