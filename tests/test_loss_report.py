@@ -74,7 +74,8 @@ def csv_header_only(s: Samples, d: Path) -> Path:
 def csv_unknown_columns(s: Samples, d: Path) -> Path:
     p = csv_of(s, d, "columns.csv")
     lines = p.read_text().splitlines()
-    lines[0] = ",".join({"x_ref": "x_ref[mm]", "x": "x[mm]"}.get(c, c) for c in lines[0].split(","))
+    # x_ref[mm] is x_ref in mm (a unit in the header is read); x[zz] names no unit: a column not understood
+    lines[0] = ",".join({"x_ref": "x_ref[mm]", "x": "x[zz]"}.get(c, c) for c in lines[0].split(","))
     p.write_text("\n".join(lines) + "\n")
     return p
 
@@ -90,10 +91,9 @@ class Damage:
 DAMAGES = [
     Damage("mcap-cut-in-third-chunk", mcap_cut_in_third_chunk, 3, "input lost ("),
     Damage("csv-x-nan-every-other-row", csv_nan_every_other_x, 3, f"input lost (nan={N // 2}"),
-    Damage("csv-header-only", csv_header_only, 2, "no usable samples"),
+    Damage("csv-header-only", csv_header_only, 2, "no data rows after the header (line 1): an empty record"),
     Damage("csv-unknown-columns", csv_unknown_columns, 2,
-           "column(s) 'x_ref[mm]', 'x[mm]' not understood (no signal of the msp25 model); missing signal(s) x_ref, "
-           "x; "),
+           "column(s) 'x[zz]' not understood (no signal of the msp25 model); missing signal(s) x; "),
 ]
 
 
