@@ -25,7 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")
     p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
-    p.add_argument("--json", action="store_true", help="print alarms and final estimates as JSON")
+    p.add_argument("--json", action="store_true", help="print alarms, forecasts and final estimates as JSON")
+    p.add_argument("--forecast-horizon", type=float, metavar="S",
+                   help="early warning horizon in seconds: an 'early' alarm when a parameter is forecast to leave its "
+                        "band within S s with probability 0.9 (default the rig's forecast_horizon_s, else 3600)")
     add_timing_arguments(p)
     add_map_argument(p)
 
@@ -52,6 +55,11 @@ def run(args) -> int:
     from twin.reports.plots import parameter_trends
 
     _check_rig_log(args.log)
+    horizon = getattr(args, "forecast_horizon", None)
+    if horizon is not None and not (horizon > 0 and horizon < float("inf")):
+        from twin.errors import ParameterError
+
+        raise ParameterError(f"--forecast-horizon: expected a positive number of seconds, got {horizon!r}")
     params = {}
     baseline = None
     tracked = names(args.track) or None
@@ -59,6 +67,7 @@ def run(args) -> int:
         cfg = load_config(args.config)
         rig = next((r for r in cfg.rigs if r.name == args.rig), cfg.rigs[0])
         params, baseline, tracked = dict(rig.params), rig.baseline, tracked or rig.track
+        horizon = horizon if horizon is not None else rig.forecast_horizon_s
     commission = None
     if args.params:
         from twin.online.commission import load_fit, tracker_params
@@ -84,7 +93,7 @@ def run(args) -> int:
     if getattr(args, "map", None):
         log = _mapped(args.log, source_options(args, args.log))
     twin = track(log, args.rig, params, tracked, baseline, args.out, args.dbc, progress=say, noise=noise,
-                 timing=timing, commission=commission)
+                 timing=timing, commission=commission, forecast_horizon_s=horizon)
     if say:
         print(file=sys.stderr)
     png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
@@ -92,6 +101,8 @@ def run(args) -> int:
     result = {
         "log": args.log, "rig": args.rig, "samples": twin.stats.samples,
         "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
+        "forecasts": [f.to_dict() for f in sorted(twin.forecasts, key=lambda f: (f.t, f.parameter))],
+        "forecast_horizon_s": twin.forecast.horizon_s,
         "final": twin.final_estimates(),
         "status": twin.drift.statuses(),
         "counters": twin.tracker.counters,
@@ -120,5 +131,10 @@ def run(args) -> int:
         show = specs.spec(n).show
         value, std = float(f"{d['value']:.5g}"), float(f"{d['std']:.2g}")
         print(f"  {n:8s} {show(value)} +- {show(std)}  [{result['status'][n]}]")
+    from twin.online.forecast import describe
+
+    for n, f in twin.forecast.latest().items():
+        print(f"  {n:8s} leaves its band {describe(f)} (at {f.t:.0f} s of record; P(within "
+              f"{twin.forecast.horizon_s:g} s) = {f.p_within_horizon:.2f})")
     print(f"MCAP: {result['files']['mcap']}  plot: {png}", file=sys.stderr)
     return 0

@@ -6,7 +6,7 @@ attribute. The same schema drives validation: ``from_dict`` checks a decoded
 payload against it and raises :class:`~twin.errors.DataError` with a message
 that names the event, the field, the value and what was expected, e.g.::
 
-    AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm']
+    AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm', 'early']
 
 Construction validates too (``__post_init__``), so an event that exists is a
 valid event. Unknown extra fields in a payload are ignored (a tolerant reader:
@@ -50,8 +50,9 @@ __all__ = [
     "validate",
 ]
 
-ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm")
-"""Levels of a drift alarm, in increasing severity."""
+ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm", "early")
+"""Levels of a drift alarm, in increasing severity, then ``early``: the early warning of
+:mod:`twin.online.forecast` (the parameter is still in its band, but forecast to leave it within the horizon)."""
 
 ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
 """What happened: a level left ``ok`` (raised), went from warning to alarm

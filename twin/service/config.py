@@ -33,6 +33,7 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
                                         # restart; a failed fit falls back to the configured bands)
     controller = "digital"              # the loop's timing: digital, digital:5000, continuous
     intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
+    forecast_horizon_s = 3600           # early warning when a parameter leaves its band within this
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
     [rig.params]                        # known parameters that differ from the nominal MSP25
     KP = 400.0
@@ -87,6 +88,8 @@ class RigConfig:
     """Commission the rig on its first ``commission_s`` seconds in service (``None``: no)."""
     baseline_set: tuple[str, ...] = ()
     """The parameters whose band ``[rig.baseline.NAME]`` sets explicitly (a commissioning keeps them)."""
+    forecast_horizon_s: float = 3600.0
+    """Horizon of the early warning [s]: ``early`` when a parameter leaves its band within it with probability 0.9."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +116,7 @@ ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s")
 RIG_KEYS = ("name", "model", "source", "dbc", "speed", "track", "params", "baseline", "noise", "controller",
-            "intersample", "commission", "commission_s")
+            "intersample", "commission", "commission_s", "forecast_horizon_s")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
@@ -372,8 +375,10 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     elif os.path.splitext(source)[1].lower() not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
+    horizon = _number(r, "forecast_horizon_s", where, 3600.0, lo=0.0, lo_open=True,
+                      what=" seconds (the early warning's horizon)")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
-                     commission_s, tuple(_get(r, "baseline", dict, where, {})))
+                     commission_s, tuple(_get(r, "baseline", dict, where, {})), horizon)
 
 
 def with_commission_s(cfg: ServiceConfig, seconds: float | None) -> ServiceConfig:
