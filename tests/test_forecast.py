@@ -190,7 +190,8 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     assert len(msgs) == len({f["t"] for f in fcs})
     for m in msgs:
         validate(m, FORECAST_SCHEMA, "forecast")
-    html = open(doc["files"]["report"], encoding="utf-8").read()
+    with open(doc["files"]["report"], encoding="utf-8") as f:
+        html = f.read()
     assert "Early warning" in html and "first early alarm" in html
 
 

@@ -48,7 +48,12 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   at the horizon is ``p_within_horizon``.  A quantile beyond the grid's end
   (``1000`` horizons) is ``None``: the trend may never get there.
 * **Early alarm.** Level ``early`` (:class:`twin.online.events.AlarmEvent`,
-  kind ``raised``) when ``p_within_horizon >= p_early`` (0.9); it returns
+  kind ``raised``) when the probability of leaving the band within the
+  horizon is at least ``p_early`` (0.9), counting only exits no further ahead
+  than ``reach`` (1) times the span of the data the trend was fitted on: a
+  straight line is not extrapolated beyond the stretch that supports it (a
+  curve that flattens, such as a warming oil's leakage, looks straight over a
+  short stretch; the published ``p_within_horizon`` counts every exit); it returns
   (level ``ok``, kind ``returned``) when the probability has stayed below
   ``p_clear`` (0.5), or no forecast has existed, for ``clear_s`` (60 s):
   hysteresis so a noisy trend does not flap.
@@ -99,6 +104,8 @@ class Forecast:
     w_exp: float
     evidence: float
     edge: str
+    p_alarm: float = 0.0
+    """P(exit within the horizon, counting no exit further ahead than ``reach`` times the span of the data)."""
 
     def to_dict(self) -> dict[str, Any]:
         """The ``twin track --json`` entry (record seconds)."""
@@ -130,7 +137,7 @@ class ForecastMonitor:
     def __init__(self, rig: str, baseline: Mapping[str, Baseline], horizon_s: float = DEFAULT_HORIZON_S,
                  step_s: float = 1.0, p_early: float = 0.9, p_clear: float = 0.5, clear_s: float = 60.0,
                  settle_s: float = 30.0, min_span_s: float = 60.0, evidence: float = 10.0, resolve: float = 0.5,
-                 max_points: int = 1800, model: str = "msp25"):
+                 max_points: int = 1800, reach: float = 1.0, model: str = "msp25"):
         if not (horizon_s > 0 and math.isfinite(horizon_s)):
             raise ValueError(f"forecast horizon must be a positive number of seconds, got {horizon_s!r}")
         self.rig = rig
@@ -141,6 +148,7 @@ class ForecastMonitor:
         self.settle_s, self.min_span_s, self.evidence = float(settle_s), float(min_span_s), float(evidence)
         self.resolve = float(resolve)
         self.max_points = int(max_points)
+        self.reach = float(reach)
         self.params = {n: _Param(n, b) for n, b in baseline.items()}
         self._origin: float | None = None
         self._bin = -1  # index of the bin being filled
@@ -273,8 +281,12 @@ class ForecastMonitor:
         w_exp = float(special.expit(0.5 * kappa * n * math.log(max(fl[2], 1e-300) / max(fe[2], 1e-300))))
         lo, hi = q.base.lo / q.base.value, q.base.hi / q.base.value
         nu = max(n_eff - 2.0, 1.0)
-        F = (w_exp * _exit_cdf(fe, kappa, n, nu, math.log(lo), math.log(hi), self._grid)
-             + (1.0 - w_exp) * _exit_cdf(fl, kappa, n, nu, lo, hi, self._grid))
+        span = float(q.pts[n - 1, 0] - q.pts[0, 0])
+        grid = np.append(self._grid, min(self.horizon_s, self.reach * span))
+        F = (w_exp * _exit_cdf(fe, kappa, n, nu, math.log(lo), math.log(hi), grid)
+             + (1.0 - w_exp) * _exit_cdf(fl, kappa, n, nu, lo, hi, grid))
+        p_alarm = float(F[-1])
+        F = F[:-1]
         F = np.maximum.accumulate(F)
         qs: list[float | None] = []
         for p in _QUANTILES:
@@ -290,11 +302,11 @@ class ForecastMonitor:
             return None
         slope = fe[0][1] if w_exp >= 0.5 else fl[0][1]
         return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], float(F[self._ih]), w_exp, float(evidence),
-                        "high" if slope > 0 else "low")
+                        "high" if slope > 0 else "low", p_alarm)
 
     # -- the early alarm ----------------------------------------------------------------------------------------
     def _level(self, q: _Param, fc: Forecast | None, now: float, t_ns: int) -> AlarmEvent | None:
-        p = fc.p_within_horizon if fc is not None else 0.0
+        p = fc.p_alarm if fc is not None else 0.0
         if q.level == "ok":
             if fc is not None and p >= self.p_early:
                 q.level = "early"
@@ -394,10 +406,10 @@ FORECAST_SCHEMA: dict[str, Any] = {
         "rig": {"type": "string"}, "t_ns": {"type": "integer", "description": "ingest time [ns]"},
         "t_s": {"type": "number", "description": "record time of the forecast [s]"},
         "horizon_s": {"type": "number", "description": "horizon of p_within_horizon [s]"},
-        "forecasts": {"type": "array", "items": {
+        "forecasts": {"type": "object", "description": "parameter name -> its forecast (the parameters that have one)",
+                      "propertyNames": {"pattern": "^[A-Za-z_][A-Za-z0-9_]*$"}, "additionalProperties": {
             "type": "object",
-            "properties": {"parameter": {"type": "string"},
-                           "t_exit": {**_NUM_OR_NULL, "description": "median exit time, record seconds [s]"},
+            "properties": {"t_exit": {**_NUM_OR_NULL, "description": "median exit time, record seconds [s]"},
                            "t_exit_lo": {**_NUM_OR_NULL, "description": "5 % quantile of the exit time [s]"},
                            "t_exit_hi": {**_NUM_OR_NULL, "description": "95 % quantile of the exit time [s]"},
                            "remaining_s": {**_NUM_OR_NULL, "description": "median remaining time [s]"},
@@ -405,7 +417,8 @@ FORECAST_SCHEMA: dict[str, Any] = {
                            "remaining_hi_s": {**_NUM_OR_NULL, "description": "95 % quantile [s]"},
                            "p_within_horizon": {"type": "number", "description": "probability [1]"},
                            "edge": {"type": "string", "enum": ["low", "high"]}},
-            "required": ["parameter", "t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon"]}},
+            "required": ["t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon", "remaining_s", "remaining_lo_s",
+                         "remaining_hi_s", "edge"]}},
     },
     "required": ["rig", "t_ns", "t_s", "horizon_s", "forecasts"],
 }
@@ -421,8 +434,10 @@ def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> lis
         return None if v is None else max(0.0, v - t)
 
     return [{"rig": rig, "t_ns": t_ns, "t_s": fs[0].t, "horizon_s": horizon_s,
-             "forecasts": [{**f.to_dict(), "remaining_s": rem(f.t_exit, f.t), "remaining_lo_s": rem(f.t_exit_lo, f.t),
-                            "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs]}
+             "forecasts": {f.parameter: {"t_exit": f.t_exit, "t_exit_lo": f.t_exit_lo, "t_exit_hi": f.t_exit_hi,
+                                         "p_within_horizon": f.p_within_horizon, "remaining_s": rem(f.t_exit, f.t),
+                                         "remaining_lo_s": rem(f.t_exit_lo, f.t),
+                                         "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs}}
             for t_ns, fs in sorted(by_t.items())]
 
 
