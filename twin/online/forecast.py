@@ -24,12 +24,13 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   variance.  The noise scale is learnt from the residuals, so a filter that
   under- or over-states its uncertainty does not make the forecast over- or
   under-confident.
-* **Correlation.** Bins are not independent either when the filter's memory or
-  a model misfit (a curved wear on a straight line) outlasts a bin: the lag-1
-  autocorrelation ``rho`` of the chosen model's standardised residuals gives an
-  effective sample size ``n_eff = n (1 - rho) / (1 + rho)`` (the AR(1) variance
-  inflation the drift test uses for its increments), and the likelihood is
-  tempered by ``kappa = n_eff / n``: the coefficients' covariance grows by
+* **Correlation.** Bins are not independent either when the filter's memory, an
+  estimation error that follows the excitation, or a model misfit (a curved
+  wear on a straight line) outlasts a bin: the integrated autocorrelation time
+  ``tau_int`` of the chosen model's standardised residuals (Geyer's initial
+  positive sequence; for AR(1) errors it is the ``(1 + r)/(1 - r)`` the drift
+  test weights its increments by) gives an effective sample size
+  ``n_eff = n / tau_int``, and the likelihood is tempered by ``kappa = n_eff / n``: the coefficients' covariance grows by
   ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.
 * **Evidence.** The two models are averaged by their BIC weights (their
   likelihoods compared in the same coordinates, the Jacobian of the change of
@@ -44,7 +45,10 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   an edge before ``tau`` and being beyond it at ``tau`` are the same event); the
   model average of the two is the distribution of the exit time, its median
   and 5 % / 95 % quantiles are read off a grid of ``tau`` (no random draws: the
-  same data give the same forecast, before and after a restart), and its value
+  same data give the same forecast, before and after a restart), the interval
+  widened by one bin (``step_s``) on either side (the decimated time axis
+  resolves no finer; near the exit, where the interval is a few seconds wide,
+  the filter's own bias, which no trend can see, is of that order), and its value
   at the horizon is ``p_within_horizon``.  A quantile beyond the grid's end
   (``1000`` horizons) is ``None``: the trend may never get there.
 * **Early alarm.** Level ``early`` (:class:`twin.online.events.AlarmEvent`,
@@ -117,9 +121,9 @@ class Forecast:
 class _Param:
     name: str
     base: Baseline
-    pts: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((0, 3)))  # rows: t, y, log std
+    pts: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((0, 4)))  # rows: t, y, log std, held
     n: int = 0
-    acc: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])  # sum t, y, s, count
+    acc: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0])  # sum t, y, s, h; count
     since: float | None = None  # record time of the first usable sample after a start or reset
     level: str = "ok"
     clear_since: float | None = None
@@ -160,9 +164,14 @@ class ForecastMonitor:
 
     # -- data in ----------------------------------------------------------------------------------------------
     def update_block(self, names: Sequence[str], t_ns: np.ndarray, t_s: np.ndarray, est: np.ndarray,
-                     log_std: np.ndarray, frozen: np.ndarray,
-                     hold: np.ndarray | None = None) -> tuple[list[AlarmEvent], list[Forecast]]:
+                     log_std: np.ndarray, frozen: np.ndarray, hold: np.ndarray | None = None,
+                     held_log_std: np.ndarray | None = None) -> tuple[list[AlarmEvent], list[Forecast]]:
         """Bin a block of the tracker's output; at every completed bin, a forecast per parameter that has one.
+
+        ``log_std``: the filter's standard deviation of the log estimate (the regression's weights);
+        ``held_log_std``: the estimate's error if the parameter held still
+        (:attr:`twin.online.tracker.TrackBlock.held_log_std`, default ``log_std``), the uncertainty of the
+        current level that the trend does not average away.
 
         Returns the ``early`` alarm events raised or returned and the forecasts made (in time order)."""
         T = len(t_s)
@@ -186,6 +195,7 @@ class ForecastMonitor:
             ok &= ~np.asarray(hold, bool)[:, None]
         Y = np.log(np.where(ok, E, 1.0) / val)
         Sm = np.where(ok, S, 0.0)
+        Hm = Sm if held_log_std is None else np.where(ok, np.asarray(held_log_std, float)[:, jj], 0.0)
         Y = np.where(ok, Y, 0.0)
         b = np.floor((t_s - self._origin) / self.step_s).astype(np.int64)
         b = np.maximum.accumulate(np.maximum(b, self._bin))  # a sample out of order (jitter) joins the open bin
@@ -195,6 +205,7 @@ class ForecastMonitor:
         sums_t = np.add.reduceat(okf * t_s[:, None], starts, axis=0)
         sums_y = np.add.reduceat(Y, starts, axis=0)
         sums_s = np.add.reduceat(Sm, starts, axis=0)
+        sums_h = np.add.reduceat(Hm, starts, axis=0)
         counts = np.add.reduceat(okf, starts, axis=0)
         ends = np.concatenate([cuts, [T]]) - 1
         events: list[AlarmEvent] = []
@@ -211,7 +222,8 @@ class ForecastMonitor:
                 a[0] += float(sums_t[k, m])
                 a[1] += float(sums_y[k, m])
                 a[2] += float(sums_s[k, m])
-                a[3] += float(counts[k, m])
+                a[3] += float(sums_h[k, m])
+                a[4] += float(counts[k, m])
             i1 = int(ends[k])
             self._bin_last = (int(t_ns[i1]), float(t_s[i1]))
             self._last_values = (E[i1].copy(), S[i1].copy(), [q.name for q in ps])
@@ -223,7 +235,7 @@ class ForecastMonitor:
         t_ns, now = self._bin_last
         events, out = [], []
         for q in ps:
-            n_acc = q.acc[3]
+            n_acc = q.acc[4]
             if n_acc > 0:
                 tm = q.acc[0] / n_acc
                 if q.since is None:
@@ -233,10 +245,10 @@ class ForecastMonitor:
                         if q.n >= self.max_points:
                             self._merge(q)
                         else:
-                            q.pts = np.concatenate([q.pts, np.empty((max(64, q.n), 3))])[:self.max_points]
-                    q.pts[q.n] = (tm, q.acc[1] / n_acc, q.acc[2] / n_acc)
+                            q.pts = np.concatenate([q.pts, np.empty((max(64, q.n), 4))])[:self.max_points]
+                    q.pts[q.n] = (tm, q.acc[1] / n_acc, q.acc[2] / n_acc, q.acc[3] / n_acc)
                     q.n += 1
-            q.acc = [0.0, 0.0, 0.0, 0.0]
+            q.acc = [0.0, 0.0, 0.0, 0.0, 0.0]
             fc = self._forecast(q, now, t_ns)
             q.last = fc
             if fc is not None:
@@ -300,6 +312,9 @@ class ForecastMonitor:
                 qs.append(now + float(g0 + (g1 - g0) * (p - f0) / max(f1 - f0, 1e-300)))
         if qs[1] is None:  # the trend heads for no edge (or too slowly to say)
             return None
+        # the time axis is resolved to one bin: the interval widened by a bin on either side
+        qs[0] = max(now, qs[0] - self.step_s) if qs[0] is not None else None
+        qs[2] = qs[2] + self.step_s if qs[2] is not None else None
         slope = fe[0][1] if w_exp >= 0.5 else fl[0][1]
         return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], float(F[self._ih]), w_exp, float(evidence),
                         "high" if slope > 0 else "low", p_alarm)
@@ -372,7 +387,7 @@ class ForecastMonitor:
 
     def state(self) -> dict[str, Any]:
         """Plain data (numbers, strings, lists, dicts) from which :meth:`restore` continues exactly."""
-        return {"version": 1, "origin": self._origin, "bin": self._bin,
+        return {"version": 2, "origin": self._origin, "bin": self._bin,
                 "bin_last": None if self._bin_last is None else list(self._bin_last),
                 "params": {n: {"points": q.pts[:q.n].tolist(), "acc": list(q.acc), "since": q.since,
                                "level": q.level, "clear_since": q.clear_since,
@@ -380,7 +395,9 @@ class ForecastMonitor:
                            for n, q in self.params.items()}}
 
     def restore(self, state: Mapping[str, Any]) -> None:
-        """Continue from :meth:`state` of a monitor of the same rig."""
+        """Continue from :meth:`state` of a monitor of the same rig (a state of another layout: start afresh)."""
+        if state.get("version") != 2:
+            return
         self._origin = state["origin"]
         self._bin = int(state["bin"])
         bl = state["bin_last"]
@@ -389,7 +406,7 @@ class ForecastMonitor:
             q = self.params.get(n)
             if q is None:
                 continue
-            q.pts = np.array(d["points"], dtype=float).reshape(-1, 3)
+            q.pts = np.array(d["points"], dtype=float).reshape(-1, 4)
             q.n = len(q.pts)
             q.acc = [float(v) for v in d["acc"]]
             q.since, q.level, q.clear_since = d["since"], d["level"], d["clear_since"]
@@ -461,22 +478,36 @@ def _wls(t: np.ndarray, y: np.ndarray, w: np.ndarray):
 
 
 def _kappa(r: np.ndarray) -> float:
-    """``n_eff / n`` from the lag-1 autocorrelation of the standardised residuals (AR(1): ``(1 - rho)/(1 + rho)``)."""
-    if r.size < 3:
+    """``n_eff / n = 1 / tau_int`` of the standardised residuals: the integrated autocorrelation time
+    ``1 + 2 sum rho_k``, summed over Geyer's initial positive sequence (pairs ``rho_k + rho_k+1`` while positive),
+    so a slow or periodic error (a bias that follows the excitation) counts as the few samples it is."""
+    n = r.size
+    if n < 4:
         return 1.0
-    d = float(np.dot(r, r))
-    rho = float(np.dot(r[:-1], r[1:])) / d if d > 0 else 0.0
-    rho = min(max(rho, 0.0), 0.999)
-    return (1.0 - rho) / (1.0 + rho)
+    x = r - r.mean()
+    m = 1 << int(2 * n - 1).bit_length()
+    f = np.fft.rfft(x, m)
+    acf = np.fft.irfft(f * np.conj(f), m)[:n]
+    if not acf[0] > 0:
+        return 1.0
+    rho = acf / acf[0]
+    k = (n - 1) // 2 * 2
+    pairs = rho[1:k + 1:2] + rho[2:k + 2:2] if k >= 2 else np.zeros(0)
+    neg = np.flatnonzero(pairs <= 0.0)
+    stop = int(neg[0]) if neg.size else pairs.size
+    tau = 1.0 + 2.0 * float(np.sum(pairs[:stop]))
+    return 1.0 / min(max(tau, 1.0), float(n))
 
 
-def _exit_cdf(fit, kappa: float, n: int, nu: float, lo: float, hi: float, grid: np.ndarray) -> np.ndarray:
+def _exit_cdf(fit, kappa: float, n: int, nu: float, lo: float, hi: float, grid: np.ndarray,
+              level_var: float = 0.0) -> np.ndarray:
     """P(the trend's level at ``grid`` seconds from now is beyond ``lo`` or ``hi``), Student t with ``nu`` degrees
-    of freedom, scale from the residual variance over ``kappa n`` effective points."""
+    of freedom, scale from the residual variance over ``kappa n`` effective points plus ``level_var`` (the
+    estimate's own error now, which the trend's average does not remove: a bias of the filter)."""
     coef, cov, rss, _ = fit
     s2 = rss / max(n - 2.0, 1.0) / kappa
     m = coef[0] + coef[1] * grid
-    v = s2 * (cov[0, 0] + 2.0 * grid * cov[0, 1] + grid * grid * cov[1, 1])
+    v = s2 * (cov[0, 0] + 2.0 * grid * cov[0, 1] + grid * grid * cov[1, 1]) + level_var
     sd = np.sqrt(np.maximum(v, 1e-300))
     return special.stdtr(nu, (m - hi) / sd) + special.stdtr(nu, (lo - m) / sd)
 

@@ -301,7 +301,7 @@ class RigTwin(Sink):
                                           out.frozen, out.hold, out.guard):
             self._alarm(ev)
         early, fcs = self.forecast.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
-                                                out.frozen, out.hold)
+                                                out.frozen, out.hold, out.held_log_std)
         for ev in early:
             self._alarm(ev)
         if fcs:
