@@ -51,13 +51,15 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   the filter's own bias, which no trend can see, is of that order), and its value
   at the horizon is ``p_within_horizon``.  A quantile beyond the grid's end
   (``1000`` horizons) is ``None``: the trend may never get there.
+* **Reach.** ``p_within_horizon`` counts only exits no further ahead than
+  ``reach`` (1) times the span of the data the trend was fitted on: a trend is
+  not extrapolated beyond the stretch that supports it (a curve that flattens,
+  such as a warming oil's leakage, looks straight over a short stretch; on the
+  calibration record of a warming oil the unlimited probability reached 0.98
+  within an hour while the leakage levelled off at +30 %).  The exit-time
+  quantiles are those of the trend carried on.
 * **Early alarm.** Level ``early`` (:class:`twin.online.events.AlarmEvent`,
-  kind ``raised``) when the probability of leaving the band within the
-  horizon is at least ``p_early`` (0.9), counting only exits no further ahead
-  than ``reach`` (1) times the span of the data the trend was fitted on: a
-  straight line is not extrapolated beyond the stretch that supports it (a
-  curve that flattens, such as a warming oil's leakage, looks straight over a
-  short stretch; the published ``p_within_horizon`` counts every exit); it returns
+  kind ``raised``) when ``p_within_horizon >= p_early`` (0.9); it returns
   (level ``ok``, kind ``returned``) when the probability has stayed below
   ``p_clear`` (0.5), or no forecast has existed, for ``clear_s`` (60 s):
   hysteresis so a noisy trend does not flap.
@@ -108,8 +110,6 @@ class Forecast:
     w_exp: float
     evidence: float
     edge: str
-    p_alarm: float = 0.0
-    """P(exit within the horizon, counting no exit further ahead than ``reach`` times the span of the data)."""
 
     def to_dict(self) -> dict[str, Any]:
         """The ``twin track --json`` entry (record seconds)."""
@@ -160,7 +160,6 @@ class ForecastMonitor:
         self._last_values: tuple[np.ndarray, np.ndarray, list[str]] | None = None  # for the alarms' estimate
         grid = np.concatenate([[0.0], np.geomspace(self.step_s, GRID_HORIZONS * self.horizon_s, 160)])
         self._grid = np.unique(np.append(grid, self.horizon_s))
-        self._ih = int(np.searchsorted(self._grid, self.horizon_s))
 
     # -- data in ----------------------------------------------------------------------------------------------
     def update_block(self, names: Sequence[str], t_ns: np.ndarray, t_s: np.ndarray, est: np.ndarray,
@@ -316,12 +315,12 @@ class ForecastMonitor:
         qs[0] = max(now, qs[0] - self.step_s) if qs[0] is not None else None
         qs[2] = qs[2] + self.step_s if qs[2] is not None else None
         slope = fe[0][1] if w_exp >= 0.5 else fl[0][1]
-        return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], float(F[self._ih]), w_exp, float(evidence),
-                        "high" if slope > 0 else "low", p_alarm)
+        return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], p_alarm, w_exp, float(evidence),
+                        "high" if slope > 0 else "low")
 
     # -- the early alarm ----------------------------------------------------------------------------------------
     def _level(self, q: _Param, fc: Forecast | None, now: float, t_ns: int) -> AlarmEvent | None:
-        p = fc.p_alarm if fc is not None else 0.0
+        p = fc.p_within_horizon if fc is not None else 0.0
         if q.level == "ok":
             if fc is not None and p >= self.p_early:
                 q.level = "early"

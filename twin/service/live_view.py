@@ -83,7 +83,7 @@ STATUS_SCHEMA: dict = {
 ALARM_SCHEMA: dict = {
     "title": "fpdd.live.Alarm", "type": "object", "description": "A drift alarm event, values in display units",
     "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "seq": {"type": "integer"},
-                   "parameter": {"type": "string"}, "level": {"type": "string", "enum": ["ok", "warning", "alarm"]},
+                   "parameter": {"type": "string"}, "level": {"type": "string", "enum": ["ok", "warning", "alarm", "early"]},
                    "kind": {"type": "string"}, "t_s": _NUM, "estimate": _NUM, "std": _NUM, "baseline": _NUM,
                    "band_lo": _NUM, "band_hi": _NUM, "unit": {"type": "string"}, "statistic": _NUM,
                    "message": {"type": "string"}, "text": {"type": "string", "description": "one line"}},
@@ -102,7 +102,7 @@ LOG_SCHEMA: dict = {
 TOPICS = {"signals": ("/rig/signals", SIGNALS_SCHEMA), "estimate": ("/twin/estimate", ESTIMATE_SCHEMA),
           "status": ("/twin/status", STATUS_SCHEMA), "alarm": ("/twin/alarm", ALARM_SCHEMA),
           "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
-LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4}
+LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 
 
 def foxglove_time(t_ns: int) -> dict:
