@@ -133,7 +133,7 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
     if not fcs:
         return P.note(f"no forecast: no tracked parameter showed a trend strong enough to extrapolate (a BIC "
                       f"difference of 10 to a flat line); horizon {fmt_duration(horizon)}")
-    by = {}
+    by: dict[str, list[dict]] = {}
     for f in fcs:
         by.setdefault(f["parameter"], []).append(f)
     shown = [r for r in rows if r["name"] in by]
