@@ -528,6 +528,8 @@ def describe(fc: Forecast) -> str:
     if fc.t_exit is None:
         return "not within the forecast grid"
     rem = max(0.0, fc.t_exit - fc.t)
+    if rem < 1.0:
+        return "now (its trend is at the band's edge or beyond)"
     text = fmt_duration(rem)
     unit = text.split()[-1]
     div = {"s": 1.0, "min": 60.0, "h": 3600.0, "d": 86400.0}[unit]

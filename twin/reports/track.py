@@ -150,7 +150,8 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
                 ax.axhspan(*r["band"], color=views.GREEN, alpha=0.13, lw=0, label="healthy band")
             if t.size:
                 ax.plot(t, r["value"], color=views.BLUE, lw=1.0, label="estimate")
-            last = fs[-1]
+            # the fan of the last forecast that still looked ahead (not one made after the exit)
+            last = next((f for f in reversed(fs) if f["t_exit"] is not None and f["t_exit"] > f["t"] + 1.0), fs[-1])
             if r["band"] is not None and t.size and last["t_exit"] is not None:
                 i = int(np.searchsorted(t, last["t"]).clip(0, t.size - 1))
                 v0 = float(r["value"][i])
