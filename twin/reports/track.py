@@ -150,18 +150,22 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
                 ax.axhspan(*r["band"], color=views.GREEN, alpha=0.13, lw=0, label="healthy band")
             if t.size:
                 ax.plot(t, r["value"], color=views.BLUE, lw=1.0, label="estimate")
-            # the fan of the last forecast that still looked ahead (not one made after the exit)
-            last = next((f for f in reversed(fs) if f["t_exit"] is not None and f["t_exit"] > f["t"] + 1.0), fs[-1])
+            # the fan of the forecast at the first early alarm (what the planner was told), else of the last one
+            # that still looked ahead; drawn from the estimate's median over the 10 s before it
+            t_early = next((a["t_s"] for a in alarms if a.get("parameter") == r["name"] and a.get("level") == "early"),
+                           None)
+            ahead = [f for f in fs if f["t_exit"] is not None and f["t_exit"] > f["t"] + 1.0] or fs
+            last = next((f for f in ahead if t_early is not None and f["t"] >= t_early - 0.5), ahead[-1])
             if r["band"] is not None and t.size and last["t_exit"] is not None:
-                i = int(np.searchsorted(t, last["t"]).clip(0, t.size - 1))
-                v0 = float(r["value"][i])
+                near = (t > last["t"] - 10.0) & (t <= last["t"])
+                v0 = float(np.median(r["value"][near])) if near.any() else float(r["value"][-1])
                 edge = r["band"][1] if last.get("edge", "high") == "high" else r["band"][0]
                 for key, ls in (("t_exit_lo", ":"), ("t_exit", "-"), ("t_exit_hi", ":")):
                     if last[key] is not None:
-                        ax.plot([last["t"], last[key]], [v0, edge], color=views.ORANGE, lw=1.0, ls=ls)
+                        ax.plot([last["t"], last[key]], [v0, edge], color=views.ORANGE, lw=1.2, ls=ls, zorder=4)
                 ends = [last[k] for k in ("t_exit_lo", "t_exit_hi") if last[k] is not None]
                 if len(ends) == 2:
-                    ax.fill([last["t"], ends[0], ends[1]], [v0, edge, edge], color=views.ORANGE, alpha=0.2, lw=0,
+                    ax.fill([last["t"], ends[0], ends[1]], [v0, edge, edge], color=views.ORANGE, alpha=0.35, lw=0, zorder=3,
                             label="forecast (median, 90 %)")
             if r.get("log"):
                 ax.set_yscale("log")
@@ -181,8 +185,8 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
         axes[0, 1].legend(loc="best", fontsize="small", frameon=False)
         fig.tight_layout()
     body = [P.figure(fig, "Left: each forecast parameter's estimate (display units), its healthy band (green) and "
-                          "the last forecast: straight to the band's edge at the median exit time, the 90 % "
-                          "interval shaded. Right: the remaining time forecast at each second of the record "
+                          "the forecast at its first early alarm (else the last one before the exit): straight to "
+                          "the band's edge at the median exit time, the 90 % interval shaded. Right: the remaining time forecast at each second of the record "
                           "(median, 90 % interval shaded; minutes) against the horizon (dashed), early alarms as "
                           "vertical lines.")]
     trows = []
