@@ -40,6 +40,7 @@ from datetime import UTC
 __all__ = [
     "ALARM_KINDS",
     "ALARM_LEVELS",
+    "EVENT_LEVELS",
     "SERVICE_STATES",
     "AlarmEvent",
     "AlarmIdentity",
@@ -50,8 +51,11 @@ __all__ = [
     "validate",
 ]
 
-ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm", "early")
-"""Levels of a drift alarm, in increasing severity, then ``early``: the early warning of
+ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm")
+"""Levels of a drift alarm, in increasing severity."""
+
+EVENT_LEVELS: tuple[str, ...] = (*ALARM_LEVELS, "early")
+"""Levels an alarm event may carry: the drift test's, and ``early``, the early warning of
 :mod:`twin.online.forecast` (the parameter is still in its band, but forecast to leave it within the horizon)."""
 
 ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
@@ -234,7 +238,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
         "parameter": {"type": "string", "pattern": NAME_PATTERN, "description": "parameter name"},
-        "level": {"type": "string", "enum": list(ALARM_LEVELS), "description": "level after this event"},
+        "level": {"type": "string", "enum": list(EVENT_LEVELS), "description": "level after this event"},
         "kind": {"type": "string", "enum": list(ALARM_KINDS), "description": "transition"},
         "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "t_s": _num("time from the start of the record [s]"),
@@ -300,7 +304,7 @@ class AlarmEvent(_FromJson):
 
     :ivar rig: rig id (one Zenoh key chunk, see :data:`RIG_PATTERN`).
     :ivar parameter: parameter name, e.g. ``"Kleak"``.
-    :ivar level: level after the event, one of :data:`ALARM_LEVELS`.
+    :ivar level: level after the event, one of :data:`EVENT_LEVELS`.
     :ivar kind: ``raised`` (left ok), ``escalated`` (warning to alarm) or ``returned``.
     :ivar t_ns: ingest time of the sample that triggered the event [ns].
     :ivar t_s: time from the start of the record [s].
