@@ -95,7 +95,7 @@ def test_estimate_params_are_converted_and_read_only() -> None:
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("level", "alrm", "AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm']"),
+        ("level", "alrm", "AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm', 'early']"),
         ("kind", "gone", "AlarmEvent.kind: 'gone' is not one of"),
         ("seq", 0, "AlarmEvent.seq: 0 must be >= 1"),
         ("seq", "3", "AlarmEvent.seq: '3' must be an integer"),

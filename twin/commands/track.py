@@ -30,7 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")
     p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
-    p.add_argument("--json", action="store_true", help="print alarms and final estimates as JSON")
+    p.add_argument("--json", action="store_true", help="print alarms, forecasts and final estimates as JSON")
+    p.add_argument("--forecast-horizon", type=float, metavar="S",
+                   help="early warning horizon in seconds: an 'early' alarm when a parameter is forecast to leave its "
+                        "band within S s with probability 0.9 (default the rig's forecast_horizon_s, else 3600)")
     add_timing_arguments(p)
     add_map_argument(p)
 
@@ -68,6 +71,11 @@ def run(args) -> int:
     from twin.reports.plots import parameter_trends
 
     _check_rig_log(args.log)
+    horizon = getattr(args, "forecast_horizon", None)
+    if horizon is not None and not (horizon > 0 and horizon < float("inf")):
+        from twin.errors import ParameterError
+
+        raise ParameterError(f"--forecast-horizon: expected a positive number of seconds, got {horizon!r}")
     params = {}
     baseline = None
     tracked = names(args.track) or None
@@ -75,6 +83,7 @@ def run(args) -> int:
         cfg = load_config(args.config)
         rig = next((r for r in cfg.rigs if r.name == args.rig), cfg.rigs[0])
         params, baseline, tracked = dict(rig.params), rig.baseline, tracked or rig.track
+        horizon = horizon if horizon is not None else rig.forecast_horizon_s
     commission = None
     if args.params:
         from twin.online.commission import load_fit, tracker_params
@@ -101,7 +110,7 @@ def run(args) -> int:
         opts["dbc"] = args.dbc
     reports: list = []
     twin = track(_read(args.log, opts, reports), args.rig, params, tracked, baseline, args.out, progress=say,
-                 noise=noise, timing=timing, commission=commission)
+                 noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon)
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:
@@ -114,6 +123,8 @@ def run(args) -> int:
     result = {
         "log": args.log, "rig": args.rig, "samples": twin.stats.samples,
         "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
+        "forecasts": [f.to_dict() for f in sorted(twin.forecasts, key=lambda f: (f.t, f.parameter))],
+        "forecast_horizon_s": twin.forecast.horizon_s,
         "final": twin.final_estimates(),
         "status": twin.drift.statuses(),
         "counters": twin.tracker.counters,
@@ -144,6 +155,11 @@ def run(args) -> int:
     for n, d in result["final"].items():  # display units, rounded after the conversion (JSON above stays SI)
         sh = Shown(n, spec=specs.spec(n))
         print(f"  {n:8s} {sh.text(d['value'], 5)} +- {sh.text(d['std'], 2)}  [{result['status'][n]}]")
+    from twin.online.forecast import describe
+
+    for n, f in twin.forecast.latest().items():
+        print(f"  {n:8s} leaves its band {describe(f)} (at {f.t:.0f} s of record; P(within "
+              f"{twin.forecast.horizon_s:g} s) = {f.p_within_horizon:.2f})")
     for line in lost:
         print(f"  input lost: {line}")
     print(f"report: {result['files']['report']}", file=sys.stderr)

@@ -6,7 +6,7 @@ attribute. The same schema drives validation: ``from_dict`` checks a decoded
 payload against it and raises :class:`~twin.errors.DataError` with a message
 that names the event, the field, the value and what was expected, e.g.::
 
-    AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm']
+    AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm', 'early']
 
 Construction validates too (``__post_init__``), so an event that exists is a
 valid event. Unknown extra fields in a payload are ignored (a tolerant reader:
@@ -40,6 +40,7 @@ from datetime import UTC
 __all__ = [
     "ALARM_KINDS",
     "ALARM_LEVELS",
+    "EVENT_LEVELS",
     "SERVICE_STATES",
     "AlarmEvent",
     "AlarmIdentity",
@@ -54,6 +55,10 @@ __all__ = [
 
 ALARM_LEVELS: tuple[str, ...] = ("ok", "warning", "alarm")
 """Levels of a drift alarm, in increasing severity."""
+
+EVENT_LEVELS: tuple[str, ...] = (*ALARM_LEVELS, "early")
+"""Levels an alarm event may carry: the drift test's, and ``early``, the early warning of
+:mod:`twin.online.forecast` (the parameter is still in its band, but forecast to leave it within the horizon)."""
 
 ALARM_KINDS: tuple[str, ...] = ("raised", "escalated", "returned")
 """What happened: a level left ``ok`` (raised), went from warning to alarm
@@ -237,7 +242,7 @@ _ALARM_SCHEMA: dict[str, Any] = {
     "properties": {
         "rig": {"type": "string", "pattern": RIG_PATTERN, "description": "rig id"},
         "parameter": {"type": "string", "pattern": NAME_PATTERN, "description": "parameter name"},
-        "level": {"type": "string", "enum": list(ALARM_LEVELS), "description": "level after this event"},
+        "level": {"type": "string", "enum": list(EVENT_LEVELS), "description": "level after this event"},
         "kind": {"type": "string", "enum": list(ALARM_KINDS), "description": "transition"},
         "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
         "t_s": _num("time from the start of the record [s]"),
@@ -308,7 +313,7 @@ class AlarmEvent(_FromJson):
 
     :ivar rig: rig id (one Zenoh key chunk, see :data:`RIG_PATTERN`).
     :ivar parameter: parameter name, e.g. ``"Kleak"``.
-    :ivar level: level after the event, one of :data:`ALARM_LEVELS`.
+    :ivar level: level after the event, one of :data:`EVENT_LEVELS`.
     :ivar kind: ``raised`` (left ok), ``escalated`` (warning to alarm) or ``returned``.
     :ivar t_ns: ingest time of the sample that triggered the event [ns].
     :ivar t_s: time from the start of the record [s].

@@ -11,7 +11,7 @@ from twin.reports import page as P
 from twin.reports import views
 from twin.reports.units import Shown, fmt
 
-LEVEL_CLASS = {"alarm": "lvl-alarm", "warning": "lvl-warning", "ok": "lvl-ok"}
+LEVEL_CLASS = {"alarm": "lvl-alarm", "warning": "lvl-warning", "early": "lvl-warning", "ok": "lvl-ok"}
 
 
 def track_summary(twin: Any, log: str | None = None) -> dict:
@@ -33,7 +33,9 @@ def track_summary(twin: Any, log: str | None = None) -> dict:
     return {"rig": twin.rig.name, "model": twin.rig.model, "log": log or twin.rig.source,
             "samples": int(twin.stats.samples), "t_s": h["t_s"].tolist(), "params": params,
             "alarms": [a.to_dict() for a in twin.alarms], "status": dict(twin.drift.statuses()),
-            "final": twin.final_estimates(), "counters": {k: int(v) for k, v in twin.tracker.counters.items()}}
+            "final": twin.final_estimates(), "counters": {k: int(v) for k, v in twin.tracker.counters.items()},
+            "forecasts": [dict(f.to_dict(), edge=f.edge) for f in sorted(getattr(twin, "forecasts", ()), key=lambda f: (f.t, f.parameter))],
+            "forecast_horizon_s": float(getattr(getattr(twin, "forecast", None), "horizon_s", 3600.0))}
 
 
 def interval95(value: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,6 +109,8 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
                                        text_columns=("parameter", "level", "kind", "unit"), raw_columns=("level",),
                                        wrap_columns=("message",)) if arows else P.note("no alarm: every parameter "
                                                                                         "stayed in its healthy band"))
+    pg.add("forecast", "Early warning: forecast exit from the healthy band", _forecast_section(s, model, rows, t, alarms))
+
     srows = [{"parameter": n, "status": w} for n, w in status.items()]
     counters = s.get("counters") or {}
     body = [P.table(srows, text_columns=("parameter", "status"), flag=lambda r: r["status"] in ("warning", "alarm")),
@@ -117,3 +121,88 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
                             text_columns=("filter counter",)))
     pg.add("status", "Statuses", "\n".join(body))
     return pg.write(out_dir, filename)
+
+
+def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, alarms: list[dict]) -> str:
+    """Per parameter with a forecast: its trend with the band and the last forecast's fan, the forecast remaining
+    time (median and 90 % interval) over the record; a table of the last forecasts and the first early alarms."""
+    from twin.online.forecast import fmt_duration
+
+    fcs = list(s.get("forecasts") or [])
+    horizon = float(s.get("forecast_horizon_s") or 3600.0)
+    if not fcs:
+        return P.note(f"no forecast: no tracked parameter showed a trend strong enough to extrapolate (a BIC "
+                      f"difference of 10 to a flat line); horizon {fmt_duration(horizon)}")
+    by: dict[str, list[dict]] = {}
+    for f in fcs:
+        by.setdefault(f["parameter"], []).append(f)
+    shown = [r for r in rows if r["name"] in by]
+    pl = views.plt()
+    with pl.rc_context(views.RC):
+        fig, axes = pl.subplots(len(shown), 2, figsize=(10.5, 2.3 * len(shown) + 0.6), squeeze=False)
+        for (ax, ax2), r in zip(axes, shown):
+            fs = by[r["name"]]
+            ft = np.array([f["t"] for f in fs])
+            med = np.array([np.nan if f["t_exit"] is None else f["t_exit"] - f["t"] for f in fs]) / 60.0
+            lo = np.array([np.nan if f["t_exit_lo"] is None else f["t_exit_lo"] - f["t"] for f in fs]) / 60.0
+            hi = np.array([np.nan if f["t_exit_hi"] is None else f["t_exit_hi"] - f["t"] for f in fs]) / 60.0
+            if r["band"] is not None:
+                ax.axhspan(*r["band"], color=views.GREEN, alpha=0.13, lw=0, label="healthy band")
+            if t.size:
+                ax.plot(t, r["value"], color=views.BLUE, lw=1.0, label="estimate")
+            # the fan of the forecast at the first early alarm (what the planner was told), else of the last one
+            # that still looked ahead; drawn from the estimate's median over the 10 s before it
+            t_early = next((a["t_s"] for a in alarms if a.get("parameter") == r["name"] and a.get("level") == "early"),
+                           None)
+            ahead = [f for f in fs if f["t_exit"] is not None and f["t_exit"] > f["t"] + 1.0] or fs
+            last = next((f for f in ahead if t_early is not None and f["t"] >= t_early - 0.5), ahead[-1])
+            if r["band"] is not None and t.size and last["t_exit"] is not None:
+                near = (t > last["t"] - 10.0) & (t <= last["t"])
+                v0 = float(np.median(r["value"][near])) if near.any() else float(r["value"][-1])
+                edge = r["band"][1] if last.get("edge", "high") == "high" else r["band"][0]
+                for key, ls in (("t_exit_lo", ":"), ("t_exit", "-"), ("t_exit_hi", ":")):
+                    if last[key] is not None:
+                        ax.plot([last["t"], last[key]], [v0, edge], color=views.ORANGE, lw=1.2, ls=ls, zorder=4)
+                ends = [last[k] for k in ("t_exit_lo", "t_exit_hi") if last[k] is not None]
+                if len(ends) == 2:
+                    ax.fill([last["t"], ends[0], ends[1]], [v0, edge, edge], color=views.ORANGE, alpha=0.35, lw=0, zorder=3,
+                            label="forecast (median, 90 %)")
+            if r.get("log"):
+                ax.set_yscale("log")
+            ax.set_ylabel(r["label"])
+            ax.set_xlabel("t [s]")
+            ax2.fill_between(ft, lo, hi, color=views.ORANGE, alpha=0.25, lw=0, label="90 % interval")
+            ax2.plot(ft, med, color=views.ORANGE, lw=1.1, label="median")
+            ax2.axhline(horizon / 60.0, color=views.RED, lw=0.8, ls="--", label="horizon")
+            for a in alarms:
+                if a.get("parameter") == r["name"] and a.get("level") == "early":
+                    ax2.axvline(a["t_s"], color=views.RED, lw=1.0)
+            top = np.nanmax(np.concatenate([med, [horizon / 60.0]]))
+            ax2.set_ylim(0, 1.5 * top if np.isfinite(top) else None)
+            ax2.set_ylabel(f"{r['name']} exit in [min]")
+            ax2.set_xlabel("t [s]")
+        axes[0, 0].legend(loc="best", fontsize="small", frameon=False)
+        axes[0, 1].legend(loc="best", fontsize="small", frameon=False)
+        fig.tight_layout()
+    body = [P.figure(fig, "Left: each forecast parameter's estimate (display units), its healthy band (green) and "
+                          "the forecast at its first early alarm (else the last one before the exit): straight to "
+                          "the band's edge at the median exit time, the 90 % interval shaded. Right: the remaining time forecast at each second of the record "
+                          "(median, 90 % interval shaded; minutes) against the horizon (dashed), early alarms as "
+                          "vertical lines.")]
+    trows = []
+    for name, fs in by.items():
+        last = fs[-1]
+        first_early = next((a["t_s"] for a in alarms if a.get("parameter") == name and a.get("level") == "early"),
+                           None)
+
+        def rem(v, t0=last["t"]):
+            return "never" if v is None else fmt_duration(max(0.0, v - t0))
+
+        trows.append({"parameter": name, "forecast at": f"{last['t']:.0f} s",
+                      "exit in (median)": rem(last["t_exit"]),
+                      "90 % interval": f"{rem(last['t_exit_lo'])} … {rem(last['t_exit_hi'])}",
+                      f"P(exit within {fmt_duration(horizon)})": f"{last['p_within_horizon']:.2f}",
+                      "first forecast": f"{fs[0]['t']:.0f} s",
+                      "first early alarm": "none" if first_early is None else f"{first_early:.0f} s"})
+    body.append(P.table(trows, text_columns=("parameter",)))
+    return "\n".join(body)

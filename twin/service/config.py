@@ -35,6 +35,7 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
                                         # restart; a failed fit falls back to the configured bands)
     controller = "digital"              # the loop's timing: digital, digital:5000, continuous
     intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
+    forecast_horizon_s = 3600           # early warning when a parameter leaves its band within this
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
     [rig.params]                        # known parameters that differ from the nominal MSP25
     KP = 400.0                          # a bare number is SI; or with a unit: A = "2000mm^2"
@@ -116,6 +117,8 @@ class RigConfig:
 
             opts["mapping"] = parse_map(self.map)
         return opts
+    forecast_horizon_s: float = 3600.0
+    """Horizon of the early warning [s]: ``early`` when a parameter leaves its band within it with probability 0.9."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +148,7 @@ ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s", "signing_keys")
 RIG_KEYS = ("name", "model", "source", "dbc", "map", "speed", "track", "params", "baseline", "noise", "controller",
-            "intersample", "commission", "commission_s", "signing_key")
+            "intersample", "commission", "commission_s", "signing_key", "forecast_horizon_s")
 NOISE_KEYS = ("x", "pA", "pB")
 BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
@@ -524,9 +527,12 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     if col_map and (source.lower().startswith(("can://", "zenoh://")) or not source.lower().endswith((".csv", ".csv.gz"))):
         raise ConfigError(f"{where}.map: renames CSV columns; the source {source!r} is not a CSV log (its "
                           "signals are named by its format)")
+    horizon = _number(r, "forecast_horizon_s", where, 3600.0, lo=0.0, lo_open=True,
+                      what=" seconds (the early warning's horizon)")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
                      commission_s, tuple(_get(r, "baseline", dict, where, {})),
-                     signing_key=_get(r, "signing_key", str, where, "") or None, map=col_map)
+                     signing_key=_get(r, "signing_key", str, where, "") or None, map=col_map,
+                     forecast_horizon_s=horizon)
 
 
 def _signing_keys(rigs: list[RigConfig], directory: str | None, path: str) -> list[RigConfig]:

@@ -99,7 +99,7 @@ LOG_SCHEMA: dict = {
 TOPICS = {"signals": ("/rig/signals", SIGNALS_SCHEMA), "estimate": ("/twin/estimate", ESTIMATE_SCHEMA),
           "status": ("/twin/status", STATUS_SCHEMA), "alarm": ("/twin/alarm", ALARM_SCHEMA),
           "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
-LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4}
+LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 
 
 def foxglove_time(t_ns: int) -> dict:

@@ -36,6 +36,7 @@ import numpy as np
 from replay.base import ReadReport, Samples, Sink
 from twin.service.config import RigConfig
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
+from twin.online.forecast import FORECAST_SCHEMA
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,8 @@ SERVICE_HISTORY = 4096
 ALARMS_KEPT = 10000
 #: A rig's status is published at least this often [s], and a change of its message alone waits for it.
 STATUS_S = 1.0
+#: Forecasts kept in memory per rig by the service (one per parameter per second); ``twin track`` keeps all.
+FORECASTS_KEPT = 4096
 #: Samples that arrive while a rig's commissioning fit runs wait for it, at most this much sample time [s].
 COMMISSION_PENDING_S = 60.0
 
@@ -135,6 +138,13 @@ class Commissioning:
                 "no alarms before it ends")
 
 
+def _forecast_monitor(rig: RigConfig):
+    from twin.online.forecast import ForecastMonitor
+
+    return ForecastMonitor(rig.name, rig.baseline, horizon_s=getattr(rig, "forecast_horizon_s", 3600.0),
+                           model=rig.model)
+
+
 def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
               history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
     """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
@@ -145,7 +155,8 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
     """What a checkpoint's state depends on: the rig's configuration except its replay speed."""
     d = dataclasses.asdict(rig)
     d.pop("speed")
-    for key, default in (("commission_s", None), ("baseline_set", ()), ("map", ())):  # keys added later: their default is
+    for key, default in (("commission_s", None), ("baseline_set", ()), ("map", ()),  # keys added later: their default is
+                         ("forecast_horizon_s", 3600.0)):
         if d.get(key) == default:                                          # no change (checkpoints still match)
             d.pop(key, None)
     d["estimate_every"] = estimate_every
@@ -174,6 +185,8 @@ class RigTwin(Sink):
         self.on_alarm = on_alarm
         self.tracker = tracker_for(rig, dt=dt)
         self.drift = DriftMonitor(rig.name, rig.baseline, model=rig.model)
+        self.forecast = _forecast_monitor(rig)
+        self.forecasts: collections.deque = collections.deque(maxlen=history and FORECASTS_KEPT)
         self.stats = RigStats()
         self.health = Health()
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
@@ -196,7 +209,8 @@ class RigTwin(Sink):
     def state(self) -> dict[str, Any]:
         """Everything the twin's future output depends on, as plain data (numbers, strings, lists, arrays)."""
         return {"tracker": self.tracker.state(), "drift": self.drift.state(), "t0_ns": self._t0_ns,
-                "last_t_ns": self.last_t_ns, "since_estimate": self._since_estimate, "samples": self.stats.samples}
+                "last_t_ns": self.last_t_ns, "since_estimate": self._since_estimate, "samples": self.stats.samples,
+                "forecast": self.forecast.state()}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from :meth:`state` of an earlier twin of the same rig (raises DataError, ValueError or
@@ -207,6 +221,8 @@ class RigTwin(Sink):
         self.last_t_ns = state["last_t_ns"]
         self._since_estimate = int(state["since_estimate"])
         self.stats.samples = int(state["samples"])
+        if "forecast" in state:  # checkpoints from before the forecast: it starts afresh
+            self.forecast.restore(state["forecast"])
 
     def restart_filter(self, start: dict[str, float] | None = None) -> None:
         """A fresh tracker starting from ``start`` (e.g. the last good estimates); the detector carries on.
@@ -258,6 +274,9 @@ class RigTwin(Sink):
             self.rig = apply_commission(self.rig, com)
             self.tracker = tracker_for(self.rig)
             self.drift = DriftMonitor(self.rig.name, self.rig.baseline)
+            for ev in self.forecast.reset(why="re-commissioned"):
+                self._alarm(ev)
+            self.forecast = _forecast_monitor(self.rig)
             line = (f"commissioned on its first {c.window.gathered_s:.1f} s: "
                     f"{describe(com, self.rig.track)}")
         else:
@@ -292,6 +311,12 @@ class RigTwin(Sink):
         for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
                                           out.frozen, out.hold, out.guard):
             self._alarm(ev)
+        early, fcs = self.forecast.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
+                                                out.frozen, out.hold, out.held_log_std)
+        for ev in early:
+            self._alarm(ev)
+        if fcs:
+            self._forecast(fcs)
         # an estimate every estimate_every samples, wherever the block boundaries fall
         n = len(out.t_ns)
         first = self.estimate_every - 1 - self._since_estimate
@@ -341,6 +366,24 @@ class RigTwin(Sink):
             self.recorder.write_message("/twin/alarm", ev.t_ns, ev.to_dict(), schema=ev.SCHEMA)
         if self.on_alarm is not None:
             self.on_alarm(ev)
+
+    def maintenance(self, parameters=None, why: str = "maintenance") -> None:
+        """A recorded maintenance event: the forecasts of ``parameters`` (default all) forget their history."""
+        for ev in self.forecast.reset(parameters, why):
+            self._alarm(ev)
+
+    def _forecast(self, fcs) -> None:
+        """Forecasts of one or more completed bins: kept, recorded (``/twin/forecast``, one message per bin) and
+        handed to the publisher's ``publish_forecast`` when it has one."""
+        from twin.online.forecast import forecast_message
+
+        self.forecasts.extend(fcs)
+        for msg in forecast_message(self.rig.name, fcs, self.forecast.horizon_s):
+            if self.recorder is not None:
+                self.recorder.write_message("/twin/forecast", msg["t_ns"], msg, schema=FORECAST_SCHEMA)
+            pub = getattr(self.publisher, "publish_forecast", None)
+            if pub is not None:
+                pub(msg)
 
     def _estimate(self, out, t_s, i: int) -> None:
         sd = out.interval_stds[i]

@@ -78,7 +78,8 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
 
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
-          estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None):
+          estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None,
+          forecast_horizon_s: float | None = None):
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -90,13 +91,15 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     per output (SI); ``timing``: the loop's :class:`~twin.models.base.Timing`;
     ``commission``: a :class:`twin.online.commission.Commission` (or the path of a
     ``twin fit --save`` file): known values, healthy bands around the fitted
-    values, noise and timing.  With ``out_dir`` the estimates, alarms and
+    values, noise and timing; ``forecast_horizon_s``: the early warning's horizon
+    (default one hour).  With ``out_dir`` the estimates, alarms and
     statuses go to ``OUT_DIR/RIG.twin.mcap``, an estimate every ``estimate_every``
     samples.  The twin holds the results:
     ``alarms`` (events with ``t_s`` from the start of the record),
     ``final_estimates()``, ``history_arrays()``, ``drift.statuses()``,
-    ``tracker.counters``; for a log path ``read_report`` (:class:`replay.base.ReadReport`: what its reader
-    lost on the way, also logged as a warning).
+    ``tracker.counters``, ``forecasts`` (:class:`twin.online.forecast.Forecast`, one per
+    parameter per second of record while it has one; ``/twin/forecast`` in the MCAP); for a log path
+    ``read_report`` (:class:`replay.base.ReadReport`: what its reader lost on the way, also logged as a warning).
     """
     from replay.mcapio import McapSink
     from twin.online.baseline import default_baseline
@@ -114,7 +117,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         base.update(commission.baseline(tracked))
     base.update(baseline or {})
     where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else f"<{type(source).__name__}>"
-    rig = RigConfig(rig_name, "msp25", where, dbc, 0.0, tracked, dict(params or {}), base)
+    rig = RigConfig(rig_name, "msp25", where, dbc, 0.0, tracked, dict(params or {}), base,
+                    forecast_horizon_s=3600.0 if forecast_horizon_s is None else float(forecast_horizon_s))
     rec = None
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)

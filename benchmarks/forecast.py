@@ -1,0 +1,268 @@
+"""Early warning measured on the reference simulator (``python -m benchmarks.forecast [--json] [--set S]``).
+
+Slow wear of the independent reference simulator (``tests/reference``): leakage
+(``CdAleak``), friction (``Ffric``) and valve bandwidth (``wn``) drifting
+linearly or exponentially over 10-60 min of record at 1 kHz, default and doubled
+sensor noise, the other parameters drawn within +-10 % of Table 9 (the tracker
+starts at Table 9, away from the truth), the wearing one leaving its default
+healthy band about three quarters into the record; healthy records (drawn truth,
+nominal and doubled noise, a warming oil whose leakage rises 30 % and Cd 3 %
+with a 400 s time constant) for false warnings.
+
+Figures per wear record (``twin.online.forecast`` through the service's
+:class:`twin.service.rig.RigTwin`, exactly as ``twin track`` runs it):
+
+* coverage: the share of the forecasts published over the last third before
+  the true exit whose 90 % interval ``[t_exit_lo, t_exit_hi]`` holds the true
+  exit time (the first instant the truth leaves its band);
+* lead: how long before the true exit the first ``early`` alarm of that
+  parameter came, as a fraction of the wear's duration (from the start of the
+  wear to the exit);
+* false ``early`` alarms per hour on the healthy records (any parameter), and
+  ``early`` alarms on a parameter that does not wear in the wear records.
+
+Verification seeds are >= 1000 (``--set verify``, the README's table);
+``--set calib`` (seeds < 1000) is what any constant was looked at on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+_TESTS = os.path.join(os.path.dirname(HERE), "tests")
+
+TWO_PI = 2.0 * math.pi
+
+
+def _reference():
+    if _TESTS not in sys.path:
+        sys.path.insert(0, _TESTS)
+    import reference
+
+    return reference
+
+
+#: default healthy bands (relative half-widths of the MSP25's tracking specs): hi = v (1 + r), lo = v / (1 + r)
+BAND = {"Ffric": 0.5, "CdAleak": 2.0, "Cd": 0.15, "zeta": 0.3, "wn": 0.15}
+#: which edge a wear heads for
+EDGE = {"Ffric": "hi", "CdAleak": "hi", "wn": "lo"}
+
+
+def wear_spec(param: str, shape: str, duration: float, seed: int, noise: float = 1.0,
+              exit_frac: float = 0.75, t0: float = 0.0) -> dict:
+    """The reference spec of a wear record: ``param`` wears from its drawn value from ``t0`` and leaves its default
+    healthy band at ``t0 + exit_frac (duration - t0)``, ``shape`` ``linear`` (in the parameter) or ``exp``
+    (exponential in the parameter)."""
+    ref = _reference()
+    nominal = ref.MSP25_FREE[param]
+    truth = ref.draw_truth(seed, 0.1, "msp25")
+    v0 = truth[param]
+    r = BAND[param]
+    edge = nominal * (1 + r) if EDGE[param] == "hi" else nominal / (1 + r)
+    t_exit = t0 + exit_frac * (duration - t0)
+    tt = np.arange(0.0, duration + 1.0, 1.0)
+    if shape == "linear":
+        rate = (edge - v0) / (t_exit - t0)
+        vv = v0 + rate * np.clip(tt - t0, 0.0, None)
+    elif shape == "exp":
+        k = math.log(edge / v0) / (t_exit - t0)
+        vv = v0 * np.exp(k * np.clip(tt - t0, 0.0, None))
+    else:
+        raise ValueError(f"shape must be linear or exp, got {shape!r}")
+    tv = {param: {"kind": "table", "t": [-1.0, *tt.tolist()], "value": [v0, *vv.tolist()]}}
+    nz = {"x": 2e-6 * noise, "pA": 2e4 * noise, "pB": 2e4 * noise}
+    return ref.msp25_spec(seed, duration=duration, truth=truth, time_varying=tv, noise=nz)
+
+
+def healthy_spec(kind: str, duration: float, seed: int) -> dict:
+    """A healthy record: ``plain`` (drawn truth), ``noisy`` (doubled sensor noise) or ``warming`` (the oil warms: the
+    leakage rises 30 % and Cd 3 % with a 400 s time constant, all inside their bands)."""
+    ref = _reference()
+    truth = ref.draw_truth(seed, 0.1, "msp25")
+    kw: dict[str, Any] = {}
+    if kind == "noisy":
+        kw["noise"] = {"x": 4e-6, "pA": 4e4, "pB": 4e4}
+    elif kind == "warming":
+        kw["time_varying"] = {
+            "CdAleak": {"kind": "exp", "t0": 0.0, "tau": 400.0, "start": truth["CdAleak"],
+                        "end": 1.3 * truth["CdAleak"]},
+            "Cd": {"kind": "exp", "t0": 0.0, "tau": 400.0, "start": truth["Cd"], "end": 1.03 * truth["Cd"]}}
+    elif kind != "plain":
+        raise ValueError(f"healthy kind must be plain, noisy or warming, got {kind!r}")
+    return ref.msp25_spec(seed, duration=duration, truth=truth, **kw)
+
+
+#: (label, parameter, shape, duration s, seed, noise factor)
+WEAR = {
+    "calib": [("leak_lin", "CdAleak", "linear", 600.0, 11, 1.0), ("wn_exp", "wn", "exp", 900.0, 12, 1.0)],
+    "verify": [("leak_lin", "CdAleak", "linear", 600.0, 1001, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 1002, 2.0),
+               ("fric_lin", "Ffric", "linear", 600.0, 1003, 2.0), ("fric_exp", "Ffric", "exp", 600.0, 1004, 1.0),
+               ("wn_lin", "wn", "linear", 600.0, 1005, 1.0), ("wn_exp", "wn", "exp", 600.0, 1006, 2.0)],
+}
+#: (label, kind, duration s, seed)
+HEALTHY = {
+    "calib": [("warming", "warming", 1200.0, 21)],
+    "verify": [("plain", "plain", 1200.0, 1011), ("noisy", "noisy", 1200.0, 1012),
+               ("warming", "warming", 1200.0, 1013)],
+}
+
+
+def specs(which: str) -> list[dict]:
+    return ([wear_spec(p, s, d, seed, nz) for _, p, s, d, seed, nz in WEAR[which]]
+            + [healthy_spec(k, d, seed) for _, k, d, seed in HEALTHY[which]])
+
+
+def build(which: str, workers: int = 1) -> None:
+    """Fill the reference cache with the records of a set."""
+    _reference().batch(specs(which), workers=workers)
+
+
+if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "build":
+    for w in sys.argv[2:]:
+        t = time.time()
+        build(w)
+        print(w, f"{time.time() - t:.0f} s", flush=True)
+
+
+# --- the measurement ------------------------------------------------------------------------------------------------
+def _samples(rec, t0_ns: int = 1_700_000_000_000_000_000):
+    from replay.base import Samples
+
+    t_ns = t0_ns + np.round(rec.t * 1e9).astype(np.int64)
+    return Samples(t_ns, {k: np.asarray(v, float) for k, v in rec.signals.items()})
+
+
+def run_record(rec, horizon_s: float = 3600.0):
+    """The record through ``twin track``'s library (tracker, drift test, forecast); returns the twin."""
+    from twin.service.track import track
+
+    return track(_samples(rec), "bench", forecast_horizon_s=horizon_s)
+
+
+def true_exit(rec, twin, param: str) -> float:
+    """The first record time at which the truth of ``param`` is outside the twin's band (inf: never)."""
+    b = twin.rig.baseline[param]
+    v = np.asarray(rec.hidden[param], float) if param in rec.hidden else np.full(rec.t.size, rec.truth[param])
+    out = np.flatnonzero((v > b.hi) | (v < b.lo))
+    return float(rec.t[out[0]]) if out.size else math.inf
+
+
+def wear_figures(rec, twin, param: str, wear_start: float = 0.0) -> dict[str, Any]:
+    """Coverage over the last third before the true exit, lead of the first early alarm, early alarms elsewhere."""
+    te = true_exit(rec, twin, param)
+    win0 = te - (te - wear_start) / 3.0
+    fcs = [f for f in twin.forecasts if f.parameter == param and win0 <= f.t < te]
+    hit = [f for f in fcs if f.t_exit_lo is not None and f.t_exit_lo <= te
+           and (f.t_exit_hi is None or te <= f.t_exit_hi)]
+    seconds = max(1, int(te - win0))
+    early = [a for a in twin.alarms if a.level == "early" and a.kind == "raised"]
+    first = next((a.t_s for a in early if a.parameter == param), None)
+    lead = (te - first) if first is not None else None
+    return {"parameter": param, "t_exit_true_s": te, "forecasts_in_window": len(fcs),
+            "window_s": seconds, "coverage": (len(hit) / len(fcs)) if fcs else None,
+            "first_early_s": first, "lead_s": lead,
+            "lead_fraction": None if lead is None else lead / (te - wear_start),
+            "early_other": [a.parameter for a in early if a.parameter != param],
+            "early_before_exit": sum(1 for a in early if a.parameter == param and a.t_s < te)}
+
+
+def healthy_figures(rec, twin) -> dict[str, Any]:
+    early = [a for a in twin.alarms if a.level == "early" and a.kind == "raised"]
+    hours = float(rec.t[-1] - rec.t[0]) / 3600.0
+    return {"hours": hours, "early": len(early), "early_parameters": [a.parameter for a in early],
+            "forecasts": len(twin.forecasts)}
+
+
+def measure(which: str, say=print, part: str = "all") -> dict[str, Any]:
+    ref = _reference()
+    out: dict[str, Any] = {"set": which, "wear": [], "healthy": []}
+    for (label, param, shape, dur, seed, nz), spec in zip(WEAR[which] if part != "healthy" else [], specs(which)):
+        rec = ref.get_record(spec)
+        t = time.perf_counter()
+        twin = run_record(rec)
+        r = {"label": label, "shape": shape, "duration_s": dur, "seed": seed, "noise": nz,
+             **wear_figures(rec, twin, param), "track_s": time.perf_counter() - t}
+        out["wear"].append(r)
+        say(json.dumps(r))
+    hspecs = specs(which)[len(WEAR[which]):]
+    for (label, _, dur, seed), spec in zip(HEALTHY[which] if part != "wear" else [], hspecs):
+        rec = ref.get_record(spec)
+        twin = run_record(rec)
+        r = {"label": label, "duration_s": dur, "seed": seed, **healthy_figures(rec, twin)}
+        out["healthy"].append(r)
+        say(json.dumps(r))
+    return summarise(out)
+
+
+def summarise(out: dict[str, Any]) -> dict[str, Any]:
+    """The summary figures of a measurement (or of the wear and healthy parts measured apart, merged)."""
+    cov = [w["coverage"] for w in out["wear"] if w["coverage"] is not None]
+    leads = [w["lead_fraction"] for w in out["wear"]]
+    hours = sum(h["hours"] for h in out["healthy"])
+    out["summary"] = {
+        "coverage_mean": float(np.mean(cov)) if cov else None, "coverage_min": min(cov) if cov else None,
+        "lead_fraction_min": None if any(v is None for v in leads) or not leads else min(leads),
+        "healthy_hours": hours, "false_early_per_hour": sum(h["early"] for h in out["healthy"]) / max(hours, 1e-9),
+        "early_on_other_parameters": sum(len(w["early_other"]) for w in out["wear"])}
+    return out
+
+
+def table(res: dict[str, Any]) -> str:
+    """The README table (Markdown)."""
+    lines = ["| record | wear | true exit | forecasts in last third | 90 % coverage | first early alarm | lead / wear |",
+             "|---|---|---|---|---|---|---|"]
+    for w in res["wear"]:
+        lf, cov, first = w["lead_fraction"], w["coverage"], w["first_early_s"]
+        cov_t = "n/a" if cov is None else f"{100 * cov:.0f} %"
+        first_t = "none" if first is None else f"{first:.0f} s"
+        lf_t = "n/a" if lf is None else f"{lf:.2f}"
+        lines.append(f"| {w['label']} seed {w['seed']}, {w['duration_s'] / 60:.0f} min, noise x{w['noise']:g} | "
+                     f"{w['parameter']} {w['shape']} | {w['t_exit_true_s']:.0f} s | {w['forecasts_in_window']} of "
+                     f"{w['window_s']} s | {cov_t} | {first_t} | {lf_t} |")
+    for h in res["healthy"]:
+        lines.append(f"| healthy {h['label']} seed {h['seed']}, {h['duration_s'] / 60:.0f} min | none | - | "
+                     f"{h['forecasts']} forecasts | - | {h['early']} early | - |")
+    s = res["summary"]
+    lines.append(f"\nhealthy: {s['healthy_hours']:.2f} h, {s['false_early_per_hour']:.2f} false early alarms per hour; "
+                 f"early alarms on parameters that do not wear: {s['early_on_other_parameters']}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.forecast", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--set", choices=sorted(WEAR), default="verify",
+                    help="verify (seeds >= 1000, the README's table) or calib (seeds < 1000)")
+    ap.add_argument("--build", action="store_true", help="only fill the reference cache with the set's records")
+    ap.add_argument("--json", action="store_true", help="print the figures as JSON")
+    ap.add_argument("--part", choices=("all", "wear", "healthy"), default="all",
+                    help="measure only the wear or the healthy records (two processes; merge with --merge)")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="print the table of --json outputs of the parts")
+    a = ap.parse_args(argv)
+    if a.build:
+        build(a.set)
+        return 0
+    if a.merge:
+        parts = []
+        for path in a.merge:
+            with open(path, encoding="utf-8") as f:
+                parts.append(json.load(f))
+        res = summarise({"set": parts[0]["set"], "wear": [w for p in parts for w in p["wear"]],
+                         "healthy": [h for p in parts for h in p["healthy"]]})
+        print(json.dumps(res, indent=1) if a.json else table(res))
+        return 0
+    res = measure(a.set, say=(lambda m: print(m, file=sys.stderr, flush=True)), part=a.part)
+    print(json.dumps(res, indent=1) if a.json else table(res))
+    return 0
+
+
+if __name__ == "__main__" and not (len(sys.argv) > 1 and sys.argv[1] == "build"):
+    sys.exit(main())

@@ -1,0 +1,543 @@
+"""Early warning: when each tracked parameter will leave its healthy band, with a 90 % interval.
+
+A degradation model per tracked parameter, fed by the tracker's estimates and
+their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
+
+* **Decimation.** The estimates are averaged in the filter's log coordinates
+  ``y = log(theta / baseline)`` over bins of ``step_s`` (1 s by default); a bin
+  keeps the *mean* of the filter's log standard deviation, not the mean divided
+  by the square root of its sample count, since the estimates inside a bin are
+  one correlated stretch of the filter's memory, not independent samples.
+  Samples the drift test would not count (frozen, held by the consistency guard,
+  unresolved: standard deviation above ``resolve`` times the band's log
+  half-width) are left out, and so are the first ``settle_s`` seconds after a
+  start or a reset (the filter converging from its start is not wear).
+* **Two trend models**, as the two degradation models of MATLAB's Predictive
+  Maintenance Toolbox: *linear* in the parameter (``theta/baseline = a + b t``,
+  linearDegradationModel) and *exponential* in the parameter (``y = a + b t``
+  in the log coordinates, exponentialDegradationModel with no offset).  Each is
+  a weighted linear regression (weights the inverse of each bin's variance in
+  the model's own coordinates) with an unknown noise scale, updated in closed
+  form as a conjugate normal-inverse-gamma model under the reference (Jeffreys)
+  prior: the coefficients' posterior is a Student t with ``n_eff - 2`` degrees
+  of freedom around the weighted least-squares line, its scale the residual
+  variance.  The noise scale is learnt from the residuals, so a filter that
+  under- or over-states its uncertainty does not make the forecast over- or
+  under-confident.
+* **Correlation.** Bins are not independent either when the filter's memory, an
+  estimation error that follows the excitation, or a model misfit (a curved
+  wear on a straight line) outlasts a bin: the integrated autocorrelation time
+  ``tau_int`` of the chosen model's standardised residuals (Geyer's initial
+  positive sequence; for AR(1) errors it is the ``(1 + r)/(1 - r)`` the drift
+  test weights its increments by) gives an effective sample size
+  ``n_eff = n / tau_int``, and the likelihood is tempered by ``kappa = n_eff / n``: the coefficients' covariance grows by
+  ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.
+* **Evidence.** The two models are averaged by their BIC weights (their
+  likelihoods compared in the same coordinates, the Jacobian of the change of
+  variables included; both have two coefficients), and a forecast exists only
+  when the better trend beats a flat line by ``evidence`` (default 10: "very
+  strong" on Kass & Raftery's scale) in ``BIC`` computed with the tempered
+  likelihood and ``n_eff`` - a flat, healthy parameter has none.
+* **Forecast.** For each model the trend's level at ``tau`` seconds from now is
+  Student-t distributed, so the probability that the parameter has left its band
+  by ``now + tau`` is closed form, ``P(level(tau) >= hi) + P(level(tau) <= lo)``
+  (the level is a straight line in the model's coordinates, so having crossed
+  an edge before ``tau`` and being beyond it at ``tau`` are the same event); the
+  model average of the two is the distribution of the exit time, its median
+  and 5 % / 95 % quantiles are read off a grid of ``tau`` (no random draws: the
+  same data give the same forecast, before and after a restart), the interval
+  widened by one bin (``step_s``) on either side (the decimated time axis
+  resolves no finer; near the exit, where the interval is a few seconds wide,
+  the filter's own bias, which no trend can see, is of that order), and its value
+  at the horizon is ``p_within_horizon``.  A quantile beyond the grid's end
+  (``1000`` horizons) is ``None``: the trend may never get there.
+* **Reach.** ``p_within_horizon`` counts only exits no further ahead than
+  ``reach`` (1) times the span of the data the trend was fitted on: a trend is
+  not extrapolated beyond the stretch that supports it (a curve that flattens,
+  such as a warming oil's leakage, looks straight over a short stretch; on the
+  calibration record of a warming oil the unlimited probability reached 0.98
+  within an hour while the leakage levelled off at +30 %).  The exit-time
+  quantiles are those of the trend carried on.
+* **Early alarm.** Level ``early`` (:class:`twin.online.events.AlarmEvent`,
+  kind ``raised``) when ``p_within_horizon >= p_early`` (0.9); it returns
+  (level ``ok``, kind ``returned``) when the probability has stayed below
+  ``p_clear`` (0.5), or no forecast has existed, for ``clear_s`` (60 s):
+  hysteresis so a noisy trend does not flap.
+* **Reset** (:meth:`ForecastMonitor.reset`): a re-commissioning or a recorded
+  maintenance event forgets a parameter's history (and returns its ``early``
+  alarm).
+
+Per sample the monitor only bins (vectorised over a block); the regression runs
+once per completed bin and parameter on at most ``max_points`` bins (older bins
+are merged pairwise beyond that: the span stays, the resolution of the old part
+halves).  :meth:`ForecastMonitor.state` / :meth:`ForecastMonitor.restore` are
+plain data (numbers and lists) for checkpoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from scipy import special
+
+from twin.online.baseline import Baseline
+from twin.online.events import AlarmEvent
+
+#: Default forecast horizon [s] (``forecast_horizon_s`` per rig, ``twin track --forecast-horizon``).
+DEFAULT_HORIZON_S = 3600.0
+#: The exit-time grid: from 0 to this many horizons (beyond: "maybe never").
+GRID_HORIZONS = 1000.0
+_QUANTILES = (0.05, 0.5, 0.95)
+
+
+@dataclasses.dataclass
+class Forecast:
+    """One parameter's forecast at record time ``t`` [s]: exit time (record seconds, median and 90 % interval; ``None``:
+    beyond the grid), probability of leaving the band within the horizon, the exponential model's weight, and the
+    trend's evidence (BIC difference to a flat line)."""
+
+    parameter: str
+    t: float
+    t_ns: int
+    t_exit: float | None
+    t_exit_lo: float | None
+    t_exit_hi: float | None
+    p_within_horizon: float
+    w_exp: float
+    evidence: float
+    edge: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``twin track --json`` entry (record seconds)."""
+        return {"parameter": self.parameter, "t": self.t, "t_exit": self.t_exit, "t_exit_lo": self.t_exit_lo,
+                "t_exit_hi": self.t_exit_hi, "p_within_horizon": self.p_within_horizon}
+
+
+@dataclasses.dataclass
+class _Param:
+    name: str
+    base: Baseline
+    pts: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((0, 4)))  # rows: t, y, log std, held
+    n: int = 0
+    acc: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0])  # sum t, y, s, h; count
+    since: float | None = None  # record time of the first usable sample after a start or reset
+    level: str = "ok"
+    clear_since: float | None = None
+    last: Forecast | None = None
+
+
+class ForecastMonitor:
+    """Per-rig degradation forecasts; feed it the tracker's blocks with :meth:`update_block`.
+
+    ``baseline``: each parameter's healthy value and band; ``horizon_s``: the horizon of ``p_within_horizon``;
+    ``step_s``: the decimation (one bin, one regression point and one forecast per ``step_s`` of record).
+    See the module docstring for the other settings.
+    """
+
+    def __init__(self, rig: str, baseline: Mapping[str, Baseline], horizon_s: float = DEFAULT_HORIZON_S,
+                 step_s: float = 1.0, p_early: float = 0.9, p_clear: float = 0.5, clear_s: float = 60.0,
+                 settle_s: float = 30.0, min_span_s: float = 60.0, evidence: float = 10.0, resolve: float = 0.5,
+                 max_points: int = 1800, reach: float = 1.0, model: str = "msp25"):
+        if not (horizon_s > 0 and math.isfinite(horizon_s)):
+            raise ValueError(f"forecast horizon must be a positive number of seconds, got {horizon_s!r}")
+        self.rig = rig
+        self.model = model
+        self.horizon_s = float(horizon_s)
+        self.step_s = float(step_s)
+        self.p_early, self.p_clear, self.clear_s = float(p_early), float(p_clear), float(clear_s)
+        self.settle_s, self.min_span_s, self.evidence = float(settle_s), float(min_span_s), float(evidence)
+        self.resolve = float(resolve)
+        self.max_points = int(max_points)
+        self.reach = float(reach)
+        self.params = {n: _Param(n, b) for n, b in baseline.items()}
+        self._origin: float | None = None
+        self._bin = -1  # index of the bin being filled
+        self._bin_last: tuple[int, float] | None = None  # (t_ns, t_s) of the last sample of the bin being filled
+        self._last_values: tuple[np.ndarray, np.ndarray, list[str]] | None = None  # for the alarms' estimate
+        grid = np.concatenate([[0.0], np.geomspace(self.step_s, GRID_HORIZONS * self.horizon_s, 160)])
+        self._grid = np.unique(np.append(grid, self.horizon_s))
+
+    # -- data in ----------------------------------------------------------------------------------------------
+    def update_block(self, names: Sequence[str], t_ns: np.ndarray, t_s: np.ndarray, est: np.ndarray,
+                     log_std: np.ndarray, frozen: np.ndarray, hold: np.ndarray | None = None,
+                     held_log_std: np.ndarray | None = None) -> tuple[list[AlarmEvent], list[Forecast]]:
+        """Bin a block of the tracker's output; at every completed bin, a forecast per parameter that has one.
+
+        ``log_std``: the filter's standard deviation of the log estimate (the regression's weights);
+        ``held_log_std``: the estimate's error if the parameter held still
+        (:attr:`twin.online.tracker.TrackBlock.held_log_std`, default ``log_std``), the uncertainty of the
+        current level that the trend does not average away.
+
+        Returns the ``early`` alarm events raised or returned and the forecasts made (in time order)."""
+        T = len(t_s)
+        if T == 0:
+            return [], []
+        cols = [(j, n) for j, n in enumerate(names) if n in self.params]
+        if not cols:
+            return [], []
+        t_s = np.asarray(t_s, float)
+        if self._origin is None:
+            self._origin = float(t_s[0])
+            self._bin = 0
+        jj = [j for j, _ in cols]
+        ps = [self.params[n] for _, n in cols]
+        val = np.array([q.base.value for q in ps])
+        half = 0.5 * np.log(np.array([q.base.hi / q.base.lo for q in ps]))
+        E = np.asarray(est, float)[:, jj]
+        S = np.asarray(log_std, float)[:, jj]
+        ok = ~np.asarray(frozen, bool)[:, jj] & np.isfinite(S) & (S > 0) & (self.resolve * half >= S) & (E > 0)
+        if hold is not None:
+            ok &= ~np.asarray(hold, bool)[:, None]
+        Y = np.log(np.where(ok, E, 1.0) / val)
+        Sm = np.where(ok, S, 0.0)
+        Hm = Sm if held_log_std is None else np.where(ok, np.asarray(held_log_std, float)[:, jj], 0.0)
+        Y = np.where(ok, Y, 0.0)
+        b = np.floor((t_s - self._origin) / self.step_s).astype(np.int64)
+        b = np.maximum.accumulate(np.maximum(b, self._bin))  # a sample out of order (jitter) joins the open bin
+        cuts = np.flatnonzero(np.diff(b)) + 1
+        starts = np.concatenate([[0], cuts])
+        okf = ok.astype(float)
+        sums_t = np.add.reduceat(okf * t_s[:, None], starts, axis=0)
+        sums_y = np.add.reduceat(Y, starts, axis=0)
+        sums_s = np.add.reduceat(Sm, starts, axis=0)
+        sums_h = np.add.reduceat(Hm, starts, axis=0)
+        counts = np.add.reduceat(okf, starts, axis=0)
+        ends = np.concatenate([cuts, [T]]) - 1
+        events: list[AlarmEvent] = []
+        forecasts: list[Forecast] = []
+        for k, i0 in enumerate(starts):
+            seg_bin = int(b[i0])
+            if seg_bin != self._bin:  # the bin being filled is complete
+                events_k, fc_k = self._close_bin(ps)
+                events += events_k
+                forecasts += fc_k
+                self._bin = seg_bin
+            for m, q in enumerate(ps):
+                a = q.acc
+                a[0] += float(sums_t[k, m])
+                a[1] += float(sums_y[k, m])
+                a[2] += float(sums_s[k, m])
+                a[3] += float(sums_h[k, m])
+                a[4] += float(counts[k, m])
+            i1 = int(ends[k])
+            self._bin_last = (int(t_ns[i1]), float(t_s[i1]))
+            self._last_values = (E[i1].copy(), S[i1].copy(), [q.name for q in ps])
+        return events, forecasts
+
+    def _close_bin(self, ps: list[_Param]) -> tuple[list[AlarmEvent], list[Forecast]]:
+        if self._bin_last is None:
+            return [], []
+        t_ns, now = self._bin_last
+        events, out = [], []
+        for q in ps:
+            n_acc = q.acc[4]
+            if n_acc > 0:
+                tm = q.acc[0] / n_acc
+                if q.since is None:
+                    q.since = tm
+                if tm - q.since >= self.settle_s:
+                    if q.n == len(q.pts):
+                        if q.n >= self.max_points:
+                            self._merge(q)
+                        else:
+                            q.pts = np.concatenate([q.pts, np.empty((max(64, q.n), 4))])[:self.max_points]
+                    q.pts[q.n] = (tm, q.acc[1] / n_acc, q.acc[2] / n_acc, q.acc[3] / n_acc)
+                    q.n += 1
+            q.acc = [0.0, 0.0, 0.0, 0.0, 0.0]
+            fc = self._forecast(q, now, t_ns)
+            q.last = fc
+            if fc is not None:
+                out.append(fc)
+            ev = self._level(q, fc, now, t_ns)
+            if ev is not None:
+                events.append(ev)
+        return events, out
+
+    @staticmethod
+    def _merge(q: _Param) -> None:
+        """Halve the resolution: consecutive pairs of bins averaged (time, level, log std)."""
+        m = q.n // 2 * 2
+        merged = 0.5 * (q.pts[:m:2] + q.pts[1:m:2])
+        rest = q.pts[m:q.n].copy()
+        q.pts[:len(merged)] = merged
+        q.pts[len(merged):len(merged) + len(rest)] = rest
+        q.n = len(merged) + len(rest)
+
+    # -- the models ---------------------------------------------------------------------------------------------
+    def _forecast(self, q: _Param, now: float, t_ns: int) -> Forecast | None:
+        n = q.n
+        if n < 10 or q.pts[n - 1, 0] - q.pts[0, 0] < self.min_span_s:
+            return None
+        t = q.pts[:n, 0] - now
+        y = q.pts[:n, 1]
+        s = q.pts[:n, 2]
+        u = np.exp(y)
+        w_e = 1.0 / (s * s)  # log coordinates: exponential model
+        w_l = 1.0 / (u * u * s * s)  # the parameter over its baseline: linear model (delta method)
+        fe = _wls(t, y, w_e)
+        fl = _wls(t, u, w_l)
+        rss_flat = float(np.sum(w_e * (y - np.sum(w_e * y) / np.sum(w_e)) ** 2))
+        best = fe if fe[2] <= fl[2] else fl
+        kappa = _kappa(best[3])
+        n_eff = max(kappa * n, 3.0)
+        # BIC with the tempered likelihood: the Jacobian of u = exp(y) cancels against the weights (see module doc)
+        gain = kappa * n * math.log(max(rss_flat, 1e-300) / max(best[2], 1e-300))
+        evidence = gain - math.log(n_eff)
+        if not evidence >= self.evidence:
+            return None
+        w_exp = float(special.expit(0.5 * kappa * n * math.log(max(fl[2], 1e-300) / max(fe[2], 1e-300))))
+        lo, hi = q.base.lo / q.base.value, q.base.hi / q.base.value
+        nu = max(n_eff - 2.0, 1.0)
+        span = float(q.pts[n - 1, 0] - q.pts[0, 0])
+        grid = np.append(self._grid, min(self.horizon_s, self.reach * span))
+        F = (w_exp * _exit_cdf(fe, kappa, n, nu, math.log(lo), math.log(hi), grid)
+             + (1.0 - w_exp) * _exit_cdf(fl, kappa, n, nu, lo, hi, grid))
+        p_alarm = float(F[-1])
+        F = F[:-1]
+        F = np.maximum.accumulate(F)
+        qs: list[float | None] = []
+        for p in _QUANTILES:
+            if F[-1] < p:
+                qs.append(None)
+            elif F[0] >= p:
+                qs.append(now)
+            else:
+                i = int(np.searchsorted(F, p))
+                f0, f1, g0, g1 = F[i - 1], F[i], self._grid[i - 1], self._grid[i]
+                qs.append(now + float(g0 + (g1 - g0) * (p - f0) / max(f1 - f0, 1e-300)))
+        if qs[1] is None:  # the trend heads for no edge (or too slowly to say)
+            return None
+        # the time axis is resolved to one bin: the interval widened by a bin on either side
+        qs[0] = max(now, qs[0] - self.step_s) if qs[0] is not None else None
+        qs[2] = qs[2] + self.step_s if qs[2] is not None else None
+        slope = fe[0][1] if w_exp >= 0.5 else fl[0][1]
+        return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], p_alarm, w_exp, float(evidence),
+                        "high" if slope > 0 else "low")
+
+    # -- the early alarm ----------------------------------------------------------------------------------------
+    def _level(self, q: _Param, fc: Forecast | None, now: float, t_ns: int) -> AlarmEvent | None:
+        p = fc.p_within_horizon if fc is not None else 0.0
+        if q.level == "ok":
+            if fc is not None and p >= self.p_early:
+                q.level = "early"
+                q.clear_since = None
+                return self._event(q, fc, "raised", now, t_ns)
+            return None
+        if p >= self.p_clear:
+            q.clear_since = None
+            return None
+        if q.clear_since is None:
+            q.clear_since = now
+        if now - q.clear_since >= self.clear_s:
+            q.level = "ok"
+            q.clear_since = None
+            return self._event(q, fc, "returned", now, t_ns)
+        return None
+
+    def _event(self, q: _Param, fc: Forecast | None, kind: str, now: float, t_ns: int,
+               why: str = "") -> AlarmEvent:
+        value, std = self._current(q)
+        if kind == "raised":
+            assert fc is not None
+            msg = f"{q.name} leaves its band {describe(fc)}"
+            level, stat = "early", fc.p_within_horizon
+        else:
+            msg = f"{q.name}: no exit from its band foreseen within {fmt_duration(self.horizon_s)}{why}"
+            level, stat = "ok", (fc.p_within_horizon if fc is not None else 0.0)
+        return AlarmEvent(rig=self.rig, parameter=q.name, level=level, kind=kind, t_ns=int(t_ns), t_s=float(now),
+                          estimate=value, std=std, baseline=q.base.value, band_lo=q.base.lo, band_hi=q.base.hi,
+                          statistic=float(stat), message=msg)
+
+    def _current(self, q: _Param) -> tuple[float, float]:
+        last = self._last_values
+        if last is not None and q.name in last[2]:
+            m = last[2].index(q.name)
+            v, s = float(last[0][m]), float(last[1][m])
+            if v > 0 and math.isfinite(v) and math.isfinite(s):
+                return v, v * s
+        return q.base.value, 0.0
+
+    # -- resets, outputs, checkpoints -----------------------------------------------------------------------------
+    def reset(self, names: Sequence[str] | None = None, why: str = "maintenance") -> list[AlarmEvent]:
+        """Forget the history of ``names`` (default all): a re-commissioning or a maintenance event. An ``early``
+        alarm standing on a forgotten history returns (the events are returned)."""
+        events = []
+        for n in (names if names is not None else list(self.params)):
+            q = self.params.get(n)
+            if q is None:
+                continue
+            if q.level == "early" and self._bin_last is not None:
+                t_ns, now = self._bin_last
+                q.level = "ok"
+                events.append(self._event(q, None, "returned", now, t_ns, why=f" (history reset: {why})"))
+            self.params[n] = _Param(n, q.base)
+        return events
+
+    def latest(self) -> dict[str, Forecast]:
+        """The last forecast of each parameter that has one."""
+        return {n: q.last for n, q in self.params.items() if q.last is not None}
+
+    def levels(self) -> dict[str, str]:
+        return {n: q.level for n, q in self.params.items()}
+
+    def state(self) -> dict[str, Any]:
+        """Plain data (numbers, strings, lists, dicts) from which :meth:`restore` continues exactly."""
+        return {"version": 2, "origin": self._origin, "bin": self._bin,
+                "bin_last": None if self._bin_last is None else list(self._bin_last),
+                "params": {n: {"points": q.pts[:q.n].tolist(), "acc": list(q.acc), "since": q.since,
+                               "level": q.level, "clear_since": q.clear_since,
+                               "last": None if q.last is None else dataclasses.asdict(q.last)}
+                           for n, q in self.params.items()}}
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Continue from :meth:`state` of a monitor of the same rig (a state of another layout: start afresh)."""
+        if state.get("version") != 2:
+            return
+        self._origin = state["origin"]
+        self._bin = int(state["bin"])
+        bl = state["bin_last"]
+        self._bin_last = None if bl is None else (int(bl[0]), float(bl[1]))
+        for n, d in state["params"].items():
+            q = self.params.get(n)
+            if q is None:
+                continue
+            q.pts = np.array(d["points"], dtype=float).reshape(-1, 4)
+            q.n = len(q.pts)
+            q.acc = [float(v) for v in d["acc"]]
+            q.since, q.level, q.clear_since = d["since"], d["level"], d["clear_since"]
+            q.last = None if d["last"] is None else Forecast(**d["last"])
+
+
+_NUM_OR_NULL = {"type": ["number", "null"]}
+
+FORECAST_SCHEMA: dict[str, Any] = {
+    "title": "fpdd.Forecast", "type": "object",
+    "description": "When each tracked parameter of a rig leaves its healthy band (record seconds; null: not "
+                   "within 1000 horizons); one message per second of record",
+    "properties": {
+        "rig": {"type": "string"}, "t_ns": {"type": "integer", "description": "ingest time [ns]"},
+        "t_s": {"type": "number", "description": "record time of the forecast [s]"},
+        "horizon_s": {"type": "number", "description": "horizon of p_within_horizon [s]"},
+        "forecasts": {"type": "object", "description": "parameter name -> its forecast (the parameters that have one)",
+                      "propertyNames": {"pattern": "^[A-Za-z_][A-Za-z0-9_]*$"}, "additionalProperties": {
+            "type": "object",
+            "properties": {"t_exit": {**_NUM_OR_NULL, "description": "median exit time, record seconds [s]"},
+                           "t_exit_lo": {**_NUM_OR_NULL, "description": "5 % quantile of the exit time [s]"},
+                           "t_exit_hi": {**_NUM_OR_NULL, "description": "95 % quantile of the exit time [s]"},
+                           "remaining_s": {**_NUM_OR_NULL, "description": "median remaining time [s]"},
+                           "remaining_lo_s": {**_NUM_OR_NULL, "description": "5 % quantile [s]"},
+                           "remaining_hi_s": {**_NUM_OR_NULL, "description": "95 % quantile [s]"},
+                           "p_within_horizon": {"type": "number", "description": "probability [1]"},
+                           "edge": {"type": "string", "enum": ["low", "high"]}},
+            "required": ["t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon", "remaining_s", "remaining_lo_s",
+                         "remaining_hi_s", "edge"]}},
+    },
+    "required": ["rig", "t_ns", "t_s", "horizon_s", "forecasts"],
+}
+
+
+def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> list[dict[str, Any]]:
+    """The ``/twin/forecast`` (and ``fpdd/<rig>/forecast``) payloads of forecasts: one per instant, SI."""
+    by_t: dict[int, list[Forecast]] = {}
+    for f in fcs:
+        by_t.setdefault(f.t_ns, []).append(f)
+
+    def rem(v: float | None, t: float) -> float | None:
+        return None if v is None else max(0.0, v - t)
+
+    return [{"rig": rig, "t_ns": t_ns, "t_s": fs[0].t, "horizon_s": horizon_s,
+             "forecasts": {f.parameter: {"t_exit": f.t_exit, "t_exit_lo": f.t_exit_lo, "t_exit_hi": f.t_exit_hi,
+                                         "p_within_horizon": f.p_within_horizon, "remaining_s": rem(f.t_exit, f.t),
+                                         "remaining_lo_s": rem(f.t_exit_lo, f.t),
+                                         "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs}}
+            for t_ns, fs in sorted(by_t.items())]
+
+
+# -- closed-form pieces --------------------------------------------------------------------------------------------
+def _wls(t: np.ndarray, y: np.ndarray, w: np.ndarray):
+    """Weighted least squares of ``y = a + b t``: (coefficients, their unscaled covariance (X'WX)^-1, weighted RSS,
+    standardised residuals)."""
+    sw = np.sum(w)
+    st = np.sum(w * t)
+    stt = np.sum(w * t * t)
+    sy = np.sum(w * y)
+    sty = np.sum(w * t * y)
+    det = sw * stt - st * st
+    if not det > 0:
+        det = 1e-300
+    b = (sw * sty - st * sy) / det
+    a = (sy - b * st) / sw
+    cov = np.array([[stt, -st], [-st, sw]]) / det
+    r = (y - a - b * t) * np.sqrt(w)
+    return np.array([a, b]), cov, float(np.sum(r * r)), r
+
+
+def _kappa(r: np.ndarray) -> float:
+    """``n_eff / n = 1 / tau_int`` of the standardised residuals: the integrated autocorrelation time
+    ``1 + 2 sum rho_k``, summed over Geyer's initial positive sequence (pairs ``rho_k + rho_k+1`` while positive),
+    so a slow or periodic error (a bias that follows the excitation) counts as the few samples it is."""
+    n = r.size
+    if n < 4:
+        return 1.0
+    x = r - r.mean()
+    m = 1 << int(2 * n - 1).bit_length()
+    f = np.fft.rfft(x, m)
+    acf = np.fft.irfft(f * np.conj(f), m)[:n]
+    if not acf[0] > 0:
+        return 1.0
+    rho = acf / acf[0]
+    k = (n - 1) // 2 * 2
+    pairs = rho[1:k + 1:2] + rho[2:k + 2:2] if k >= 2 else np.zeros(0)
+    neg = np.flatnonzero(pairs <= 0.0)
+    stop = int(neg[0]) if neg.size else pairs.size
+    tau = 1.0 + 2.0 * float(np.sum(pairs[:stop]))
+    return 1.0 / min(max(tau, 1.0), float(n))
+
+
+def _exit_cdf(fit, kappa: float, n: int, nu: float, lo: float, hi: float, grid: np.ndarray,
+              level_var: float = 0.0) -> np.ndarray:
+    """P(the trend's level at ``grid`` seconds from now is beyond ``lo`` or ``hi``), Student t with ``nu`` degrees
+    of freedom, scale from the residual variance over ``kappa n`` effective points plus ``level_var`` (the
+    estimate's own error now, which the trend's average does not remove: a bias of the filter)."""
+    coef, cov, rss, _ = fit
+    s2 = rss / max(n - 2.0, 1.0) / kappa
+    m = coef[0] + coef[1] * grid
+    v = s2 * (cov[0, 0] + 2.0 * grid * cov[0, 1] + grid * grid * cov[1, 1]) + level_var
+    sd = np.sqrt(np.maximum(v, 1e-300))
+    return special.stdtr(nu, (m - hi) / sd) + special.stdtr(nu, (lo - m) / sd)
+
+
+def fmt_duration(seconds: float) -> str:
+    """A duration for people: ``45 s``, ``6.1 min``, ``3.2 h``, ``4.5 d``."""
+    s = float(seconds)
+    if s < 100:
+        return f"{s:.0f} s"
+    if s < 6000:
+        return f"{s / 60:.1f} min"
+    if s < 172800:
+        return f"{s / 3600:.1f} h"
+    return f"{s / 86400:.1f} d"
+
+
+def describe(fc: Forecast) -> str:
+    """``in 6.1 min [4.0, 9.5]`` (the median and the 90 % interval of the remaining time, in the median's unit)."""
+    if fc.t_exit is None:
+        return "not within the forecast grid"
+    rem = max(0.0, fc.t_exit - fc.t)
+    if rem < 1.0:
+        return "now (its trend is at the band's edge or beyond)"
+    text = fmt_duration(rem)
+    unit = text.split()[-1]
+    div = {"s": 1.0, "min": 60.0, "h": 3600.0, "d": 86400.0}[unit]
+
+    def num(v: float | None) -> str:
+        if v is None:
+            return "never"
+        x = max(0.0, v - fc.t) / div
+        return f"{x:.0f}" if unit == "s" else f"{x:.1f}"
+
+    return f"in {text} [{num(fc.t_exit_lo)}, {num(fc.t_exit_hi)}]"
