@@ -83,6 +83,7 @@ from twin.online.events import (
     format_alarm,
 )
 from twin.service.journal import AlarmJournal
+from twin.service.publisher import Publisher
 from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, Signer, TrustStore, Verdict
 
 __all__ = [
@@ -237,7 +238,7 @@ class _Declarations:
                 log.debug("%s: undeclare %r: %s", type(self).__name__, entity, exc)
 
 
-class TwinPublisher(_Declarations):
+class TwinPublisher(_Declarations, Publisher):
     """Everything one rig's twin declares on the bus.
 
     Declares, for ``rig``: the alarm publisher (reliable,
@@ -411,6 +412,11 @@ class TwinPublisher(_Declarations):
             self._estimate_pub.put(payload)
         except zenoh.ZError as exc:
             raise SourceError(f"rig {self.rig!r}: cannot publish estimate: {exc}") from exc
+
+    def publish_estimate_json(self, payload: str) -> bool:
+        """Put an estimate given as its JSON payload on ``fpdd/<rig>/estimate`` (:meth:`put_payload`)."""
+        self.put_payload("estimate", payload)
+        return True
 
     def publish_status(self, event: StatusEvent) -> StatusEvent:
         """Put a status on ``fpdd/<rig>/status`` with ``counters["alarm_seq"]`` filled in.

@@ -7,14 +7,15 @@ import dataclasses
 import time
 
 from replay.base import Samples
-from twin.online.events import AlarmEvent, StatusEvent, event_to_json
+from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.service.journal import AlarmJournal
+from twin.service.publisher import Publisher
 
 #: A runner's bus messages are flushed at least this often [s] even without samples.
 FLUSH_S = 0.25
 
 
-class Outbox:
+class Outbox(Publisher):
     """A runner's publisher for its :class:`RigTwin`: journals alarms, batches bus messages.
 
     Messages (put on ``out`` as ``("batch", rig, [...])`` after each block):
@@ -45,12 +46,13 @@ class Outbox:
             self.flush()
         return recorded.event  # one the journal holds (write failed) goes out when written (flush)
 
-    def publish_estimate(self, event) -> None:
+    def publish_estimate(self, event: EstimateEvent) -> None:
         self._batch.append(("estimate", event_to_json(event)))
 
-    def publish_estimate_json(self, payload: str) -> None:
+    def publish_estimate_json(self, payload: str) -> bool:
         """An estimate already written as its JSON payload (:meth:`twin.service.rig.RigTwin._estimate_json`)."""
         self._batch.append(("estimate", payload))
+        return True
 
     def publish_signals(self, samples: Samples) -> None:
         """The rig's samples, decimated to ``signals_hz`` (nothing when it is 0)."""
