@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 
 from replay.mcapio import McapSink
 from twin import cli
-from twin.service.bus import AlarmSubscriber
+from twin.service.subscriber import AlarmSubscriber
 from replay.zenohconf import zenoh_config
 from twin.service.config import parse_config
 from net_helpers import free_port
