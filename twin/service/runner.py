@@ -34,8 +34,13 @@ class RigRunner(LiveInput, LiveTime, Commissioner, Checkpoints):
     :param stop: ``threading.Event`` or multiprocessing event.
     :param session: the service's Zenoh session (for a ``zenoh://`` input).
     :param keep: a dict that receives the rig's :class:`RigTwin` (reports, tests).
-    """
 
+    Its state and per-block work are :class:`~twin.service.runner_core.RunnerCore`'s; a live input
+    (:class:`~twin.service.live.LiveInput`), its samples' time (:class:`~twin.service.live_time.LiveTime`),
+    commissioning (:class:`~twin.service.commissioning.Commissioner`) and checkpoints
+    (:class:`~twin.service.checkpoints.Checkpoints`) are the parts it is made of; here: its life and a
+    replayed log.
+    """
 
     # ------------------------------------------------------------------ life
 
