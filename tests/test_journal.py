@@ -19,7 +19,8 @@ from event_helpers import alarm
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.online.events import event_to_json
 from twin.service.journal import AlarmJournal
-from twin.service.store import Checkpoint, Store
+from twin.service.checkpoint_file import Checkpoint
+from twin.service.store import Store
 
 
 @pytest.fixture

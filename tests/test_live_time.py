@@ -21,7 +21,7 @@ from twin.online.events import StatusEvent
 from twin.service.config import parse_config
 from twin.service.live_time import TIME_JUMP_S
 from twin.service.serve import serve
-from twin.service.store import checkpoint_path, read_checkpoints
+from twin.service.checkpoint_file import checkpoint_path, read_checkpoints
 
 RIG = "rig-t"
 KEY = f"fpdd/{RIG}/samples"

@@ -13,7 +13,7 @@ from twin.errors import SourceError, TwinError
 from twin.service.config import ServiceConfig
 from twin.service.outcome import RigFailure
 from twin.service.runner_core import RunnerCore
-from twin.service.store import Checkpoint
+from twin.service.checkpoint_file import Checkpoint
 
 log = logging.getLogger("twin.serve")
 

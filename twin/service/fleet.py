@@ -28,7 +28,7 @@ A rig never stops silently:
 
 Resume, don't replay: every ``checkpoint_s`` (and when it stops) a runner
 saves its twin's state (the tracker's and detector's numbers, plain data,
-:func:`twin.service.store.write_checkpoints`) with the time of the last sample
+:func:`twin.service.checkpoint_file.write_checkpoints`) with the time of the last sample
 processed, the journal's id and the rig's last alarm number, atomically beside
 the rig's journal. A restart restores it: a log continues after that sample; a
 live input keeps the detector's state, so an ongoing alarm is not raised again.
