@@ -227,12 +227,12 @@ def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode
     wnd = np.array([0.1, 0.2, 0.5, 0.5])
     rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm] + [0] * (ukf.LANES - 2 * nm - 1))
     m = 2 * nm + 1
-    ctrl = np.zeros(20)
-    ctrl[3] = 1.0
+    ctrl = np.zeros(ukf.N_K)
+    ctrl[ukf.K_FLAG] = 1.0
     assert ukf.lean_applicable(tr.pvec)
     sf = np.full((2 * n + 1, n), np.nan)
     ukf._lean_sigmas(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
-                     np.empty(ukf.N_W * ukf.LANES), np.empty(16), nm)
+                     np.empty(ukf.N_W * ukf.LANES), np.empty(ukf.N_LEAN), nm)
     for r in rows[:m]:
         one = np.empty(n)
         ukf.fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
