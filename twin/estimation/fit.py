@@ -319,6 +319,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     drives = []
     for r in records:
         r.require(outputs, f"fitting outputs {', '.join(outputs)}")
+        model.check_record(base, r.signals, r.name)
         drives.append(model.drive_signal(r.signals, drive))
     check_names(model.INIT, estimate_init, f"initial-state quantity of {model.name}")
     if init is None:

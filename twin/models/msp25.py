@@ -168,6 +168,10 @@ NP = len(KERNEL_NAMES)
  I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF) = range(NP)
 assert NP == 44 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
 
+#: the largest mean friction a working actuator shows, as a fraction of its stall force pP A (a physical bound:
+#: servo-actuator seals are a percent or two of it); a record's mean pressure force beyond it is a wrong geometry
+PLAUSIBLE_FRICTION = 0.1
+
 STATES = ("xs", "vs", "pA", "pB", "x", "v")
 NS = 6
 P_ATM = 1.0e5
@@ -582,6 +586,42 @@ class MSP25(Model):
             hi = min(hi, ps["pP"] * ps["A"])
         return lo, hi
 
+    def check_record(self, ps, signals, name="record"):
+        """The force the record's chamber pressures put on the rod must be one the rig can hold.
+
+        Over a record the rod's momentum comes back to about where it started, so the time average of the
+        pressure force ``pA AA - pB AB`` minus the stated external force (and spring) is the average friction,
+        which a working actuator keeps far below its stall force ``pP AA``.  An average beyond
+        :data:`PLAUSIBLE_FRICTION` of it means the stated geometry is not the rig's: a single-rod cylinder
+        fitted as a symmetric one (its rest pressures sit in the inverse area ratio), or an unstated load.
+        """
+        if "pA" not in signals or "pB" not in signals:
+            return
+        pa_s = np.asarray(signals["pA"], dtype=np.float64)
+        pb_s = np.asarray(signals["pB"], dtype=np.float64)
+        ok = np.isfinite(pa_s) & np.isfinite(pb_s)
+        if ok.sum() < 2:
+            return
+        pa = float(np.mean(pa_s[ok])) - (ps["pA_off"] if "pA_off" in ps else 0.0)
+        pb = float(np.mean(pb_s[ok])) - (ps["pB_off"] if "pB_off" in ps else 0.0)
+        A = ps["A"]
+        AB = ps["AB"] if ps["AB"] > 0.0 else A
+        load = ps["Fext"]
+        if "k_spec" in ps and "x" in signals:
+            x = np.asarray(signals["x"], dtype=np.float64)
+            load += ps["k_spec"] * float(np.mean(x[np.isfinite(x)])) if np.isfinite(x).any() else 0.0
+        F = pa * A - pb * AB - load
+        stall = ps["pP"] * max(A, AB)
+        if abs(F) <= PLAUSIBLE_FRICTION * stall:
+            return
+        ratio = (pa * A - load) / (pb * A) if pb > 0.0 else float("nan")
+        raise DataError(
+            f"{name}: mean pressures pA {pa * 1e-6:.2f} MPa, pB {pb * 1e-6:.2f} MPa are impossible for the stated "
+            f"cylinder (A {A * 1e6:.0f} mm^2, AB {AB * 1e6:.0f} mm^2, Fext {ps['Fext']:.0f} N): they leave "
+            f"{F * 1e-3:.1f} kN on the rod, {100 * abs(F) / stall:.0f} % of the stall force (friction holds at most "
+            f"{100 * PLAUSIBLE_FRICTION:.0f} %); a single-rod cylinder with AB/A = {ratio:.2f} or an external "
+            f"force of {F:.0f} N would balance them (--set AB=... V0B=... or --set Fext=...)")
+
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
         """Rod at ``x0`` moving at ``v0``, chambers at ``pA0``/``pB0``, spool where the command ``u0`` holds it.
 
@@ -607,8 +647,13 @@ class MSP25(Model):
         pm = 0.5 * (P[:, I_PP] + P[:, I_PT])
         S0[:, 0] = P[:, I_KE] * P[:, I_KSP] * u0
         # measured starts are read through the transducers' own errors (an offset, a gain) where P has them
-        S0[:, 2] = (pm if pA0 is None else float(pA0) - P[:, I_PAOFF]) + 0.5 * dp0
-        S0[:, 3] = (pm if pB0 is None else float(pB0) - P[:, I_PBOFF]) - 0.5 * dp0
+        # two areas: at rest the valve's null shares pP + pT between the chambers and the areas share the load
+        two = (P[:, I_AB] > 0.0) & (P[:, I_AB] != P[:, I_A])
+        AB = np.where(P[:, I_AB] > 0.0, P[:, I_AB], P[:, I_A])
+        pAe = np.where(two, (P[:, I_FEXT] + 2.0 * pm * AB) / (P[:, I_A] + AB), pm)
+        pBe = np.where(two, 2.0 * pm - pAe, pm)
+        S0[:, 2] = (pAe if pA0 is None else float(pA0) - P[:, I_PAOFF]) + 0.5 * dp0
+        S0[:, 3] = (pBe if pB0 is None else float(pB0) - P[:, I_PBOFF]) - 0.5 * dp0
         S0[:, 4] = x0 / P[:, I_KXM]
         S0[:, 5] = v0
         return S0

@@ -320,6 +320,7 @@ class OnlineTracker:
         """The measured state at the first sample (rod position, chamber pressures) instead of rest."""
         sig = samples.signals
         assert self.dt is not None  # process() learns it first
+        self.model.check_record(self.ps, sig, "the tracked signals")
         if len(samples) >= 8:
             init = self.model.initial_from_data({k: v for k, v in sig.items() if k in self.outputs
                                                  and np.all(np.isfinite(v[:8]))}, self.dt)

@@ -795,7 +795,8 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             elif nint >= 1:
                 if nint > 1:
                     status = ST_GAP
-                h = dtk / nint
+                dtk = nint * dt0  # time stamps on the nominal grid: the rest of the step is jitter (twin.record)
+                h = dt0
                 # process noise over the whole interval
                 for i in range(n):
                     for j in range(n):
