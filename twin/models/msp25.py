@@ -602,8 +602,9 @@ class MSP25(Model):
         ok = np.isfinite(pa_s) & np.isfinite(pb_s)
         if ok.sum() < 2:
             return
-        pa = float(np.mean(pa_s[ok])) - (ps["pA_off"] if "pA_off" in ps else 0.0)
-        pb = float(np.mean(pb_s[ok])) - (ps["pB_off"] if "pB_off" in ps else 0.0)
+        given = ps.as_dict()
+        pa = float(np.mean(pa_s[ok])) - given.get("pA_off", 0.0)
+        pb = float(np.mean(pb_s[ok])) - given.get("pB_off", 0.0)
         A = ps["A"]
         AB = ps["AB"] if ps["AB"] > 0.0 else A
         load = ps["Fext"]
