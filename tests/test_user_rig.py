@@ -154,6 +154,11 @@ def test_jittered_csv_fits_tracks_and_reads_consistently(pid_record, tmp_path, c
     cols = ("x_ref", "u", "x", "pA", "pB")
     np.savetxt(path, np.column_stack([s.t_ns * 1e-9] + [s.signals[c] for c in cols]), delimiter=",",
                header=",".join(["t", *cols]), comments="", fmt=["%.9f"] + ["%.17g"] * len(cols))
+    from replay import cli as replay_cli
+
+    assert replay_cli.main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["report"]["gaps_ns"] == [] and 50e-6 < info["jitter_s"] <= 150e-6
     (rec,) = load_records(str(path))
     assert len(rec) == len(pid_record.t)
     sets = ",".join(f"{k}={v}" for k, v in {**PID, "Tf": 1e-3}.items())
