@@ -391,7 +391,9 @@ def _equilibrium(s: _Setup, t: float) -> tuple[np.ndarray, str]:
         best = z0
         if r0res > 1e-9:
             sol = root(resid, z0, method="hybr", options={"xtol": 1e-13})
-            if np.max(np.abs(resid(sol.x))) < min(r0res, 1e-6):
+            ys = full(sol.x)
+            inside = all(P[R.PT] < ys[i] < P[R.PP] for i in (R.S_PA, R.S_PB))  # not the empty chambers' root
+            if np.max(np.abs(resid(sol.x))) < min(r0res, 1e-6) and inside:
                 best, how = sol.x, "solved"
             else:
                 how = "guess"
