@@ -188,3 +188,25 @@ def test_tracker_lean_step_with_two_areas_is_the_model_right_hand_side():
             a = np.array(M.deriv(*s, u, p))
             b = np.array(ukf._lean_deriv(*s, u, c))
             np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9)
+
+
+def test_tracker_driven_by_the_demand_runs_the_rigs_filtered_pid():
+    """No logged u: the tracker's controller drive is the rig's PID with its memory (integral, filtered
+    derivative) carried from sample to sample; started off the truth, it settles near it with a consistent
+    filter; forgetting the controller's memory (the tracker before) bends the valve's parameters."""
+    from twin.models.simulate import excite, measure
+    from twin.online.tracker import OnlineTracker
+
+    params = {**PID, "Tf": 1e-3}
+    ps = RIG.params(**params)
+    _, xr = excite(RIG, 20.0, 1e-3, seed=1007)
+    rec = measure(RIG, ps, "x_ref", xr, 1e-3, noise={"x": 2e-6, "pA": 2e4, "pB": 2e4}, seed=1007)
+    s = rec.to_samples()
+    demand_only = Samples(s.t_ns, {k: v for k, v in s.signals.items() if k != "u"})
+    start = {"Ffric": 60.0, "CdAleak": 3.2863e-9 * 1.3, "Cd": 0.2191 * 1.1, "zeta": 0.3701 * 0.9,
+             "wn": RIG.params()["wn"] * 1.1}
+    out = OnlineTracker(params=params, start=start).process(demand_only)
+    est = dict(zip(M.PHENOMENOLOGICAL, out.estimates[-1]))
+    for k in ("Cd", "zeta", "wn"):
+        assert abs(est[k] / ps[k] - 1) < 0.05, (k, est[k], ps[k])
+    assert (out.guard[-5000:] == "consistent").mean() > 0.5

@@ -343,10 +343,6 @@ class OnlineTracker:
         if "u" not in sig and "x_ref" not in sig:
             raise DataError("the tracker needs the controller output 'u' or the demand 'x_ref'; "
                             f"the block has {', '.join(sig) or 'no signals'}")
-        if "u" not in sig and (self.ps["KI"] != 0 or self.ps["KD"] != 0):
-            raise DataError("without a logged 'u' the tracker drives the rig from 'x_ref' through a P controller, "
-                            f"but this rig has KI={self.ps['KI']:g}, KD={self.ps['KD']:g}; log the controller "
-                            "output u")
         if not any(o in sig for o in self.outputs):
             raise DataError(f"the tracker needs at least one of {', '.join(self.outputs)}; "
                             f"the block has {', '.join(sig)}")
