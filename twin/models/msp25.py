@@ -12,6 +12,15 @@ Two ways to drive it:
   reproduces the same trajectory when fed back open loop.
 * open loop from the logged controller output ``u`` [V] (what a filter uses).
 
+The controller is an industrial PID: derivative on the error or on the
+measurement (``D_meas``), through a first-order filter ``Tf``, velocity
+feed-forward ``Kff`` of the demand's rate, pressure feedback ``Kdp`` on the
+load pressure, output limit ``u_max`` (:func:`pid_tick`); the defaults are
+the paper's loop.  The cylinder has the piston side's area ``A`` and the rod
+side's ``AB`` (``0``: the same, symmetric), with chamber volumes ``V0`` and
+``V0B`` at mid stroke; a record whose pressures the stated geometry cannot
+hold is refused (:meth:`MSP25.check_record`).
+
 Orifice square roots follow the paper's turbulent law wherever the rig operates:
 ``sqrt(|dp|) sgn(dp)`` is replaced by ``dp / (dp^2 + dp_lam^2)^(1/4)`` only so that
 the slope stays finite at zero drop.  The band is 1 kPa by default, separately

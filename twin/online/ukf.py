@@ -27,13 +27,18 @@ point at a time, bit for bit).  The
 measurement function ``H x`` (model output plus noise state) is linear: the
 unscented update is then exactly the Kalman update, which is what we compute.
 
-Prediction honours the loop's timing and the real time between samples:
+Prediction honours the loop's timing and the time between samples, read on
+the nominal grid (a step is the nearest whole number of sample periods; the
+rest is time-stamp jitter, :func:`twin.record.grid_steps`):
 one log interval is advanced with :func:`twin.models.msp25.advance` (digital
 controller at the log's rate, N times faster, or continuous; logged inputs
 held, linear or cubic between samples).  A logged ``u`` between samples k-1
 and k is interpolated from ``u[k-2], u[k-1], u[k]``: the filter has sample k
 when it predicts up to it, so ``foh`` is exact, and ``cubic`` uses a one-sided
-end slope (no look-ahead beyond the sample being filtered).  A longer
+end slope (no look-ahead beyond the sample being filtered).  Driven by the
+demand, the rig's controller (PID with derivative filter, feed-forward,
+output limit) keeps its memory from sample to sample (``fs[F_CTRL:]``, moved
+on along the central sigma point).  A longer
 interval (dropped rows, lost frames) is predicted in as many log steps as it
 spans with the input linear across the gap; beyond ``gap_max`` seconds the
 model states are re-initialised from the measurement with the prior
