@@ -90,9 +90,9 @@ def info(path: str, **options: Any) -> dict[str, Any]:
             if len(block) > 1 and len(steps) < 64:
                 steps.append(float(np.median(np.diff(block.t_ns))))
             if len(block) > 1 and steps:
-                d = np.diff(block.t_ns).astype(np.float64)
+                dts = np.diff(block.t_ns).astype(np.float64)
                 per = float(np.median(steps))
-                jitter = max(jitter, float(np.max(np.abs(d - np.maximum(np.rint(d / per), 1.0) * per))))
+                jitter = max(jitter, float(np.max(np.abs(dts - np.maximum(np.rint(dts / per), 1.0) * per))))
             t_last = int(block.t_ns[-1])
             n += len(block)
             for k, v in block.signals.items():
