@@ -126,6 +126,14 @@ def test_controller_output_limit_derivative_filter_and_feed_forward():
     uf = RIG.simulate(ps.replace(Kff=50.0), "x_ref", xr, 1e-3).inputs["u"]
     rate = (xr[2] - xr[0]) / 2e-3
     assert uf[1] - u[1] == pytest.approx(50.0 * rate, rel=1e-3)
+    # pressure feedback: the controller subtracts Kdp times the measured load pressure pA - pB AB/A
+    init = {"pA0": 19e6, "pB0": 9e6}
+    for extra in ({}, {"AB": 960e-6}):
+        p0 = ps.replace(**extra)
+        u0 = RIG.simulate(p0, "x_ref", xr, 1e-3, init=init).inputs["u"][0]
+        ud = RIG.simulate(p0.replace(Kdp=1e-7), "x_ref", xr, 1e-3, init=init).inputs["u"][0]
+        ratio = extra.get("AB", ps["A"]) / ps["A"]
+        assert ud - u0 == pytest.approx(-1e-7 * (19e6 - 9e6 * ratio), rel=1e-9)
     with pytest.raises(Exception, match="u_max"):
         RIG.params(u_max=-1.0)
 
