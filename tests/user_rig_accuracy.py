@@ -12,7 +12,9 @@ off the truth):
 * ``pid_filtered``: KP 300 V/m, KI 2000 V/(m s), KD 0.6 V s/m, derivative filter 1 ms; fitted with the
   controller stated;
 * ``pid_jitter``: the same rig logged with time stamps late by 0-150 us (CAN arbitration), read through the
-  product's record cutting (one rule: stamps on the nominal grid).
+  product's record cutting (one rule: stamps on the nominal grid);
+* ``pid_tf_unstated``: the ``pid_filtered`` records fitted without the derivative filter stated (``Tf = 0``):
+  what the filter is worth.
 
 Prints per case and parameter: the largest |z| (error over the fit's standard error) and the largest relative
 error over the seeds.
@@ -44,6 +46,7 @@ CASES = {
     "single_rod": ({"known": SINGLE_ROD}, SINGLE_ROD),
     "pid_filtered": ({"known": PID, "pid": {"Tf": 1e-3}}, {**PID, "Tf": 1e-3}),
     "pid_jitter": ({"known": PID, "pid": {"Tf": 1e-3}, "time_jitter_s": 150e-6}, {**PID, "Tf": 1e-3}),
+    "pid_tf_unstated": ({"known": PID, "pid": {"Tf": 1e-3}}, PID),
 }
 
 
