@@ -218,3 +218,15 @@ def test_tracker_driven_by_the_demand_runs_the_rigs_filtered_pid():
     for k in ("Cd", "zeta", "wn"):
         assert abs(est[k] / ps[k] - 1) < 0.05, (k, est[k], ps[k])
     assert (out.guard[-5000:] == "consistent").mean() > 0.5
+
+
+def test_a_fit_that_explains_almost_none_of_an_output_is_never_a_plain_success(single_rod):
+    """The single-rod record passed off as a symmetric rig under a static load (which the plausibility check
+    cannot tell apart): the pressures are not fitted, and the result says so in its message and JSON."""
+    res = fit(RIG, product_record(single_rod), FREE, base=RIG.params(Fext=-17.6e3, KP=300.0), n_starts=4)
+    bad = [o for o in res.outputs if res.fit_pct[o] <= 10.0]
+    assert bad and all(f"Fit({o})" in " ".join(res.warnings) for o in bad)
+    assert "WARNING" in res.message and res.to_dict()["warnings"] == res.warnings
+    good = fit(RIG, product_record(single_rod), FREE, base=RIG.params(**SINGLE_ROD), start=off_truth(single_rod, 7),
+               n_starts=2)
+    assert good.warnings == [] and "WARNING" not in good.message
