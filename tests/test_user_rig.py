@@ -230,3 +230,10 @@ def test_a_fit_that_explains_almost_none_of_an_output_is_never_a_plain_success(s
     good = fit(RIG, product_record(single_rod), FREE, base=RIG.params(**SINGLE_ROD), start=off_truth(single_rod, 7),
                n_starts=2)
     assert good.warnings == [] and "WARNING" not in good.message
+
+
+def test_a_rate_change_is_not_read_as_jitter():
+    t = np.concatenate([np.arange(2000) * 1_000_000, 2000 * 1_000_000 + np.arange(1, 2001) * 1_250_000])
+    s = Samples(t.astype(np.int64), {"x": np.zeros(t.size)})
+    with pytest.raises(DataError, match="not jitter of a fixed sample rate"):
+        records_from_samples(s, "two rates")

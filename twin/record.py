@@ -106,6 +106,12 @@ def records_from_samples(samples, name: str = "record", min_samples: int = 50,
     n = grid_steps(d, dt_ns)
     if np.any(np.abs(d - dt_ns) > rel_tol * dt_ns):  # jitter: the mean period over the whole periods
         dt_ns = float(t[-1] - t[0]) / float(n.sum())
+        off = (t - t[0]) - np.concatenate([[0], np.cumsum(n)]) * dt_ns  # each stamp's distance from its grid point
+        spread = float(np.max(off) - np.min(off))
+        if spread > 0.5 * dt_ns:
+            raise DataError(f"{name}: time stamps wander {spread * 1e-3:.4g} us about the {dt_ns * 1e-3:.4g} us grid "
+                            "(more than half a period): not jitter of a fixed sample rate; the rate changes within "
+                            "the log")
     cuts = np.flatnonzero(n != 1) + 1
     bounds = [0, *cuts.tolist(), t.size]
     out = []
