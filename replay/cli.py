@@ -83,6 +83,7 @@ def info(path: str, **options: Any) -> dict[str, Any]:
         t_last: int | None = None
         ranges: dict[str, list[float]] = {}
         steps: list[float] = []
+        jitter = 0.0  # the largest step's distance from a whole number of periods (twin.record.grid_steps)
         for block in src.chunks():
             if not len(block):
                 continue
@@ -90,6 +91,10 @@ def info(path: str, **options: Any) -> dict[str, Any]:
                 t_first = int(block.t_ns[0])
             if len(block) > 1 and len(steps) < 64:
                 steps.append(float(np.median(np.diff(block.t_ns))))
+            if len(block) > 1 and steps:
+                dts = np.diff(block.t_ns).astype(np.float64)
+                per = float(np.median(steps))
+                jitter = max(jitter, float(np.max(np.abs(dts - np.maximum(np.rint(dts / per), 1.0) * per))))
             t_last = int(block.t_ns[-1])
             n += len(block)
             for k, v in block.signals.items():
@@ -111,6 +116,7 @@ def info(path: str, **options: Any) -> dict[str, Any]:
             "duration_s": duration,
             "rate_hz": (n - 1) / duration if duration > 0 else None,
             "median_step_s": float(np.median(steps)) * 1e-9 if steps else None,
+            "jitter_s": jitter * 1e-9,
             "ranges": {k: {"min": v[0], "max": v[1]} for k, v in ranges.items()},
             "report": src.report.to_dict(),
             "summary": src.report.summary(),
@@ -141,6 +147,8 @@ def _print_info(d: dict[str, Any]) -> None:
     rate = f"{d['rate_hz']:.6g} Hz" if d["rate_hz"] else "n/a"
     step = f"{d['median_step_s']:.6g} s" if d["median_step_s"] else "n/a"
     print(f"samples: {d['samples']}  duration: {d['duration_s']:.6f} s  mean rate: {rate}  median step: {step}")
+    if d.get("jitter_s"):
+        print(f"time stamps: jitter up to {d['jitter_s'] * 1e6:.4g} us, read on the grid of the median step")
     for k, r in d["ranges"].items():
         print(f"  {k:>8}: [{r['min']:.6g}, {r['max']:.6g}]")
     print(f"gaps: {len(rep['gaps_ns'])}")

@@ -23,12 +23,14 @@ NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
 WRONG = {"Ffric": 75.0, "CdAleak": 3.2863e-9 * 0.5, "Cd": 0.2191 * 1.5, "zeta": 0.3701 * 0.5,
          "wn": M.NOMINAL["wn"] * 1.5}
 NAMES = ("x", "pA", "pB")
+#: a single-rod cylinder (rod side's annulus half the piston's area, its chamber smaller)
+SINGLE_ROD = {"AB": 960e-6, "V0B": 300e-6}
 
 
-def _samples(duration, seed, xr=None):
+def _samples(duration, seed, xr=None, **params):
     if xr is None:
         _, xr = excite(M.MODEL, duration, 1e-3, seed=seed)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise=NOISE, seed=seed)
+    rec, _ = simulate_wear(M.MODEL.params(**params), xr, 1e-3, (), noise=NOISE, seed=seed)
     return rec.to_samples()
 
 
@@ -61,6 +63,14 @@ def test_same_as_filterpy_with_missing_measurements_per_sample():
     holes = Samples(s.t_ns, sig)
     tr, out, _ = _compare(holes, excite=(0.0, 0.0, 0.0), gate_p=1e-300)
     assert list(out.status[100:103]) == ["stale_input"] * 3
+
+
+def test_same_as_filterpy_on_a_single_rod_cylinder():
+    """Two areas (AB, V0B): the lean path's physics against filterpy driving the model's own step."""
+    s = _samples(0.3, 23, **SINGLE_ROD)
+    assert np.mean(s.signals["pB"]) > 1.5 * np.mean(s.signals["pA"])
+    tr, out, expected = _compare(s, excite=(0.0, 0.0, 0.0), gate_p=1e-300, params=SINGLE_ROD)
+    assert ukf.lean_applicable(tr.pvec) and tr.pvec[M.I_AB] == SINGLE_ROD["AB"]
 
 
 def test_same_as_filterpy_with_coloured_noise_states_and_a_linear_input():
@@ -213,11 +223,12 @@ def test_sigma_point_weights_are_filterpys_with_a_small_alpha():
     assert tr.alpha <= 0.5  # wide sigma points through the tanh friction fling the parameters (model-spec)
 
 
-@pytest.mark.parametrize("mode", [0, 1, 2])
-def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode):
+@pytest.mark.parametrize("mode,params", [(0, {}), (1, {}), (2, {}), (0, SINGLE_ROD), (2, SINGLE_ROD)])
+def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode, params):
     """The lean path integrates the sigma points side by side (vectorised lanes): per point the same numbers as
-    fx_into, bit for bit, on both sides of the valve's null and with a noise state in the last coordinates."""
-    tr = OnlineTracker()
+    fx_into, bit for bit, on both sides of the valve's null and with a noise state in the last coordinates;
+    a symmetric and a single-rod cylinder."""
+    tr = OnlineTracker(params=params)
     n, nm = tr.n, tr.nmod
     rng = np.random.default_rng(31 + mode)
     x = np.concatenate([[0.01, 0.0, 11.0, 9.0, 2.0, 0.5], np.zeros(len(tr.tracked)), np.zeros(n - nm)])
@@ -227,12 +238,12 @@ def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode
     wnd = np.array([0.1, 0.2, 0.5, 0.5])
     rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm] + [0] * (ukf.LANES - 2 * nm - 1))
     m = 2 * nm + 1
-    ctrl = np.zeros(20)
-    ctrl[3] = 1.0
+    ctrl = np.zeros(ukf.N_K)
+    ctrl[ukf.K_FLAG] = 1.0
     assert ukf.lean_applicable(tr.pvec)
     sf = np.full((2 * n + 1, n), np.nan)
     ukf._lean_sigmas(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
-                     np.empty(ukf.N_W * ukf.LANES), np.empty(16), nm)
+                     np.empty(ukf.N_W * ukf.LANES), np.empty(ukf.N_LEAN), nm)
     for r in rows[:m]:
         one = np.empty(n)
         ukf.fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,

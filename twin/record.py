@@ -75,12 +75,24 @@ class Record:
         return Samples(t_ns, {k: v.copy() for k, v in self.signals.items()})
 
 
+def grid_steps(d_ns, dt_ns: float):
+    """The one rule for time stamps: a step between samples counts as the nearest whole number of sample
+    periods ``dt_ns``; what is left over (less than half a period) is time stamp jitter, not time.  Steps of
+    one period are the uniform record, more are missing samples (a gap), none a repeated time."""
+    return np.rint(np.asarray(d_ns, dtype=np.float64) / dt_ns).astype(np.int64)
+
+
 def records_from_samples(samples, name: str = "record", min_samples: int = 50,
                          rel_tol: float = 0.05) -> list[Record]:
     """Cut ``samples`` into uniformly sampled records, splitting at gaps.
 
-    The sample time is the median step; a step off by more than ``rel_tol`` of it
-    starts a new record.  Pieces shorter than ``min_samples`` are dropped.
+    The sample time is the median step.  Time stamps are read on the nominal grid
+    (:func:`grid_steps`): a step within half a period of one period is one period
+    (jitter, e.g. CAN arbitration, put back on the grid); any other step (a missing
+    sample or more, a repeated time) starts a new record.  When the stamps jitter
+    (a step off by more than ``rel_tol`` of the period), the period is the span of
+    the record over its whole number of periods.  Pieces shorter than
+    ``min_samples`` are dropped.
     """
     t = np.asarray(samples.t_ns, dtype=np.int64)
     if t.size < 2:
@@ -91,7 +103,16 @@ def records_from_samples(samples, name: str = "record", min_samples: int = 50,
         raise DataError(f"{name}: time does not increase at sample {i + 1} "
                         f"({t[i]} ns then {t[i + 1]} ns); read it through replay, which drops such samples")
     dt_ns = float(np.median(d))
-    cuts = np.flatnonzero(np.abs(d - dt_ns) > rel_tol * dt_ns) + 1
+    n = grid_steps(d, dt_ns)
+    if np.any(np.abs(d - dt_ns) > rel_tol * dt_ns):  # jitter: the mean period over the whole periods
+        dt_ns = float(t[-1] - t[0]) / float(n.sum())
+        off = (t - t[0]) - np.concatenate([[0], np.cumsum(n)]) * dt_ns  # each stamp's distance from its grid point
+        spread = float(np.max(off) - np.min(off))
+        if spread > 0.5 * dt_ns:
+            raise DataError(f"{name}: time stamps wander {spread * 1e-3:.4g} us about the {dt_ns * 1e-3:.4g} us grid "
+                            "(more than half a period): not jitter of a fixed sample rate; the rate changes within "
+                            "the log")
+    cuts = np.flatnonzero(n != 1) + 1
     bounds = [0, *cuts.tolist(), t.size]
     out = []
     for a, b in zip(bounds[:-1], bounds[1:]):

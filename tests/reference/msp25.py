@@ -12,6 +12,17 @@ Controllers (``controller``):
   at the delayed instants).
 * ``open_loop``: u given at the log instants (``drive``), with an intersample behaviour.
 
+The digital controller is an industrial PID (``pid``): its derivative, of the error or of
+minus the measurement, is the difference quotient low-passed at ``Tf`` (a first-order
+filter discretised backward, ``D = a D_prev + (1 - a) ds / T``, ``a = Tf / (Tf + T)``), a
+velocity feed-forward ``Kff`` times the demand's rate (its analytic rate, taken as a
+symmetric difference of the demand at +-1 us), and the output clipped at ``u_max``.
+
+The cylinder may have two areas (``known`` ``AB``: the rod side's annulus; ``V0B``: that
+chamber's volume at mid stroke; both default to the piston side's ``A``, ``V0``).
+``time_jitter_s``: the logged time stamps are late by a uniform draw in [0, jitter]
+(CAN arbitration), the values are still those at the nominal instants.
+
 The demand r(t) is a multisine evaluated analytically (``intersample: analytic``) or
 its log samples held (``zoh``), linearly interpolated (``foh``) or splined (``cubic``).
 A pre-roll of ``preroll`` seconds on the demand's first value, started from a solved
@@ -54,7 +65,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
                effects=(), noise: Mapping | str | None = "default", preroll: float = 0.5,
                drive: Mapping | None = None, init=None, rtol: float = 1e-8, atol_scale: float = 1.0,
                max_step: float = 1e-3, method: str = "LSODA", driver: str = "odeint", pade_order: int = 3,
-               derivative_filter_s: float = 1e-3) -> dict:
+               derivative_filter_s: float = 1e-3, pid: Mapping | None = None,
+               time_jitter_s: float = 0.0) -> dict:
     """A complete MSP25 spec (plain dict): every default filled in, truth and effect sizes drawn.
 
     ``truth``: None (Table 9), ``"draw"`` (:func:`draw_truth` with ``spread``) or a dict of free
@@ -85,6 +97,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
             raise ValueError(f"unknown free parameter(s) {sorted(unknown)}; known: {list(MSP25_FREE)}")
         tr = {**MSP25_FREE, **{k: float(v) for k, v in truth.items()}}
     kn = dict(MSP25_KNOWN)
+    kn["AB"] = float((known or {}).get("AB", (known or {}).get("A", kn["A"])))
+    kn["V0B"] = float((known or {}).get("V0B", (known or {}).get("V0", kn["V0"])))
     for k, v in (known or {}).items():
         if k not in kn:
             raise ValueError(f"unknown known parameter {k!r}; known: {list(kn)}")
@@ -156,7 +170,24 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
         "solver": {"driver": driver, "method": method, "rtol": float(rtol), "atol_scale": float(atol_scale),
                    "max_step": float(max_step)},
         "pade_order": int(pade_order), "derivative_filter_s": float(derivative_filter_s),
+        "pid": _pid_spec(pid), "time_jitter_s": float(time_jitter_s),
     }
+
+
+PID_DEFAULT = {"Tf": 0.0, "d_on": "error", "Kff": 0.0, "u_max": None}
+
+
+def _pid_spec(pid: Mapping | None) -> dict:
+    out = dict(PID_DEFAULT)
+    for k, v in (pid or {}).items():
+        if k not in out:
+            raise ValueError(f"unknown pid setting {k!r}; known: {list(out)}")
+        out[k] = v
+    if out["d_on"] not in ("error", "measurement"):
+        raise ValueError(f"pid d_on must be error or measurement, got {out['d_on']!r}")
+    out["Tf"], out["Kff"] = float(out["Tf"]), float(out["Kff"])
+    out["u_max"] = None if out["u_max"] is None else float(out["u_max"])
+    return out
 
 
 # --- set-up -----------------------------------------------------------------------------------
@@ -165,6 +196,7 @@ def _param_vector(spec: dict) -> np.ndarray:
     eff = spec["effects"]
     P = np.zeros(R.NP)
     P[R.RHO], P[R.V0], P[R.AREA], P[R.MASS], P[R.BULK] = kn["rho"], kn["V0"], kn["A"], kn["m"], kn["B"]
+    P[R.AREA_B], P[R.V0_B] = kn["AB"], kn["V0B"]
     P[R.VREF], P[R.KE], P[R.KSP], P[R.PORT], P[R.PP], P[R.PT] = (kn["vref"], kn["Ke"], kn["Ksp"], kn["b"],
                                                                  kn["pP"], kn["pT"])
     P[R.FEXT] = spec["Fext"]
@@ -307,17 +339,22 @@ def _equilibrium(s: _Setup, t: float) -> tuple[np.ndarray, str]:
     spec = s.spec
     y = np.zeros(R.NS)
     pm = 0.5 * (P[R.PP] + P[R.PT])
+    if P[R.AREA_B] != P[R.AREA]:  # two areas: the valve's null shares pP, the areas share the load
+        pA_eq = (spec["Fext"] + P[R.PP] * P[R.AREA_B]) / (P[R.AREA] + P[R.AREA_B])
+        pm, dp_half = 0.5 * P[R.PP], pA_eq - 0.5 * P[R.PP]
+    else:
+        dp_half = 0.5 * spec["Fext"] / P[R.AREA]
     if spec["controller"] == "open_loop":
-        y[R.S_PA] = pm + 0.5 * spec["Fext"] / P[R.AREA]
-        y[R.S_PB] = pm - 0.5 * spec["Fext"] / P[R.AREA]
+        y[R.S_PA] = pm + dp_half
+        y[R.S_PB] = pm - dp_half
         return y, "rest"
     r0 = float(sig_eval(s.sigp, s.sc, t, -1))
     x0 = r0 / P[R.GAIN]
     dpF = (spec["Fext"] + P[R.KSPEC] * x0) / P[R.AREA]
     y[R.S_X] = x0
     y[R.S_X2] = x0
-    y[R.S_PA] = pm + 0.5 * dpF
-    y[R.S_PB] = pm - 0.5 * dpF
+    y[R.S_PA] = pm + (0.5 * dpF if P[R.AREA_B] == P[R.AREA] else dp_half)
+    y[R.S_PB] = pm - (0.5 * dpF if P[R.AREA_B] == P[R.AREA] else dp_half)
     n = int(P[R.PADE_N])
     has_i = P[R.KI] != 0.0
     mode_save = P[R.MODE], P[R.UHELD], P[R.NOISE_ON]
@@ -354,7 +391,9 @@ def _equilibrium(s: _Setup, t: float) -> tuple[np.ndarray, str]:
         best = z0
         if r0res > 1e-9:
             sol = root(resid, z0, method="hybr", options={"xtol": 1e-13})
-            if np.max(np.abs(resid(sol.x))) < min(r0res, 1e-6):
+            ys = full(sol.x)
+            inside = all(P[R.PT] < ys[i] < P[R.PP] for i in (R.S_PA, R.S_PB))  # not the empty chambers' root
+            if np.max(np.abs(resid(sol.x))) < min(r0res, 1e-6) and inside:
                 best, how = sol.x, "solved"
             else:
                 how = "guess"
@@ -405,6 +444,10 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
     x_first = y[R.S_X]
     integ = float(y[R.S_ZI])
     e_prev = None
+    xm_prev = 0.0
+    dfilt = 0.0
+    pid = spec["pid"]
+    a_f = pid["Tf"] / (pid["Tf"] + C * hb)
     Tc = C * hb
     if open_loop and spec["intersample"] == "zoh":
         P[R.MODE] = R.M_HELD
@@ -437,9 +480,21 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
             r = sig_eval(s.sigp, s.sc, t, j // L if (j >= 0 and held_demand) else -1)
             e = r - xm
             integ += e * Tc
-            de = 0.0 if e_prev is None else (e - e_prev) / Tc
+            if e_prev is None:
+                dfilt = 0.0
+            else:
+                ds = (xm_prev - xm) if pid["d_on"] == "measurement" else (e - e_prev)
+                dfilt = a_f * dfilt + (1.0 - a_f) * ds / Tc
             e_prev = e
-            P[R.UHELD] = kn["KP"] * e + kn["KI"] * integ + kn["KD"] * de
+            xm_prev = xm
+            u_c = kn["KP"] * e + kn["KI"] * integ + kn["KD"] * dfilt
+            if pid["Kff"] != 0.0:
+                seg = j // L if (j >= 0 and held_demand) else -1
+                rate = (sig_eval(s.sigp, s.sc, t + 1e-6, seg) - sig_eval(s.sigp, s.sc, t - 1e-6, seg)) / 2e-6
+                u_c += pid["Kff"] * rate
+            if pid["u_max"] is not None:
+                u_c = min(max(u_c, -pid["u_max"]), pid["u_max"])
+            P[R.UHELD] = u_c
         elif not digital:
             P[R.SEG] = float(j) if j >= 0 else -1.0
             if open_loop and spec["intersample"] == "zoh":
@@ -534,6 +589,9 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
     for ename, vals in spec["effects"].items():
         for p, v in vals.items():
             truth[f"{ename}.{p}"] = v
+    if spec["time_jitter_s"] > 0.0:  # stamped late by the bus, values from the nominal instants
+        jit = np.random.default_rng([spec["seed"], 4242]).uniform(0.0, spec["time_jitter_s"], tk.size)
+        tk = tk + jit
     meta = {k: v for k, v in spec.items() if k not in ("drive", "demand", "truth")}
     meta["demand"] = _describe(spec["demand"])
     meta["drive"] = _describe(spec["drive"])

@@ -22,8 +22,9 @@ S_XS, S_VS, S_PA, S_PB, S_X, S_V, S_X2, S_V2, S_ZI, S_ZD, S_Z0 = range(11)
 (RHO, V0, AREA, MASS, BULK, VREF, KE, KSP, PORT, PP, PT, FEXT,
  KP, KI, KD, TD, MODE, UHELD, SEG,
  CVISC, FSTR, VSTR, GLAM, OVERLAP, BIAS, RSUP, KSPEC, GAIN, AIR, XSMAX, M2, K2, C2,
- PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON) = range(47)
-NP = 47
+ PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON,
+ AREA_B, V0_B) = range(49)
+NP = 49
 # time-varying free parameters, rows of the TV table
 TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN = range(5)
 FREE_ORDER = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
@@ -155,17 +156,18 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
     dp = pA - pB
     qL = CdAleak * math.sqrt(2.0 / P[RHO]) * ssqrt(dp, P[DPREG]) + P[GLAM] * dp
     A = P[AREA]
+    Ab = P[AREA_B]  # the rod side's annulus (a single-rod cylinder: smaller than A)
     V0v = P[V0]
     VA = max(V0v + A * x, 1e-3 * V0v)
-    VB = max(V0v - A * x, 1e-3 * V0v)
+    VB = max(P[V0_B] - Ab * x, 1e-3 * P[V0_B])
     out[S_PA] = _bulk(pA, P) * (qA - qL - A * v) / VA
-    out[S_PB] = _bulk(pB, P) * (-qB + qL + A * v) / VB
+    out[S_PB] = _bulk(pB, P) * (-qB + qL + Ab * v) / VB
     # rod: dry (tanh) friction, Stribeck rise, viscous, specimen spring, second mass
     fs = P[FSTR]
     fd = Ffric
     if fs > 0.0:
         fd += fs * math.exp(-abs(v) / P[VSTR])
-    F = dp * A - fd * math.tanh(v / P[VREF]) - P[CVISC] * v - P[FEXT] - P[KSPEC] * x
+    F = pA * A - pB * Ab - fd * math.tanh(v / P[VREF]) - P[CVISC] * v - P[FEXT] - P[KSPEC] * x
     if P[M2] > 0.0:
         Fc = P[K2] * (x - y[S_X2]) + P[C2] * (v - y[S_V2])
         F -= Fc

@@ -97,6 +97,8 @@ class FitResult:
     predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
     std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
     timing: dict = dataclasses.field(default_factory=dict)
+    #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         specs = {s.name: s for s in self.params.specs}
@@ -112,7 +114,7 @@ class FitResult:
             "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
             "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
             "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "time_s": self.time_s, "init": self.init, "starts": self.starts,
+            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "starts": self.starts,
             "history": self.history,
         }
 
@@ -155,6 +157,11 @@ class FitResult:
                     f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
                     f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
         return "\n".join(rows)
+
+
+#: a fit whose Fit % on an output is not above this is never a plain success (a warning beside it): the model
+#: then explains under a fifth of the output's variation (1 - 0.9^2), near zero or worse than its mean
+FIT_WARN_PCT = 10.0
 
 
 @dataclasses.dataclass
@@ -346,6 +353,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     drives = []
     for r in records:
         r.require(outputs, f"fitting outputs {', '.join(outputs)}")
+        model.check_record(base, r.signals, r.name)
         drives.append(model.drive_signal(r.signals, drive))
     check_names(model.INIT, estimate_init, f"initial-state quantity of {model.name}")
     if init is None:
@@ -551,14 +559,19 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     v = float(np.prod([mse[o] for o in prob.outputs])) ** (1.0 / n_out)
     fpe = v * (1 + p / n_obs) / (1 - p / n_obs) if n_obs > p else float("inf")
     init_list = [prob._init_of(init[r], r) for r in range(len(prob.records))]
+    warnings = [f"Fit({o}) = {fit_pct[o]:.1f} %: the model explains almost none of this output (at most "
+                f"{FIT_WARN_PCT:g} %); the estimates are not to be trusted: check the rig's geometry, controller "
+                "and loop timing" for o in prob.outputs if not fit_pct[o] > FIT_WARN_PCT]
+    message = str(res.message) + (f"; at a bound (no standard error): {', '.join(at_bound)}" if at_bound else "")
+    message += "".join(f"; WARNING {w}" for w in warnings)
     return FitResult(
         model=prob.model.name, params=ps, free=prob.free, estimate=dict(zip(prob.free, theta.tolist())),
         std=dict(zip(prob.free, std.tolist())), corr=corr, outputs=prob.outputs, fit_pct=fit_pct, mse=mse,
         nrmse=nrmse, loglik=loglik, aic=aic, aicc=aicc, bic=bic, fpe=fpe, n_obs=n_obs, n_par=p,
         cost=float(res.cost), success=bool(res.status > 0), status=int(res.status),
-        message=str(res.message) + (f"; at a bound (no standard error): {', '.join(at_bound)}" if at_bound else ""),
-        nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed, predicted=pred,
-        std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict())
+        message=message, nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed,
+        predicted=pred, std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict(),
+        warnings=warnings)
 
 
 def _bartlett_lag(g: np.ndarray) -> int:

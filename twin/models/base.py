@@ -242,6 +242,11 @@ class Model(abc.ABC):
         """Initial-state quantities read off a record's first samples (none by default)."""
         return {}
 
+    def check_record(self, ps: ParameterSet, signals: Mapping[str, np.ndarray], name: str = "record") -> None:
+        """Raise a :class:`DataError` (one line, naming the numbers) when the record is impossible for the
+        rig ``ps`` describes (nothing is checked by default)."""
+        return None
+
     def simulate(self, ps: ParameterSet, drive_name: str, drive: np.ndarray, dt: float,
                  init: Mapping[str, float] | None = None, substeps: int | None = None,
                  timing: Timing | None = None) -> SimResult:

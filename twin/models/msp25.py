@@ -12,6 +12,15 @@ Two ways to drive it:
   reproduces the same trajectory when fed back open loop.
 * open loop from the logged controller output ``u`` [V] (what a filter uses).
 
+The controller is an industrial PID: derivative on the error or on the
+measurement (``D_meas``), through a first-order filter ``Tf``, velocity
+feed-forward ``Kff`` of the demand's rate, pressure feedback ``Kdp`` on the
+load pressure, output limit ``u_max`` (:func:`pid_tick`); the defaults are
+the paper's loop.  The cylinder has the piston side's area ``A`` and the rod
+side's ``AB`` (``0``: the same, symmetric), with chamber volumes ``V0`` and
+``V0B`` at mid stroke; a record whose pressures the stated geometry cannot
+hold is refused (:meth:`MSP25.check_record`).
+
 Orifice square roots follow the paper's turbulent law wherever the rig operates:
 ``sqrt(|dp|) sgn(dp)`` is replaced by ``dp / (dp^2 + dp_lam^2)^(1/4)`` only so that
 the slope stays finite at zero drop.  The band is 1 kPa by default, separately
@@ -55,8 +64,10 @@ BASE = (
     ParamSpec("KI", "V/(m s)", 0.0, 1e7, PH, "PID integral gain"),
     ParamSpec("KD", "V s/m", 0.0, 1e3, PH, "PID derivative gain"),
     ParamSpec("rho", "kg/m^3", 700.0, 1100.0, PH, "oil density"),
-    ParamSpec("V0", "m^3", 1e-6, 1e-1, G, "chamber volume at mid stroke (each side)", "cm^3", 1e6),
-    ParamSpec("A", "m^2", 1e-6, 1e-1, G, "piston area (each side)", "mm^2", 1e6),
+    ParamSpec("V0", "m^3", 1e-6, 1e-1, G, "chamber A volume at mid stroke (both chambers unless V0B is given)",
+              "cm^3", 1e6),
+    ParamSpec("A", "m^2", 1e-6, 1e-1, G, "piston area AA of chamber A (both sides unless AB is given)", "mm^2",
+              1e6),
     ParamSpec("m", "kg", 0.1, 1e5, PH, "moving mass"),
     ParamSpec("Bulk", "Pa", 1e7, 1e11, PH, "oil bulk modulus", "MPa", 1e-6),
     ParamSpec("vref", "m/s", 1e-7, 1.0, PH, "friction smoothing velocity", "mm/s", 1e3),
@@ -85,6 +96,16 @@ BASE = (
     ParamSpec("wn", "rad/s", TWO_PI * 1.0, TWO_PI * 1000.0, PN, "valve natural frequency", "Hz",
               1.0 / TWO_PI, typical=TWO_PI * 43.0,
               tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 3, 3.0), excited_by="valve_command")),
+    # a single-rod cylinder: chamber B's annulus area and volume (0: the same as chamber A's, symmetric)
+    ParamSpec("AB", "m^2", 0.0, 1e-1, G, "piston area AB of chamber B (0: equal to A, a symmetric cylinder)",
+              "mm^2", 1e6),
+    ParamSpec("V0B", "m^3", 0.0, 1e-1, G, "chamber B volume at mid stroke (0: equal to V0)", "cm^3", 1e6),
+    # the controller as an industrial rig runs it (defaults: the paper's PID, no filter, limit at +-10 V)
+    ParamSpec("Tf", "s", 0.0, 1.0, PH, "PID derivative filter time constant (0: unfiltered)", "ms", 1e3),
+    ParamSpec("D_meas", "1", 0.0, 1.0, PH, "PID derivative on the measurement (1) or on the error (0)"),
+    ParamSpec("Kff", "V s/m", 0.0, 1e4, PH, "velocity feed-forward gain on the demand's rate"),
+    ParamSpec("u_max", "V", 1e-3, 1e3, PH, "controller output limit (+/-)"),
+    ParamSpec("Kdp", "V/Pa", 0.0, 1e-3, PH, "pressure (delta-P) feedback gain on pA - pB AB/A", "V/MPa", 1e6),
 )
 
 NOMINAL = {
@@ -93,6 +114,7 @@ NOMINAL = {
     "dp_lam": 1e3, "dp_lam_leak": 1e3, "Fext": 0.0, "stroke": 0.25,
     # paper Table 9 (the reference set)
     "Ffric": 50.0, "CdAleak": 3.2863e-9, "Cd": 0.2191, "zeta": 0.3701, "wn": TWO_PI * 43.0,
+    "AB": 0.0, "V0B": 0.0, "Tf": 0.0, "D_meas": 0.0, "Kff": 0.0, "u_max": 10.0, "Kdp": 0.0,
 }
 PHENOMENOLOGICAL = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
 
@@ -150,9 +172,14 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
 NP = len(KERNEL_NAMES)
 (I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_DPLL,
- I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
+ I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_AB, I_V0B, I_TF, I_DMEAS, I_KFF, I_UMAX, I_KDP,
+ I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
  I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF) = range(NP)
-assert NP == 37 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+assert NP == 44 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+
+#: the largest mean friction a working actuator shows, as a fraction of its stall force pP A (a physical bound:
+#: servo-actuator seals are a percent or two of it); a record's mean pressure force beyond it is a wrong geometry
+PLAUSIBLE_FRICTION = 0.1
 
 STATES = ("xs", "vs", "pA", "pB", "x", "v")
 NS = 6
@@ -228,11 +255,13 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     qAB = p[I_CDALEAK] * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, p[I_DPLL]) + p[I_KLAM] * dpAB
     qA = qPA - qAT - qAB
     qB = qPB - qBT + qAB
+    AB = p[I_AB] if p[I_AB] > 0.0 else A
+    V0B = p[I_V0B] if p[I_V0B] > 0.0 else V0
     VA = max(V0 + A * x, 1e-3 * V0)
-    VB = max(V0 - A * x, 1e-3 * V0)
+    VB = max(V0B - AB * x, 1e-3 * V0B)
     eps = p[I_EPS]
     dpA = _bulk(pA, p[I_BULK], eps) * (qA - A * v) / VA
-    dpB = _bulk(pB, p[I_BULK], eps) * (qB + A * v) / VB
+    dpB = _bulk(pB, p[I_BULK], eps) * (qB + AB * v) / VB
     # rod (eq. 11-12) with the friction extensions
     ff = p[I_FFRIC]
     fb = p[I_FBRK]
@@ -240,7 +269,8 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         r = v / p[I_VSTR]
         ff = ff + fb * math.exp(-r * r)
     Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
-    dv = (dpAB * A - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
+    # pA A - pB AB, written so that a symmetric cylinder (AB = A) gives the same numbers as (pA - pB) A
+    dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
     return dxs, dvs, dpA, dpB, v, dv
 
 
@@ -320,53 +350,124 @@ def _delayed(hist, k, tau, dt):
     return (1.0 - f) * hist[i0] + f * hist[i0 - 1]
 
 
+#: controller memory entries: integral of the error, previous error, started flag, derivative filter state (the
+#: filtered derivative of a digital controller, the filtered signal of a continuous one), previous measurement
+N_CTRL = 5
+
+
 @nb.njit(cache=True, inline="always")
-def _u_stage(a4, a5, k, f, drive, closed, mode, p, integ, dt):
-    """Controller output at a stage of a continuous loop (closed) or an interpolated logged input (open)."""
-    if not closed:
-        return input_at(drive, k, f, mode)
+def _shape_output(u, rdot, pa, pb, p):
+    """The PID output ``u`` with velocity feed-forward of the demand's rate ``rdot``, pressure feedback of the
+    measured ``pa``, ``pb`` (the load pressure pA - pB AB/A) and the output limit."""
+    if p[I_KFF] != 0.0:
+        u = u + p[I_KFF] * rdot
+    if p[I_KDP] != 0.0:
+        ratio = p[I_AB] / p[I_A] if p[I_AB] > 0.0 else 1.0
+        u = u - p[I_KDP] * (pa - pb * ratio)
+    um = p[I_UMAX]
+    if u > um:
+        u = um
+    elif u < -um:
+        u = -um
+    return u
+
+
+@nb.njit(cache=True, inline="always")
+def pid_tick(r, rdot, xm, pa, pb, h, p, ctrl):
+    """One tick of the digital controller (period ``h``): output ``u`` [V] from the demand ``r``, its rate
+    ``rdot``, the measured displacement ``xm`` and chamber pressures ``pa``, ``pb``; ``ctrl`` (:data:`N_CTRL`)
+    updated.  The derivative (of the error, or of minus the measurement) is a backward difference through the
+    first-order filter ``Tf``: ``D_k = (Tf D_{k-1} + s_k - s_{k-1}) / (Tf + h)`` (``Tf = 0``: the raw difference)."""
+    e = r - xm
+    ctrl[0] += e * h
+    if p[I_DMEAS] > 0.0:
+        ds = ctrl[4] - xm
+    else:
+        ds = e - ctrl[1]
+    if ctrl[2] > 0.0:
+        tf = p[I_TF]
+        de = (tf * ctrl[3] + ds) / (tf + h)
+    else:
+        de = 0.0
+    ctrl[1] = e
+    ctrl[2] = 1.0
+    ctrl[3] = de
+    ctrl[4] = xm
+    u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * de
+    return _shape_output(u, rdot, pa, pb, p)
+
+
+@nb.njit(cache=True, inline="always")
+def _d_signal(a4, a5, k, f, drive, mode, p, dt):
+    """A continuous controller's measured displacement, error, demand rate, the signal its derivative acts on
+    and that signal's rate."""
     g = p[I_KXM]
     xm = g * (a4 - p[I_TAUX] * a5)  # x(t - tau) to first order
     e = input_at(drive, k, f, mode) - xm
-    return p[I_KP] * e + p[I_KI] * integ + p[I_KD] * (slope_at(drive, k, f, mode, dt) - g * a5)
+    rdot = slope_at(drive, k, f, mode, dt)
+    if p[I_DMEAS] > 0.0:
+        return xm, e, rdot, -xm, -g * a5
+    return xm, e, rdot, e, rdot - g * a5
+
+
+@nb.njit(cache=True, inline="always")
+def _u_stage(a2, a3, a4, a5, k, f, drive, closed, mode, p, integ, dflt, dt):
+    """Controller output at a stage of a continuous loop (closed) or an interpolated logged input (open).
+    ``dflt``: the derivative filter's state (the filtered signal) when ``Tf > 0``."""
+    if not closed:
+        return input_at(drive, k, f, mode)
+    xm, e, rdot, sig, dsig = _d_signal(a4, a5, k, f, drive, mode, p, dt)
+    tf = p[I_TF]
+    d = dsig if tf <= 0.0 else (sig - dflt) / tf
+    u = p[I_KP] * e + p[I_KI] * integ + p[I_KD] * d
+    return _shape_output(u, rdot, a2 + p[I_PAOFF], a3 + p[I_PBOFF], p)
 
 
 @nb.njit(cache=True)
-def step_varying(s, k, drive, closed, mode, p, dt, nsub, integ, out):
+def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
     """Advance ``s`` from sample ``k`` to ``k+1`` with the input varying inside the interval.
 
-    ``closed``: a continuous controller reads the state at every stage; else the
-    logged input ``drive`` is interpolated by ``mode``.  Returns the controller's
-    integral at the end.
+    ``closed``: a continuous controller reads the state at every stage (its memory ``ctrl``, integral and
+    derivative filter, updated per substep); else the logged input ``drive`` is interpolated by ``mode``.
     """
     h = dt / nsub
     fh = 1.0 / nsub
     a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
+    integ = ctrl[0]
+    dflt = ctrl[3]
+    tf = p[I_TF]
     for j in range(nsub):
         f0 = j * fh
-        u1 = _u_stage(a4, a5, k, f0, drive, closed, mode, p, integ, dt)
+        u1 = _u_stage(a2, a3, a4, a5, k, f0, drive, closed, mode, p, integ, dflt, dt)
         k1 = deriv(a0, a1, a2, a3, a4, a5, u1, p)
+        b2 = a2 + 0.5 * h * k1[2]
+        b3 = a3 + 0.5 * h * k1[3]
         b4 = a4 + 0.5 * h * k1[4]
         b5 = a5 + 0.5 * h * k1[5]
-        u2 = _u_stage(b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dt)
-        k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
-                   a3 + 0.5 * h * k1[3], b4, b5, u2, p)
+        u2 = _u_stage(b2, b3, b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
+        k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p)
+        c2 = a2 + 0.5 * h * k2[2]
+        c3 = a3 + 0.5 * h * k2[3]
         c4 = a4 + 0.5 * h * k2[4]
         c5 = a5 + 0.5 * h * k2[5]
-        u3 = _u_stage(c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dt)
-        k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
-                   a3 + 0.5 * h * k2[3], c4, c5, u3, p)
+        u3 = _u_stage(c2, c3, c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
+        k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p)
+        d2 = a2 + h * k3[2]
+        d3 = a3 + h * k3[3]
         d4 = a4 + h * k3[4]
         d5 = a5 + h * k3[5]
-        u4 = _u_stage(d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dt)
-        k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2], a3 + h * k3[3], d4, d5, u4, p)
+        u4 = _u_stage(d2, d3, d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dflt, dt)
+        k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p)
         if closed:
-            e0 = input_at(drive, k, f0, mode) - p[I_KXM] * (a4 - p[I_TAUX] * a5)
-            e1 = input_at(drive, k, f0 + fh, mode) - p[I_KXM] * (d4 - p[I_TAUX] * d5)
+            _, e0, _, s0, _ = _d_signal(a4, a5, k, f0, drive, mode, p, dt)
+            _, e1, _, s1, _ = _d_signal(d4, d5, k, f0 + fh, drive, mode, p, dt)
             integ += 0.5 * h * (e0 + e1)
+            if tf > 0.0:  # the filter over the substep, its input linear between the ends
+                dflt += (1.0 - math.exp(-h / tf)) * (0.5 * (s0 + s1) - dflt)
         a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
     store6(out, a0, a1, a2, a3, a4, a5)
-    return integ
+    ctrl[0] = integ
+    ctrl[3] = dflt
 
 
 @nb.njit(cache=True)
@@ -376,20 +477,31 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
     ``ticks``: controller ticks per sample (1: digital at the log's rate, N: a
     digital controller N times faster, 0: continuous).  ``mode``: intersample of
     ``drive`` (0 zoh, 1 foh, 2 cubic).  ``xm_k``: the measured displacement at
-    ``t_k``.  ``ctrl``: controller memory ``[integral, previous error, started]``,
-    updated in place.  ``out`` may be ``s``.
+    ``t_k``.  ``ctrl``: controller memory (:data:`N_CTRL` entries: integral,
+    previous error, started, derivative filter, previous measurement), updated in
+    place.  ``out`` may be ``s``.  A digital controller's feed-forward reads the
+    demand's rate as the cubic's slope (at a sample: the central difference).
     """
     if not closed:
         u = drive[k]
         if mode == 0:
             step(s, u, p, dt, nsub, out)
         else:
-            step_varying(s, k, drive, False, mode, p, dt, nsub, 0.0, out)
+            step_varying(s, k, drive, False, mode, p, dt, nsub, ctrl, out)
         return u
     if ticks == 0:
+        if ctrl[2] <= 0.0:  # the derivative filter starts at its input
+            ctrl[3] = _d_signal(s[4], s[5], k, 0.0, drive, mode, p, dt)[3]
+            ctrl[2] = 1.0
         e = drive[k] - xm_k
-        u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * (slope_at(drive, k, 0.0, mode, dt) - p[I_KXM] * s[5])
-        ctrl[0] = step_varying(s, k, drive, True, mode, p, dt, nsub, ctrl[0], out)
+        rdot = slope_at(drive, k, 0.0, mode, dt)
+        tf = p[I_TF]
+        sig = -xm_k if p[I_DMEAS] > 0.0 else e
+        d = (-p[I_KXM] * s[5] if p[I_DMEAS] > 0.0 else rdot - p[I_KXM] * s[5]) if tf <= 0.0 else \
+            (sig - ctrl[3]) / tf
+        u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * d
+        u = _shape_output(u, rdot, s[2] + p[I_PAOFF], s[3] + p[I_PBOFF], p)
+        step_varying(s, k, drive, True, mode, p, dt, nsub, ctrl, out)
         return u
     h = dt / ticks
     nsub_t = max(1, (nsub + ticks - 1) // ticks)
@@ -397,14 +509,14 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
     for i in range(ticks):
         if i == 0:
             xm = xm_k
+            pa = s[2] + p[I_PAOFF]
+            pb = s[3] + p[I_PBOFF]
         else:
             xm = p[I_KXM] * (out[4] - p[I_TAUX] * out[5])
-        e = input_at(drive, k, i / ticks, mode) - xm
-        ctrl[0] += e * h
-        de = (e - ctrl[1]) / h if ctrl[2] > 0.0 else 0.0
-        ctrl[1] = e
-        ctrl[2] = 1.0
-        u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * de
+            pa = out[2] + p[I_PAOFF]
+            pb = out[3] + p[I_PBOFF]
+        rdot = slope_at(drive, k, i / ticks, 2, dt) if p[I_KFF] != 0.0 else 0.0
+        u = pid_tick(input_at(drive, k, i / ticks, mode), rdot, xm, pa, pb, h, p, ctrl)
         if i == 0:
             u0 = u
             step(s, u, p, h, nsub_t, out)
@@ -418,7 +530,7 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
     T = drive.shape[0]
     s = s0.copy()
     xhist = np.empty(T)
-    ctrl = np.zeros(3)
+    ctrl = np.zeros(N_CTRL)
     tau = p[I_TAUX]
     g = p[I_KXM]
     for k in range(T):
@@ -430,8 +542,11 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
         if k + 1 < T:
             U[k] = advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm, ctrl, s)
         elif closed:  # the last sample: the controller's output at t_k, no step
-            e = drive[k] - xm
-            U[k] = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * ((e - ctrl[1]) / dt if ticks == 1 else 0.0)
+            c = ctrl.copy()
+            if ticks != 1:
+                c[2] = 0.0
+            rdot = slope_at(drive, k, 0.0, 2, dt) if p[I_KFF] != 0.0 else 0.0
+            U[k] = pid_tick(drive[k], rdot, xm, s[2] + p[I_PAOFF], s[3] + p[I_PBOFF], dt, p, c)
         else:
             U[k] = drive[k]
 
@@ -480,6 +595,43 @@ class MSP25(Model):
             hi = min(hi, ps["pP"] * ps["A"])
         return lo, hi
 
+    def check_record(self, ps, signals, name="record"):
+        """The force the record's chamber pressures put on the rod must be one the rig can hold.
+
+        Over a record the rod's momentum comes back to about where it started, so the time average of the
+        pressure force ``pA AA - pB AB`` minus the stated external force (and spring) is the average friction,
+        which a working actuator keeps far below its stall force ``pP AA``.  An average beyond
+        :data:`PLAUSIBLE_FRICTION` of it means the stated geometry is not the rig's: a single-rod cylinder
+        fitted as a symmetric one (its rest pressures sit in the inverse area ratio), or an unstated load.
+        """
+        if "pA" not in signals or "pB" not in signals:
+            return
+        pa_s = np.asarray(signals["pA"], dtype=np.float64)
+        pb_s = np.asarray(signals["pB"], dtype=np.float64)
+        ok = np.isfinite(pa_s) & np.isfinite(pb_s)
+        if ok.sum() < 2:
+            return
+        given = ps.as_dict()
+        pa = float(np.mean(pa_s[ok])) - given.get("pA_off", 0.0)
+        pb = float(np.mean(pb_s[ok])) - given.get("pB_off", 0.0)
+        A = ps["A"]
+        AB = ps["AB"] if ps["AB"] > 0.0 else A
+        load = ps["Fext"]
+        if "k_spec" in ps and "x" in signals:
+            x = np.asarray(signals["x"], dtype=np.float64)
+            load += ps["k_spec"] * float(np.mean(x[np.isfinite(x)])) if np.isfinite(x).any() else 0.0
+        F = pa * A - pb * AB - load
+        stall = ps["pP"] * max(A, AB)
+        if abs(F) <= PLAUSIBLE_FRICTION * stall:
+            return
+        ratio = (pa * A - load) / (pb * A) if pb > 0.0 else float("nan")
+        raise DataError(
+            f"{name}: mean pressures pA {pa * 1e-6:.2f} MPa, pB {pb * 1e-6:.2f} MPa are impossible for the stated "
+            f"cylinder (A {A * 1e6:.0f} mm^2, AB {AB * 1e6:.0f} mm^2, Fext {ps['Fext']:.0f} N): they leave "
+            f"{F * 1e-3:.1f} kN on the rod, {100 * abs(F) / stall:.0f} % of the stall force (friction holds at most "
+            f"{100 * PLAUSIBLE_FRICTION:.0f} %); a single-rod cylinder with AB/A = {ratio:.2f} or an external "
+            f"force of {F:.0f} N would balance them (--set AB=... V0B=... or --set Fext=...)")
+
     def initial_state(self, P: np.ndarray, init: Mapping[str, float] | None = None) -> np.ndarray:
         """Rod at ``x0`` moving at ``v0``, chambers at ``pA0``/``pB0``, spool where the command ``u0`` holds it.
 
@@ -505,8 +657,13 @@ class MSP25(Model):
         pm = 0.5 * (P[:, I_PP] + P[:, I_PT])
         S0[:, 0] = P[:, I_KE] * P[:, I_KSP] * u0
         # measured starts are read through the transducers' own errors (an offset, a gain) where P has them
-        S0[:, 2] = (pm if pA0 is None else float(pA0) - P[:, I_PAOFF]) + 0.5 * dp0
-        S0[:, 3] = (pm if pB0 is None else float(pB0) - P[:, I_PBOFF]) - 0.5 * dp0
+        # two areas: at rest the valve's null shares pP + pT between the chambers and the areas share the load
+        two = (P[:, I_AB] > 0.0) & (P[:, I_AB] != P[:, I_A])
+        AB = np.where(P[:, I_AB] > 0.0, P[:, I_AB], P[:, I_A])
+        pAe = np.where(two, (P[:, I_FEXT] + 2.0 * pm * AB) / (P[:, I_A] + AB), pm)
+        pBe = np.where(two, 2.0 * pm - pAe, pm)
+        S0[:, 2] = (pAe if pA0 is None else float(pA0) - P[:, I_PAOFF]) + 0.5 * dp0
+        S0[:, 3] = (pBe if pB0 is None else float(pB0) - P[:, I_PBOFF]) - 0.5 * dp0
         S0[:, 4] = x0 / P[:, I_KXM]
         S0[:, 5] = v0
         return S0

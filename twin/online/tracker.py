@@ -317,6 +317,7 @@ class OnlineTracker:
         """The measured state at the first sample (rod position, chamber pressures) instead of rest."""
         sig = samples.signals
         assert self.dt is not None  # process() learns it first
+        self.model.check_record(self.ps, sig, "the tracked signals")
         if len(samples) >= 8:
             init = self.model.initial_from_data({k: v for k, v in sig.items() if k in self.outputs
                                                  and np.all(np.isfinite(v[:8]))}, self.dt)
@@ -339,10 +340,6 @@ class OnlineTracker:
         if "u" not in sig and "x_ref" not in sig:
             raise DataError("the tracker needs the controller output 'u' or the demand 'x_ref'; "
                             f"the block has {', '.join(sig) or 'no signals'}")
-        if "u" not in sig and (self.ps["KI"] != 0 or self.ps["KD"] != 0):
-            raise DataError("without a logged 'u' the tracker drives the rig from 'x_ref' through a P controller, "
-                            f"but this rig has KI={self.ps['KI']:g}, KD={self.ps['KD']:g}; log the controller "
-                            "output u")
         if not any(o in sig for o in self.outputs):
             raise DataError(f"the tracker needs at least one of {', '.join(self.outputs)}; "
                             f"the block has {', '.join(sig)}")

@@ -27,13 +27,18 @@ point at a time, bit for bit).  The
 measurement function ``H x`` (model output plus noise state) is linear: the
 unscented update is then exactly the Kalman update, which is what we compute.
 
-Prediction honours the loop's timing and the real time between samples:
+Prediction honours the loop's timing and the time between samples, read on
+the nominal grid (a step is the nearest whole number of sample periods; the
+rest is time-stamp jitter, :func:`twin.record.grid_steps`):
 one log interval is advanced with :func:`twin.models.msp25.advance` (digital
 controller at the log's rate, N times faster, or continuous; logged inputs
 held, linear or cubic between samples).  A logged ``u`` between samples k-1
 and k is interpolated from ``u[k-2], u[k-1], u[k]``: the filter has sample k
 when it predicts up to it, so ``foh`` is exact, and ``cubic`` uses a one-sided
-end slope (no look-ahead beyond the sample being filtered).  A longer
+end slope (no look-ahead beyond the sample being filtered).  Driven by the
+demand, the rig's controller (PID with derivative filter, feed-forward,
+output limit) keeps its memory from sample to sample (``fs[F_CTRL:]``, moved
+on along the central sigma point).  A longer
 interval (dropped rows, lost frames) is predicted in as many log steps as it
 spans with the input linear across the gap; beyond ``gap_max`` seconds the
 model states are re-initialised from the measurement with the prior
@@ -109,7 +114,8 @@ N_CFG = 25
 # carried float state (array FS)
 (F_NIS_EMA, F_NIS_FAST, F_SETTLE, F_CK_T, F_T, F_HAVE_PREV, F_U1, F_U2, F_R1, F_R2, F_XM1, F_EXC0, F_EXC1,
  F_EXC2, F_UPREV_OK, F_GATED_RUN, F_RECOVERIES, F_REINITS, F_CK_OK) = range(19)
-N_FS = 19
+F_CTRL = 19  # the rig controller's memory (twin.models.msp25.N_CTRL entries) when the drive is the demand
+N_FS = F_CTRL + M.N_CTRL
 # per-output carried state (array CH [q, N_CH])
 (H_SIG, H_A, H_C, H_R1, H_NU_PREV, H_LAST_RAW, H_RUN_SAME, H_OUT_RUN, H_CLEAR_RUN, H_STATUS, H_UNIT_RUN,
  H_SIG_NOM, H_R_FLOOR, H_HAVE_NU, H_EXT) = range(15)
@@ -230,12 +236,14 @@ def _lean_deriv(xs, vs, pA, pB, x, v, u, c):
     qB = qPB - qBT + qAB
     A = c[10]
     V0 = c[11]
+    AB = c[16]
+    V0B = c[17]
     VA = max(V0 + A * x, 1e-3 * V0)
-    VB = max(V0 - A * x, 1e-3 * V0)
+    VB = max(V0B - AB * x, 1e-3 * V0B)
     dpA = c[9] * (qA - A * v) / VA
-    dpB = c[9] * (qB + A * v) / VB
+    dpB = c[9] * (qB + AB * v) / VB
     Ffr = c[13] * fast_tanh(v * c[14])
-    dv = (dpAB * A - Ffr - c[15]) * c[12]
+    dv = (dpAB * A - pB * (AB - A) - Ffr - c[15]) * c[12]
     return dxs, dvs, dpA, dpB, v, dv
 
 
@@ -258,6 +266,8 @@ def _lean_consts(p, c):
     c[13] = p[M.I_FFRIC]
     c[14] = 1.0 / p[M.I_VREF]
     c[15] = p[M.I_FEXT]
+    c[16] = p[M.I_AB] if p[M.I_AB] > 0.0 else p[M.I_A]
+    c[17] = p[M.I_V0B] if p[M.I_V0B] > 0.0 else p[M.I_V0]
 
 
 @nb.njit(cache=True)
@@ -310,13 +320,14 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
         p[idx[j]] = theta_of(s[6 + j], lo_log[j], width[j])
     for j in range(6):
         si[j] = s[j] * scale[j]
-    if not closed and ctrl.shape[0] > 3 and ctrl[3] > 0.0:  # lean path: open loop, no effects
-        _lean_consts(p, ctrl[4:])
-        lean_step(si, wnd, mode, ctrl[4:], h, nsub, so)
+    if not closed and ctrl.shape[0] > K_FLAG and ctrl[K_FLAG] > 0.0:  # lean path: open loop, no effects
+        _lean_consts(p, ctrl[K_LEAN:])
+        lean_step(si, wnd, mode, ctrl[K_LEAN:], h, nsub, so)
     else:
-        ctrl[0] = 0.0
-        ctrl[1] = 0.0
-        ctrl[2] = 0.0
+        # the controller starts the interval from the rig controller's memory (carried by the kernel; a bare
+        # memory array starts at rest)
+        for j in range(M.N_CTRL):
+            ctrl[j] = ctrl[K_CARRY + j] if ctrl.shape[0] >= N_K else 0.0
         M.advance(si, 1, wnd, closed, ticks, mode, p, h, nsub, xm, ctrl, so)
     for j in range(6):
         out[j] = so[j] / scale[j]
@@ -331,8 +342,17 @@ def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, 
 # overlap, and a constant lane count leaves no scalar remainder.  Each lane computes exactly what :func:`lean_step`
 # computes for its sigma point (the same operations in the same order); unused lanes repeat lane 0.
 LANES = 8 * ((2 * (6 + len(TRACKABLE)) + 1 + 7) // 8)
-W_A, W_Y, W_ACC, W_K, W_C, W_TH, W_P0 = 0, 6, 12, 18, 24, 40, 41  # W_P0: the central point's parameters
-N_W = 42
+N_LEAN = 18  # constants of the lean right-hand side (:func:`_lean_consts`)
+W_A, W_Y, W_ACC, W_K, W_C, W_TH, W_P0 = 0, 6, 12, 18, 24, 24 + N_LEAN, 25 + N_LEAN  # W_P0: the central point's
+N_W = 26 + N_LEAN
+# the controller work array ``ctrl`` of the kernel: the model's controller memory (working copy), the lean-path
+# flag, the lean constants, the controller memory at the interval's start (the rig's controller, carried from
+# sample to sample) and at its end along the central sigma point
+K_FLAG = M.N_CTRL
+K_LEAN = K_FLAG + 1
+K_CARRY = K_LEAN + N_LEAN
+K_NEXT = K_CARRY + M.N_CTRL
+N_K = K_NEXT + M.N_CTRL
 # the lanes recompute only the constants (:func:`_lean_consts`) of these parameters per sigma point
 assert set(TRACKABLE) <= {"Ffric", "CdAleak", "Cd", "zeta", "wn"}, "a new trackable parameter: see _lean_sigmas"
 
@@ -365,16 +385,18 @@ def _lanes_deriv(W, u):
         qB = qAB - qb
         A = W[(W_C + 10) * LANES + ln]
         V0 = W[(W_C + 11) * LANES + ln]
+        AB = W[(W_C + 16) * LANES + ln]
+        V0B = W[(W_C + 17) * LANES + ln]
         VA = max(V0 + A * x, 1e-3 * V0)
-        VB = max(V0 - A * x, 1e-3 * V0)
+        VB = max(V0B - AB * x, 1e-3 * V0B)
         bulk = W[(W_C + 9) * LANES + ln]
         W[W_K * LANES + ln] = vs
         W[(W_K + 1) * LANES + ln] = W[W_C * LANES + ln] * (W[(W_C + 2) * LANES + ln] * u - xs) - \
             W[(W_C + 1) * LANES + ln] * vs
         W[(W_K + 2) * LANES + ln] = bulk * (qA - A * v) / VA
-        W[(W_K + 3) * LANES + ln] = bulk * (qB + A * v) / VB
+        W[(W_K + 3) * LANES + ln] = bulk * (qB + AB * v) / VB
         W[(W_K + 4) * LANES + ln] = v
-        W[(W_K + 5) * LANES + ln] = (dpAB * A - W[(W_C + 13) * LANES + ln] * W[W_TH * LANES + ln]
+        W[(W_K + 5) * LANES + ln] = (dpAB * A - pB * (AB - A) - W[(W_C + 13) * LANES + ln] * W[W_TH * LANES + ln]
                                     - W[(W_C + 15) * LANES + ln]) * W[(W_C + 12) * LANES + ln]
 
 
@@ -422,7 +444,7 @@ def _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, 
     for j in range(p_count):
         pw[idx[j]] = theta_of(s0[6 + j], lo_log[j], width[j])
     _lean_consts(pw, c)
-    for i in range(16):
+    for i in range(N_LEAN):
         for ln in range(LANES):
             W[(W_C + i) * LANES + ln] = c[i]
     s2r = math.sqrt(2.0 / pw[M.I_RHO])
@@ -461,7 +483,7 @@ def fx_one(s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, noise_a,
     out = np.empty(n)
     wnd = np.array([u_prev if u_before is None else u_before, u_prev, u_now, u_now], dtype=np.float64)
     fx_into(np.ascontiguousarray(s, dtype=np.float64), wnd, closed, ticks, mode, pvec.copy(), idx, lo_log, width,
-            scale, dt, nsub, xm, np.zeros(3), np.empty(6), np.empty(6), out, nmod)
+            scale, dt, nsub, xm, np.zeros(M.N_CTRL), np.empty(6), np.empty(6), out, nmod)
     for j in range(nmod, n):
         out[j] = noise_a[j - nmod] * s[j]
     return out
@@ -491,16 +513,18 @@ def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, n
         for i in range(n):
             sig[k + 1, i] = x[i] + L[i, k]
             sig[n + k + 1, i] = x[i] - L[i, k]
-    if not closed and ctrl[3] > 0.0 and 2 * nmod + 1 <= LANES:  # lean path: the sigma points that move the model
+    if not closed and ctrl[K_FLAG] > 0.0 and 2 * nmod + 1 <= LANES:  # lean path: the sigma points that move the model
         m = 0
         for k in range(2 * n + 1):
             if k == 0 or (k - 1) % n < nmod:
                 rows[m] = k
                 m += 1
-        _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, ctrl[4:], nmod)
+        _lean_sigmas(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, W, ctrl[K_LEAN:], nmod)
     else:
         fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so, sf[0],
                 nmod)
+        for j in range(M.N_CTRL):  # the controller's memory at the interval's end, along the central point
+            ctrl[K_NEXT + j] = ctrl[j]
         for k in range(nmod):
             fx_into(sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, si, so,
                     sf[k + 1], nmod)
@@ -690,6 +714,15 @@ def _reinit_states(x, P, z, meas_idx, u, pvec, scale, prior_mod, ch, nmod, infla
             P[i, j] *= inflate
 
 
+@nb.njit(cache=True, inline="always")
+def _carry_controller(ctrl, fs, closed, ps):
+    """After a prediction driven by the demand: the rig controller's memory moves on to the interval's end."""
+    if closed and ps >= 0:
+        for j in range(M.N_CTRL):
+            ctrl[K_CARRY + j] = ctrl[K_NEXT + j]
+            fs[F_CTRL + j] = ctrl[K_NEXT + j]
+
+
 @nb.njit(cache=True, nogil=True)
 def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mode, dt0, pvec, idx, lo_log, width, scale,
                nsub, q_state, q_param, prior_mod, Wm, Wc, lam, floor, gate, max_gated, chan, thresh, tau_excite,
@@ -713,8 +746,10 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
     pw = pvec.copy()
     si = np.empty(6)
     so = np.empty(6)
-    ctrl = np.zeros(20)  # controller memory [0:3], lean-path flag [3], lean constants [4:20]
-    ctrl[3] = 1.0 if lean_applicable(pvec) else 0.0
+    ctrl = np.zeros(N_K)  # controller memory, lean-path flag, lean constants, carried memory (K_*)
+    ctrl[K_FLAG] = 1.0 if lean_applicable(pvec) else 0.0
+    for j in range(M.N_CTRL):
+        ctrl[K_CARRY + j] = fs[F_CTRL + j]
     sig = np.empty((2 * n + 1, n))
     sf = np.empty((2 * n + 1, n))
     W = np.empty(N_W * LANES)
@@ -765,7 +800,8 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
             elif nint >= 1:
                 if nint > 1:
                     status = ST_GAP
-                h = dtk / nint
+                dtk = nint * dt0  # time stamps on the nominal grid: the rest of the step is jitter (twin.record)
+                h = dt0
                 # process noise over the whole interval
                 for i in range(n):
                     for j in range(n):
@@ -791,6 +827,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                     wnd[3] = a_now
                     ps = _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
                                   fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W, rows)
+                    _carry_controller(ctrl, fs, closed, ps)
                 else:  # across a gap: the drive linear from the last sample to this one
                     for j in range(q):
                         a_pow[j] = ch[j, H_A]
@@ -808,6 +845,7 @@ def run_kernel(x, P, fs, ch, x_ck, P_ck, U, XREF, Z, DT, mia, closed, ticks, mod
                         ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale, h,
                                       nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, W,
                                       rows)
+                        _carry_controller(ctrl, fs, closed, ps)
                         if ps < 0:
                             break
                 if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
