@@ -13,7 +13,7 @@ the tracker's ``Q`` evaluated at filterpy's state.  Noise learning must be off
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import UnscentedKalmanFilter
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from twin.online import ukf
 
@@ -34,10 +34,14 @@ def mirror(tr, samples, out) -> np.ndarray:
         return ukf.fx_one(x, u_prev, u_now, tr.pvec, tr.idx, tr.lo_log, tr.width, tr.scale, dt, tr.substeps, a,
                           False, ticks, mode, u_before)
 
-    f = UnscentedKalmanFilter(dim_x=n, dim_z=q, dt=tr.dt, hx=None, fx=fx, points=tr.points)
+    # filterpy's own sigma points: the tracker's object when it was given one (Julier's), else Merwe's from the
+    # tracker's alpha, beta, kappa (the tracker's default weights are its own, checked against these in test_tracker)
+    points = tr.points if hasattr(tr.points, "sigma_points") else MerweScaledSigmaPoints(
+        n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
+    f = UnscentedKalmanFilter(dim_x=n, dim_z=q, dt=tr.dt, hx=None, fx=fx, points=points)
     f.x = tr.x.copy()
     f.P = tr.P.copy()
-    f.sigmas_f = tr.points.sigma_points(f.x, f.P)
+    f.sigmas_f = points.sigma_points(f.x, f.P)
     R = tr.R_floor
     T = len(samples)
     X = np.empty((T, n))
