@@ -212,7 +212,7 @@ class Outbox:
 
     Messages (put on ``out`` as ``("batch", rig, [...])`` after each block):
     ``("alarm", AlarmEvent, durable)``, ``("estimate", json)``,
-    ``("status", json, state, message)``.
+    ``("status", json, state, message)``, ``("forecast", dict)``.
     """
 
     def __init__(self, rig: str, journal: AlarmJournal, out, signals_hz: float = 0.0) -> None:
@@ -244,6 +244,11 @@ class Outbox:
     def publish_estimate_json(self, payload: str) -> None:
         """An estimate already written as its JSON payload (:meth:`twin.service.rig.RigTwin._estimate_json`)."""
         self._batch.append(("estimate", payload))
+
+    def publish_forecast(self, msg: dict) -> None:
+        """A forecast message (:func:`twin.online.forecast.forecast_message`): relayed to the service's
+        :meth:`twin.service.bus.TwinPublisher.publish_forecast` (which decides when it goes on the bus)."""
+        self._batch.append(("forecast", msg))
 
     def publish_signals(self, samples: Samples) -> None:
         """The rig's samples, decimated to ``signals_hz`` (nothing when it is 0)."""
@@ -1277,6 +1282,8 @@ class BusFront:
                 elif kind == "status":
                     pub.put_payload("status", item[1])
                     self.state[rig] = (item[2], item[3])
+                elif kind == "forecast":
+                    pub.publish_forecast(item[1])
                 elif kind == "signals":
                     sp = self._signal_pubs.get(rig)
                     if sp is None:
