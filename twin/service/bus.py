@@ -508,8 +508,9 @@ class ForecastGate:
     clock) after the last one put.
 
     Changed: a parameter's forecast appeared or ended (a message with none left is put too), a quantile of its
-    exit time became or stopped being ``null``, or its median exit time (record seconds, which a steady trend
-    keeps) left the 90 % interval of the message put last - a change the forecast itself calls significant.
+    exit time became or stopped being ``null``, its median exit time (record seconds, which a steady trend
+    keeps) left the 90 % interval of the message put last - a change the forecast itself calls significant -, or
+    that interval's width halved or doubled (the forecast became much surer or much less sure).
     """
 
     def __init__(self, period_s: float = FORECAST_S, clock: Callable[[], float] = time.monotonic) -> None:
@@ -531,6 +532,10 @@ class ForecastGate:
             t, lo, hi = f.get("t_exit"), g.get("t_exit_lo"), g.get("t_exit_hi")
             if t is not None and not ((-math.inf if lo is None else lo) <= t <= (math.inf if hi is None else hi)):
                 return True
+            if lo is not None and hi is not None and f.get("t_exit_lo") is not None and f.get("t_exit_hi") is not None:
+                w_old, w_new = hi - lo, f["t_exit_hi"] - f["t_exit_lo"]
+                if w_new < 0.5 * w_old or w_new > 2.0 * w_old:
+                    return True
         return False
 
     def __call__(self, msg: dict[str, Any]) -> bool:
