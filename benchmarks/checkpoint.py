@@ -54,7 +54,8 @@ def _timed(fn, n: int) -> tuple[float, float]:
 def run(saves: int, rounds: int) -> dict:
     from twin.online.events import AlarmEvent
     from twin.service.journal import AlarmJournal
-    from twin.service.store import Checkpoint, Store
+    from twin.service.checkpoint_file import Checkpoint
+    from twin.service.store import Store
 
     out: dict = {"saves": saves, "rounds": rounds, "rows": []}
     with tempfile.TemporaryDirectory(prefix="fpdd-checkpoint-") as tmp:

@@ -318,7 +318,9 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
     from twin.service.bus import StoreHistory
     from twin.online.commission import tracker_for
     from twin.service.config import parse_config
-    from twin.service.fleet import BusFront, RigRunner, journal_path
+    from twin.service.checkpoints import journal_path
+    from twin.service.fleet import BusFront
+    from twin.service.runner import RigRunner
     from twin.service.journal import AlarmJournal
     from twin.online.tracker import OnlineTracker
 

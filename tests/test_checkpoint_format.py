@@ -25,8 +25,8 @@ from twin.models.simulate import DEFAULT_NOISE, excite
 from twin.service.config import parse_config
 from twin.service.journal import AlarmJournal
 from twin.service.rig import make_twin
-from twin.service.store import (CHECKPOINT_VERSION, Checkpoint, decode_state, encode_state, read_checkpoints,
-                                write_checkpoints)
+from twin.service.checkpoint_file import (CHECKPOINT_VERSION, Checkpoint, decode_state, encode_state,
+                                          read_checkpoints, write_checkpoints)
 
 ROOT = Path(__file__).resolve().parent.parent
 

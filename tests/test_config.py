@@ -153,7 +153,7 @@ def test_a_csv_rig_with_foreign_columns_is_read_through_its_map(tmp_path):
     import numpy as np
 
     from replay.factory import open_source
-    from twin.service.fleet import open_rig_source
+    from twin.service.inputs import open_rig_source
 
     here = __import__("pathlib").Path(__file__).parent
     text = (here / "data" / "reference.csv").read_text(encoding="utf-8").splitlines()

@@ -75,7 +75,7 @@ def test_a_twin_publisher_keeps_the_latest_and_refuses_another_rigs(tmp_path):
             while got.empty():
                 assert time.monotonic() < deadline, "no forecast reached the subscriber"
                 pub._forecast_gate = ForecastGate()  # each try is a first message
-                pub.publish_forecast(first)
+                assert pub.put_forecast(first)
                 try:
                     got.put(got.get(timeout=0.2))
                 except queue.Empty:
@@ -83,7 +83,7 @@ def test_a_twin_publisher_keeps_the_latest_and_refuses_another_rigs(tmp_path):
             assert got.get() == first
             quiet = _msg(61.0, CdAleak=(181.0, 151.0, 219.0))
             pub._forecast_gate = ForecastGate(clock=lambda: 0.0)
-            assert pub.publish_forecast(first) and not pub.publish_forecast(quiet)
+            assert pub.put_forecast(first) and not pub.put_forecast(quiet)
             assert got.get(timeout=WAIT_S) == first
             assert fetch_forecasts(client, "r1", timeout=5.0) == [quiet]  # the latest, put or not
             with pytest.raises(Exception, match="forecast.rig: 'r2'"):

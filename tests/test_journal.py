@@ -19,7 +19,8 @@ from event_helpers import alarm
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.online.events import event_to_json
 from twin.service.journal import AlarmJournal
-from twin.service.store import Checkpoint, Store
+from twin.service.checkpoint_file import Checkpoint
+from twin.service.store import Store
 
 
 @pytest.fixture
@@ -406,7 +407,8 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
     from twin.models.scenario import Drift, simulate_wear
     from twin.models.simulate import DEFAULT_NOISE, excite
     from twin.service.config import parse_config
-    from twin.service.fleet import RigRunner, journal_path
+    from twin.service.checkpoints import journal_path
+    from twin.service.runner import RigRunner
 
     _, xr = excite(M.MODEL, 16.0, 1e-3, seed=1011)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3,

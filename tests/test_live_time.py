@@ -19,9 +19,9 @@ from twin.models.scenario import simulate_wear
 from twin.models.simulate import DEFAULT_NOISE, excite
 from twin.online.events import StatusEvent
 from twin.service.config import parse_config
-from twin.service.fleet import TIME_JUMP_S
+from twin.service.live_time import TIME_JUMP_S
 from twin.service.serve import serve
-from twin.service.store import checkpoint_path, read_checkpoints
+from twin.service.checkpoint_file import checkpoint_path, read_checkpoints
 
 RIG = "rig-t"
 KEY = f"fpdd/{RIG}/samples"
@@ -211,9 +211,9 @@ def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
 def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
     """A sender whose clock stepped an hour ahead and stays there: after CLOCK_STEP_S (2 s here) of nothing but
     samples from the future its time is adopted (counted), and the rig goes on."""
-    import twin.service.fleet as fleet
+    import twin.service.live_time as live_time
 
-    monkeypatch.setattr(fleet, "CLOCK_STEP_S", 2.0)
+    monkeypatch.setattr(live_time, "CLOCK_STEP_S", 2.0)
     samples = _samples(6.0, seed=1025)
     cfg = _config(tmp_path, free_port())
 
@@ -232,9 +232,9 @@ def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
 def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_path, monkeypatch):
     """A rig controller that restarts its clock an hour back: after CLOCK_STEP_S (2 s here) of nothing but
     samples before the last processed one, its time is adopted; the events' record time t_s runs on."""
-    import twin.service.fleet as fleet
+    import twin.service.live_time as live_time
 
-    monkeypatch.setattr(fleet, "CLOCK_STEP_S", 2.0)
+    monkeypatch.setattr(live_time, "CLOCK_STEP_S", 2.0)
     samples = _samples(6.0, seed=1027)
     cfg = _config(tmp_path, free_port())
 

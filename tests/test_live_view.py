@@ -444,7 +444,7 @@ def test_forecasts_are_shown_with_their_schema_from_a_twin_and_over_zenoh(view, 
                 from twin.service.bus import ForecastGate
 
                 pub._forecast_gate = ForecastGate()  # each try is a first message: put
-                assert pub.publish_forecast(other)
+                assert pub.put_forecast(other)
                 try:
                     followed = client.messages({"/twin/forecast": 1}, timeout=0.2)["/twin/forecast"]
                     break

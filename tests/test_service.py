@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 
 from replay.mcapio import McapSink
 from twin import cli
-from twin.service.bus import AlarmSubscriber
+from twin.service.subscriber import AlarmSubscriber
 from replay.zenohconf import zenoh_config
 from twin.service.config import parse_config
 from net_helpers import free_port
@@ -294,7 +294,7 @@ speed = 1.0
 def test_one_thread_paces_several_logs_in_turn_and_a_restart_resumes_each(tmp_path):
     """run_scheduled (a worker's replayed logs on one thread): the rigs advance together, a stop checkpoints
     each one, and a second run continues every rig from its checkpoint to the end of its log."""
-    from twin.service.fleet import run_scheduled
+    from twin.service.workers import run_scheduled
 
     names = ("rig-p", "rig-q", "rig-r")
     for i, n in enumerate(names):
@@ -340,7 +340,7 @@ def test_one_thread_paces_several_logs_in_turn_and_a_restart_resumes_each(tmp_pa
 
 
 def test_a_scheduler_stopped_before_it_started_reports_every_rig(tmp_path):
-    from twin.service.fleet import run_scheduled
+    from twin.service.workers import run_scheduled
 
     _log(tmp_path / "a.mcap", 1.0, [], seed=30)
     cfg = parse_config({

@@ -34,7 +34,8 @@ from twin.commands.alarms import add_arguments as add_alarms_arguments
 from twin.commands.alarms import run as run_alarms_cli
 from twin.errors import ConfigError
 from twin.online.events import AlarmEvent, event_to_json
-from twin.service.bus import AlarmSubscriber, TwinPublisher
+from twin.service.bus import TwinPublisher
+from twin.service.subscriber import AlarmSubscriber
 from twin.service.config import parse_config
 from twin.service.fleet import BusFront
 from twin.service.journal import AlarmJournal

@@ -137,7 +137,7 @@ def test_live_view_in_a_terminal(twin_on_bus):
         later["t_ns"] += 1_000_000_000
         f.update({k: f[k] + 7200.0 for k in ("t_exit", "t_exit_lo", "t_exit_hi")})
         f.update({k: f[k] + 7200.0 for k in ("remaining_s", "remaining_lo_s", "remaining_hi_s")})
-        assert pub.publish_forecast(later)
+        assert pub.put_forecast(later)
         read_until(r"soonest exit: CdAleak leaves its band in 2\.\d h \[2\.\d, 2\.\d\]")
         # a new estimate is shown as it comes
         pub.publish_estimate(EstimateEvent(rig="msp25-07", t_ns=T0_NS + 13_000_000_000, t_s=13.0, nis=1.0,

@@ -38,7 +38,7 @@ _EXPORTS = {
     "serve": "twin.service.serve",
     "load_config": "twin.service.config",
     "TwinPublisher": "twin.service.bus",
-    "AlarmSubscriber": "twin.service.bus",
+    "AlarmSubscriber": "twin.service.subscriber",
     "AlarmEvent": "twin.online.events",
     "EstimateEvent": "twin.online.events",
     "StatusEvent": "twin.online.events",

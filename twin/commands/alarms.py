@@ -23,7 +23,8 @@ from replay.argtypes import non_negative_seconds, positive_int, positive_seconds
 from replay import jsonio
 from twin.errors import ConfigError, SourceError
 from twin.online.events import format_alarm
-from twin.service.bus import AlarmSubscriber, RigKeys, live_twins
+from twin.service.bus import RigKeys, live_twins
+from twin.service.subscriber import AlarmSubscriber
 from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
 
 _DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")

@@ -54,7 +54,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     import zenoh
 
     from replay.mcapio import McapSink
-    from twin.service.bus import AlarmSubscriber
+    from twin.service.subscriber import AlarmSubscriber
     from replay.zenohconf import zenoh_config
     from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig, ServiceConfig

@@ -38,7 +38,7 @@ def startup_line(cfg: ServiceConfig, workers: int) -> str:
     from replay.zenohconf import config_endpoints
     from twin.service.serve import zenoh_settings
 
-    from twin.service.fleet import journal_path
+    from twin.service.checkpoints import journal_path
 
     conf = zenoh_settings(cfg)
     import json as _json

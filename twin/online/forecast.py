@@ -82,7 +82,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy import special
 
 from twin.online.baseline import Baseline
 from twin.online.events import AlarmEvent
@@ -289,7 +288,7 @@ class ForecastMonitor:
         evidence = gain - math.log(n_eff)
         if not evidence >= self.evidence:
             return None
-        w_exp = float(special.expit(0.5 * kappa * n * math.log(max(fl[2], 1e-300) / max(fe[2], 1e-300))))
+        w_exp = _expit(0.5 * kappa * n * math.log(max(fl[2], 1e-300) / max(fe[2], 1e-300)))
         lo, hi = q.base.lo / q.base.value, q.base.hi / q.base.value
         nu = max(n_eff - 2.0, 1.0)
         span = float(q.pts[n - 1, 0] - q.pts[0, 0])
@@ -467,6 +466,14 @@ def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> lis
             for t_ns, fs in sorted(by_t.items())]
 
 
+def _expit(z: float) -> float:
+    """The logistic function, without overflow for any finite ``z``."""
+    if z >= 0:
+        return 1.0 / (1.0 + math.exp(-z))
+    e = math.exp(z)
+    return e / (1.0 + e)
+
+
 # -- closed-form pieces --------------------------------------------------------------------------------------------
 def _wls(t: np.ndarray, y: np.ndarray, w: np.ndarray):
     """Weighted least squares of ``y = a + b t``: (coefficients, their unscaled covariance (X'WX)^-1, weighted RSS,
@@ -518,6 +525,8 @@ def _exit_cdf(fit, kappa: float, n: int, nu: float, lo: float, hi: float, grid: 
     m = coef[0] + coef[1] * grid
     v = s2 * (cov[0, 0] + 2.0 * grid * cov[0, 1] + grid * grid * cov[1, 1]) + level_var
     sd = np.sqrt(np.maximum(v, 1e-300))
+    from scipy import special  # here, not at import: a worker that never forecasts does not pay for it
+
     return special.stdtr(nu, (m - hi) / sd) + special.stdtr(nu, (lo - m) / sd)
 
 

@@ -1,4 +1,5 @@
-"""The Zenoh layer: publishing the twin's events and subscribing to its alarms.
+"""The Zenoh layer: the key space, publishing the twin's events (:class:`TwinPublisher`) and querying the
+latest values; subscribing to its alarms is :mod:`twin.service.subscriber`.
 
 Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
 :data:`twin.online.events.RIG_PATTERN`)::
@@ -30,14 +31,14 @@ Delivery guarantees and how they are obtained:
   by a full queue) and ``Priority.INTERACTIVE_HIGH``, ``express``.
 * Zenoh still loses what is published while a link or router is down, and a
   plain subscriber receives nothing published before it joined. The
-  :class:`AlarmSubscriber` therefore (1) subscribes first, then fetches the
+  :class:`~twin.service.subscriber.AlarmSubscriber` therefore (1) subscribes first, then fetches the
   history, (2) de-duplicates by ``(rig, seq)``, (3) fills a gap in ``seq``
   from the history, (4) re-syncs from the history when a twin's liveliness
   token (re)appears (a twin or a router came back), and (5) catches a lost
   *last* alarm through the ``alarm_seq`` counter that every status carries.
 * Who published it: with a per-rig key (:mod:`twin.service.signing`) every
   alarm put and every history reply carries an Ed25519 signature over all its
-  fields; an :class:`AlarmSubscriber` with a trust store refuses and reports a
+  fields; an :class:`~twin.service.subscriber.AlarmSubscriber` with a trust store refuses and reports a
   forged one before it can move a sequence number, and never merges history
   queryables that disagree. This holds on a plain peer bus with no router.
 * Estimates, statuses and forecasts go through ``zenoh.ext`` advanced publishers with a
@@ -62,12 +63,10 @@ from __future__ import annotations
 import json
 import logging
 import math
-import queue
 import re
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -88,11 +87,11 @@ from twin.online.events import (
     format_alarm,
 )
 from twin.service.journal import AlarmJournal
-from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, Signer, TrustStore, Verdict
+from twin.service.publisher import Publisher
+from twin.service.signing import Signer
 
 __all__ = [
     "KEY_PREFIX",
-    "AlarmSubscriber",
     "ForecastGate",
     "RigKeys",
     "TwinPublisher",
@@ -108,8 +107,6 @@ KEY_PREFIX = "fpdd"
 """First chunk of every key of the service."""
 
 _JSON = zenoh.Encoding.APPLICATION_JSON
-_KEEP_DELIVERED = 100_000
-"""Delivered alarms an :class:`AlarmSubscriber` remembers (to tell a conflicting duplicate from a plain one)."""
 _RIG_RE = re.compile(RIG_PATTERN)
 #: A rig's forecast is put when it changes (:class:`ForecastGate`) and at least this often while it is made [s].
 FORECAST_S = 3.0
@@ -248,7 +245,7 @@ class _Declarations:
                 log.debug("%s: undeclare %r: %s", type(self).__name__, entity, exc)
 
 
-class TwinPublisher(_Declarations):
+class TwinPublisher(_Declarations, Publisher):
     """Everything one rig's twin declares on the bus.
 
     Declares, for ``rig``: the alarm publisher (reliable,
@@ -429,7 +426,16 @@ class TwinPublisher(_Declarations):
         except zenoh.ZError as exc:
             raise SourceError(f"rig {self.rig!r}: cannot publish estimate: {exc}") from exc
 
-    def publish_forecast(self, msg: dict[str, Any]) -> bool:
+    def publish_estimate_json(self, payload: str) -> bool:
+        """Put an estimate given as its JSON payload on ``fpdd/<rig>/estimate`` (:meth:`put_payload`)."""
+        self.put_payload("estimate", payload)
+        return True
+
+    def publish_forecast(self, message: dict) -> None:
+        """A rig's forecast message (:func:`twin.online.forecast.forecast_message`): :meth:`put_forecast`."""
+        self.put_forecast(message)
+
+    def put_forecast(self, msg: dict[str, Any]) -> bool:
         """A rig's forecast message (:func:`twin.online.forecast.forecast_message`, one per second of record):
         kept as the latest value (``get``), put on ``fpdd/<rig>/forecast`` when :class:`ForecastGate` says so
         (on change, else every :data:`FORECAST_S`).
@@ -629,498 +635,3 @@ def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) 
         if reply.ok is not None:
             rigs.add(RigKeys.rig_of(reply.ok.key_expr))
     return sorted(rigs)
-
-
-# --------------------------------------------------------------------------- subscriber
-
-
-class AlarmSubscriber(_Declarations):
-    """Every alarm of one rig (or all rigs), history first, then live; nothing forged, nothing dropped.
-
-    On construction it subscribes to ``fpdd/<rig>/alarm``, to the status key
-    (for ``alarm_seq``) and to the twins' liveliness, and only then fetches
-    the history, so nothing published in between is lost. Each ``(rig, seq)``
-    is handed out once, in ``seq`` order per rig as far as the history allows.
-
-    The twin's journal (its history queryable) is the authority on what a
-    sequence number holds:
-
-    * a live alarm whose ``seq`` jumps ahead triggers a history query for the
-      numbers in between *before* anything is declared lost; the history's
-      version of an alarm wins over a live payload claiming the same number;
-    * while the rig's twin is alive (its liveliness token is present), a live
-      alarm or a status ``alarm_seq`` that its history does not hold is
-      rejected (:attr:`rejected`, logged): it was not journaled by the twin,
-      so it is forged or corrupt, and it moves no sequence number; an alarm
-      no key vouches for is checked so even when it carries the number owed
-      (the twin journals before it puts, so the history holds the real one);
-    * with no twin alive nothing can be checked: the alarm is delivered (a
-      real alarm is never dropped) and the numbers in between are recorded in
-      :attr:`missed`; when a twin appears (liveliness), the history is
-      fetched again from the first missed number, and every alarm found
-      there is delivered, even below numbers already seen
-      (:attr:`recovered` counts them).
-
-    :param session: an open Zenoh session (stays open after :meth:`close`).
-    :param rig: a rig id or ``"*"`` for all rigs.
-    :param since_seq: deliver only ``seq >= since_seq`` (per rig).
-    :param since_t_ns: deliver only alarms with ``t_ns >= since_t_ns`` from the history.
-    Signatures (:mod:`twin.service.signing`): with a ``trust`` store, every live
-    alarm and every history reply of a rig that has a key there is verified
-    before anything else looks at it. One that does not verify (or is unsigned)
-    is *forged*: reported (:attr:`reports`, ``on_report``), counted in
-    :attr:`rejected`, and it moves no sequence number, so the real alarm of that
-    number is still delivered when it comes. A validly signed alarm is real:
-    it is delivered even when the history does not (yet) hold it. Alarms of a
-    rig without a key are delivered as ``unverified`` (rejected with
-    ``require_signed``). :attr:`verification` says, per delivered ``(rig, seq)``,
-    ``verified`` or ``unverified``.
-
-    Several history queryables (``QueryTarget.ALL``) are never merged: their
-    replies are grouped by replier; when two repliers disagree on a rig
-    (different alarms under one number, or numbers only one of them has), that
-    is a *conflict*, reported once per query, and only verified alarms are taken
-    from that query (with no keys: nothing, the bus cannot tell which replier
-    is the twin). A different alarm arriving live under a number already
-    delivered is reported as a conflict too (it is not delivered).
-
-    :param history: fetch the history first (default). With ``False`` only live
-        alarms are delivered; gaps between them are still filled.
-    :param query_timeout: timeout of each history query [s].
-    :param trust: the public keys to verify with (``None``: nothing is verified).
-    :param require_signed: reject alarms of rigs without a key in ``trust`` too.
-    :param on_report: called with ``(kind, line)`` for every ``forged``, ``conflict`` or
-        ``unverified`` (rejected under ``require_signed``) report, on the consumer's thread.
-    :raises ConfigError: ``rig`` is not a rig id or ``"*"``.
-    :raises SourceError: the subscription failed (session closed, access denied).
-    """
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        rig: str = "*",
-        since_seq: int | None = None,
-        since_t_ns: int | None = None,
-        *,
-        history: bool = True,
-        query_timeout: float = 5.0,
-        trust: TrustStore | None = None,
-        require_signed: bool = False,
-        on_report: Callable[[str, str], None] | None = None,
-    ) -> None:
-        self.keys = RigKeys(rig)
-        self.rig = rig
-        self._trust = trust if trust is not None else TrustStore()
-        self._require_signed = require_signed
-        self._on_report = on_report
-        self._delivered: dict[tuple[str, int], AlarmEvent] = {}
-        self._conflicted: set[str] = set()
-        self._reported: set[str] = set()
-        self.verification: dict[tuple[str, int], str] = {}
-        """Per delivered ``(rig, seq)``: ``verified`` or ``unverified``."""
-        self.reports: list[str] = []
-        """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``), in order."""
-        self.forged = 0
-        """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
-        self.conflicts = 0
-        """Disagreements of history repliers (each reported once), plus live alarms different from the one
-        delivered under their number."""
-        self.since_seq = since_seq
-        self.since_t_ns = since_t_ns
-        self._session = session
-        self._history = history
-        self._query_timeout = query_timeout
-        self._inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
-        self._ready: deque[AlarmEvent] = deque()
-        self._last: dict[str, int] = {}
-        self._gaps: dict[str, list[list[int]]] = {}
-        self._alive: set[str] = set()
-        self._status_seq: dict[str, int] = {}
-        self._declared: list[Any] = []
-        self.missed: list[tuple[str, int, int]] = []
-        """Alarm numbers not recoverable when noticed: ``(rig, first_seq, last_seq)``."""
-        self.recovered = 0
-        """Alarms of a range recorded in :attr:`missed` that the history delivered later."""
-        self.rejected = 0
-        """Payloads rejected: not a valid alarm, or a number the live twin's history does not hold."""
-        self.history_queries = 0
-        """History queries sent (initial fetch, gap fills, re-syncs, checks)."""
-        try:
-            # Declarations reach a remote twin in this order: once a live alarm
-            # arrives, the status and liveliness subscriptions are in place too.
-            self._keep(session.declare_subscriber(self.keys.status, self._on_status))
-            self._keep(session.liveliness().declare_subscriber(self.keys.twin, self._on_twin, history=True))
-            self._keep(session.declare_subscriber(self.keys.alarm, self._on_alarm))
-        except zenoh.ZError as exc:
-            self.close()
-            raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
-        if history:
-            for event, status in sorted(self._query(rig, since_seq, since_t_ns), key=lambda p: (p[0].rig, p[0].seq)):
-                self._accept(event, status)
-
-    # ------------------------------------------------------------------ life cycle
-
-    def close(self) -> None:
-        """Undeclare the subscriptions (idempotent); received events stay readable."""
-        super().close()
-
-    def last_seq(self, rig: str) -> int | None:
-        """The highest ``seq`` of ``rig`` up to which every number was handed over or recorded missed."""
-        return self._last.get(rig)
-
-    # ------------------------------------------------------------------ zenoh callbacks
-    # They run on Zenoh threads: parse, then hand over to the consumer's thread.
-
-    def _on_alarm(self, sample: zenoh.Sample) -> None:
-        try:
-            data = json.loads(sample.payload.to_string())
-            event = AlarmEvent.from_dict(data)
-            if event.rig != RigKeys.rig_of(sample.key_expr):
-                raise DataError(f"AlarmEvent.rig: {event.rig!r} published on {sample.key_expr}")
-        except (DataError, ValueError) as exc:
-            self._inbox.put(("rejected", f"{sample.key_expr}: rejected alarm payload: {exc}"))
-            return
-        self._inbox.put(("alarm", (event, self._trust.check(data))))
-
-    def _on_status(self, sample: zenoh.Sample) -> None:
-        try:
-            status = StatusEvent.from_dict(json.loads(sample.payload.to_string()))
-        except (DataError, ValueError) as exc:
-            log.warning("%s: rejected status payload: %s", sample.key_expr, exc)
-            return
-        if "alarm_seq" in status.counters:
-            self._inbox.put(("status", (status.rig, status.counters["alarm_seq"])))
-
-    def _on_twin(self, sample: zenoh.Sample) -> None:
-        try:
-            rig = RigKeys.rig_of(sample.key_expr)
-        except DataError as exc:
-            log.warning("liveliness: %s", exc)
-            return
-        self._inbox.put(("twin" if sample.kind == zenoh.SampleKind.PUT else "twin-gone", rig))
-
-    # ------------------------------------------------------------------ ordering logic
-
-    def _expected(self, rig: str) -> int | None:
-        """The next ``seq`` owed for ``rig``, ``None`` when any number is acceptable."""
-        if rig in self._last:
-            return self._last[rig] + 1
-        if not self._history:
-            return None
-        if self.since_seq is not None:
-            return self.since_seq
-        return 1 if self.since_t_ns is None else None
-
-    def _in_gap(self, rig: str, seq: int) -> bool:
-        return any(lo <= seq <= hi for lo, hi in self._gaps.get(rig, ()))
-
-    def _close_gap(self, rig: str, seq: int) -> None:
-        out = []
-        for lo, hi in self._gaps.get(rig, ()):
-            if lo <= seq <= hi:
-                out += [r for r in ([lo, seq - 1], [seq + 1, hi]) if r[0] <= r[1]]
-            else:
-                out.append([lo, hi])
-        self._gaps[rig] = out
-
-    def _accept(self, event: AlarmEvent, status: str = UNVERIFIED) -> bool:
-        """Hand ``event`` over unless its number was handed over already."""
-        rig, seq = event.rig, event.seq
-        if self.since_seq is not None and seq < self.since_seq:
-            return False
-        last = self._last.get(rig)
-        if last is not None and seq <= last:
-            if not self._in_gap(rig, seq):
-                self._check_duplicate(event)
-                return False
-            self._close_gap(rig, seq)  # a number recorded missed, found in the history after all
-            self.recovered += 1
-            self._hand_over(event, status)
-            return True
-        if last is not None and seq > last + 1:
-            self._record_missed(rig, last + 1, seq - 1)
-        self._last[rig] = seq
-        self._hand_over(event, status)
-        return True
-
-    def _hand_over(self, event: AlarmEvent, status: str) -> None:
-        if len(self._delivered) >= _KEEP_DELIVERED:  # a subscriber that runs for years: forget the oldest half
-            for key in list(self._delivered)[: _KEEP_DELIVERED // 2]:
-                del self._delivered[key]
-                self.verification.pop(key, None)
-        self._delivered[(event.rig, event.seq)] = event
-        self.verification[(event.rig, event.seq)] = status
-        self._ready.append(event)
-
-    def _check_duplicate(self, event: AlarmEvent) -> None:
-        """A number seen again: the same alarm is a harmless duplicate, a different one a conflict."""
-        first = self._delivered.get((event.rig, event.seq))
-        if first is not None and replace(first, signature="") != replace(event, signature=""):
-            self._report("conflict", f"rig {event.rig} seq {event.seq}: a different alarm under a number already "
-                         f"delivered ({first.parameter} {first.level} {first.kind} delivered, "
-                         f"{event.parameter} {event.level} {event.kind} now); not delivered")
-
-    def _report(self, kind: str, text: str, count: int = 1, once: bool = False) -> None:
-        """Report one line; ``once``: not again when the same line was reported (a history asked again)."""
-        line = f"{kind}: {text}"
-        if once and line in self._reported:
-            return
-        self._reported.add(line)
-        if kind == "forged":
-            self.forged += count
-        elif kind == "conflict":
-            self.conflicts += count
-        self.reports.append(line)
-        log.warning("%s", line)
-        if self._on_report is not None:
-            self._on_report(kind, line)
-
-    def _admit(self, event: AlarmEvent, verdict: Verdict, where: str) -> bool:
-        """Whether a payload may be looked at further; a forged one is reported, counted and dropped."""
-        if verdict.status == FORGED:
-            self.rejected += 1
-            self._report("forged", f"rig {event.rig} seq {event.seq} on {where}: {verdict.reason}; not accepted")
-            return False
-        if verdict.status == UNVERIFIED and self._require_signed:
-            self.rejected += 1
-            self._report("unverified", f"rig {event.rig} seq {event.seq} on {where}: {verdict.reason}; "
-                         "not accepted (signatures required)")
-            return False
-        return True
-
-    def _query(self, rig: str, since_seq: int | None, since_t_ns: int | None) -> list[tuple[AlarmEvent, str]]:
-        """The history's alarms that may be delivered, with their verification status (see :meth:`_judge`)."""
-        parameters = {}
-        if since_seq is not None:
-            parameters["since_seq"] = str(since_seq)
-        if since_t_ns is not None:
-            parameters["since_t_ns"] = str(since_t_ns)
-        selector = zenoh.Selector(RigKeys(rig).history, parameters)
-        self.history_queries += 1
-        answers: list[tuple[str, AlarmEvent, Verdict]] = []
-        try:
-            replies = self._session.get(
-                selector,
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=self._query_timeout,
-            )
-            for reply in replies:
-                if reply.ok is None:
-                    assert reply.err is not None  # a reply is either ok or an error
-                    log.warning("%s: history error: %s", selector, reply.err.payload.to_string())
-                    continue
-                who = reply.replier_id  # a session and an entity in it: two queryables are two repliers
-                replier = "queryable " + (f"{who.zid}:{who.eid}" if who is not None else "(unknown)")
-                try:
-                    data = json.loads(reply.ok.payload.to_string())
-                    event = AlarmEvent.from_dict(data)
-                    if event.rig != RigKeys.rig_of(reply.ok.key_expr):
-                        raise DataError(f"AlarmEvent.rig: {event.rig!r} in a reply on {reply.ok.key_expr}")
-                    answers.append((replier, event, self._trust.check(data)))
-                except (DataError, ValueError) as exc:
-                    self.rejected += 1
-                    log.warning("%s: rejected history reply from %s: %s", selector, replier, exc)
-        except zenoh.ZError as exc:
-            log.warning("%s: history query failed: %s", selector, zenoh_text(exc))
-        return self._judge(answers)
-
-    def _judge(self, answers: list[tuple[str, AlarmEvent, Verdict]]) -> list[tuple[AlarmEvent, str]]:
-        """What may be delivered from the replies of one query, never merging disagreeing repliers.
-
-        Forged replies are dropped (one report per replier and rig). A verified
-        alarm is taken unless another verified one claims its number. An
-        unverified alarm is taken only when every replier that answered for its
-        rig gave exactly it. Repliers that disagree are reported once.
-        """
-        forged: dict[tuple[str, str, str], list[int]] = {}  # (kind, replier, rig) -> seqs
-        reasons: dict[tuple[str, str, str], str] = {}
-        per_rig: dict[str, dict[str, dict[int, AlarmEvent]]] = {}
-        status: dict[tuple[str, int], dict[AlarmEvent, str]] = {}
-        for replier, event, verdict in answers:
-            rig = event.rig
-            per_rig.setdefault(rig, {}).setdefault(replier, {})
-            if verdict.status == FORGED or (verdict.status == UNVERIFIED and self._require_signed):
-                key = ("forged" if verdict.status == FORGED else "unverified", replier, rig)
-                forged.setdefault(key, []).append(event.seq)
-                reasons[key] = verdict.reason
-                continue
-            per_rig[rig][replier][event.seq] = event
-            status.setdefault((rig, event.seq), {})[event] = verdict.status
-        where = {r: RigKeys(r).history for r in per_rig}
-        for (kind, replier, rig), seqs in forged.items():
-            self.rejected += len(seqs)
-            self._report(kind, f"rig {rig} seq {_ranges(seqs)} in replies of {replier} on {where[rig]}: "
-                         f"{reasons[(kind, replier, rig)]}; not accepted", len(seqs), once=True)
-        out: list[tuple[AlarmEvent, str]] = []
-        for rig, by_replier in per_rig.items():
-            views = {replier: frozenset(alarms.items()) for replier, alarms in by_replier.items()}
-            agree = len(set(views.values())) <= 1
-            if not agree:
-                self._conflicted.add(rig)
-                names = sorted(views)
-                numbers = sorted(set().union(*(set(a) for a in by_replier.values())))
-                self._report("conflict", f"rig {rig}: the history on {where[rig]} is answered differently by "
-                             f"{len(names)} repliers ({', '.join(names)}; seq {_ranges(numbers)}); not merged: "
-                             "only alarms that verify with the rig's key are taken", once=True)
-            else:
-                self._conflicted.discard(rig)
-            seqs = sorted(set().union(*(set(a) for a in by_replier.values())))
-            for seq in seqs:
-                versions = status.get((rig, seq), {})
-                verified = [e for e, st in versions.items() if st == VERIFIED]
-                if len(verified) == 1:
-                    out.append((verified[0], VERIFIED))
-                elif len(verified) > 1:
-                    self._report("conflict", f"rig {rig} seq {seq}: {len(verified)} different alarms that all "
-                                 "verify with the rig's key; none delivered", once=True)
-                elif agree and len(versions) == 1:
-                    out.append((next(iter(versions)), UNVERIFIED))
-        return out
-
-    def _fill(self, rig: str) -> list[AlarmEvent]:
-        """Fetch what the history holds for ``rig`` from the first number not yet handed over."""
-        gaps = self._gaps.get(rig)
-        since_seq: int | None
-        if gaps:
-            since_seq, since_t_ns = min(lo for lo, _ in gaps), None
-        elif rig in self._last:
-            since_seq, since_t_ns = self._last[rig] + 1, None
-        else:
-            since_seq, since_t_ns = self.since_seq, self.since_t_ns
-        found = sorted((p for p in self._query(rig, since_seq, since_t_ns) if p[0].rig == rig),
-                       key=lambda p: p[0].seq)
-        for event, status in found:
-            self._accept(event, status)
-        return [event for event, _ in found]
-
-    def _twin_alive(self, rig: str) -> bool:
-        """Whether the rig's twin holds its liveliness token (asked again when not known alive)."""
-        if rig in self._alive:
-            return True
-        try:
-            replies = list(self._session.liveliness().get(RigKeys(rig).twin, timeout=min(self._query_timeout, 1.0)))
-        except zenoh.ZError:
-            return False
-        if any(r.ok is not None for r in replies):
-            self._alive.add(rig)
-        return rig in self._alive
-
-    def _record_missed(self, rig: str, first: int, last: int) -> None:
-        self.missed.append((rig, first, last))
-        self._gaps.setdefault(rig, []).append([first, last])
-        log.warning(
-            "rig %s: alarms seq %d..%d were lost in transit and the twin's history could not supply them "
-            "(no twin reachable); they are fetched when the twin is back",
-            rig, first, last,
-        )
-
-    def _reject(self, message: str) -> None:
-        self.rejected += 1
-        log.warning("%s", message)
-
-    def _on_live(self, event: AlarmEvent, verdict: Verdict) -> None:
-        rig, seq = event.rig, event.seq
-        if not self._admit(event, verdict, RigKeys(rig).alarm):
-            return  # forged: moves nothing, the real alarm of this number is still awaited
-        last = self._last.get(rig)
-        if last is not None and seq <= last and not self._in_gap(rig, seq):
-            self._check_duplicate(event)
-            return  # a duplicate (live after history, or twice)
-        expected = self._expected(rig)
-        if expected is not None and seq < expected and last is None:
-            return  # below --since-seq
-        # An alarm that no key vouches for, with the number owed, while the rig's twin is alive: the twin
-        # journals before it puts, so its history holds the real alarm of that number; ask it first.
-        check = verdict.status != VERIFIED and expected is not None and rig in self._alive
-        if expected is None or (seq == expected and not check):
-            self._accept(event, verdict.status)
-            return
-        # A jump, a number inside a recorded gap, or an unverified number: ask the history before believing it.
-        found = {e.seq: e for e in self._fill(rig)}
-        if seq in found:
-            if replace(found[seq], signature="") != replace(event, signature=""):
-                self.rejected += 1
-                self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: differs from the alarm the "
-                             "twin journaled under that number (that one was delivered); not accepted")
-            return
-        if verdict.status != VERIFIED and rig not in self._conflicted and self._twin_alive(rig):
-            self.rejected += 1
-            self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: not in the history of the rig's "
-                         "live twin (not journaled by it); not accepted")
-            return
-        expected = self._expected(rig)
-        if rig not in self._last and expected is not None and seq > expected:
-            self._record_missed(rig, expected, seq - 1)
-            self._last[rig] = seq - 1
-        self._accept(event, verdict.status)  # signed by the rig, or unverifiable: never drop what may be real
-
-    def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
-        if self._status_seq.get(rig) == alarm_seq:
-            return
-        self._status_seq[rig] = alarm_seq
-        last = self._last.get(rig)
-        if last is not None and alarm_seq <= last and not self._gaps.get(rig):
-            return
-        if last is None and not self._history:
-            return
-        expected = self._expected(rig)
-        if expected is not None and alarm_seq < expected and not self._gaps.get(rig):
-            return
-        self._fill(rig)
-        expected = self._expected(rig)
-        if expected is None or alarm_seq < expected:
-            return
-        if rig not in self._conflicted and self._twin_alive(rig):
-            self._reject(f"rig {rig}: a status claims alarm seq {alarm_seq}, the twin's history ends at "
-                         f"{expected - 1}; claim ignored")
-            return
-        self._record_missed(rig, expected, alarm_seq)
-        self._last[rig] = alarm_seq
-
-    def _process(self, kind: str, value: Any) -> None:
-        if kind == "alarm":
-            self._on_live(*value)
-        elif kind == "status":
-            self._on_alarm_seq(*value)
-        elif kind == "rejected":
-            self._reject(value)
-        elif kind == "twin-gone":
-            self._alive.discard(value)
-        elif kind == "twin":
-            self._alive.add(value)
-            if self._history or value in self._last:
-                self._fill(value)
-
-    # ------------------------------------------------------------------ consuming
-
-    def recv(self, timeout: float | None = None) -> AlarmEvent:
-        """The next alarm, blocking up to ``timeout`` seconds (``None``: forever).
-
-        :raises TimeoutError: no alarm within ``timeout``.
-        """
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._ready:
-            remaining = None if deadline is None else deadline - time.monotonic()
-            if remaining is not None and remaining <= 0:
-                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s")
-            try:
-                kind, value = self._inbox.get(timeout=remaining)
-            except queue.Empty:
-                raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s") from None
-            self._process(kind, value)
-        return self._ready.popleft()
-
-    def events(self, timeout: float | None = None) -> Iterator[AlarmEvent]:
-        """Iterate over alarms; stops when none arrives within ``timeout`` seconds."""
-        while True:
-            try:
-                yield self.recv(timeout)
-            except TimeoutError:
-                return
-
-    def __iter__(self) -> Iterator[AlarmEvent]:
-        return self.events(None)
-
-
-# --------------------------------------------------------------------------- CLI

@@ -22,7 +22,7 @@ a restart re-processes its data, raises it again and publishes it once: an
 alarm is never published twice, with or without a restart in between.
 
 Checkpoints live beside the journal (``<stem>.checkpoint.json``,
-:func:`twin.service.store.read_checkpoints`: data only, versioned). Each
+:func:`twin.service.checkpoint_file.read_checkpoints`: data only, versioned). Each
 records the journal's id and the rig's last alarm number; on open, a journal
 that is missing, empty, replaced or whose alarms end before the checkpoint's
 (or, without a checkpoint, one missing or empty where a ``witnesses`` file such
@@ -51,8 +51,8 @@ from typing import Self
 
 from twin.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent
-from twin.service.store import (Checkpoint, Continuity, NotFolded, Store, checkpoint_path, read_checkpoints,
-                                write_checkpoints)
+from twin.service.checkpoint_file import Checkpoint, checkpoint_path, read_checkpoints, write_checkpoints
+from twin.service.store import Continuity, NotFolded, Store
 
 __all__ = ["AlarmJournal", "Recorded", "read_legacy_journal"]
 

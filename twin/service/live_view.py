@@ -53,8 +53,10 @@ from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
 from twin.reports.units import Shown, label, signal_unit
+from twin.service.publisher import Publisher
 
 if TYPE_CHECKING:
+    from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
     from foxglove.websocket import WebSocketServer
 
 SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
@@ -358,7 +360,7 @@ class LiveView:
         {"estimate": self.estimate, "status": self.status, "forecast": self.forecast, "alarm": self.alarm}[kind](d)
 
     # ------------------------------------------------------------------ hooks
-    def tee(self, publisher=None) -> _Tee:
+    def tee(self, publisher: Publisher | None = None) -> _Tee:
         """A publisher for :class:`twin.service.rig.RigTwin` that hands every event to ``publisher`` (may be
         ``None``) and shows what was published."""
         return _Tee(self, publisher)
@@ -484,34 +486,34 @@ class _Front:
             self._thread.join(timeout=10.0)
 
 
-class _Tee:
-    """Publisher wrapper: forwards to the real publisher, then shows what it published."""
+class _Tee(Publisher):
+    """Publisher wrapper: forwards to the real publisher, then shows what it published (it takes estimates as
+    events, :meth:`~twin.service.publisher.Publisher.publish_estimate_json` keeps its default)."""
 
-    def __init__(self, view: LiveView, inner) -> None:
+    def __init__(self, view: LiveView, inner: Publisher | None) -> None:
         self.view = view
         self.inner = inner
 
-    def publish_alarm(self, ev):
-        out = self.inner.publish_alarm(ev) if self.inner is not None else ev
+    def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
+        out = self.inner.publish_alarm(event) if self.inner is not None else event
         if out is not None:
             self.view.alarm(out)
         return out
 
-    def publish_estimate(self, ev):
-        out = self.inner.publish_estimate(ev) if self.inner is not None else None
-        self.view.estimate(ev)
-        return out
+    def publish_estimate(self, event: EstimateEvent) -> None:
+        if self.inner is not None:
+            self.inner.publish_estimate(event)
+        self.view.estimate(event)
 
-    def publish_status(self, ev):
-        out = self.inner.publish_status(ev) if self.inner is not None else ev
-        self.view.status(out or ev)
-        return out
+    def publish_status(self, event: StatusEvent) -> StatusEvent:
+        out = self.inner.publish_status(event) if self.inner is not None else event
+        self.view.status(out or event)
+        return out or event
 
-    def publish_forecast(self, msg):
-        pub = getattr(self.inner, "publish_forecast", None)
-        out = pub(msg) if pub is not None else None
-        self.view.forecast(msg)
-        return out
+    def publish_forecast(self, message: dict) -> None:
+        if self.inner is not None:
+            self.inner.publish_forecast(message)
+        self.view.forecast(message)
 
 
 # --------------------------------------------------------------------------- the Foxglove layout

@@ -1,10 +1,11 @@
 """The online twin service: per rig, samples in, tracked parameters and drift alarms out over Zenoh.
 
 ``twin serve --config rigs.toml`` opens one Zenoh session and runs every rig
-of the configuration (:mod:`twin.service.fleet`: a :class:`~twin.service.fleet.RigRunner` per
+of the configuration (:mod:`twin.service.fleet`: a :class:`~twin.service.runner.RigRunner` per
 rig, in threads of this process or spread over spawned worker processes).
 Each rig's computing part is a :class:`RigTwin`: the tracker, the drift
-detector, estimates in a bounded ring, and the events it hands to a publisher.
+detector, estimates in a bounded ring, and the events it hands to a publisher
+(:class:`twin.service.publisher.Publisher`).
 
 Per block of samples the rig twin
 
@@ -37,6 +38,7 @@ from replay.base import ReadReport, Samples, Sink
 from twin.service.config import RigConfig
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.online.forecast import FORECAST_SCHEMA
+from twin.service.publisher import Publisher
 
 log = logging.getLogger(__name__)
 
@@ -141,11 +143,11 @@ class Commissioning:
 def _forecast_monitor(rig: RigConfig):
     from twin.online.forecast import ForecastMonitor
 
-    return ForecastMonitor(rig.name, rig.baseline, horizon_s=getattr(rig, "forecast_horizon_s", 3600.0),
+    return ForecastMonitor(rig.name, rig.baseline, horizon_s=rig.forecast_horizon_s,
                            model=rig.model)
 
 
-def make_twin(rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50, *,
+def make_twin(rig: RigConfig, publisher: Publisher | None = None, recorder=None, estimate_every: int = 50, *,
               history: int | None = SERVICE_HISTORY, dt: float | None = None) -> RigTwin:
     """The one place a rig's twin is built from its configuration (tracker, detector, publisher)."""
     return RigTwin(rig, publisher, recorder, estimate_every, dt=dt, history=history)
@@ -166,13 +168,12 @@ def fingerprint(rig: RigConfig, estimate_every: int) -> str:
 class RigTwin(Sink):
     """One rig's twin: a :class:`~replay.base.Sink` that samples are written to.
 
-    ``publisher``: ``publish_alarm(ev)`` returns the journaled event (or
-    ``None`` for an alarm journaled before), ``publish_estimate(ev)``,
-    ``publish_status(ev)``. ``history``: how many published estimates to keep
+    ``publisher``: a :class:`~twin.service.publisher.Publisher` (its ``publish_alarm(ev)`` returns the
+    journaled event, or ``None`` for an alarm journaled before). ``history``: how many published estimates to keep
     (``None``: all, for offline tracks of finite logs).
     """
 
-    def __init__(self, rig: RigConfig, publisher=None, recorder=None, estimate_every: int = 50,
+    def __init__(self, rig: RigConfig, publisher: Publisher | None = None, recorder=None, estimate_every: int = 50,
                  on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None,
                  history: int | None = None):
         from twin.online.commission import tracker_for
@@ -198,7 +199,7 @@ class RigTwin(Sink):
         self._since_estimate = 0
         self._ring = Ring(len(self.tracker.tracked), history)
         self._last_row: tuple[np.ndarray, np.ndarray] | None = None
-        self._est_template: tuple | None = None
+        self._encoder: tuple | None = None
         self.status_after_write = True
         """Check the status after every block (``False``: the caller does, as a runner does after its block)."""
         self.commissioning: Commissioning | None = None
@@ -343,7 +344,7 @@ class RigTwin(Sink):
 
     def last_estimate(self) -> dict[str, tuple[float, float]]:
         """(value, std) of every tracked parameter (SI) after the last block filtered ({} before the first)."""
-        row = getattr(self, "_last_row", None)
+        row = self._last_row
         if row is None:
             return {}
         return {n: (float(row[0][j]), float(row[1][j])) for j, n in enumerate(self.tracker.tracked)}
@@ -359,10 +360,11 @@ class RigTwin(Sink):
     # -- publishing ---------------------------------------------------------------------------
     def _alarm(self, ev: AlarmEvent) -> None:
         if self.publisher is not None:
-            ev = self.publisher.publish_alarm(ev)
-            if ev is None:  # journaled before (data processed again after a restart)
+            published = self.publisher.publish_alarm(ev)
+            if published is None:  # journaled before (data processed again after a restart)
                 self.stats.duplicates += 1
                 return
+            ev = published
         self.alarms.append(ev)
         self.stats.alarms += 1
         if self.recorder is not None:
@@ -377,7 +379,7 @@ class RigTwin(Sink):
 
     def _forecast(self, fcs) -> None:
         """Forecasts of one or more completed bins: kept, recorded (``/twin/forecast``, one message per bin) and
-        handed to the publisher's ``publish_forecast`` when it has one."""
+        handed to the publisher's ``publish_forecast`` (a no-op where the publisher has no forecast key)."""
         from twin.online.forecast import forecast_message
 
         self.forecasts.extend(fcs)
@@ -385,20 +387,20 @@ class RigTwin(Sink):
         for msg in forecast_message(self.rig.name, fcs, self.forecast.horizon_s):
             if self.recorder is not None:
                 self.recorder.write_message("/twin/forecast", msg["t_ns"], msg, schema=FORECAST_SCHEMA)
-            pub = getattr(self.publisher, "publish_forecast", None)
-            if pub is not None:
-                pub(msg)
+            if self.publisher is not None:
+                self.publisher.publish_forecast(msg)
 
     def _forecast_ended(self) -> None:
         """No parameter has a forecast any more: the publisher is told by a message with none (the bus's latest
         value must not keep the last one); the MCAP records forecasts only."""
         self._forecast_shown = False
-        pub = getattr(self.publisher, "publish_forecast", None)
-        if pub is not None and self.last_t_ns is not None:
+        if self.publisher is not None and self.last_t_ns is not None:
             from twin.online.forecast import FORECAST_UNITS
 
-            pub({"rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": (self.last_t_ns - (self._t0_ns or 0)) * 1e-9,
-                 "horizon_s": self.forecast.horizon_s, "forecasts": {}, "units": dict(FORECAST_UNITS)})
+            t_s = (self.last_t_ns - (self._t0_ns or 0)) * 1e-9
+            self.publisher.publish_forecast({"rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": t_s,
+                                             "horizon_s": self.forecast.horizon_s, "forecasts": {},
+                                             "units": dict(FORECAST_UNITS)})
 
     def _estimate(self, out, t_s, i: int) -> None:
         sd = out.interval_stds[i]
@@ -406,12 +408,10 @@ class RigTwin(Sink):
         if self.publisher is None and self.recorder is None:
             self.stats.estimates += 1
             return
-        fast = getattr(self.publisher, "publish_estimate_json", None)
-        if fast is not None and self.recorder is None:
+        if self.publisher is not None and self.recorder is None:  # the payload alone, without the event
             payload = self._estimate_json(int(out.t_ns[i]), float(t_s[i]), out.estimates[i], sd,
                                           float(out.nis[i]), str(out.status[i]))
-            if payload is not None:
-                fast(payload)
+            if payload is not None and self.publisher.publish_estimate_json(payload):
                 self.stats.estimates += 1
                 return
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
@@ -428,12 +428,12 @@ class RigTwin(Sink):
                        status: str) -> str | None:
         """The ``EstimateEvent`` payload (intervals and bands included) written straight from the numbers by
         :class:`twin.online.events.EstimateEncoder`; ``None`` when the event path must run."""
-        enc = self._est_template
+        enc = self._encoder
         if enc is None or enc[0] is not self.rig or enc[1].names != self.tracker.tracked:
             from twin.online.events import EstimateEncoder
 
-            enc = self._est_template = (self.rig, EstimateEncoder(self.rig.name, self.tracker.tracked,
-                                                                  self.tracker.units, self.rig.baseline))
+            enc = self._encoder = (self.rig, EstimateEncoder(self.rig.name, self.tracker.tracked,
+                                                             self.tracker.units, self.rig.baseline))
         return enc[1](t_ns, t_s, values, stds, nis, status)
 
     def publish_status(self, force: bool = False) -> None:
@@ -471,9 +471,8 @@ class RigTwin(Sink):
         if com is not None:
             counters["commission_ms"] = int(com.window.gathered_s * 1000)
             counters["commission_needed_ms"] = int(com.seconds * 1000)
-        extra = getattr(self.publisher, "status_counters", None)
-        if extra is not None:  # the publisher's own counters (alarm_seq), so the event is built and checked once
-            counters.update(extra())
+        if self.publisher is not None:  # the publisher's own counters (alarm_seq), so the event is built and checked once
+            counters.update(self.publisher.status_counters())
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
                          counters=counters, message=message, sensors=sensors, consistency=guard)
         if self.publisher is not None:

@@ -21,7 +21,7 @@ def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
     (default: open one from ``cfg`` and ``ZENOH_CONFIG``); ``twins``: a dict
     that receives each rig's :class:`RigTwin` (rigs then run in threads of this
     process); ``summaries``: a dict that receives each rig's
-    :class:`twin.service.fleet.RigSummary`, failures included.
+    :class:`twin.service.outcome.RigSummary`, failures included.
 
     :raises ConfigError: the configuration cannot run (journal directory, a log missing).
     :raises SourceError: the Zenoh session cannot be opened (one line naming the endpoint).

@@ -19,23 +19,32 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
+
+from twin.service.publisher import Publisher
+
+if TYPE_CHECKING:
+    from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 
 
-class SequenceNumbers:
-    """The publisher interface of :class:`twin.service.rig.RigTwin` without a bus: numbers alarms 1, 2, 3, ..."""
+class SequenceNumbers(Publisher):
+    """The publisher of a :class:`twin.service.rig.RigTwin` without a bus: numbers alarms 1, 2, 3, ..."""
 
     def __init__(self) -> None:
         self.seq = 0
 
-    def publish_alarm(self, ev):
+    def publish_alarm(self, event: AlarmEvent) -> AlarmEvent:
         self.seq += 1
-        return ev.with_seq(self.seq)
+        return event.with_seq(self.seq)
 
-    def publish_estimate(self, ev):
-        return ev
+    def publish_estimate(self, event: EstimateEvent) -> None:
+        pass
 
-    def publish_status(self, ev):
-        return ev
+    def publish_estimate_json(self, payload: str) -> bool:
+        return True  # nothing to publish offline: no event is built for it
+
+    def publish_status(self, event: StatusEvent) -> StatusEvent:
+        return event
 
 
 def _from_zero(blocks):
