@@ -114,7 +114,7 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
         assert client.info["name"] == "fpdd-twin"
         names = {t: ch["schemaName"] for t, ch in client.channels.items()}
         assert names == {"/rig/signals": "fpdd.live.Signals", "/twin/estimate": "EstimateEvent",
-                         "/twin/status": "StatusEvent", "/twin/alarm": "AlarmEvent",
+                         "/twin/status": "StatusEvent", "/twin/forecast": "fpdd.Forecast", "/twin/alarm": "AlarmEvent",
                          "/twin/alarm_log": "foxglove.Log"}
         client.subscribe(list(client.channels))
         for topic in client.channels:
@@ -217,10 +217,18 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
     for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):
         for f in ("value", "lo95", "hi95", "band_lo", "band_hi"):
             assert f"/twin/estimate{{rig==$rig}}.params.{name}.{f}" in paths
+    forecast_fields = set(json.loads(json.dumps(TOPICS["forecast"][1]))["properties"]["forecasts"]
+                          ["additionalProperties"]["properties"])
+    for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):  # the remaining time with its 90 % interval
+        for f in ("remaining_s", "remaining_lo_s", "remaining_hi_s"):
+            assert f"/twin/forecast{{rig==$rig}}.forecasts.{name}.{f}" in paths
     for p in paths:
         topic, rest = p.split("{", 1)
         field = rest.split("}.", 1)[1].split(".")
         assert field[0] in fields[topic] and (field[0] != "params" or field[2] in param_fields), p
+        assert field[0] != "forecasts" or field[2] in forecast_fields, p
+    titles = [c.get("title", "") for c in shipped["configById"].values()]
+    assert any("leaves its band" in t and "[s]" in t for t in titles)
     assert any(c.get("topicToRender") == "/twin/alarm_log" for c in shipped["configById"].values())
     assert shipped["globalVariables"]["rig"]
 
@@ -381,6 +389,8 @@ source = "zenoh://fpdd/idle/samples"
             topic, rest = p.split("{", 1)
             assert rest.startswith("rig==$rig}"), p
             field = [f for f in rest.split("}", 1)[1].split(".") if f]
+            if topic == "/twin/forecast":  # only a wearing parameter has one: test_forecasts_are_shown_...
+                continue
             assert ours[topic], f"no message of rig-a on {topic}"
             for msg in ours[topic]:
                 value = _field(msg, field)
@@ -388,6 +398,72 @@ source = "zenoh://fpdd/idle/samples"
         if "topicToRender" in panel:
             assert ours[panel["topicToRender"]], panel["topicToRender"]
     assert ours["/twin/alarm"][0]["parameter"] == "Ffric"
+
+
+def wear_forecasts(rig: str, seconds: float = 400.0) -> list[dict]:
+    """The forecast messages of a rig whose leakage wears out of its band (1 to 3.5 times its baseline over
+    700 s, band up to 3 times), estimated with AR(1) errors (seed >= 1000): one per second once the trend shows."""
+    from twin.online.baseline import Baseline
+    from twin.online.forecast import ForecastMonitor, forecast_message
+
+    rng = np.random.default_rng(1202)
+    t = np.arange(0.0, seconds, 0.05)
+    a = np.exp(-0.05 / 0.5)
+    err = np.empty(t.size)
+    x, noise = 0.0, rng.normal(0.0, 0.05 * np.sqrt(1 - a * a), t.size)
+    for i in range(t.size):
+        x = a * x + noise[i]
+        err[i] = x
+    est = ((1.0 + 2.5 * t / 700.0) * np.exp(err))[:, None]
+    fm = ForecastMonitor(rig, {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0)}, horizon_s=600.0)
+    _, fcs = fm.update_block(("CdAleak",), T0_NS + np.round(t * 1e9).astype(np.int64), t, est,
+                             np.full_like(est, 0.05), np.zeros(est.shape, bool))
+    return forecast_message(rig, fcs, fm.horizon_s)
+
+
+def test_forecasts_are_shown_with_their_schema_from_a_twin_and_over_zenoh(view, tmp_path):
+    """``/twin/forecast``: what a rig's twin hands its publisher (through :meth:`LiveView.tee`) and what a real
+    TwinPublisher puts on ``fpdd/<rig>/forecast`` (loopback, scouting off) reach the Foxglove client as the
+    same message with its Foxglove time: the remaining time and its 90 % interval in seconds, units named."""
+    msgs = wear_forecasts("rig-1")
+    assert len(msgs) > 100
+    client = Client(view.url)
+    try:
+        client.subscribe(["/twin/forecast"])
+        assert view.wait_subscribed("/twin/forecast", WAIT_S)
+        tee = view.tee(None)
+        for m in msgs[-5:]:
+            tee.publish_forecast(m)
+        shown = client.messages({"/twin/forecast": 5})["/twin/forecast"]
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        with zenoh.open(zenoh_config(listen=[endpoint])) as hub, zenoh.open(zenoh_config(connect=[endpoint])) as s, \
+                AlarmJournal(tmp_path / "j.db") as journal, TwinPublisher(hub, "rig-2", journal) as pub:
+            view.follow(s, "*")
+            other = wear_forecasts("rig-2", 300.0)[-1]
+            for _ in range(int(WAIT_S / 0.2)):  # the subscription may take a moment to propagate
+                from twin.service.bus import ForecastGate
+
+                pub._forecast_gate = ForecastGate()  # each try is a first message: put
+                assert pub.put_forecast(other)
+                try:
+                    followed = client.messages({"/twin/forecast": 1}, timeout=0.2)["/twin/forecast"]
+                    break
+                except TimeoutError:
+                    continue
+            else:
+                pytest.fail(f"no forecast reached the Foxglove client within {WAIT_S} s")
+    finally:
+        client.close()
+    for (log_time, payload), made in zip(shown, msgs[-5:]):
+        check(payload, client.channels["/twin/forecast"])
+        assert log_time == made["t_ns"] and {k: v for k, v in payload.items() if k != "timestamp"} == made
+    last = shown[-1][1]["forecasts"]["CdAleak"]
+    assert last["remaining_lo_s"] <= last["remaining_s"] <= last["remaining_hi_s"]
+    assert 60.0 < last["remaining_s"] < 300.0  # the wear leaves the band at 560 s, forecast at 400 s
+    assert shown[-1][1]["units"]["remaining_s"] == "s"
+    log_time, payload = followed[0]
+    check(payload, client.channels["/twin/forecast"])
+    assert payload["rig"] == "rig-2" and {k: v for k, v in payload.items() if k != "timestamp"} == other
 
 
 def test_a_port_in_use_is_one_line(view):

@@ -33,9 +33,30 @@ TWIN = [sys.executable, "-m", "twin.cli"]
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
+def wear_forecast(rig: str = "msp25-07", seconds: float = 400.0) -> dict:
+    """The last forecast message of a rig whose leakage wears out of its band (1 to 3.5 times its baseline over
+    700 s, band up to 3 times), its estimates with AR(1) errors (seed >= 1000), as the twin puts it on the bus."""
+    from twin.online.baseline import Baseline
+    from twin.online.forecast import ForecastMonitor, forecast_message
+
+    rng = np.random.default_rng(1201)
+    t = np.arange(0.0, seconds, 0.05)
+    a = np.exp(-0.05 / 0.5)
+    err = np.empty(t.size)
+    x, noise = 0.0, rng.normal(0.0, 0.05 * np.sqrt(1 - a * a), t.size)
+    for i in range(t.size):
+        x = a * x + noise[i]
+        err[i] = x
+    est = ((1.0 + 2.5 * t / 700.0) * np.exp(err))[:, None]
+    fm = ForecastMonitor(rig, {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0)}, horizon_s=600.0)
+    _, fcs = fm.update_block(("CdAleak",), T0_NS + np.round(t * 1e9).astype(np.int64), t, est,
+                             np.full_like(est, 0.05), np.zeros(est.shape, bool))
+    return forecast_message(rig, fcs, fm.horizon_s)[-1]
+
+
 @pytest.fixture
 def twin_on_bus(tmp_path):
-    """A listening session with the twin of rig ``msp25-07``: one estimate, one status, two alarms."""
+    """A listening session with the twin of rig ``msp25-07``: one estimate, one status, two alarms, a forecast."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with zenoh.open(zenoh_config(listen=[endpoint])) as session, AlarmJournal(tmp_path / "j.db") as journal, \
             TwinPublisher(session, "msp25-07", journal) as pub:
@@ -52,6 +73,7 @@ def twin_on_bus(tmp_path):
         pub.publish_status(StatusEvent(rig="msp25-07", t_ns=T0_NS + 12_500_000_000, state="running",
                                        parameters={"CdAleak": "alarm", "wn": "ok", "zeta": "ok"},
                                        counters={"samples": 12500}))
+        pub.publish_forecast(wear_forecast())
         yield endpoint, pub
 
 
@@ -69,6 +91,16 @@ def test_once_json_snapshot(twin_on_bus):
     assert rig["params"]["CdAleak"]["shown"] == "0.0161 ± 0.003 mm²"
     assert rig["params"]["zeta"]["display_unit"] == ""  # dimensionless: no unit
     assert rig["last_alarm_event"]["seq"] == 2 and "ALARM escalated CdAleak" in rig["last_alarm"]
+    # the early warning: the soonest exit (SI seconds, record time) and the text a person reads
+    fc = wear_forecast()["forecasts"]["CdAleak"]
+    soon = rig["soonest_exit"]
+    assert soon["parameter"] == "CdAleak" and soon["t_exit"] == fc["t_exit"] and soon["t"] == fc["t"]
+    assert soon["t_exit_lo"] == fc["t_exit_lo"] and soon["t_exit_hi"] == fc["t_exit_hi"]
+    assert soon["remaining_s"] == pytest.approx(fc["t_exit"] - fc["t"]) and soon["horizon_s"] == 600.0
+    assert 60.0 < soon["remaining_s"] < 300.0  # the wear leaves the band at 560 s, forecast at 400 s
+    minutes = [(fc[k] - fc["t"]) / 60.0 for k in ("t_exit", "t_exit_lo", "t_exit_hi")]
+    assert soon["shown"] == f"in {minutes[0]:.1f} min [{minutes[1]:.1f}, {minutes[2]:.1f}]"
+    assert rig["params"]["CdAleak"]["forecast"] == soon and "forecast" not in rig["params"]["wn"]
 
 
 def test_live_view_in_a_terminal(twin_on_bus):
@@ -97,6 +129,16 @@ def test_live_view_in_a_terminal(twin_on_bus):
         text = read_until(r"last alarm: #2")
         assert "msp25-07" in text and "running" in text and "CdAleak" in text and "mm²" in text
         assert re.search(r"wn\s+│\s+43\s+│\s+0\.019\s+│\s+Hz", text), text[-2000:]
+        assert "leaves band" in text and re.search(r"CdAleak .*│ in \d+\.\d min \[\d+\.\d, \d+\.\d\]", text), text[-2000:]
+        assert re.search(r"soonest exit: CdAleak leaves its band in \d+\.\d min \[", text), text[-2000:]
+        # a later forecast (the wear slowed: two hours further off) is shown as it comes, in hours
+        later = wear_forecast()
+        f = later["forecasts"]["CdAleak"]
+        later["t_ns"] += 1_000_000_000
+        f.update({k: f[k] + 7200.0 for k in ("t_exit", "t_exit_lo", "t_exit_hi")})
+        f.update({k: f[k] + 7200.0 for k in ("remaining_s", "remaining_lo_s", "remaining_hi_s")})
+        assert pub.put_forecast(later)
+        read_until(r"soonest exit: CdAleak leaves its band in 2\.\d h \[2\.\d, 2\.\d\]")
         # a new estimate is shown as it comes
         pub.publish_estimate(EstimateEvent(rig="msp25-07", t_ns=T0_NS + 13_000_000_000, t_s=13.0, nis=1.0,
                                            status="ok", params={"wn": {"value": 2 * np.pi * 41.5, "std": 0.1,

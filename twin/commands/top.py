@@ -1,11 +1,13 @@
 """``twin top``: the running twins at a glance, live in the terminal.
 
 Per rig: the service state, each tracked parameter's estimate ± standard
-deviation in its display unit (wn in Hz, CdAleak in mm²) with its status, and
+deviation in its display unit (wn in Hz, CdAleak in mm²) with its status and
+when it leaves its healthy band (the early-warning forecast: median remaining
+time and its 90 % interval, in s, min, h or d), the rig's soonest exit, and
 the last alarm; refreshed as the twins publish (``rich``).  It subscribes over
-Zenoh to ``fpdd/<rig>/{estimate,status,alarm}`` (the key space of
-:mod:`twin.service.bus`), after fetching each twin's latest estimate and status and
-its last journaled alarm, so the screen is filled at once.
+Zenoh to ``fpdd/<rig>/{estimate,status,forecast,alarm}`` (the key space of
+:mod:`twin.service.bus`), after fetching each twin's latest estimate, status and
+forecast and its last journaled alarm, so the screen is filled at once.
 
 Each rig's title says whether its twin is still there: ``gone`` when its
 liveliness token ``fpdd/<rig>/twin`` went away (the process died or lost the
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import threading
 import time
 from pathlib import Path
@@ -87,7 +90,7 @@ class TopState:
     def put(self, kind: str, d: dict) -> None:
         with self.lock:
             self.seen[d["rig"]] = time.time()
-            r = self.rigs.setdefault(d["rig"], {"estimate": None, "status": None, "alarm": None})
+            r = self.rigs.setdefault(d["rig"], {"estimate": None, "status": None, "alarm": None, "forecast": None})
             old = r[kind]
             if kind == "alarm":
                 if old is not None and d.get("seq", 0) < old.get("seq", 0):
@@ -114,7 +117,8 @@ class TopState:
 
     def snapshot(self) -> dict:
         """JSON-ready: per rig its state, presence (live/stale/gone with the age of its last message),
-        parameters (SI value, std, unit and the display text) and last alarm."""
+        parameters (SI value, std, unit and the display text; ``forecast``: when it leaves its band), the
+        soonest exit (``soonest_exit``: the parameter whose median exit comes first) and last alarm."""
         out = {}
         now = time.time()
         with self.lock:
@@ -122,6 +126,7 @@ class TopState:
         for rig in sorted(rigs):
             r = rigs[rig]
             est, st, al = r["estimate"], r["status"], r["alarm"]
+            fcs = exits(r.get("forecast"))
             words = (st or {}).get("parameters", {})
             params = {}
             for name, p in ((est or {}).get("params") or {}).items():
@@ -133,12 +138,17 @@ class TopState:
                                 "status": words.get(name, "")}
             for name, w in words.items():
                 params.setdefault(name, {"status": w})
+            for name, f in fcs.items():
+                params.setdefault(name, {"status": ""})["forecast"] = f
+            soonest = min((f for f in fcs.values() if f["t_exit"] is not None),
+                          key=lambda f: (f["t_exit"], f["parameter"]), default=None)
             presence, age = self.presence(rig, now)
             out[rig] = {"state": (st or {}).get("state"), "presence": presence, "age_s": age,
                         "message": (st or {}).get("message", ""),
                         "t_s": (est or {}).get("t_s"), "filter": (est or {}).get("status"),
                         "samples": ((st or {}).get("counters") or {}).get("samples"),
-                        "params": params, "last_alarm": self.alarm_text(al) if al else None,
+                        "params": params, "soonest_exit": soonest,
+                        "last_alarm": self.alarm_text(al) if al else None,
                         "last_alarm_event": al}
         return out
 
@@ -147,6 +157,27 @@ class TopState:
         return (f"#{a['seq']} t={a['t_s']:.3f} s {a['level'].upper()} {a['kind']} {a['parameter']} = "
                 f"{sh.text(a['estimate'], 4, unit=False)} ± {sh.text(a['std'], 2)} (band {sh.text(a['band_lo'], 4, unit=False)}"
                 f" … {sh.text(a['band_hi'], 4)})")
+
+
+def exits(msg: dict | None) -> dict[str, dict]:
+    """Per parameter of a forecast message (``fpdd/<rig>/forecast``): its exit time (record seconds, SI), the
+    remaining time and its 90 % interval [s], ``p_within_horizon`` and ``shown``, the text a person reads
+    (``in 6.1 min [4.0, 9.5]``)."""
+    from twin.online.forecast import Forecast, describe
+
+    if not msg:
+        return {}
+    out = {}
+    for name, f in (msg.get("forecasts") or {}).items():
+        t = f.get("t", msg.get("t_s"))
+        fc = Forecast(name, t, msg["t_ns"], f["t_exit"], f["t_exit_lo"], f["t_exit_hi"], f["p_within_horizon"],
+                      math.nan, math.nan, f.get("edge", ""))
+        out[name] = {"parameter": name, "t": t, "t_exit": f["t_exit"], "t_exit_lo": f["t_exit_lo"],
+                     "t_exit_hi": f["t_exit_hi"], "remaining_s": f.get("remaining_s"),
+                     "remaining_lo_s": f.get("remaining_lo_s"), "remaining_hi_s": f.get("remaining_hi_s"),
+                     "p_within_horizon": f["p_within_horizon"], "horizon_s": msg.get("horizon_s"),
+                     "edge": f.get("edge"), "shown": describe(fc)}
+    return out
 
 
 def render(snap: dict, where: str, live: bool = True):
@@ -176,13 +207,22 @@ def render(snap: dict, where: str, live: bool = True):
         t.add_column("± std", justify="right")
         t.add_column("unit")
         t.add_column("status")
+        t.add_column("leaves band")
+        soonest = r.get("soonest_exit")
         for name, p in r["params"].items():
+            f = p.get("forecast")
+            exit_text = Text(f["shown"], "bold yellow" if soonest and soonest["parameter"] == name else "") if f \
+                else Text("")
             if "display_value" not in p:
-                t.add_row(name, "", "", "", Text(p["status"], STATUS_STYLE.get(p["status"], "")))
+                t.add_row(name, "", "", "", Text(p["status"], STATUS_STYLE.get(p["status"], "")), exit_text)
                 continue
             t.add_row(name, f"{p['display_value']:.5g}", f"{p['display_std']:.2g}", p["display_unit"],
-                      Text(p["status"] or "", STATUS_STYLE.get(p["status"], "")))
+                      Text(p["status"] or "", STATUS_STYLE.get(p["status"], "")), exit_text)
         parts.append(t)
+        if soonest:
+            parts.append(Text.assemble("  soonest exit: ", (f"{soonest['parameter']} leaves its band {soonest['shown']}"
+                                                              f" (p within {_horizon(soonest)} = "
+                                                              f"{soonest['p_within_horizon']:.2f})", "bold yellow")))
         al = r["last_alarm_event"]
         if al:
             parts.append(Text.assemble("  last alarm: ", (r["last_alarm"], LEVEL_STYLE.get(al["level"], ""))))
@@ -193,15 +233,23 @@ def render(snap: dict, where: str, live: bool = True):
     return Group(*parts)
 
 
+def _horizon(f: dict) -> str:
+    from twin.online.forecast import fmt_duration
+
+    return fmt_duration(f["horizon_s"]) if f.get("horizon_s") else "the horizon"
+
+
 def _fill(session, state: TopState, rig: str, timeout: float) -> None:
-    """Latest estimate and status of every twin (queryables), and each rig's last journaled alarm."""
+    """Latest estimate, status and forecast of every twin (queryables), and each rig's last journaled alarm."""
     import zenoh
 
-    from twin.service.bus import RigKeys, fetch_latest
+    from twin.service.bus import RigKeys, fetch_forecasts, fetch_latest
 
     for kind in ("estimate", "status"):
         for ev in fetch_latest(session, kind, rig, timeout=timeout):
             state.put(kind, ev.to_dict())
+    for msg in fetch_forecasts(session, rig, timeout=timeout):
+        state.put("forecast", msg)
     with state.lock:
         known = {r: (v["status"] or {}).get("counters", {}).get("alarm_seq") for r, v in state.rigs.items()}
     for r, last in known.items():
@@ -222,7 +270,8 @@ def run_top(args) -> int:
     from twin.service.bus import RigKeys
     from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
     from twin.errors import SourceError
-    from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
+    from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, validate
+    from twin.online.forecast import FORECAST_SCHEMA
 
     for e in args.connect:
         check_endpoint(e, "--connect")
@@ -240,19 +289,26 @@ def run_top(args) -> int:
     session = open_session(config, "twin top")
     subs = []
     try:
-        parse: dict[str, Callable[[Any], EstimateEvent | StatusEvent | AlarmEvent]] = {
-            "estimate": EstimateEvent.from_dict, "status": StatusEvent.from_dict, "alarm": AlarmEvent.from_dict}
+        def checked_forecast(d: dict) -> dict:
+            validate(d, FORECAST_SCHEMA, "forecast")
+            return d
+
+        parse: dict[str, Callable[[Any], Any]] = {
+            "estimate": lambda d: EstimateEvent.from_dict(d).to_dict(),
+            "status": lambda d: StatusEvent.from_dict(d).to_dict(),
+            "alarm": lambda d: AlarmEvent.from_dict(d).to_dict(), "forecast": checked_forecast}
 
         def handler(kind):
             def on_sample(sample) -> None:
                 try:
-                    d = parse[kind](json.loads(sample.payload.to_bytes())).to_dict()
+                    d = parse[kind](json.loads(sample.payload.to_bytes()))
                 except Exception:  # a malformed payload is not shown
                     return
                 state.put(kind, d)
             return on_sample
 
-        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm)):
+        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("forecast", keys.forecast),
+                          ("alarm", keys.alarm)):
             subs.append(session.declare_subscriber(key, handler(kind)))
 
         def on_token(sample) -> None:

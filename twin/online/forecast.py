@@ -424,7 +424,9 @@ FORECAST_SCHEMA: dict[str, Any] = {
         "forecasts": {"type": "object", "description": "parameter name -> its forecast (the parameters that have one)",
                       "propertyNames": {"pattern": "^[A-Za-z_][A-Za-z0-9_]*$"}, "additionalProperties": {
             "type": "object",
-            "properties": {"t_exit": {**_NUM_OR_NULL, "description": "median exit time, record seconds [s]"},
+            "properties": {"parameter": {"type": "string", "description": "the parameter (its key)"},
+                           "t": {"type": "number", "description": "record time of the forecast [s]"},
+                           "t_exit": {**_NUM_OR_NULL, "description": "median exit time, record seconds [s]"},
                            "t_exit_lo": {**_NUM_OR_NULL, "description": "5 % quantile of the exit time [s]"},
                            "t_exit_hi": {**_NUM_OR_NULL, "description": "95 % quantile of the exit time [s]"},
                            "remaining_s": {**_NUM_OR_NULL, "description": "median remaining time [s]"},
@@ -432,11 +434,18 @@ FORECAST_SCHEMA: dict[str, Any] = {
                            "remaining_hi_s": {**_NUM_OR_NULL, "description": "95 % quantile [s]"},
                            "p_within_horizon": {"type": "number", "description": "probability [1]"},
                            "edge": {"type": "string", "enum": ["low", "high"]}},
-            "required": ["t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon", "remaining_s", "remaining_lo_s",
+            "required": ["parameter", "t", "t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon", "remaining_s", "remaining_lo_s",
                          "remaining_hi_s", "edge"]}},
+        "units": {"type": "object", "description": "field name -> its unit (s: seconds, 1: a probability)",
+                  "additionalProperties": {"type": "string"}},
     },
-    "required": ["rig", "t_ns", "t_s", "horizon_s", "forecasts"],
+    "required": ["rig", "t_ns", "t_s", "horizon_s", "forecasts", "units"],
 }
+
+
+#: The unit of each field of a forecast message (``units`` in it): SI seconds, and a probability.
+FORECAST_UNITS = {"t_s": "s", "horizon_s": "s", "t": "s", "t_exit": "s", "t_exit_lo": "s", "t_exit_hi": "s",
+                  "remaining_s": "s", "remaining_lo_s": "s", "remaining_hi_s": "s", "p_within_horizon": "1"}
 
 
 def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> list[dict[str, Any]]:
@@ -449,10 +458,11 @@ def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> lis
         return None if v is None else max(0.0, v - t)
 
     return [{"rig": rig, "t_ns": t_ns, "t_s": fs[0].t, "horizon_s": horizon_s,
-             "forecasts": {f.parameter: {"t_exit": f.t_exit, "t_exit_lo": f.t_exit_lo, "t_exit_hi": f.t_exit_hi,
+             "forecasts": {f.parameter: {"parameter": f.parameter, "t": f.t, "t_exit": f.t_exit, "t_exit_lo": f.t_exit_lo, "t_exit_hi": f.t_exit_hi,
                                          "p_within_horizon": f.p_within_horizon, "remaining_s": rem(f.t_exit, f.t),
                                          "remaining_lo_s": rem(f.t_exit_lo, f.t),
-                                         "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs}}
+                                         "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs},
+             "units": dict(FORECAST_UNITS)}
             for t_ns, fs in sorted(by_t.items())]
 
 

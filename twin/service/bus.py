@@ -8,6 +8,9 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
                                get    latest EstimateEvent (latest-value queryable)
     fpdd/<rig>/status          put    StatusEvent JSON, on change and periodically
                                get    latest StatusEvent (latest-value queryable)
+    fpdd/<rig>/forecast        put    forecast JSON (``twin.online.forecast.FORECAST_SCHEMA``): when each
+                                      parameter leaves its band, on change and every ``FORECAST_S``
+                               get    latest forecast (latest-value queryable)
     fpdd/<rig>/alarm           put    AlarmEvent JSON, live alarms (reliable, blocking, high priority)
     fpdd/<rig>/alarm/history   get    every journaled AlarmEvent of the rig, one reply per alarm,
                                       in seq order; selector parameters (``;``-separated):
@@ -16,7 +19,7 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
 
 Payloads are UTF-8 JSON (encoding ``application/json``) following the schemas in
 :mod:`twin.online.events` (``AlarmEvent.SCHEMA``, ``EstimateEvent.SCHEMA``,
-``StatusEvent.SCHEMA``). Every alarm carries ``seq``, a per-rig number 1, 2,
+``StatusEvent.SCHEMA``) and :data:`twin.online.forecast.FORECAST_SCHEMA`. Every alarm carries ``seq``, a per-rig number 1, 2,
 3, ... without gaps, assigned by the durable journal (:mod:`twin.service.journal`).
 
 Delivery guarantees and how they are obtained:
@@ -38,7 +41,7 @@ Delivery guarantees and how they are obtained:
   fields; an :class:`~twin.service.subscriber.AlarmSubscriber` with a trust store refuses and reports a
   forged one before it can move a sequence number, and never merges history
   queryables that disagree. This holds on a plain peer bus with no router.
-* Estimates and statuses go through ``zenoh.ext`` advanced publishers with a
+* Estimates, statuses and forecasts go through ``zenoh.ext`` advanced publishers with a
   one-sample cache (late ``zenoh.ext.AdvancedSubscriber`` with a
   ``HistoryConfig`` gets the current value), and the latest value is also
   served by a plain queryable on the same key, so a plain ``get`` (any Zenoh
@@ -59,8 +62,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -74,6 +79,7 @@ from replay.zenohconf import (zenoh_text)
 from twin.errors import ConfigError, DataError, SourceError
 from twin.online.events import (
     RIG_PATTERN,
+    validate,
     AlarmEvent,
     EstimateEvent,
     StatusEvent,
@@ -86,8 +92,10 @@ from twin.service.signing import Signer
 
 __all__ = [
     "KEY_PREFIX",
+    "ForecastGate",
     "RigKeys",
     "TwinPublisher",
+    "fetch_forecasts",
     "fetch_latest",
     "format_alarm",
     "live_twins",
@@ -100,6 +108,8 @@ KEY_PREFIX = "fpdd"
 
 _JSON = zenoh.Encoding.APPLICATION_JSON
 _RIG_RE = re.compile(RIG_PATTERN)
+#: A rig's forecast is put when it changes (:class:`ForecastGate`) and at least this often while it is made [s].
+FORECAST_S = 3.0
 
 
 def _check_rig(rig: str, *, wildcard: bool) -> str:
@@ -116,18 +126,20 @@ class RigKeys:
 
     :ivar estimate: ``fpdd/<rig>/estimate``
     :ivar status: ``fpdd/<rig>/status``
+    :ivar forecast: ``fpdd/<rig>/forecast``
     :ivar alarm: ``fpdd/<rig>/alarm``
     :ivar history: ``fpdd/<rig>/alarm/history``
     :ivar twin: ``fpdd/<rig>/twin`` (liveliness)
     """
 
-    __slots__ = ("rig", "estimate", "status", "alarm", "history", "twin")
+    __slots__ = ("rig", "estimate", "status", "forecast", "alarm", "history", "twin")
 
     def __init__(self, rig: str) -> None:
         self.rig = _check_rig(rig, wildcard=True)
         base = f"{KEY_PREFIX}/{rig}"
         self.estimate = f"{base}/estimate"
         self.status = f"{base}/status"
+        self.forecast = f"{base}/forecast"
         self.alarm = f"{base}/alarm"
         self.history = f"{base}/alarm/history"
         self.twin = f"{base}/twin"
@@ -310,12 +322,18 @@ class TwinPublisher(_Declarations, Publisher):
                 self.keys.estimate, zenoh.CongestionControl.DROP, zenoh.Priority.DATA)
             self._status_pub = latest_value_publisher(
                 self.keys.status, zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_HIGH)
+            self._forecast_pub = latest_value_publisher(
+                self.keys.forecast, zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
+            self._forecast_gate = ForecastGate()
             self._keep(session.declare_queryable(self.keys.history, self._on_history))
             self._keep(
                 session.declare_queryable(self.keys.estimate, lambda q: self._on_latest(q, "estimate"))
             )
             self._keep(
                 session.declare_queryable(self.keys.status, lambda q: self._on_latest(q, "status"))
+            )
+            self._keep(
+                session.declare_queryable(self.keys.forecast, lambda q: self._on_latest(q, "forecast"))
             )
             # The token last: a subscriber seeing the twin alive can query its history at once.
             self._keep(session.liveliness().declare_token(self.keys.twin))
@@ -413,6 +431,33 @@ class TwinPublisher(_Declarations, Publisher):
         self.put_payload("estimate", payload)
         return True
 
+    def publish_forecast(self, message: dict) -> None:
+        """A rig's forecast message (:func:`twin.online.forecast.forecast_message`): :meth:`put_forecast`."""
+        self.put_forecast(message)
+
+    def put_forecast(self, msg: dict[str, Any]) -> bool:
+        """A rig's forecast message (:func:`twin.online.forecast.forecast_message`, one per second of record):
+        kept as the latest value (``get``), put on ``fpdd/<rig>/forecast`` when :class:`ForecastGate` says so
+        (on change, else every :data:`FORECAST_S`).
+
+        :returns: whether it was put.
+        :raises DataError: another rig's message.
+        """
+        if msg.get("rig") != self.rig:
+            raise DataError(f"forecast.rig: {msg.get('rig')!r} published through the twin of rig {self.rig!r}")
+        from replay import jsonio
+
+        payload = jsonio.dumps(msg, indent=None)
+        with self._latest_lock:
+            self._latest["forecast"] = payload
+        if not self._forecast_gate(msg):
+            return False
+        try:
+            self._forecast_pub.put(payload)
+        except zenoh.ZError as exc:
+            raise SourceError(f"rig {self.rig!r}: cannot publish forecast: {zenoh_text(exc)}") from exc
+        return True
+
     def publish_status(self, event: StatusEvent) -> StatusEvent:
         """Put a status on ``fpdd/<rig>/status`` with ``counters["alarm_seq"]`` filled in.
 
@@ -442,7 +487,8 @@ class TwinPublisher(_Declarations, Publisher):
             with self._latest_lock:
                 payload = self._latest.get(what)
             if payload is not None:
-                key = self.keys.estimate if what == "estimate" else self.keys.status
+                key = {"estimate": self.keys.estimate, "status": self.keys.status,
+                       "forecast": self.keys.forecast}[what]
                 query.reply(key, payload, encoding=_JSON)
 
     def _on_history(self, query: zenoh.Query) -> None:
@@ -461,6 +507,49 @@ class TwinPublisher(_Declarations, Publisher):
                 return
             for event in events:
                 query.reply(self.keys.history, self._payload(event), encoding=_JSON)
+
+
+class ForecastGate:
+    """Whether a rig's forecast message goes on the bus now: the first, one that changed, or ``period_s`` (wall
+    clock) after the last one put.
+
+    Changed: a parameter's forecast appeared or ended (a message with none left is put too), a quantile of its
+    exit time became or stopped being ``null``, its median exit time (record seconds, which a steady trend
+    keeps) left the 90 % interval of the message put last - a change the forecast itself calls significant -, or
+    that interval's width halved or doubled (the forecast became much surer or much less sure).
+    """
+
+    def __init__(self, period_s: float = FORECAST_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = float(period_s)
+        self._clock = clock
+        self._last: dict[str, Any] | None = None
+        self._last_wall = -math.inf
+
+    @staticmethod
+    def changed(old: dict[str, Any], new: dict[str, Any]) -> bool:
+        """Whether ``new`` says something ``old`` did not (see the class)."""
+        a, b = old.get("forecasts") or {}, new.get("forecasts") or {}
+        if set(a) != set(b):
+            return True
+        for name, f in b.items():
+            g = a[name]
+            if any((f.get(k) is None) != (g.get(k) is None) for k in ("t_exit", "t_exit_lo", "t_exit_hi")):
+                return True
+            t, lo, hi = f.get("t_exit"), g.get("t_exit_lo"), g.get("t_exit_hi")
+            if t is not None and not ((-math.inf if lo is None else lo) <= t <= (math.inf if hi is None else hi)):
+                return True
+            if lo is not None and hi is not None and f.get("t_exit_lo") is not None and f.get("t_exit_hi") is not None:
+                w_old, w_new = hi - lo, f["t_exit_hi"] - f["t_exit_lo"]
+                if w_new < 0.5 * w_old or w_new > 2.0 * w_old:
+                    return True
+        return False
+
+    def __call__(self, msg: dict[str, Any]) -> bool:
+        now = self._clock()
+        put = self._last is None or now - self._last_wall >= self.period_s or self.changed(self._last, msg)
+        if put:
+            self._last, self._last_wall = msg, now
+        return put
 
 
 def _ranges(numbers: list[int]) -> str:
@@ -488,6 +577,26 @@ def _int_parameter(parameters: zenoh.Parameters, name: str) -> int | None:
 
 
 # --------------------------------------------------------------------------- queries
+
+
+def fetch_forecasts(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[dict[str, Any]]:
+    """The latest forecast message of each matching running twin (a plain ``get`` on ``fpdd/<rig>/forecast``),
+    sorted by rig; a reply that does not follow :data:`twin.online.forecast.FORECAST_SCHEMA` is left out (logged).
+    """
+    from twin.online.forecast import FORECAST_SCHEMA
+
+    out = []
+    for reply in session.get(RigKeys(rig).forecast, target=zenoh.QueryTarget.ALL, timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            d = json.loads(reply.ok.payload.to_string())
+            validate(d, FORECAST_SCHEMA, "forecast")
+        except (DataError, ValueError) as exc:
+            log.warning("%s: rejected forecast reply: %s", reply.ok.key_expr, exc)
+            continue
+        out.append(d)
+    return sorted(out, key=lambda d: d["rig"])
 
 
 def fetch_latest(

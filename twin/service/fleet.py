@@ -117,6 +117,8 @@ class BusFront:
                 elif kind == "status":
                     pub.put_payload("status", item[1])
                     self.state[rig] = (item[2], item[3])
+                elif kind == "forecast":
+                    pub.publish_forecast(item[1])
                 elif kind == "signals":
                     sp = self._signal_pubs.get(rig)
                     if sp is None:

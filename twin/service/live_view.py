@@ -17,6 +17,9 @@ kind of message, each with its JSON schema:
   ``band_hi``, ``baseline``), plus the Foxglove ``timestamp``.
 * ``/twin/status`` (``StatusEvent``): service state, per-parameter status words, counters, message, as on
   Zenoh and in the MCAP.
+* ``/twin/forecast`` (``fpdd.Forecast``): when each parameter leaves its band, as on Zenoh
+  (``fpdd/<rig>/forecast``) and in the MCAP: per parameter the median exit time and its 90 % interval (record
+  seconds) and the remaining time (``remaining_s``, ``remaining_lo_s``, ``remaining_hi_s``), SI with ``units``.
 * ``/twin/alarm`` (``AlarmEvent``): every alarm event as on Zenoh and in the MCAP (SI, unit beside, the
   record's ``t_ns`` and the wall-clock ``wall_ns``).
 * ``/twin/alarm_log`` (``foxglove.Log``): the same alarms as the lines a person reads (display units, the
@@ -26,7 +29,8 @@ Every message carries ``rig`` (several rigs share the topics; Foxglove filters
 with ``/twin/estimate{rig=="msp25-hall1-a"}``) and ``timestamp`` as Foxglove
 time ``{sec, nsec}``; its log time is the sample's ``t_ns``.  The layout
 ``deploy/foxglove-layout.json`` plots each parameter's trend with its band and
-interval, the rig's position and pressures, and lists the alarms (open it in
+interval, the remaining time until each parameter leaves its band with its 90 % interval, the rig's
+position and pressures, and lists the alarms (open it in
 Foxglove: Layouts, Import from file; connect to ``ws://127.0.0.1:PORT``);
 ``twin serve --foxglove`` writes one whose variable ``rig`` is the first rig served.
 
@@ -35,7 +39,7 @@ Feeding it: :meth:`LiveView.signals` with sample blocks, :meth:`estimate`,
 dicts), :meth:`payload` with the JSON the service puts on Zenoh;
 :meth:`tee` wraps a :class:`twin.service.rig.RigTwin` publisher so everything it
 publishes is shown too; :meth:`follow` subscribes to a Zenoh session's
-``fpdd/<rig>/{estimate,status,alarm,signals}`` (any process, any number of twins;
+``fpdd/<rig>/{estimate,status,forecast,alarm,signals}`` (any process, any number of twins;
 a service puts ``signals`` when its ``signals_hz`` is set, as ``twin serve
 --foxglove`` does).
 """
@@ -89,6 +93,16 @@ def _event_schema(kind: str) -> dict:
 ESTIMATE_SCHEMA: dict = _event_schema("EstimateEvent")
 STATUS_SCHEMA: dict = _event_schema("StatusEvent")
 ALARM_SCHEMA: dict = _event_schema("AlarmEvent")
+
+
+def _forecast_schema() -> dict:
+    from replay.mcapio import with_time_schema
+    from twin.online.forecast import FORECAST_SCHEMA
+
+    return dict(with_time_schema(FORECAST_SCHEMA))
+
+
+FORECAST_SCHEMA: dict = _forecast_schema()
 LOG_SCHEMA: dict = {
     "title": "foxglove.Log", "type": "object",
     "description": "Foxglove's well-known log message (the Log panel lists them): one line per alarm event",
@@ -99,7 +113,8 @@ LOG_SCHEMA: dict = {
     "required": ["timestamp", "level", "message", "name", "file", "line"],
 }
 TOPICS = {"signals": ("/rig/signals", SIGNALS_SCHEMA), "estimate": ("/twin/estimate", ESTIMATE_SCHEMA),
-          "status": ("/twin/status", STATUS_SCHEMA), "alarm": ("/twin/alarm", ALARM_SCHEMA),
+          "status": ("/twin/status", STATUS_SCHEMA), "forecast": ("/twin/forecast", FORECAST_SCHEMA),
+          "alarm": ("/twin/alarm", ALARM_SCHEMA),
           "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
 LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 
@@ -311,6 +326,17 @@ class LiveView:
         with self._lock:
             self._log("status", {**e.to_dict(), "timestamp": foxglove_time(e.t_ns)}, e.t_ns)
 
+    def forecast(self, msg: Mapping) -> None:
+        """A forecast message (:func:`twin.online.forecast.forecast_message`, as on Zenoh and in the MCAP) with
+        its Foxglove ``timestamp``; one that does not follow its schema raises :class:`twin.errors.DataError`."""
+        from twin.online.events import validate
+        from twin.online.forecast import FORECAST_SCHEMA as SCHEMA
+
+        d = dict(msg)
+        validate(d, SCHEMA, "forecast")
+        with self._lock:
+            self._log("forecast", {**d, "timestamp": foxglove_time(d["t_ns"])}, d["t_ns"])
+
     def alarm(self, ev) -> None:
         """An :class:`~twin.online.events.AlarmEvent` (or its dict): on ``/twin/alarm`` the event's message (SI,
         unit beside, with the Foxglove ``timestamp``), on ``/twin/alarm_log`` the line a person reads (display
@@ -327,11 +353,11 @@ class LiveView:
             self._log("alarm_log", log, e.t_ns)
 
     def payload(self, rig: str, kind: str, payload: str | bytes | Mapping) -> None:
-        """A message as the service puts it on Zenoh: ``kind`` is ``estimate``, ``status`` or ``alarm``, the
-        payload its JSON (text, bytes or decoded)."""
+        """A message as the service puts it on Zenoh: ``kind`` is ``estimate``, ``status``, ``forecast`` or
+        ``alarm``, the payload its JSON (text, bytes or decoded)."""
         d = json.loads(payload) if isinstance(payload, (str, bytes, bytearray)) else dict(payload)
         d.setdefault("rig", rig)
-        {"estimate": self.estimate, "status": self.status, "alarm": self.alarm}[kind](d)
+        {"estimate": self.estimate, "status": self.status, "forecast": self.forecast, "alarm": self.alarm}[kind](d)
 
     # ------------------------------------------------------------------ hooks
     def tee(self, publisher: Publisher | None = None) -> _Tee:
@@ -340,7 +366,7 @@ class LiveView:
         return _Tee(self, publisher)
 
     def follow(self, session, rig: str = "*") -> None:
-        """Show what the twins publish on a Zenoh session: ``fpdd/<rig>/{estimate,status,alarm,signals}``."""
+        """Show what the twins publish on a Zenoh session: ``fpdd/<rig>/{estimate,status,forecast,alarm,signals}``."""
         from twin.service.bus import RigKeys
 
         keys = RigKeys(rig)
@@ -359,8 +385,8 @@ class LiveView:
                     logging.getLogger(__name__).debug("live view: bad %s payload", kind, exc_info=True)
             return on_sample
 
-        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("alarm", keys.alarm),
-                          ("signals", signals_key(rig))):
+        for kind, key in (("estimate", keys.estimate), ("status", keys.status), ("forecast", keys.forecast),
+                          ("alarm", keys.alarm), ("signals", signals_key(rig))):
             self._subs.append(session.declare_subscriber(key, handler(kind)))
 
 
@@ -484,6 +510,11 @@ class _Tee(Publisher):
         self.view.status(out or event)
         return out or event
 
+    def publish_forecast(self, message: dict) -> None:
+        if self.inner is not None:
+            self.inner.publish_forecast(message)
+        self.view.forecast(message)
+
 
 # --------------------------------------------------------------------------- the Foxglove layout
 PARAMETERS = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
@@ -499,7 +530,8 @@ def _plot(title: str, series: list[tuple[str, str, str]], *, ylabel: str = "") -
 
 def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAMPLE_RIG) -> dict:
     """The Foxglove layout of the live view (``deploy/foxglove-layout.json``): per parameter its estimate,
-    95 % interval and healthy band over time (SI, as the twin publishes them, the unit in the title); the rig's
+    95 % interval and healthy band over time (SI, as the twin publishes them, the unit in the title); the time
+    until each parameter leaves its band with its 90 % interval (``/twin/forecast``, seconds); the rig's
     position and pressures (display units); the alarms (Log panel) and the last status.
     The variable ``rig`` selects the rig shown (default: the first rig of ``deploy/rigs.example.toml``)."""
     sel = "{rig==$rig}"
@@ -514,6 +546,15 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAM
             (f"{base}.hi95", "95 % high", "#4DBEEE"), (f"{base}.band_lo", "band low", "#77AC30"),
             (f"{base}.band_hi", "band high", "#77AC30")])
         plots.append(pid)
+    colors = ("#0072BD", "#D95319", "#EDB120", "#7E2F8E", "#77AC30", "#4DBEEE", "#A2142F")
+    fc = f"/twin/forecast{sel}.forecasts"
+    series = []
+    for i, name in enumerate(parameters):
+        c = colors[i % len(colors)]
+        series += [(f"{fc}.{name}.remaining_s", f"{name} median", c),
+                   (f"{fc}.{name}.remaining_lo_s", f"{name} 5 %", c), (f"{fc}.{name}.remaining_hi_s", f"{name} 95 %", c)]
+    config["Plot!forecast"] = _plot("time until each parameter leaves its band, median and 90 % interval [s]",
+                                    series, ylabel="remaining time [s]")
     sig = f"/rig/signals{sel}"
     config["Plot!position"] = _plot("position x, demand x_ref [mm]", [(f"{sig}.x_mm", "x", "#0072BD"),
                                                                       (f"{sig}.x_ref_mm", "x_ref", "#8c8c8c")])
@@ -531,7 +572,7 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAM
                 "splitPercentage": 100.0 / len(ids)}
 
     layout = {"first": stack(plots), "second": {
-        "first": stack(["Plot!position", "Plot!pressures"]),
+        "first": stack(["Plot!forecast", "Plot!position", "Plot!pressures"]),
         "second": {"first": "Log!alarms", "second": "RawMessages!status", "direction": "column",
                    "splitPercentage": 60},
         "direction": "column", "splitPercentage": 50}, "direction": "row", "splitPercentage": 55}

@@ -20,7 +20,7 @@ class Outbox(Publisher):
 
     Messages (put on ``out`` as ``("batch", rig, [...])`` after each block):
     ``("alarm", AlarmEvent, durable)``, ``("estimate", json)``,
-    ``("status", json, state, message)``.
+    ``("status", json, state, message)``, ``("forecast", dict)``.
     """
 
     def __init__(self, rig: str, journal: AlarmJournal, out, signals_hz: float = 0.0) -> None:
@@ -53,6 +53,11 @@ class Outbox(Publisher):
         """An estimate already written as its JSON payload (:meth:`twin.service.rig.RigTwin._estimate_json`)."""
         self._batch.append(("estimate", payload))
         return True
+
+    def publish_forecast(self, message: dict) -> None:
+        """A forecast message (:func:`twin.online.forecast.forecast_message`): relayed to the service's
+        :meth:`twin.service.bus.TwinPublisher.publish_forecast` (which decides when it goes on the bus)."""
+        self._batch.append(("forecast", message))
 
     def publish_signals(self, samples: Samples) -> None:
         """The rig's samples, decimated to ``signals_hz`` (nothing when it is 0)."""

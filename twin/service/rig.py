@@ -188,6 +188,7 @@ class RigTwin(Sink):
         self.drift = DriftMonitor(rig.name, rig.baseline, model=rig.model)
         self.forecast = _forecast_monitor(rig)
         self.forecasts: collections.deque = collections.deque(maxlen=history and FORECASTS_KEPT)
+        self._forecast_shown = False
         self.stats = RigStats()
         self.health = Health()
         self.alarms: collections.deque[AlarmEvent] = collections.deque(maxlen=ALARMS_KEPT)
@@ -318,6 +319,8 @@ class RigTwin(Sink):
             self._alarm(ev)
         if fcs:
             self._forecast(fcs)
+        elif self._forecast_shown and not self.forecast.latest():
+            self._forecast_ended()
         # an estimate every estimate_every samples, wherever the block boundaries fall
         n = len(out.t_ns)
         first = self.estimate_every - 1 - self._since_estimate
@@ -380,11 +383,24 @@ class RigTwin(Sink):
         from twin.online.forecast import forecast_message
 
         self.forecasts.extend(fcs)
+        self._forecast_shown = True
         for msg in forecast_message(self.rig.name, fcs, self.forecast.horizon_s):
             if self.recorder is not None:
                 self.recorder.write_message("/twin/forecast", msg["t_ns"], msg, schema=FORECAST_SCHEMA)
             if self.publisher is not None:
                 self.publisher.publish_forecast(msg)
+
+    def _forecast_ended(self) -> None:
+        """No parameter has a forecast any more: the publisher is told by a message with none (the bus's latest
+        value must not keep the last one); the MCAP records forecasts only."""
+        self._forecast_shown = False
+        if self.publisher is not None and self.last_t_ns is not None:
+            from twin.online.forecast import FORECAST_UNITS
+
+            t_s = (self.last_t_ns - (self._t0_ns or 0)) * 1e-9
+            self.publisher.publish_forecast({"rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": t_s,
+                                             "horizon_s": self.forecast.horizon_s, "forecasts": {},
+                                             "units": dict(FORECAST_UNITS)})
 
     def _estimate(self, out, t_s, i: int) -> None:
         sd = out.interval_stds[i]
