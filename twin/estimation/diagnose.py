@@ -99,13 +99,14 @@ from replay.jsonio import finite_or_none
 from twin.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, noise_levels, resolve_outputs
 from twin.models import Model, get_model
-from twin.models.base import DEFAULT_TIMING, Timing
+from twin.models.base import DEFAULT_TIMING, INTERSAMPLE, Timing
 from twin.estimation.noise_model import ORDERS as NOISE_ORDERS
 from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
                                          long_run_variance)
 from twin.params import Effect, ParameterSet, check_names
 from twin.record import Record
 from twin.estimation.residuals import ResidualAnalysis, analyse, ljung_box
+from twin.models.simulate import DEFAULT_NOISE  # noqa: F401  (the plots' residual scale)
 
 #: significance level of the screen, the LR test and the adequacy tests (family-wise, after Holm/Bonferroni)
 ALPHA = 1e-3
@@ -154,6 +155,9 @@ N_BOOT = 1000
 #: the pseudo-effect naming a wrong loop timing, and the controller rates tried (multiples of the log rate)
 CONTROLLER_RATE = "controller_rate"
 RATE_MULTIPLES = (2, 5, 10)
+#: the pseudo-effect naming a wrong intersample rule of an open loop's logged input (no controller to time)
+INPUT_INTERSAMPLE = "input_intersample"
+TIMING_EFFECTS = (CONTROLLER_RATE, INPUT_INTERSAMPLE)
 #: regime variable against which each effect's signature is plotted
 SIGNATURE_AXIS = {
     "viscous_friction": "velocity", "stribeck_friction": "velocity", "laminar_leakage": "dp",
@@ -161,7 +165,9 @@ SIGNATURE_AXIS = {
     "specimen_stiffness": "position", "sensor_delay": "velocity", "entrained_air": "dp",
     "spool_saturation": "spool_opening", "coulomb_friction": "velocity", "cubic_stiffness": "position",
     "input_delay": "velocity", "position_sensor_gain": "position", "pressure_sensor_offset": "dp",
-    CONTROLLER_RATE: "velocity",
+    "supply_line_loss": "velocity", "pressure_sensor_lag": "dp", "input_offset": "position",
+    "output_offset": "position",
+    CONTROLLER_RATE: "velocity", INPUT_INTERSAMPLE: "velocity",
 }
 
 
@@ -325,7 +331,7 @@ class Trial:
 
 def _effect_params(state: ModelState, effect: str) -> dict:
     """The parameters of ``effect`` in ``state`` (for ``controller_rate``: the timing)."""
-    if effect == CONTROLLER_RATE:
+    if effect in TIMING_EFFECTS:
         t = state.timing
         return {"controller": {"value": t.controller, "rate_hz": t.rate_hz, "intersample": t.intersample,
                                "shown": t.label, "unit": "Hz", "std": None}}
@@ -434,7 +440,7 @@ class Diagnosis:
                              f"dAICc={g['delta_aicc']:.4g} held-out gain {100 * g['holdout_gain']:.2f}% "
                              f"[{100 * lo:.2f}, {100 * hi:.2f}]")
                 for p, v in self.effect_params(c).items():
-                    if c == CONTROLLER_RATE:
+                    if c in TIMING_EFFECTS:
                         lines.append(f"    timing     {v['shown']} (assumed: {self.timing.label})")
                         continue
                     spec = self.final.params.spec(p)
@@ -1069,9 +1075,16 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
                 say) -> Trial | None:
     """``controller_rate``: the best alternative loop timing, refitted and judged like an effect."""
     dt = data.records[0].dt
-    alts = [Timing("continuous", None, cur.timing.intersample)]
-    alts += [Timing("digital", m / dt, cur.timing.intersample) for m in RATE_MULTIPLES]
-    alts = [a for a in alts if a.ticks(dt) != cur.timing.ticks(dt)]
+    if data.model.CLOSED_LOOP and data.model.drive_signal(data.records[0].signals, data.drive)[0] == "x_ref":
+        name = CONTROLLER_RATE
+        alts = [Timing("continuous", None, cur.timing.intersample)]
+        alts += [Timing("digital", m / dt, cur.timing.intersample) for m in RATE_MULTIPLES]
+        alts = [a for a in alts if a.ticks(dt) != cur.timing.ticks(dt)]
+    else:  # an open loop: the logged input's behaviour between samples (zoh, foh, cubic) is its timing
+        name = INPUT_INTERSAMPLE
+        code = data.model.intersample_code(cur.timing, dt)
+        alts = [Timing(cur.timing.controller, cur.timing.rate_hz, i) for i in INTERSAMPLE]
+        alts = [a for a in alts if data.model.intersample_code(a, dt) != code]
     if not alts:
         return None
     ps = cur.params
@@ -1097,7 +1110,7 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
             continue
         tried.add(a)
         st = _fit_state(data, cur.params.update(start), cur.free, start, 1, seed, a)
-        t = _judge(data, (CONTROLLER_RATE,), cur, st, min_share)
+        t = _judge(data, (name,), cur, st, min_share)
         say(f"  refitted under {a.label}: cost {st.fit.cost:.6g}")
         if best is None or t.state.fit.cost < best.state.fit.cost:
             best = t
@@ -1240,8 +1253,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     mimicked = {e: model.EFFECTS[e].mimicry for e in catalogue
                 if set(model.EFFECTS[e].mimicked_by) & set(free)}
     catalogue = [e for e in catalogue if e not in mimicked]
+    # the loop's timing is a candidate: a controller's rate, or for an open loop the input's intersample rule
     closed = model.drive_signal(records[0].signals, drive)[0] == "x_ref"
-    timing_candidate = test_timing and closed and (candidates is None)
+    timing_candidate = test_timing and (candidates is None) and (closed or not model.CLOSED_LOOP)
     say = progress or (lambda _m: None)
 
     say(f"fitting the nominal model ({', '.join(free)}) on {sum(n_fit)} samples, {timing.label}")
@@ -1282,8 +1296,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         # places of their effects' screen p-values; effects not fitted keep theirs
         fitted = {t.effects[0]: t for t in trials}
         pool = [(r.effect, fitted[r.effect].p if r.effect in fitted else r.p_effect) for r in scr]
-        if CONTROLLER_RATE in fitted:
-            pool.append((CONTROLLER_RATE, fitted[CONTROLLER_RATE].p))
+        for te in TIMING_EFFECTS:
+            if te in fitted:
+                pool.append((te, fitted[te].p))
         adj = dict(zip([e for e, _ in pool], holm([p for _, p in pool])))
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
@@ -1297,9 +1312,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         ok = [t for t in trials if t.accepted]
         if not ok:
             sig = sorted((t for t in trials if t.p_adjusted < alpha and t.delta_aicc < 0 and t.holdout_gain > 0
-                          and t.effects[0] != CONTROLLER_RATE), key=lambda t: -t.lr)
+                          and t.effects[0] not in TIMING_EFFECTS), key=lambda t: -t.lr)
             if len(sig) == 1:  # its partner may be mimicked by bent nominal parameters when fitted alone
-                rest = [t for t in trials if t is not sig[0] and t.effects[0] != CONTROLLER_RATE
+                rest = [t for t in trials if t is not sig[0] and t.effects[0] not in TIMING_EFFECTS
                         and math.isfinite(t.state.wcost)]
                 rank = {r.effect: i for i, r in enumerate(scr)}
                 rest.sort(key=lambda t: rank.get(t.effects[0], len(rank)))

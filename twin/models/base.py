@@ -249,6 +249,10 @@ class Model(abc.ABC):
         """Fit starts of base parameters read off a record (a model that can, e.g. from its linear response)."""
         return []
 
+    def intersample_code(self, timing: Timing | None, dt: float) -> int:
+        """How this model's simulation treats a logged input between samples under ``timing``."""
+        return (timing or DEFAULT_TIMING).intersample_code(dt)
+
     def initial_from_data(self, signals: Mapping[str, np.ndarray], dt: float) -> dict[str, float]:
         """Initial-state quantities read off a record's first samples (none by default)."""
         return {}

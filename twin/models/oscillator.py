@@ -1,8 +1,8 @@
 """The paper's basic demonstration: a damped oscillator ``m x'' + d x' + k x = u``, ``y = x``.
 
-States ``x`` [m], ``v`` [m/s]; input force ``u`` [N], held between samples
-(zero-order hold) or, by the rig's :class:`~twin.models.base.Timing`, linear or
-a smooth cubic between them; output ``y = x`` [m].  Effects of the catalogue:
+States ``x`` [m], ``v`` [m/s]; input force ``u`` [N], smooth between samples
+(a C1 cubic: no controller holds it) or, by the rig's
+:class:`~twin.models.base.Timing`, held (zoh) or linear between them; output ``y = x`` [m].  Effects of the catalogue:
 ``coulomb_friction`` (tanh-smoothed dry friction), ``cubic_stiffness``
 (hardening spring ``k3 x^3``), ``input_delay`` (the force acts late),
 ``input_offset`` (the logged input reads ``u0`` more than the force that acts)
@@ -24,7 +24,7 @@ import numba as nb
 import numpy as np
 
 from twin.errors import DataError
-from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.base import DEFAULT_TIMING, INTERSAMPLE_CODE, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at
 from twin.params import Effect, ParamSpec
 
@@ -53,6 +53,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            (ParamSpec("y0", "m", -1e3, 1e3, "extension", "output offset"),), (0.0,),
            "constant output error, independent of the motion", (1e-4,)),
 )}
+#: how a logged force behaves between samples when the timing does not say (no controller holds it)
+DEFAULT_INTERSAMPLE = "cubic"
 #: an effect's typical size as a fraction of the size the record sets (:meth:`Oscillator.effect_typicals`)
 TYPICAL_FRACTION = 0.1
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
@@ -164,6 +166,12 @@ class Oscillator(Model):
             out["v0"] = v0
         return out
 
+    def intersample_code(self, timing, dt):
+        """No controller holds the input: unless the timing says otherwise, a logged force is smooth between
+        its samples (a signal generator's, a shaker's), the C1 cubic (:data:`DEFAULT_INTERSAMPLE`)."""
+        t = timing or DEFAULT_TIMING
+        return INTERSAMPLE_CODE[t.intersample or DEFAULT_INTERSAMPLE]
+
     def effect_typicals(self, ps, signals, predicted, dt):
         """Each effect's typical size from the record and the fitted nominal model ``ps`` (its prediction
         ``predicted``, a dict of whole-record signals): the size that changes the force balance by
@@ -231,7 +239,7 @@ class Oscillator(Model):
         else:
             U = np.stack([delay_signal(drive, t, dt) for t in taus])
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
-        mode = (timing or DEFAULT_TIMING).intersample_code(dt)
+        mode = self.intersample_code(timing, dt)
         S = simulate_kernel(S0, P, U, mode, float(dt), int(substeps or self.substeps))
         t = np.arange(drive.shape[0]) * dt
         return SimResult(t, {"y": S[:, :, 0] + P[:, I_Y0, None]}, S, {"u": drive})
