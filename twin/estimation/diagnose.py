@@ -779,9 +779,10 @@ def _holdout_gain(cur: ModelState, st: ModelState, data: _Data) -> tuple[float, 
 
 
 def _fd_step(spec, value: float, typical: float | None) -> float:
-    """A relative step of the value (of its typical size where it sits at zero): a parameter far from the
-    catalogue's typical size (a mass of 5e-6 in a circuit's units) is stepped by its own size."""
-    h = 1e-6 * max(abs(value) if value != 0 else abs(typical or 0.0), 1e-300)
+    """A relative step: of the value for a parameter that cannot reach zero (a mass of 5e-6 in a circuit's
+    units is stepped by its own size, not the catalogue's), else of the larger of value and typical size."""
+    ref = abs(value) if spec.lo > 0 else max(abs(value), abs(typical or 0.0))
+    h = 1e-6 * max(ref, 1e-300)
     if value + h > spec.hi:
         h = -h
     return h

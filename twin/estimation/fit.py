@@ -484,7 +484,15 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         R0 = prob.residuals(Z0)
         costs0 = 0.5 * np.sum(R0 * R0, axis=1)
     costs0 = np.where(np.isfinite(costs0), costs0, np.inf)
-    order = np.argsort(costs0)[: max(1, n_refine)]
+    # the best n_refine of the starts around the given values are refined, and the best of the starts over the
+    # whole ranges and from the data when it screens lower than all of those (a far start's screened cost says
+    # less than a near one's: it is refined in addition, never instead)
+    n_local = min(max(1, n_starts), Z0.shape[0])
+    order = list(np.argsort(costs0[:n_local])[: max(1, n_refine)])
+    if Z0.shape[0] > n_local:
+        far = n_local + int(np.argmin(costs0[n_local:]))
+        if costs0[far] < costs0[order[0]]:
+            order.insert(0, far)
     starts_info = [{"theta": dict(zip(prob.free, prob.from_z(Z0[i])[0].tolist())), "cost": float(costs0[i]),
                     "refined": bool(i in order)} for i in range(Z0.shape[0])]
     if progress:

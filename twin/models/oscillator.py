@@ -30,7 +30,7 @@ from twin.params import Effect, ParamSpec
 
 BASE = (
     ParamSpec("m", "kg", 1e-9, 1e6, "physical", "mass", typical=1.0),
-    ParamSpec("d", "N s/m", 1e-12, 1e6, "phenomenological", "viscous damping", typical=0.1),
+    ParamSpec("d", "N s/m", 0.0, 1e6, "phenomenological", "viscous damping", typical=0.1),
     ParamSpec("k", "N/m", 1e-9, 1e9, "phenomenological", "stiffness", typical=3947.8),
 )
 NOMINAL = {"m": 1.0, "d": 0.1, "k": 3947.8}
@@ -56,7 +56,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 #: how a logged force behaves between samples when the timing does not say (no controller holds it)
 DEFAULT_INTERSAMPLE = "cubic"
 #: an effect's typical size as a fraction of the size the record sets (:meth:`Oscillator.effect_typicals`)
-TYPICAL_FRACTION = 0.1
+TYPICAL_FRACTION = 0.3
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
 NP = len(KERNEL_NAMES)
 I_M, I_D, I_K, I_FC, I_VC, I_K3, I_TAU, I_U0, I_Y0 = range(NP)
@@ -176,14 +176,14 @@ class Oscillator(Model):
         """Each effect's typical size from the record and the fitted nominal model ``ps`` (its prediction
         ``predicted``, a dict of whole-record signals): the size that changes the force balance by
         :data:`TYPICAL_FRACTION` of what the record exercises.  A cubic spring stiffens by that fraction at
-        the rms displacement (``k3 = 0.1 k / x_rms^2``); a dry friction or an input offset is that fraction of
-        the rms input force, its smoothing velocity a hundredth of the rms velocity; an output offset that
-        fraction of the rms displacement; a delay two sample periods.  The same record in other units, or
+        the measured rms displacement (``k3 = 0.3 k / x_rms^2``); a dry friction or an input offset is that
+        fraction of the rms input force, its smoothing velocity a hundredth of the predicted rms velocity; an
+        output offset that fraction of the rms displacement; a delay two sample periods.  The screen probes
+        0.3, 1 and 3 times these sizes and a named effect lies within 10 times them.  The same record in other units, or
         rescaled, has effects of the same relative size (the diagnosis is unit-free)."""
-        x = np.asarray(predicted["y"], dtype=np.float64) - ps["y0"] if "y0" in ps.names else \
-            np.asarray(predicted["y"], dtype=np.float64)
-        x_rms = float(np.sqrt(np.mean((x - x.mean()) ** 2))) or 1.0
-        v = np.gradient(x, dt)
+        y = np.asarray(signals["y"], dtype=np.float64)  # the record's motion (the prediction may be far off)
+        x_rms = float(np.std(y)) or 1.0
+        v = np.gradient(np.asarray(predicted["y"], dtype=np.float64), dt)
         v_rms = float(np.sqrt(np.mean(v * v))) or 1.0
         u = np.asarray(signals["u"], dtype=np.float64)
         u_rms = float(np.sqrt(np.mean((u - u.mean()) ** 2))) or 1.0
