@@ -181,7 +181,8 @@ class _Problem:
 
     def from_z(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         zt = z[..., : self.n_theta]
-        theta = np.where(self.scale == 0, np.exp(zt), zt * self.scale)
+        log = self.scale == 0
+        theta = np.where(log, np.exp(np.where(log, zt, 0.0)), zt * self.scale)  # exp of log coordinates only
         zi = z[..., self.n_theta:]
         if self.init_names:
             s = np.array([INIT_SCALE[n] for n in self.init_names] * len(self.records))

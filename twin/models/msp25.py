@@ -152,7 +152,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("pressure_sensor_lag", "chamber pressure transducers respond with a first-order lag",
            (_fx("tau_p", "s", 0.0, 0.1, "pressure transducer time constant", "ms", 1e3),), (0.0,),
            "pressure residual proportional to the pressure's rate of change; displacement unaffected",
-           (5e-3,)),
+           (1e-2,)),
 )}
 
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
