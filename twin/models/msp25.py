@@ -105,10 +105,13 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("viscous_friction", "friction force proportional to rod velocity",
            (_fx("c_visc", "N s/m", 0.0, 1e6, "viscous friction coefficient"),), (0.0,),
            "residual force linear in velocity; phase lead at high speed", (2000.0,)),
-    Effect("stribeck_friction", "friction falling from a breakaway level with speed",
+    Effect("stribeck_friction", "friction falling from a breakaway level with speed, "
+           "F_brk exp(-(|v| / v_str)^delta_str)",
            (_fx("F_brk", "N", 0.0, 1e5, "breakaway force above the dry (Coulomb) level"),
-            _fx("v_str", "m/s", 1e-5, 1.0, "Stribeck velocity", "mm/s", 1e3)), (0.0, 0.01),
-           "residual force peaked at low speed after each reversal", (150.0, 0.01)),
+            _fx("v_str", "m/s", 1e-5, 1.0, "Stribeck velocity", "mm/s", 1e3),
+            _fx("delta_str", "1", 0.25, 4.0, "Stribeck shape exponent (1: exponential, 2: Gaussian decay)")),
+           (0.0, 0.01, 2.0),
+           "residual force peaked at low speed after each reversal", (150.0, 0.01, 2.0)),
     Effect("laminar_leakage", "cross-piston flow proportional to the pressure difference",
            (_fx("K_lam", "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage conductance"),), (0.0,),
            "pressure difference decays under load; velocity error grows with pA-pB", (2e-11,)),
@@ -158,9 +161,9 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
 NP = len(KERNEL_NAMES)
 (I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_DPLL,
- I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
- I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP) = range(NP)
-assert NP == 39 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+ I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_CVISC, I_FBRK, I_VSTR, I_DSTR, I_KLAM, I_XSDB,
+ I_XSBIAS, I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP) = range(NP)
+assert NP == 40 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
 assert KERNEL_NAMES[I_KSUP2] == "K_sup2" and KERNEL_NAMES[I_TAUP] == "tau_p"
 
 STATES = ("xs", "vs", "pA", "pB", "x", "v")
@@ -246,9 +249,10 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     # rod (eq. 11-12) with the friction extensions
     ff = p[I_FFRIC]
     fb = p[I_FBRK]
-    if fb > 0.0:
-        r = v / p[I_VSTR]
-        ff = ff + fb * math.exp(-r * r)
+    if fb > 0.0:  # Stribeck: exp(-(|v| / v_str)^delta), Gaussian (delta 2) by default
+        r = abs(v) / p[I_VSTR]
+        dl = p[I_DSTR]
+        ff = ff + fb * math.exp(-(r * r if dl == 2.0 else r ** dl))
     Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
     dv = (dpAB * A - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
     return dxs, dvs, dpA, dpB, v, dv
