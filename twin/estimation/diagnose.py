@@ -1168,14 +1168,16 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
     return t
 
 
-def _implausible(data: _Data, effects: Sequence[str], st: ModelState) -> list[str]:
+def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) -> list[str]:
     """Parameters of ``effects`` fitted further from neutral than ``PLAUSIBLE`` times the effect's typical
-    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range)."""
+    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range); the
+    typical sizes of the records' diagnosis (``data``), or the catalogue's (a model)."""
+    model = data.model if isinstance(data, _Data) else data
     out = []
     for e in effects:
-        if e not in data.model.EFFECTS:
+        if e not in model.EFFECTS:
             continue
-        E = data.effect(e)
+        E = data.effect(e) if isinstance(data, _Data) else model.EFFECTS[e]
         for s, n, typ in zip(E.params, E.neutral, E.typical):
             v = st.params[s.name]
             if typ != n and abs(v - n) > PLAUSIBLE * abs(typ - n):
