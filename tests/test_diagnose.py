@@ -22,6 +22,8 @@ CATALOGUE_CASES = [
     (OSC, "coulomb_friction", 11, "multisine", {}),
     (OSC, "cubic_stiffness", 12, "chirp", {}),
     (OSC, "input_delay", 13, "steps", {"amplitude": 50.0}),
+    (OSC, "input_offset", 14, "multisine", {}),
+    (OSC, "output_offset", 15, "multisine", {}),
 ]
 
 

@@ -59,7 +59,8 @@ def test_paper_scenarios_a_and_b_on_noise_free_reference_records_within_half_a_p
         assert row["error_pct"] <= 0.5, row  # the paper: 0-2 %
 
 
-@pytest.mark.parametrize("intersample,timing", [("zoh", Timing()), ("analytic", Timing(intersample="cubic"))])
+@pytest.mark.parametrize("intersample,timing", [("zoh", Timing(intersample="zoh")),
+                                               ("analytic", Timing(intersample="cubic"))])
 def test_paper_oscillator_cases_on_noise_free_reference_records(intersample, timing, reference_records):
     """The force held by a DAC (zoh) or smooth (a signal generator, fitted with the cubic intersample)."""
     from conftest import oscillator_spec

@@ -53,8 +53,9 @@ DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4, "tau": 0.0, "oversample": 1,
                  "quant": {"x": 0.0, "pA": 0.0, "pB": 0.0}}
 DEFAULT_DEMAND = {"kind": "multisine", "amplitude": 5e-3, "f_lo": 0.2, "f_hi": 15.0, "n_lines": 16,
                   "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"}
-# absolute tolerances per state (SI): xs vs pA pB x v x2 v2 zi zd z0..z3
-ATOL = np.array([1e-12, 1e-9, 1.0, 1.0, 1e-11, 1e-9, 1e-11, 1e-9, 1e-12, 1e-11, 1e-11, 1e-11, 1e-11, 1e-11])
+# absolute tolerances per state (SI): xs vs pA pB x v x2 v2 zi zd z0..z3 pAm pBm
+ATOL = np.array([1e-12, 1e-9, 1.0, 1.0, 1e-11, 1e-9, 1e-11, 1e-9, 1e-12, 1e-11, 1e-11, 1e-11, 1e-11, 1e-11,
+                 1.0, 1.0])
 
 
 def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 1000.0,
@@ -218,6 +219,10 @@ def _param_vector(spec: dict) -> np.ndarray:
         P[R.BIAS] = eff["valve_null_bias"]["offset"] * eff["valve_null_bias"]["sign"]
     if "supply_pressure_droop" in eff:
         P[R.RSUP] = eff["supply_pressure_droop"]["R"]
+    if "supply_line_loss" in eff:
+        P[R.KTURB] = eff["supply_line_loss"]["K"]
+    if "pressure_sensor_lag" in eff:
+        P[R.TAUP] = eff["pressure_sensor_lag"]["tau"]
     if "specimen_stiffness" in eff:
         P[R.KSPEC] = eff["specimen_stiffness"]["k"]
     if "entrained_air" in eff:
@@ -317,6 +322,8 @@ class _Setup:
         if ctrl == "analog" and P[R.KD] != 0.0:
             act.append(R.S_ZD)
         act += [R.S_Z0 + i for i in range(int(P[R.PADE_N]))]
+        if P[R.TAUP] > 0.0:
+            act += [R.S_PAM, R.S_PBM]
         self.active = idx = np.array(act, dtype=np.int64)
         self.opts["atol"] = self.atol[idx]
         self.fun = lambda t, y: R.rhs_sub(t, y, idx, P, tv, tab, sigp, sc, nzp, nzc)
@@ -416,6 +423,7 @@ def simulate_msp25(spec: dict) -> Record:
         how = "given"
     else:
         y0, how = _equilibrium(s, t_first)
+    y0[R.S_PAM], y0[R.S_PBM] = y0[R.S_PA], y0[R.S_PB]  # the transducers settled on the start
     ctrl = spec["controller"]
     held = spec["intersample"] in ("zoh", "foh")
     if ctrl == "digital" or held:
@@ -561,8 +569,9 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
         x = xm_log
     else:
         x = quantise(xm_log + s.xnoise[:: s.noise_os], nz["quant"]["x"])
-    pA = states[:, R.S_PA] + s.pnoise["pA"]
-    pB = states[:, R.S_PB] + s.pnoise["pB"]
+    lag = s.P[R.TAUP] > 0.0  # what lagging transducers read
+    pA = states[:, R.S_PAM if lag else R.S_PA] + s.pnoise["pA"]
+    pB = states[:, R.S_PBM if lag else R.S_PB] + s.pnoise["pB"]
     off = spec["effects"].get("pressure_sensor_offset")
     if off:
         if off["channel"] == "pA":

@@ -3,7 +3,9 @@
 State vector (SI), fixed layout: ``xs, vs`` spool position and velocity, ``pA, pB``
 chamber pressures (gauge), ``x, v`` rod, ``x2, v2`` second mass (mechanical
 resonance), ``zi`` integral of the control error, ``zd`` low-passed error (analog
-derivative term), ``z0..z3`` Pade delay states.  Unused states have zero derivative.
+derivative term), ``z0..z3`` Pade delay states, ``pAm, pBm`` the pressure transducers'
+readings (a first-order sensor, when it has a time constant).  Unused states have zero
+derivative.
 """
 
 from __future__ import annotations
@@ -15,16 +17,17 @@ import numpy as np
 
 from .signals import sig_eval, tv_eval
 
-NS = 14
+NS = 16
 S_XS, S_VS, S_PA, S_PB, S_X, S_V, S_X2, S_V2, S_ZI, S_ZD, S_Z0 = range(11)
+S_PAM, S_PBM = 14, 15
 
 # parameter vector layout
 (RHO, V0, AREA, MASS, BULK, VREF, KE, KSP, PORT, PP, PT, FEXT,
  KP, KI, KD, TD, MODE, UHELD, SEG,
  CVISC, FSTR, VSTR, GLAM, OVERLAP, BIAS, RSUP, KSPEC, GAIN, AIR, XSMAX, M2, K2, C2,
  PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON,
- AREA_B, V0_B) = range(49)
-NP = 49
+ AREA_B, V0_B, KTURB, TAUP) = range(51)
+NP = 51
 # time-varying free parameters, rows of the TV table
 TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN = range(5)
 FREE_ORDER = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
@@ -119,11 +122,15 @@ def valve_flows(xs, pA, pB, P, Cd):
         pin, pout = pB, pA  # P -> B, A -> T
     D = pP - pin
     R = P[RSUP]
-    if R > 0.0 and ao > 0.0:
-        # supply line resistance: pS = pP - R q, q = g ao sqrt(pS - pin); solved in closed form
-        a = R * g * ao
-        s = 2.0 * abs(D) / (a + math.sqrt(a * a + 4.0 * abs(D)))
-        qsup = math.copysign(g * ao * s, D)
+    K = P[KTURB]
+    if (R > 0.0 or K > 0.0) and ao > 0.0:
+        # supply line: linear resistance and turbulent loss, pS = pP - R q - K q^2, q = G sqrt(pS - pin),
+        # G = g ao: with s = sqrt(pS - pin), (1 + K G^2) s^2 + R G s - D = 0, solved in closed form
+        G = g * ao
+        a = R * G
+        c = 1.0 + K * G * G
+        s = 2.0 * abs(D) / (a + math.sqrt(a * a + 4.0 * c * abs(D)))
+        qsup = math.copysign(G * s, D)
     else:
         qsup = g * ao * ssqrt(D, d)
     qret = g * ao * ssqrt(pout - pT, d)
@@ -184,6 +191,9 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
         e = r - xm
         out[S_ZI] = e
         out[S_ZD] = (e - y[S_ZD]) / P[TD]
+    if P[TAUP] > 0.0:  # pressure transducers: first-order lag of their readings
+        out[S_PAM] = (pA - y[S_PAM]) / P[TAUP]
+        out[S_PBM] = (pB - y[S_PBM]) / P[TAUP]
     n = int(P[PADE_N])
     if n > 0:  # Pade delay in time normalised by the delay (states of the size of x)
         w = P[GAIN] * x

@@ -43,6 +43,8 @@ MSP25_EFFECTS: dict[str, dict[str, tuple]] = {
     "spool_saturation": {"xs_max": (0.3e-3, 0.7e-3)},                 # m
     "position_sensor_gain": {"gain": (1.01, 1.04)},                   # 1
     "pressure_sensor_offset": {"offset": (0.2e6, 1.0e6), "sign": (), "channel": ()},  # Pa
+    "supply_line_loss": {"K": (4e13, 1.6e14)},                         # Pa s^2/m^6 (drop = K q^2)
+    "pressure_sensor_lag": {"tau": (1.5e-3, 4e-3)},                   # s, both transducers
     "mechanical_resonance": {"f": (50.0, 90.0), "m2": (10.0, 30.0), "zeta2": (0.02, 0.05)},
     "parameter_drift": {"param": ("Ffric",), "factor": (1.5, 2.5)},
 }

@@ -97,16 +97,16 @@ from scipy import stats
 
 from replay.jsonio import finite_or_none
 from twin.errors import DataError, ParameterError
-from twin.estimation.fit import FitResult, fit, resolve_outputs
+from twin.estimation.fit import FitResult, fit, noise_levels, resolve_outputs
 from twin.models import Model, get_model
-from twin.models.base import DEFAULT_TIMING, Timing
+from twin.models.base import DEFAULT_TIMING, INTERSAMPLE, Timing
 from twin.estimation.noise_model import ORDERS as NOISE_ORDERS
 from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
                                          long_run_variance)
-from twin.params import ParameterSet, check_names
+from twin.params import Effect, ParameterSet, check_names
 from twin.record import Record
 from twin.estimation.residuals import ResidualAnalysis, analyse, ljung_box
-from twin.models.simulate import DEFAULT_NOISE
+from twin.models.simulate import DEFAULT_NOISE  # noqa: F401  (the plots' residual scale)
 
 #: significance level of the screen, the LR test and the adequacy tests (family-wise, after Holm/Bonferroni)
 ALPHA = 1e-3
@@ -155,6 +155,9 @@ N_BOOT = 1000
 #: the pseudo-effect naming a wrong loop timing, and the controller rates tried (multiples of the log rate)
 CONTROLLER_RATE = "controller_rate"
 RATE_MULTIPLES = (2, 5, 10)
+#: the pseudo-effect naming a wrong intersample rule of an open loop's logged input (no controller to time)
+INPUT_INTERSAMPLE = "input_intersample"
+TIMING_EFFECTS = (CONTROLLER_RATE, INPUT_INTERSAMPLE)
 #: regime variable against which each effect's signature is plotted
 SIGNATURE_AXIS = {
     "viscous_friction": "velocity", "stribeck_friction": "velocity", "laminar_leakage": "dp",
@@ -162,7 +165,9 @@ SIGNATURE_AXIS = {
     "specimen_stiffness": "position", "sensor_delay": "velocity", "entrained_air": "dp",
     "spool_saturation": "spool_opening", "coulomb_friction": "velocity", "cubic_stiffness": "position",
     "input_delay": "velocity", "position_sensor_gain": "position", "pressure_sensor_offset": "dp",
-    CONTROLLER_RATE: "velocity",
+    "supply_line_loss": "velocity", "pressure_sensor_lag": "dp", "input_offset": "position",
+    "output_offset": "position",
+    CONTROLLER_RATE: "velocity", INPUT_INTERSAMPLE: "velocity",
 }
 
 
@@ -185,6 +190,23 @@ class _Data:
     alpha: float = ALPHA
     seed: int = 0
     exo_cache: dict = dataclasses.field(default_factory=dict, repr=False)
+    #: each effect's typical size on these records (from the fitted nominal model; the catalogue's until then)
+    typical: dict[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
+
+    def effect(self, name: str) -> Effect:
+        """The catalogue's effect ``name`` with its typical size on these records."""
+        E = self.model.EFFECTS[name]
+        t = self.typical.get(name)
+        return dataclasses.replace(E, typical=tuple(t)) if t is not None else E
+
+    def scales(self) -> dict[str, float]:
+        """The order of magnitude of every effect parameter on these records (a fit's coordinate scale)."""
+        out = {}
+        for name in self.model.EFFECTS:
+            E = self.effect(name)
+            for n, neutral, t in zip(E.names, E.neutral, E.typical):
+                out[n] = abs(t - neutral) or abs(t)
+        return out
 
     @property
     def parts(self) -> list[Record]:
@@ -286,6 +308,7 @@ class Trial:
     implausible: list[str] = dataclasses.field(default_factory=list)  # parameters beyond PLAUSIBLE
     accepted: bool = False
     reason: str = ""
+    diverged: bool = False     # its fit or its simulation of the record went non-finite
 
     @property
     def effect(self) -> str:
@@ -302,12 +325,13 @@ class Trial:
                 "p_adjusted": self.p_adjusted, "df": self.df, "delta_aicc": self.delta_aicc,
                 "holdout_gain": self.holdout_gain, "holdout_gain_interval": list(self.gain_interval),
                 "share": self.share, "converged": self.state.converged, "accepted": self.accepted,
-                "reason": self.reason, "implausible": list(self.implausible), "params": self.params()}
+                "reason": self.reason, "implausible": list(self.implausible), "diverged": self.diverged,
+                "params": self.params()}
 
 
 def _effect_params(state: ModelState, effect: str) -> dict:
     """The parameters of ``effect`` in ``state`` (for ``controller_rate``: the timing)."""
-    if effect == CONTROLLER_RATE:
+    if effect in TIMING_EFFECTS:
         t = state.timing
         return {"controller": {"value": t.controller, "rate_hz": t.rate_hz, "intersample": t.intersample,
                                "shown": t.label, "unit": "Hz", "std": None}}
@@ -401,6 +425,7 @@ class Diagnosis:
             "signature": (self.final.analysis.summary() | {"adequacy": self.final.adequacy}
                           if self.unexplained and self.final.analysis else None),
             "not_testable": self.not_testable,
+            "diverged": [t.effect for ts in self.trials for t in ts if t.diverged],
             "holdout_fraction": self.holdout,
             "alpha": self.alpha,
             "outputs": list(self.outputs),
@@ -439,7 +464,7 @@ class Diagnosis:
                              f"dAICc={g['delta_aicc']:.4g} held-out gain {100 * g['holdout_gain']:.2f}% "
                              f"[{100 * lo:.2f}, {100 * hi:.2f}]")
                 for p, v in self.effect_params(c).items():
-                    if c == CONTROLLER_RATE:
+                    if c in TIMING_EFFECTS:
                         lines.append(f"    timing     {v['shown']} (assumed: {self.timing.label})")
                         continue
                     spec = self.final.params.spec(p)
@@ -778,7 +803,10 @@ def _holdout_gain(cur: ModelState, st: ModelState, data: _Data) -> tuple[float, 
 
 
 def _fd_step(spec, value: float, typical: float | None) -> float:
-    h = 1e-6 * max(abs(value), abs(typical or 0.0), 1e-300)
+    """A relative step: of the value for a parameter that cannot reach zero (a mass of 5e-6 in a circuit's
+    units is stepped by its own size, not the catalogue's), else of the larger of value and typical size."""
+    ref = abs(value) if spec.lo > 0 else max(abs(value), abs(typical or 0.0))
+    h = 1e-6 * max(ref, 1e-300)
     if value + h > spec.hi:
         h = -h
     return h
@@ -841,7 +869,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
         jac_cols.append(h)
     probes = []  # (effect, label, denominator, values dict, spec of the moved parameter, neutral)
     for eff in candidates:
-        E = model.EFFECTS[eff]
+        E = data.effect(eff)
         movers = _probe_params(E)
         prim = movers[0]
         pspec = E.params[prim]
@@ -982,9 +1010,9 @@ def _show(E, name: str, value: float) -> str:
 
 
 # --- fitting an extension -----------------------------------------------------------------
-def _plausible_start(model: Model, effect: str, est: Mapping[str, float]) -> dict[str, float]:
+def _plausible_start(data: _Data, effect: str, est: Mapping[str, float]) -> dict[str, float]:
     """The screen's one-step estimate, pulled into [typical/100, 100 typical] of the effect."""
-    E = model.EFFECTS[effect]
+    E = data.effect(effect)
     out = {}
     for s, n, t in zip(E.params, E.neutral, E.typical):
         v = float(est.get(s.name, t))
@@ -1003,7 +1031,7 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
                n_starts: int, seed: int, timing: Timing, max_nfev: int = 80) -> ModelState:
     res = fit(data.model, data.parts, free, base=ps, start=start, outputs=data.outputs, noise=data.sigma,
               drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
-              max_nfev=max_nfev, timing=timing, tol=FIT_TOL)
+              max_nfev=max_nfev, timing=timing, tol=FIT_TOL, scales=data.scales())
     return _state(data, res, free, timing)
 
 
@@ -1028,21 +1056,21 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
     return [float(c) if math.isfinite(c) else float("inf") for c in cost]
 
 
-def _effect_starts(model: Model, effect: str, est: Mapping[str, float]) -> list[dict[str, float]]:
+def _effect_starts(data: _Data, effect: str, est: Mapping[str, float]) -> list[dict[str, float]]:
     """The screen's estimate, the typical magnitude and a tenth of it (close to neutral) of ``effect``."""
-    E = model.EFFECTS[effect]
-    out = [_plausible_start(model, effect, est), dict(zip(E.names, E.typical))]
+    E = data.effect(effect)
+    out = [_plausible_start(data, effect, est), dict(zip(E.names, E.typical))]
     small = {}
     for s, n, t in zip(E.params, E.neutral, E.typical):
         small[s.name] = t if n == t else (n + 0.1 * (t - n) if n < t else min(s.hi, 10.0 * t))
-    out.append(_plausible_start(model, effect, small))
+    out.append(_plausible_start(data, effect, small))
     return out
 
 
 def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: float,
          configured: ParameterSet, n_ranked: int = 2) -> Trial:
     model = data.model
-    E = model.EFFECTS[row.effect]
+    E = data.effect(row.effect)
     free = cur.free + E.names
     ps = model.params(effects=cur.effects + (row.effect,)).update(cur.params.as_dict())
     # starts: the effect at the screen's estimate, its typical magnitude and close to neutral; the other
@@ -1050,7 +1078,7 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
     # All screened in one batch; the best is refined, the second best too when the first does not pass.
     base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured}]
     ranked = _rank_starts(data, ps, [{**b, **e} for b in base_starts
-                                     for e in _effect_starts(model, row.effect, row.estimate)], cur.timing)
+                                     for e in _effect_starts(data, row.effect, row.estimate)], cur.timing)
     near = dict(cur.fit.estimate)
     for s, n, v in zip(E.params, E.neutral, E.typical):
         near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
@@ -1072,9 +1100,16 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
                 say) -> Trial | None:
     """``controller_rate``: the best alternative loop timing, refitted and judged like an effect."""
     dt = data.records[0].dt
-    alts = [Timing("continuous", None, cur.timing.intersample)]
-    alts += [Timing("digital", m / dt, cur.timing.intersample) for m in RATE_MULTIPLES]
-    alts = [a for a in alts if a.ticks(dt) != cur.timing.ticks(dt)]
+    if data.model.CLOSED_LOOP and data.model.drive_signal(data.records[0].signals, data.drive)[0] == "x_ref":
+        name = CONTROLLER_RATE
+        alts = [Timing("continuous", None, cur.timing.intersample)]
+        alts += [Timing("digital", m / dt, cur.timing.intersample) for m in RATE_MULTIPLES]
+        alts = [a for a in alts if a.ticks(dt) != cur.timing.ticks(dt)]
+    else:  # an open loop: the logged input's behaviour between samples (zoh, foh, cubic) is its timing
+        name = INPUT_INTERSAMPLE
+        code = data.model.intersample_code(cur.timing, dt)
+        alts = [Timing(cur.timing.controller, cur.timing.rate_hz, i) for i in INTERSAMPLE]
+        alts = [a for a in alts if data.model.intersample_code(a, dt) != code]
     if not alts:
         return None
     ps = cur.params
@@ -1100,7 +1135,7 @@ def _try_timing(data: _Data, cur: ModelState, seed: int, min_share: float, confi
             continue
         tried.add(a)
         st = _fit_state(data, cur.params.update(start), cur.free, start, 1, seed, a)
-        t = _judge(data, (CONTROLLER_RATE,), cur, st, min_share)
+        t = _judge(data, (name,), cur, st, min_share)
         say(f"  refitted under {a.label}: cost {st.fit.cost:.6g}")
         if best is None or t.state.fit.cost < best.state.fit.cost:
             best = t
@@ -1127,7 +1162,7 @@ def _try_pair(data: _Data, cur: ModelState, a: Trial, b: Trial, seed: int, min_s
     ps = model.params(effects=cur.effects + effects).update(cur.params.as_dict())
     eff_vals = {n: a.state.fit.estimate[n] for n in model.EFFECTS[effects[0]].names}
     eff_vals.update({n: b.state.fit.estimate[n] for n in model.EFFECTS[effects[1]].names})
-    typical = {n: v for e in effects for n, v in zip(model.EFFECTS[e].names, model.EFFECTS[e].typical)}
+    typical = {n: v for e in effects for n, v in zip(data.effect(e).names, data.effect(e).typical)}
     base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured},
                    {n: a.state.fit.estimate[n] for n in cur.free}, {n: b.state.fit.estimate[n] for n in cur.free}]
     ranked = _rank_starts(data, ps, [{**bs, **ev} for bs in base_starts for ev in (eff_vals, typical)], cur.timing)
@@ -1150,19 +1185,23 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
     floor = math.sqrt(2.0 * cur.fit.n_obs)
     share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
     t = Trial(effects, st, lr, p, df, d_aicc, hg, (lo, hi), share, p_adjusted=p)
-    t.implausible = _implausible(data.model, effects, st)
+    t.implausible = _implausible(data, effects, st)
+    t.diverged = not (math.isfinite(st.fit.cost) and math.isfinite(st.wcost)
+                      and all(np.all(np.isfinite(p[o])) for p in st.predicted for o in data.outputs))
     _verdict(t, data.alpha, min_share, judge_share=not cur.adequate)
     return t
 
 
-def _implausible(model: Model, effects: Sequence[str], st: ModelState) -> list[str]:
+def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) -> list[str]:
     """Parameters of ``effects`` fitted further from neutral than ``PLAUSIBLE`` times the effect's typical
-    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range)."""
+    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range); the
+    typical sizes of the records' diagnosis (``data``), or the catalogue's (a model)."""
+    model = data.model if isinstance(data, _Data) else data
     out = []
     for e in effects:
         if e not in model.EFFECTS:
             continue
-        E = model.EFFECTS[e]
+        E = data.effect(e) if isinstance(data, _Data) else model.EFFECTS[e]
         for s, n, typ in zip(E.params, E.neutral, E.typical):
             v = st.params[s.name]
             if typ != n and abs(v - n) > PLAUSIBLE * abs(typ - n):
@@ -1171,7 +1210,7 @@ def _implausible(model: Model, effects: Sequence[str], st: ModelState) -> list[s
 
 
 def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> None:
-    reasons = []
+    reasons = ["diverged (its simulation of the record is not finite)"] if t.diverged else []
     if not t.p_adjusted < alpha:
         reasons.append(f"LR p_Holm={t.p_adjusted:.3g} >= {alpha:g}")
     if not t.delta_aicc < 0:
@@ -1232,7 +1271,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             raise DataError(f"{r.name}: {len(r)} samples; diagnose needs at least 200 per record")
         timing.ticks(r.dt)  # a controller rate must be a whole multiple of every record's rate
     free = tuple(free or getattr(model, "PHENOMENOLOGICAL", ()))
-    sigma = {o: float((noise or {}).get(o, DEFAULT_NOISE.get(o, 1.0))) for o in outputs}
+    sigma = noise_levels(model, records, outputs, noise)
     n_fit = [int(round(len(r) * (1.0 - holdout))) for r in records]
     data = _Data(model, records, n_fit, outputs, sigma, drive, timing, alpha, seed)
     catalogue = [e for e in (candidates or model.EFFECTS) if e not in base.effects]
@@ -1241,12 +1280,15 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     mimicked = {e: model.EFFECTS[e].mimicry for e in catalogue
                 if set(model.EFFECTS[e].mimicked_by) & set(free)}
     catalogue = [e for e in catalogue if e not in mimicked]
+    # the loop's timing is a candidate: a controller's rate, or for an open loop the input's intersample rule
     closed = model.drive_signal(records[0].signals, drive)[0] == "x_ref"
-    timing_candidate = test_timing and closed and (candidates is None)
+    timing_candidate = test_timing and (candidates is None) and (closed or not model.CLOSED_LOOP)
     say = progress or (lambda _m: None)
 
     say(f"fitting the nominal model ({', '.join(free)}) on {sum(n_fit)} samples, {timing.label}")
     nominal = _fit_state(data, base, free, {}, 8, seed, timing)
+    # every effect's size from the record and the fitted nominal model (units and scale are the record's)
+    data.typical = model.effect_typicals(nominal.params, records[0].signals, nominal.predicted[0], records[0].dt)
     say(f"nominal: noise model AR orders {nominal.noise.orders if nominal.noise else '-'}; one-step prediction "
         f"errors {'adequate' if nominal.adequate else 'NOT adequate'}")
     cur = nominal
@@ -1281,8 +1323,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         # places of their effects' screen p-values; effects not fitted keep theirs
         fitted = {t.effects[0]: t for t in trials}
         pool = [(r.effect, fitted[r.effect].p if r.effect in fitted else r.p_effect) for r in scr]
-        if CONTROLLER_RATE in fitted:
-            pool.append((CONTROLLER_RATE, fitted[CONTROLLER_RATE].p))
+        for te in TIMING_EFFECTS:
+            if te in fitted:
+                pool.append((te, fitted[te].p))
         adj = dict(zip([e for e, _ in pool], holm([p for _, p in pool])))
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
@@ -1296,9 +1339,9 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         ok = [t for t in trials if t.accepted]
         if not ok:
             sig = sorted((t for t in trials if t.p_adjusted < alpha and t.delta_aicc < 0 and t.holdout_gain > 0
-                          and t.effects[0] != CONTROLLER_RATE), key=lambda t: -t.lr)
+                          and t.effects[0] not in TIMING_EFFECTS), key=lambda t: -t.lr)
             if len(sig) == 1:  # its partner may be mimicked by bent nominal parameters when fitted alone
-                rest = [t for t in trials if t is not sig[0] and t.effects[0] != CONTROLLER_RATE
+                rest = [t for t in trials if t is not sig[0] and t.effects[0] not in TIMING_EFFECTS
                         and math.isfinite(t.state.wcost)]
                 rank = {r.effect: i for i, r in enumerate(scr)}
                 rest.sort(key=lambda t: rank.get(t.effects[0], len(rank)))

@@ -8,8 +8,13 @@
 * The Jacobian is a batch: all finite-difference columns (and all multi-start
   candidates) are simulated in one parallel call of the compiled model.
 * Multi-start: a seeded Latin hypercube of physically sensible starts around
-  the configured values is screened by cost in one batch; the best few are
-  refined with trust-region least squares and the best result is kept.
+  the configured values, as many drawn log-uniformly over the free
+  parameters' whole physical ranges (where a range spans decades), and the
+  starts the model reads off the data (an oscillator's own second-order
+  response) are screened by cost in one batch; the best few are refined with
+  trust-region least squares and the best result is kept.  A start far from
+  the nominal values (a circuit in volts is an oscillator of mass 5e-6) is so
+  found without the user's help.
 * Several records share the parameters; optional initial-state estimation adds
   per-record initial quantities (rod position, pressure difference).
 * Residuals of each output are weighted by its noise level, so x [m] and
@@ -62,6 +67,12 @@ from twin.models.simulate import DEFAULT_NOISE
 FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
 LOOP_NOISE_BAND = 0.4  # the loop noise's level is read off the residual above this fraction of Nyquist
 INIT_SCALE = {"x0": 1e-3, "dp0": 1e5, "v0": 1e-3}
+#: the weighting unit of an output whose units follow the record, as a fraction of its rms variation (a weight
+#: only: the estimates do not depend on it, and the diagnosis's statistics are whitened)
+RELATIVE_NOISE = 1e-3
+#: a fit whose Fit % of an output is at or below this explains almost nothing of it: converged or not, the
+#: result carries a warning (Fit % = 100 (1 - |e| / |y - mean y|): 10 % leaves 81 % of the variance)
+FIT_WARN_PCT = 10.0
 
 
 @dataclasses.dataclass
@@ -156,12 +167,8 @@ class FitResult:
         rows.append(f"AIC={self.aic:.6g} AICc={self.aicc:.6g} BIC={self.bic:.6g} FPE={self.fpe:.4g} "
                     f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
                     f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
+        rows.extend(f"WARNING: {w}" for w in self.warnings)
         return "\n".join(rows)
-
-
-#: a fit whose Fit % on an output is not above this is never a plain success (a warning beside it): the model
-#: then explains under a fifth of the output's variation (1 - 0.9^2), near zero or worse than its mean
-FIT_WARN_PCT = 10.0
 
 
 @dataclasses.dataclass
@@ -200,7 +207,8 @@ class _Problem:
 
     def from_z(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         zt = z[..., : self.n_theta]
-        theta = np.where(self.scale == 0, np.exp(zt), zt * self.scale)
+        log = self.scale == 0
+        theta = np.where(log, np.exp(np.where(log, zt, 0.0)), zt * self.scale)  # exp of log coordinates only
         zi = z[..., self.n_theta:]
         if self.init_names:
             s = np.array([INIT_SCALE[n] for n in self.init_names] * len(self.records))
@@ -340,7 +348,8 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
                  base: ParameterSet | None = None, outputs: Sequence[str] | None = None,
                  noise: Mapping[str, float] | None = None, drive: str = "auto",
                  estimate_init: Sequence[str] = (), init: Sequence[Mapping[str, float]] | None = None,
-                 substeps: int | None = None, timing: Timing | None = None) -> _Problem:
+                 substeps: int | None = None, timing: Timing | None = None,
+                 scales: Mapping[str, float] | None = None) -> _Problem:
     model = get_model(model) if isinstance(model, str) else model
     base = base or model.params()
     if not records:
@@ -360,16 +369,37 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
         init = [initial_from_data(model, r, base) for r in records]
         moving = [q for q in model.INIT_IF_MOVING if any(q in i for i in init)]
         estimate_init = tuple(dict.fromkeys((*estimate_init, *moving)))
-    sigma = {o: float((noise or {}).get(o, DEFAULT_NOISE.get(o, 1.0))) for o in outputs}
+    sigma = noise_levels(model, records, outputs, noise)
     for o, s in sigma.items():
         if not s > 0:
             raise DataError(f"noise level of output {o!r} must be > 0 to weight residuals, got {s}")
     specs = tuple(base.spec(n) for n in free)
     kidx = np.array([model.kernel_index(n) for n in free])
-    scale = np.array([0.0 if s.log_scaled else _linear_scale(model, s, base[s.name]) for s in specs])
+    scales = {n: abs(float(v)) for n, v in (scales or {}).items() if v and math.isfinite(v)}
+    scale = np.array([0.0 if s.log_scaled else scales.get(s.name) or _linear_scale(model, s, base[s.name])
+                      for s in specs])
     init_fixed = [dict(i) for i in init]
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
                     init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base))
+
+
+def noise_levels(model: Model, records: Sequence[Record], outputs: Sequence[str],
+                 noise: Mapping[str, float] | None = None) -> dict[str, float]:
+    """The noise level that weights each output's residuals: as given, else the sensor's default for a
+    model whose outputs are physical quantities of known sensors, else (``Model.NOISE_FROM_DATA``: the
+    units follow the record, volts as well as metres) a fixed fraction, ``RELATIVE_NOISE``, of the output's
+    rms variation on the records, so that the same record in other units or rescaled is weighed alike."""
+    out = {}
+    for o in outputs:
+        if noise and o in noise:
+            out[o] = float(noise[o])
+        elif model.NOISE_FROM_DATA:
+            y = np.concatenate([np.asarray(r[o], dtype=np.float64) for r in records if o in r])
+            rms = float(np.std(y)) if y.size else 0.0
+            out[o] = RELATIVE_NOISE * rms if rms > 0 and math.isfinite(rms) else DEFAULT_NOISE.get(o, 1.0)
+        else:
+            out[o] = float(DEFAULT_NOISE.get(o, 1.0))
+    return out
 
 
 def initial_from_data(model: Model, rec: Record, base: ParameterSet) -> dict[str, float]:
@@ -382,6 +412,43 @@ def initial_from_data(model: Model, rec: Record, base: ParameterSet) -> dict[str
 
 
 def _starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int, spread: float) -> np.ndarray:
+    """Start vectors in fit coordinates: the given start, a Latin hypercube of ``n - 1`` around it, then
+    (``n > 1``) the starts the model reads off the data and ``n`` drawn log-uniformly over the whole bounds
+    of the log-scaled free parameters (the others at the start)."""
+    Z = _local_starts(prob, start, n, seed, spread)
+    if n <= 1:
+        return Z
+    extra = []
+    for rec in prob.records[:1]:
+        for d in prob.model.starts_from_data(rec.signals, rec.dt):
+            if any(f in d for f in prob.free):
+                # the model's own response read off the data, its extensions switched off (at neutral)
+                d = {**{n: v for e in prob.base.effects for n, v in
+                        zip(prob.model.EFFECTS[e].names, prob.model.EFFECTS[e].neutral)}, **d}
+                z = Z[0].copy()
+                for j, f in enumerate(prob.free):
+                    if f in d:
+                        z[j] = (math.log(max(d[f], prob.specs[j].lo)) if prob.scale[j] == 0
+                                else d[f] / prob.scale[j])
+                extra.append(z)
+    lo, hi = prob.bounds_z()
+    logs = [j for j in range(prob.n_theta) if prob.scale[j] == 0 and np.isfinite(lo[j]) and np.isfinite(hi[j])]
+    if logs:
+        rng = np.random.default_rng(seed + 1)
+        u = (rng.permuted(np.tile(np.arange(n), (len(logs), 1)), axis=1).T + rng.uniform(size=(n, len(logs)))) / n
+        G = np.repeat(Z[:1], n, axis=0)
+        for c, j in enumerate(logs):
+            G[:, j] = lo[j] + (hi[j] - lo[j]) * u[:, c]
+        extra.extend(G)
+    if not extra:
+        return Z
+    fin_lo, fin_hi = np.isfinite(lo), np.isfinite(hi)
+    E = np.clip(np.array(extra), np.where(fin_lo, lo + 1e-9 * (np.abs(np.where(fin_lo, lo, 0.0)) + 1), -np.inf),
+                np.where(fin_hi, hi - 1e-9 * (np.abs(np.where(fin_hi, hi, 0.0)) + 1), np.inf))
+    return np.vstack([Z, E])
+
+
+def _local_starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int, spread: float) -> np.ndarray:
     """``n`` start vectors in fit coordinates: the given start, then a Latin hypercube around it."""
     theta0 = np.array([start[f] for f in prob.free])
     init0 = np.array([[prob.init_fixed[r].get(q, 0.0) for q in prob.init_names] for r in range(len(prob.records))])
@@ -413,7 +480,8 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         init: Sequence[Mapping[str, float]] | None = None, n_starts: int = 8, n_refine: int = 2,
         spread: float = 2.0, seed: int = 0, max_nfev: int = 60, tol: float = 1e-12,
         substeps: int | None = None, progress: Callable[[str], None] | None = None,
-        timing: Timing | None = None, loop_noise: bool = True) -> FitResult:
+        timing: Timing | None = None, loop_noise: bool = True,
+        scales: Mapping[str, float] | None = None) -> FitResult:
     """Fit ``free`` parameters of ``model`` to ``records`` by output-error least squares.
 
     ``base`` holds the known parameters (and switched-on effects); ``start`` the
@@ -426,22 +494,33 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
     friction at reversals) in a way a noise-free simulated loop cannot show; the
     fit then refines once more with the noise read off the displacement
     residual fed to the simulated controller, averaged over the two signs
-    (module docstring).
+    (module docstring).  ``scales``: the order of magnitude of linearly
+    scaled free parameters (default: their typical sizes in the catalogue).
     """
     t_start = time.perf_counter()
     if isinstance(records, Record):
         records = [records]
-    prob = make_problem(model, records, free, base, outputs, noise, drive, estimate_init, init, substeps, timing)
+    prob = make_problem(model, records, free, base, outputs, noise, drive, estimate_init, init, substeps, timing,
+                        scales)
     start = {**prob.base.as_dict(), **(start or {})}
     for n in prob.free:
         prob.base.spec(n).check(start[n])
     lo, hi = prob.bounds_z()
     Z0 = _starts(prob, start, max(1, n_starts), seed, spread)
     # screen all candidates in one batched simulation
-    R0 = prob.residuals(Z0)
-    costs0 = 0.5 * np.sum(R0 * R0, axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a start far off may diverge: its cost is infinite
+        R0 = prob.residuals(Z0)
+        costs0 = 0.5 * np.sum(R0 * R0, axis=1)
     costs0 = np.where(np.isfinite(costs0), costs0, np.inf)
-    order = np.argsort(costs0)[: max(1, n_refine)]
+    # the best n_refine of the starts around the given values are refined, and the best of the starts over the
+    # whole ranges and from the data when it screens lower than all of those (a far start's screened cost says
+    # less than a near one's: it is refined in addition, never instead)
+    n_local = min(max(1, n_starts), Z0.shape[0])
+    order = list(np.argsort(costs0[:n_local])[: max(1, n_refine)])
+    if Z0.shape[0] > n_local:
+        far = n_local + int(np.argmin(costs0[n_local:]))
+        if costs0[far] < costs0[order[0]]:
+            order.insert(0, far)
     starts_info = [{"theta": dict(zip(prob.free, prob.from_z(Z0[i])[0].tolist())), "cost": float(costs0[i]),
                     "refined": bool(i in order)} for i in range(Z0.shape[0])]
     if progress:
@@ -589,6 +668,8 @@ def _bartlett_lag(g: np.ndarray) -> int:
         if v <= 0:
             continue
         rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
+        if not (math.isfinite(v) and math.isfinite(rho)):  # non-finite scores (a diverged fit): no weight
+            continue
         s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
         num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
         den += s4 / (1 - rho) ** 4

@@ -162,10 +162,13 @@ def fit_noise_model(blocks: Sequence[np.ndarray], outputs: Sequence[str], orders
 # --- statistics of what whitening leaves ---------------------------------------------------------
 def bartlett_lag(g: np.ndarray) -> int:
     """Andrews' AR(1) plug-in bandwidth for Bartlett weights of a series ``g [n]`` (at most n/4)."""
-    g = np.asarray(g, dtype=float) - np.mean(g)
+    g = np.asarray(g, dtype=float)
+    if not np.all(np.isfinite(g)):  # a diverged candidate's scores: no bandwidth to estimate
+        return 0
+    g = g - np.mean(g)
     n = g.size
     v = float(g @ g)
-    if n < 8 or v <= 0:
+    if n < 8 or not 0 < v < math.inf:
         return 0
     rho = float(np.clip(g[1:] @ g[:-1] / v, -0.97, 0.97))
     a = 4 * rho * rho / ((1 - rho) ** 2 * (1 + rho) ** 2)

@@ -139,6 +139,7 @@ class Model(abc.ABC):
     # --- capabilities (what the rest of the product may ask of this model) -------------
     CLOSED_LOOP: bool = False     # has a controller: driven by a demand (x_ref) as well as open loop
     TRACKABLE: bool = False       # the online twin's compiled filter runs this model (twin track / serve)
+    NOISE_FROM_DATA: bool = False  # outputs in the record's own units: residual weights follow the record
 
     # --- parameters -----------------------------------------------------------------
     def tracking(self, name: str) -> Tracking:
@@ -237,6 +238,20 @@ class Model(abc.ABC):
         timing: Timing | None = None,
     ) -> SimResult:
         """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``."""
+
+    def effect_typicals(self, ps: ParameterSet, signals: Mapping[str, np.ndarray],
+                        predicted: Mapping[str, np.ndarray], dt: float) -> dict[str, tuple[float, ...]]:
+        """Each effect's typical size on this record given the fitted nominal model ``ps`` and its
+        prediction (a model whose units follow the record scales them; default: the catalogue's)."""
+        return {name: tuple(e.typical) for name, e in self.EFFECTS.items()}
+
+    def starts_from_data(self, signals: Mapping[str, np.ndarray], dt: float) -> list[dict[str, float]]:
+        """Fit starts of base parameters read off a record (a model that can, e.g. from its linear response)."""
+        return []
+
+    def intersample_code(self, timing: Timing | None, dt: float) -> int:
+        """How this model's simulation treats a logged input between samples under ``timing``."""
+        return (timing or DEFAULT_TIMING).intersample_code(dt)
 
     def initial_from_data(self, signals: Mapping[str, np.ndarray], dt: float) -> dict[str, float]:
         """Initial-state quantities read off a record's first samples (none by default)."""

@@ -127,10 +127,13 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("viscous_friction", "friction force proportional to rod velocity",
            (_fx("c_visc", "N s/m", 0.0, 1e6, "viscous friction coefficient"),), (0.0,),
            "residual force linear in velocity; phase lead at high speed", (2000.0,)),
-    Effect("stribeck_friction", "friction falling from a breakaway level with speed",
+    Effect("stribeck_friction", "friction falling from a breakaway level with speed, "
+           "F_brk exp(-(|v| / v_str)^delta_str)",
            (_fx("F_brk", "N", 0.0, 1e5, "breakaway force above the dry (Coulomb) level"),
-            _fx("v_str", "m/s", 1e-5, 1.0, "Stribeck velocity", "mm/s", 1e3)), (0.0, 0.01),
-           "residual force peaked at low speed after each reversal", (150.0, 0.01)),
+            _fx("v_str", "m/s", 1e-5, 1.0, "Stribeck velocity", "mm/s", 1e3),
+            _fx("delta_str", "1", 0.25, 4.0, "Stribeck shape exponent (1: exponential, 2: Gaussian decay)")),
+           (0.0, 0.01, 2.0),
+           "residual force peaked at low speed after each reversal", (150.0, 0.01, 2.0)),
     Effect("laminar_leakage", "cross-piston flow proportional to the pressure difference",
            (_fx("K_lam", "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage conductance"),), (0.0,),
            "pressure difference decays under load; velocity error grows with pA-pB", (2e-11,)),
@@ -167,15 +170,24 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            (_fx("pA_off", "Pa", -5e6, 5e6, "offset of the pA transducer", "MPa", 1e-6),
             _fx("pB_off", "Pa", -5e6, 5e6, "offset of the pB transducer", "MPa", 1e-6)), (0.0, 0.0),
            "constant pressure residual; force balance pA - pB against friction is off at rest", (3e5, 0.0)),
+    Effect("supply_line_loss", "turbulent loss in the supply line: pressure drop with the square of the flow",
+           (_fx("K_sup2", "Pa s^2/m^6", 0.0, 1e17, "supply line turbulent loss coefficient (drop per flow^2)"),),
+           (0.0,), "supply pressure sags with the square of the flow: little at low speed, a hard limit on "
+           "the speed at high flow", (8e13,)),
+    Effect("pressure_sensor_lag", "chamber pressure transducers respond with a first-order lag",
+           (_fx("tau_p", "s", 0.0, 0.1, "pressure transducer time constant", "ms", 1e3),), (0.0,),
+           "pressure residual proportional to the pressure's rate of change; displacement unaffected",
+           (1e-2,)),
 )}
 
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
 NP = len(KERNEL_NAMES)
 (I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_DPLL,
  I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_AB, I_V0B, I_TF, I_DMEAS, I_KFF, I_UMAX, I_KDP,
- I_CVISC, I_FBRK, I_VSTR, I_KLAM, I_XSDB, I_XSBIAS,
- I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF) = range(NP)
-assert NP == 44 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+ I_CVISC, I_FBRK, I_VSTR, I_DSTR, I_KLAM, I_XSDB, I_XSBIAS,
+ I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP) = range(NP)
+assert NP == 47 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+assert KERNEL_NAMES[I_KSUP2] == "K_sup2" and KERNEL_NAMES[I_TAUP] == "tau_p" and KERNEL_NAMES[I_KDP] == "Kdp"
 
 #: the largest mean friction a working actuator shows, as a fraction of its stall force pP A (a physical bound:
 #: servo-actuator seals are a percent or two of it); a record's mean pressure force beyond it is a wrong geometry
@@ -243,10 +255,11 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         qAT = -g * o * _sqrt_reg(pA - pT, dpl)
         qPB = -g * o * _sqrt_reg(pP - pB, dpl)
     R = p[I_RSUP]
-    if R > 0.0:  # supply droop: one fixed-point pass of pP_eff = pP - R q_supply
+    K2 = p[I_KSUP2]
+    if R > 0.0 or K2 > 0.0:  # supply droop (R q) and turbulent line loss (K2 q^2): one fixed-point pass
         qs = qPA + qPB
         if qs > 0.0:
-            pPe = max(pP - R * qs, pT)
+            pPe = max(pP - R * qs - K2 * qs * qs, pT)
             if o >= 0.0:
                 qPA = g * o * _sqrt_reg(pPe - pA, dpl)
             else:
@@ -265,9 +278,10 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     # rod (eq. 11-12) with the friction extensions
     ff = p[I_FFRIC]
     fb = p[I_FBRK]
-    if fb > 0.0:
-        r = v / p[I_VSTR]
-        ff = ff + fb * math.exp(-r * r)
+    if fb > 0.0:  # Stribeck: exp(-(|v| / v_str)^delta), Gaussian (delta 2) by default
+        r = abs(v) / p[I_VSTR]
+        dl = p[I_DSTR]
+        ff = ff + fb * math.exp(-(r * r if dl == 2.0 else r ** dl))
     Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
     # pA A - pB AB, written so that a symmetric cylinder (AB = A) gives the same numbers as (pA - pB) A
     dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
@@ -702,9 +716,33 @@ class MSP25(Model):
         S, U, XM = simulate_kernel(S0, P, drive, closed, timing.ticks(dt), timing.intersample_code(dt), float(dt),
                                    int(substeps or self.substeps))
         t = np.arange(drive.shape[0]) * dt
-        outputs = {"x": XM, "pA": S[:, :, 2] + P[:, I_PAOFF, None], "pB": S[:, :, 3] + P[:, I_PBOFF, None]}
+        pA, pB = S[:, :, 2], S[:, :, 3]
+        if np.any(P[:, I_TAUP] > 0.0):  # the transducers' first-order lag, on what they measure
+            pA, pB = sensor_lag(pA, P[:, I_TAUP], dt), sensor_lag(pB, P[:, I_TAUP], dt)
+        outputs = {"x": XM, "pA": pA + P[:, I_PAOFF, None], "pB": pB + P[:, I_PBOFF, None]}
         inputs = {"u": U, drive_name: drive} if closed else {"u": drive}
         return SimResult(t, outputs, S, inputs)
+
+
+@nb.njit(cache=True)
+def sensor_lag(p: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
+    """A first-order transducer ``tau y' = p - y`` on each row of ``p [K, T]`` (its own ``tau[k]``),
+    settled at the first sample; exact for ``p`` linear between samples:
+    ``y[n+1] = a y[n] + p[n+1] - a p[n] - c (p[n+1] - p[n])``, ``a = exp(-dt / tau)``, ``c = tau (1 - a) / dt``."""
+    K, T = p.shape
+    out = np.empty((K, T))
+    for k in range(K):
+        t = tau[k]
+        out[k, 0] = p[k, 0]
+        if t <= 0.0:
+            for n in range(1, T):
+                out[k, n] = p[k, n]
+            continue
+        a = math.exp(-dt / t)
+        c = t * (1.0 - a) / dt
+        for n in range(T - 1):
+            out[k, n + 1] = a * out[k, n] + p[k, n + 1] - a * p[k, n] - c * (p[k, n + 1] - p[k, n])
+    return out
 
 
 MODEL = MSP25()

@@ -1,10 +1,18 @@
 """The paper's basic demonstration: a damped oscillator ``m x'' + d x' + k x = u``, ``y = x``.
 
-States ``x`` [m], ``v`` [m/s]; input force ``u`` [N], held between samples
-(zero-order hold) or, by the rig's :class:`~twin.models.base.Timing`, linear or
-a smooth cubic between them; output ``y = x`` [m].  Effects of the catalogue:
+States ``x`` [m], ``v`` [m/s]; input force ``u`` [N], smooth between samples
+(a C1 cubic: no controller holds it) or, by the rig's
+:class:`~twin.models.base.Timing`, held (zoh) or linear between them; output ``y = x`` [m].  Effects of the catalogue:
 ``coulomb_friction`` (tanh-smoothed dry friction), ``cubic_stiffness``
-(hardening spring ``k3 x^3``) and ``input_delay`` (the force acts late).
+(hardening spring ``k3 x^3``), ``input_delay`` (the force acts late),
+``input_offset`` (the logged input reads ``u0`` more than the force that acts)
+and ``output_offset`` (the output reads ``y0`` more than the displacement).
+
+The units are the record's: a circuit that obeys the same equation (the
+Silverbox, volts in and out) is this model with ``u`` and ``y`` in volts.  So
+the catalogue's typical sizes are not constants but follow the record and the
+fitted nominal model (:meth:`Oscillator.effect_typicals`), and a fit starts
+from the data's own second-order response (:meth:`Oscillator.starts_from_data`).
 """
 
 from __future__ import annotations
@@ -16,14 +24,14 @@ import numba as nb
 import numpy as np
 
 from twin.errors import DataError
-from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.base import DEFAULT_TIMING, INTERSAMPLE_CODE, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at
 from twin.params import Effect, ParamSpec
 
 BASE = (
-    ParamSpec("m", "kg", 1e-6, 1e6, "physical", "mass", typical=1.0),
+    ParamSpec("m", "kg", 1e-9, 1e6, "physical", "mass", typical=1.0),
     ParamSpec("d", "N s/m", 0.0, 1e6, "phenomenological", "viscous damping", typical=0.1),
-    ParamSpec("k", "N/m", 0.0, 1e9, "phenomenological", "stiffness", typical=3947.8),
+    ParamSpec("k", "N/m", 1e-9, 1e9, "phenomenological", "stiffness", typical=3947.8),
 )
 NOMINAL = {"m": 1.0, "d": 0.1, "k": 3947.8}
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -38,16 +46,26 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("input_delay", "the force acts late",
            (ParamSpec("tau_u", "s", 0.0, 0.1, "extension", "input delay", "ms", 1e3),), (0.0,),
            "phase error growing with frequency; input cross-correlation peak at a lag", (2e-3,)),
+    Effect("input_offset", "the logged input reads more than the force that acts (a measurement offset)",
+           (ParamSpec("u0", "N", -1e9, 1e9, "extension", "input offset"),), (0.0,),
+           "constant output error u0/k; shifts the operating point of a nonlinear spring", (1.0,)),
+    Effect("output_offset", "the output reads more than the displacement (a sensor offset)",
+           (ParamSpec("y0", "m", -1e3, 1e3, "extension", "output offset"),), (0.0,),
+           "constant output error, independent of the motion", (1e-4,)),
 )}
+#: how a logged force behaves between samples when the timing does not say (no controller holds it)
+DEFAULT_INTERSAMPLE = "cubic"
+#: an effect's typical size as a fraction of the size the record sets (:meth:`Oscillator.effect_typicals`)
+TYPICAL_FRACTION = 0.3
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
 NP = len(KERNEL_NAMES)
-I_M, I_D, I_K, I_FC, I_VC, I_K3, I_TAU = range(NP)
+I_M, I_D, I_K, I_FC, I_VC, I_K3, I_TAU, I_U0, I_Y0 = range(NP)
 STATES = ("x", "v")
 
 
 @nb.njit(cache=True)
 def deriv(x, v, u, p):
-    f = u - p[I_D] * v - p[I_K] * x - p[I_K3] * x * x * x
+    f = u - p[I_U0] - p[I_D] * v - p[I_K] * x - p[I_K3] * x * x * x
     fc = p[I_FC]
     if fc > 0.0:
         f -= fc * math.tanh(v / p[I_VC])
@@ -109,6 +127,7 @@ class Oscillator(Model):
     EFFECTS = EFFECTS
     PHENOMENOLOGICAL = ("d", "k")
     substeps = 2
+    NOISE_FROM_DATA = True
     INIT = ("x0", "v0")
     #: a record that does not start at rest: these are estimated, from the values its first samples show
     INIT_IF_MOVING = ("x0", "v0")
@@ -121,7 +140,8 @@ class Oscillator(Model):
         if init:
             raise DataError(f"unknown initial-state quantities {sorted(init)}; known: x0 [m], v0 [m/s]")
         S0 = np.zeros((P.shape[0], 2))
-        S0[:, 0] = x0
+        # a measured start is read through the output offset (the first predicted sample is the measured one)
+        S0[:, 0] = x0 - P[:, I_Y0] if x0 != 0.0 else 0.0
         S0[:, 1] = v0
         return S0
 
@@ -146,6 +166,67 @@ class Oscillator(Model):
             out["v0"] = v0
         return out
 
+    def intersample_code(self, timing, dt):
+        """No controller holds the input: unless the timing says otherwise, a logged force is smooth between
+        its samples (a signal generator's, a shaker's), the C1 cubic (:data:`DEFAULT_INTERSAMPLE`)."""
+        t = timing or DEFAULT_TIMING
+        return INTERSAMPLE_CODE[t.intersample or DEFAULT_INTERSAMPLE]
+
+    def effect_typicals(self, ps, signals, predicted, dt):
+        """Each effect's typical size from the record and the fitted nominal model ``ps`` (its prediction
+        ``predicted``, a dict of whole-record signals): the size that changes the force balance by
+        :data:`TYPICAL_FRACTION` of what the record exercises.  A cubic spring stiffens by that fraction at
+        the measured rms displacement (``k3 = 0.3 k / x_rms^2``); a dry friction or an input offset is that
+        fraction of the rms input force, its smoothing velocity a hundredth of the predicted rms velocity; an
+        output offset that fraction of the rms displacement; a delay two sample periods.  The screen probes
+        0.3, 1 and 3 times these sizes and a named effect lies within 10 times them.  The same record in other units, or
+        rescaled, has effects of the same relative size (the diagnosis is unit-free)."""
+        y = np.asarray(signals["y"], dtype=np.float64)  # the record's motion (the prediction may be far off)
+        x_rms = float(np.std(y)) or 1.0
+        v = np.gradient(np.asarray(predicted["y"], dtype=np.float64), dt)
+        v_rms = float(np.sqrt(np.mean(v * v))) or 1.0
+        u = np.asarray(signals["u"], dtype=np.float64)
+        u_rms = float(np.sqrt(np.mean((u - u.mean()) ** 2))) or 1.0
+        f = TYPICAL_FRACTION
+        return {"coulomb_friction": (f * u_rms, 1e-2 * v_rms), "cubic_stiffness": (f * ps["k"] / x_rms ** 2,),
+                "input_delay": (2.0 * dt,), "input_offset": (f * u_rms,), "output_offset": (f * x_rms,)}
+
+    def starts_from_data(self, signals, dt):
+        """Starts of m, d, k from the data's own second-order response: an ARX(2, 2) least-squares fit of
+        ``y`` on ``u`` (means removed), its poles mapped to continuous time (``s = log(z) / dt``) and its
+        static gain read as ``1 / k``: ``k = 1 / gain``, ``m = k / wn^2``, ``d = 2 zeta wn m``.  Empty when
+        the data show no stable, lightly damped pair of poles with a positive gain (then the multi-start's
+        log-uniform cover of the physical ranges is all there is)."""
+        if "u" not in signals or "y" not in signals:
+            return []
+        u = np.asarray(signals["u"], dtype=np.float64)
+        y = np.asarray(signals["y"], dtype=np.float64)
+        if u.size < 20:
+            return []
+        u = u - u.mean()
+        y = y - y.mean()
+        X = np.stack([y[1:-1], y[:-2], u[1:-1], u[:-2]], axis=1)
+        try:
+            a1, a2, b1, b2 = np.linalg.lstsq(X, y[2:], rcond=None)[0]
+        except np.linalg.LinAlgError:
+            return []
+        z = np.roots([1.0, -a1, -a2]).astype(complex)
+        if not (np.all(np.abs(z) < 1.0) and np.all(np.abs(z) > 0.0)):
+            return []
+        s = np.log(z) / dt
+        wn = float(np.sqrt(np.real(s[0] * s[1])))
+        zeta = float(-np.real(s[0] + s[1]) / (2.0 * wn)) if wn > 0 else -1.0
+        gain = float((b1 + b2) / (1.0 - a1 - a2))
+        if not (np.isfinite(wn) and wn > 0 and zeta > 0 and gain > 0 and np.isfinite(gain)):
+            return []
+        k = 1.0 / gain
+        m = k / wn ** 2
+        out = {"m": m, "d": 2.0 * zeta * wn * m, "k": k}
+        specs = {sp.name: sp for sp in self.BASE}
+        if not all(specs[n].lo <= v <= specs[n].hi for n, v in out.items()):
+            return []
+        return [out]
+
     def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
@@ -158,10 +239,10 @@ class Oscillator(Model):
         else:
             U = np.stack([delay_signal(drive, t, dt) for t in taus])
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
-        mode = (timing or DEFAULT_TIMING).intersample_code(dt)
+        mode = self.intersample_code(timing, dt)
         S = simulate_kernel(S0, P, U, mode, float(dt), int(substeps or self.substeps))
         t = np.arange(drive.shape[0]) * dt
-        return SimResult(t, {"y": S[:, :, 0]}, S, {"u": drive})
+        return SimResult(t, {"y": S[:, :, 0] + P[:, I_Y0, None]}, S, {"u": drive})
 
     def state_space(self, ps) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, D) of the linear nominal model (eq. 2-3 of the paper)."""

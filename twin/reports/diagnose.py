@@ -125,7 +125,7 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
         body.append(P.figure(_gain_figure(gains), "Held-out gain of each accepted effect (relative reduction of "
                              "the held-out one-step prediction errors' sum of squares) with its 95 % "
                              "block-bootstrap interval; accepted only when the interval is above 0."))
-        body.append(P.table([{"cause": c, "held-out gain": pct(100 * g.get("holdout_gain", float("nan")), 3),
+        body.append(P.table([{"cause": c, "held-out gain": pct(_times100(g.get("holdout_gain")), 3),
                               "95 % interval": _interval(g.get("holdout_gain_interval")),
                               "LR": fmt(g.get("lr"), 5), "df": g.get("df"), "p": _p(g.get("p")),
                               "p (Holm)": _p(g.get("p_adjusted")), "ΔAICc": fmt(g.get("delta_aicc"), 5),
@@ -151,7 +151,7 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
         if trials:
             body.append(P.table([{"fitted": t["effect"], "LR": fmt(t["lr"], 5), "df": t["df"],
                                   "p (Holm)": _p(t["p_adjusted"]), "ΔAICc": fmt(t["delta_aicc"], 5),
-                                  "held-out gain": pct(100 * t["holdout_gain"], 3),
+                                  "held-out gain": pct(_times100(t.get("holdout_gain")), 3),
                                   "95 % interval": _interval(t.get("holdout_gain_interval")),
                                   "converged": "yes" if t.get("converged") else "NO",
                                   "decision": "ACCEPTED" if t["accepted"] else "rejected", "why": t.get("reason", "")}
@@ -211,6 +211,11 @@ def _p(p) -> str:
     return "<1e-300" if p == 0.0 else f"{p:.3g}"
 
 
+def _times100(v) -> float | None:
+    """A fraction as a percentage; ``None`` (a non-finite figure of a diverged candidate) stays ``None``."""
+    return None if v is None or not math.isfinite(float(v)) else 100.0 * float(v)
+
+
 def _interval(iv: Sequence | None) -> str:
     if not iv or any(v is None for v in iv):
         return "n/a"
@@ -222,8 +227,9 @@ def _gain_figure(gains):
     with pl.rc_context(views.RC):
         fig, ax = pl.subplots(figsize=(7.5, 0.55 * len(gains) + 1.3))
         y = np.arange(len(gains))
-        g = np.array([100 * (x.get("holdout_gain") or 0.0) for _, x in gains])
-        iv = np.array([[100 * v for v in (x.get("holdout_gain_interval") or [0, 0])] for _, x in gains], dtype=float)
+        g = np.array([_times100(x.get("holdout_gain")) or 0.0 for _, x in gains])
+        iv = np.array([[_times100(v) or 0.0 for v in (x.get("holdout_gain_interval") or [0, 0])] for _, x in gains],
+                      dtype=float)
         ax.errorbar(g, y, xerr=[np.maximum(g - iv[:, 0], 0), np.maximum(iv[:, 1] - g, 0)], fmt="o",
                     color=views.BLUE, capsize=4, ms=5, label="gain with 95 % interval")
         ax.axvline(0, color=views.RED, lw=0.9, ls="--", label="no gain")

@@ -75,6 +75,8 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
              "outputs": ", ".join(outputs),
              "Fit": ", ".join(f"{o} {fit_pct[o]:.2f} %" for o in outputs),
              "converged": "yes" if success else "NO"}
+    for i, w in enumerate(_get(result, "warnings") or []):
+        facts[f"WARNING {i + 1}" if i else "WARNING"] = str(w)
     pg = P.Page(title or f"twin fit: {model_name}", facts, kind="fit")
 
     # compare

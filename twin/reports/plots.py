@@ -168,7 +168,8 @@ def _binned(x: np.ndarray, y: np.ndarray, n: int = 30) -> tuple[np.ndarray, np.n
 
 def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     """PNG plots of a diagnosis in ``out_dir`` (matplotlib Agg); returns the paths."""
-    from twin.estimation.diagnose import CONTROLLER_RATE, DEFAULT_NOISE, FORCE_EFFECTS, SIGNATURE_AXIS, UNITS
+    from twin.estimation.diagnose import (CONTROLLER_RATE, DEFAULT_NOISE, FORCE_EFFECTS, SIGNATURE_AXIS,
+                                          TIMING_EFFECTS, UNITS)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -223,7 +224,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     for i in range(1, len(diag.path)):
         new = [c for c in diag.causes if c not in diag.path[i - 1].effects and c in diag.path[i].effects]
         if diag.path[i].timing != diag.path[i - 1].timing:
-            new.append(CONTROLLER_RATE)
+            new.append(next((c for c in diag.causes if c in TIMING_EFFECTS), CONTROLLER_RATE))
         steps.extend((i, c) for c in new)
     for i, c in steps:
         before = diag.path[i - 1].predicted[0]
