@@ -166,16 +166,9 @@ SILVERBOX_RATE_HZ = 1e7 / 2**14
 
 
 def _silverbox(name: str = "SNLS80mV.csv.gz") -> Path:
-    import os
+    from tests.realdata import realdata
 
-    roots = [Path(os.environ["FPDD_REALDATA"])] if os.environ.get("FPDD_REALDATA") else [
-        p / "shared" / "realdata" for p in Path(__file__).resolve().parents]
-    for root in roots:
-        path = root / "silverbox" / name
-        if path.is_file():
-            return path
-    pytest.fail(f"the published Silverbox record realdata/silverbox/{name} is not beside the project "
-                "(set FPDD_REALDATA to the realdata folder)")
+    return realdata("silverbox", name)
 
 
 def test_silverbox_as_published_is_read_with_a_rate(tmp_path: Path) -> None:

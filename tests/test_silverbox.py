@@ -17,10 +17,8 @@ record rescaled by 1e-3 and 1e3 gives the same verdict.
 from __future__ import annotations
 
 import copy
-import gzip
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +29,10 @@ from twin.estimation.diagnose import diagnose
 from twin.estimation.fit import fit, initial_from_data
 from twin.estimation.noise_model import bartlett_lag
 from twin.models import get_model
-from twin.record import Record
+from tests.realdata import realdata
+from twin.record import Record, load_records
 from twin.reports import diagnose_report
 
-DATA = Path(os.environ.get("FPDD_REALDATA", Path(__file__).resolve().parents[1].parent / "shared" / "realdata"))
-FILE = DATA / "silverbox" / "SNLS80mV.csv.gz"
 DT = 2.0 ** 14 / 1e7                 # the paper's eq. 12: 610.3515625 Hz
 MULTISINE = slice(40650, 127400)     # the official estimation + test multisine
 N_DIAGNOSE = 8192                    # samples of the estimation part the diagnosis sees (runtime)
@@ -44,13 +41,12 @@ OSC = get_model("oscillator")
 
 
 def _read() -> tuple[np.ndarray, np.ndarray]:
-    assert FILE.is_file(), f"{FILE}: the Silverbox data set is missing (set FPDD_REALDATA to the folder holding silverbox/)"
-    with gzip.open(FILE, "rt") as f:
-        header = f.readline().strip().split(",")
-        assert header[:2] == ['"V1"', '"V2"'], header  # the published header, a trailing empty field
-        a = np.loadtxt(f, delimiter=",", usecols=(0, 1))
-    assert a.shape == (131072, 2)
-    return a[:, 0], a[:, 1]
+    """The published file as it is (gzip, header '"V1","V2",' with a trailing empty field, no time column) through
+    the product's own loader, as ``--rate 610.3515625 --map u=V1:V --map y=V2:V`` reads it."""
+    (rec,) = load_records(str(realdata("silverbox", "SNLS80mV.csv.gz")), model="oscillator", rate_hz=1.0 / DT,
+                          map={"u": "V1:V", "y": "V2:V"})
+    assert len(rec) == 131072 and rec.dt == pytest.approx(DT, rel=1e-12)
+    return np.asarray(rec["u"], float), np.asarray(rec["y"], float)
 
 
 @pytest.fixture(scope="module")
