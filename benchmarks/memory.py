@@ -9,8 +9,9 @@
     count, the marginal memory per rig (slope of a least-squares line through
     the counts), and, as the baseline measured in the same run, the worker
     with 1 rig: the ratios of every count to it, and the slope against the
-    target (20 MB per rig). ``--soak`` samples over the whole run instead and
-    reports the growth after the first fifth (flat: a bounded service).
+    target (20 MB per rig). ``--soak`` samples from the first status to the
+    end of every rig's log instead and reports the growth after the first
+    fifth of the readings (flat: a bounded service).
 
 Nothing is timed; memory figures are in MB (10^6 bytes).
 """
@@ -81,6 +82,7 @@ def run_count(d: Path, logs: list[Path], rigs: int, seconds: float, speed: float
     proc = _start(_config(run, logs, rigs, port, speed))
     watch = _Statuses(f"tcp/127.0.0.1:{port}")
     reporting: set[str] = set()
+    ended: set[str] = set()
     series: list[tuple[float, int, int]] = []
     t0 = time.monotonic()
     deadline = t0 + (seconds / speed if speed > 0 else seconds) + 180.0
@@ -89,10 +91,11 @@ def run_count(d: Path, logs: list[Path], rigs: int, seconds: float, speed: float
             time.sleep(1.0)
             sts = watch.drain()
             reporting |= {st["rig"] for _, st in sts}
-            if any(st.get("state") in ("finished", "failed") for _, st in sts) and len(series) > 3:
-                break
+            ended |= {st["rig"] for _, st in sts if st.get("state") in ("finished", "failed")}
+            if (len(ended) == rigs if soak else ended) and len(series) > 3:
+                break  # a soak: to the end of every rig's log; else while every rig runs
             workers = worker_pids(proc.pid)
-            if len(reporting) < rigs or not workers:
+            if len(reporting) < (1 if soak else rigs) or not workers:
                 continue
             m = memory_kib(workers[0])
             series.append((time.monotonic() - t0, m["rss"], m["uss"]))
