@@ -54,3 +54,43 @@ def test_marginal_memory_per_rig_in_one_worker_is_under_the_target(tmp_path: Pat
     assert one["samples"] >= 2 and many["samples"] >= 2  # the worker was read while every rig ran
     per_rig = (many["rss_mb_max"] - one["rss_mb_max"]) / 5
     assert per_rig < TARGET_MB_PER_RIG, (one, many)
+
+
+def _held(open_it) -> int:
+    import gc
+    import tracemalloc
+
+    gc.collect()
+    tracemalloc.start()
+    try:
+        a = tracemalloc.get_traced_memory()[0]
+        obj = open_it()
+        b = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    if hasattr(obj, "close"):
+        obj.close()
+    return b - a
+
+
+def test_a_replayed_mcap_keeps_a_small_index_per_chunk(tmp_path: Path):
+    from mcap.reader import SeekingReader
+
+    from replay.mcapio import McapSource
+
+    files = {s: tmp_path / f"r{s:g}.mcap" for s in (10.0, 40.0)}
+    for s, p in files.items():
+        _log(p, s, seed=1001)
+    chunks, ours, theirs = [], [], []
+    for p in files.values():
+        src = McapSource(str(p))
+        chunks.append(len(src._summary.chunk_indexes))
+        src.close()
+        ours.append(_held(lambda p=p: McapSource(str(p))))
+        with open(p, "rb") as f:
+            theirs.append(_held(lambda f=f: SeekingReader(f).get_summary()))
+    assert chunks[1] >= 3 * chunks[0] > 0  # the longer log has proportionally more chunks
+    per_chunk = (ours[1] - ours[0]) / (chunks[1] - chunks[0])
+    per_chunk_lib = (theirs[1] - theirs[0]) / (chunks[1] - chunks[0])
+    assert per_chunk < per_chunk_lib / 3, (per_chunk, per_chunk_lib)
+    assert per_chunk < 160  # a handful of 64-bit numbers per chunk (seven arrays of them)
