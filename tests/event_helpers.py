@@ -25,3 +25,27 @@ def alarm(rig: str = "msp25", i: int = 1, seq: int = 0, level: str = "alarm") ->
         message=f"alarm {i}",
         seq=seq,
     )
+
+
+def wear_forecasts(rig: str, seconds: float = 400.0, seed: int = 1201) -> list[dict]:
+    """The forecast messages of a rig whose leakage wears out of its band (1 to 3.5 times its baseline over 700 s,
+    band up to 3 times), its estimates with AR(1) errors (``seed`` >= 1000), as the twin makes them: one per second
+    once the trend shows."""
+    import numpy as np
+
+    from twin.online.baseline import Baseline
+    from twin.online.forecast import ForecastMonitor, forecast_message
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 0.05)
+    a = np.exp(-0.05 / 0.5)
+    err = np.empty(t.size)
+    x, noise = 0.0, rng.normal(0.0, 0.05 * np.sqrt(1 - a * a), t.size)
+    for i in range(t.size):
+        x = a * x + noise[i]
+        err[i] = x
+    est = ((1.0 + 2.5 * t / 700.0) * np.exp(err))[:, None]
+    fm = ForecastMonitor(rig, {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0)}, horizon_s=600.0)
+    _, fcs = fm.update_block(("CdAleak",), T0_NS + np.round(t * 1e9).astype(np.int64), t, est,
+                             np.full_like(est, 0.05), np.zeros(est.shape, bool))
+    return forecast_message(rig, fcs, fm.horizon_s)

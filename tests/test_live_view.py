@@ -31,7 +31,7 @@ from twin.service.journal import AlarmJournal
 from twin.service.live_view import TOPICS, LiveView, foxglove_layout
 
 sys.path.insert(0, os.path.dirname(__file__))
-from event_helpers import T0_NS  # noqa: E402
+from event_helpers import T0_NS, wear_forecasts  # noqa: E402
 
 WAIT_S = 10.0
 #: the documented protocol name, the one Foxglove offers
@@ -400,32 +400,11 @@ source = "zenoh://fpdd/idle/samples"
     assert ours["/twin/alarm"][0]["parameter"] == "Ffric"
 
 
-def wear_forecasts(rig: str, seconds: float = 400.0) -> list[dict]:
-    """The forecast messages of a rig whose leakage wears out of its band (1 to 3.5 times its baseline over
-    700 s, band up to 3 times), estimated with AR(1) errors (seed >= 1000): one per second once the trend shows."""
-    from twin.online.baseline import Baseline
-    from twin.online.forecast import ForecastMonitor, forecast_message
-
-    rng = np.random.default_rng(1202)
-    t = np.arange(0.0, seconds, 0.05)
-    a = np.exp(-0.05 / 0.5)
-    err = np.empty(t.size)
-    x, noise = 0.0, rng.normal(0.0, 0.05 * np.sqrt(1 - a * a), t.size)
-    for i in range(t.size):
-        x = a * x + noise[i]
-        err[i] = x
-    est = ((1.0 + 2.5 * t / 700.0) * np.exp(err))[:, None]
-    fm = ForecastMonitor(rig, {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0)}, horizon_s=600.0)
-    _, fcs = fm.update_block(("CdAleak",), T0_NS + np.round(t * 1e9).astype(np.int64), t, est,
-                             np.full_like(est, 0.05), np.zeros(est.shape, bool))
-    return forecast_message(rig, fcs, fm.horizon_s)
-
-
 def test_forecasts_are_shown_with_their_schema_from_a_twin_and_over_zenoh(view, tmp_path):
     """``/twin/forecast``: what a rig's twin hands its publisher (through :meth:`LiveView.tee`) and what a real
     TwinPublisher puts on ``fpdd/<rig>/forecast`` (loopback, scouting off) reach the Foxglove client as the
     same message with its Foxglove time: the remaining time and its 90 % interval in seconds, units named."""
-    msgs = wear_forecasts("rig-1")
+    msgs = wear_forecasts("rig-1", seed=1202)
     assert len(msgs) > 100
     client = Client(view.url)
     try:
@@ -439,7 +418,7 @@ def test_forecasts_are_shown_with_their_schema_from_a_twin_and_over_zenoh(view, 
         with zenoh.open(zenoh_config(listen=[endpoint])) as hub, zenoh.open(zenoh_config(connect=[endpoint])) as s, \
                 AlarmJournal(tmp_path / "j.db") as journal, TwinPublisher(hub, "rig-2", journal) as pub:
             view.follow(s, "*")
-            other = wear_forecasts("rig-2", 300.0)[-1]
+            other = wear_forecasts("rig-2", 300.0, seed=1202)[-1]
             for _ in range(int(WAIT_S / 0.2)):  # the subscription may take a moment to propagate
                 from twin.service.bus import ForecastGate
 

@@ -26,7 +26,7 @@ from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.service.journal import AlarmJournal
 
 sys.path.insert(0, os.path.dirname(__file__))
-from event_helpers import T0_NS  # noqa: E402
+from event_helpers import T0_NS, wear_forecasts  # noqa: E402
 
 WAIT_S = 30.0  # upper bound of every wait (a Python process starting on a loaded machine)
 TWIN = [sys.executable, "-m", "twin.cli"]
@@ -34,24 +34,8 @@ ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
 def wear_forecast(rig: str = "msp25-07", seconds: float = 400.0) -> dict:
-    """The last forecast message of a rig whose leakage wears out of its band (1 to 3.5 times its baseline over
-    700 s, band up to 3 times), its estimates with AR(1) errors (seed >= 1000), as the twin puts it on the bus."""
-    from twin.online.baseline import Baseline
-    from twin.online.forecast import ForecastMonitor, forecast_message
-
-    rng = np.random.default_rng(1201)
-    t = np.arange(0.0, seconds, 0.05)
-    a = np.exp(-0.05 / 0.5)
-    err = np.empty(t.size)
-    x, noise = 0.0, rng.normal(0.0, 0.05 * np.sqrt(1 - a * a), t.size)
-    for i in range(t.size):
-        x = a * x + noise[i]
-        err[i] = x
-    est = ((1.0 + 2.5 * t / 700.0) * np.exp(err))[:, None]
-    fm = ForecastMonitor(rig, {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0)}, horizon_s=600.0)
-    _, fcs = fm.update_block(("CdAleak",), T0_NS + np.round(t * 1e9).astype(np.int64), t, est,
-                             np.full_like(est, 0.05), np.zeros(est.shape, bool))
-    return forecast_message(rig, fcs, fm.horizon_s)[-1]
+    """The wear forecasts of :func:`event_helpers.wear_forecasts` (seed 1201): the last message."""
+    return wear_forecasts(rig, seconds, seed=1201)[-1]
 
 
 @pytest.fixture
