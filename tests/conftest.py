@@ -1,4 +1,5 @@
-"""Shared fixtures: records of the independent reference simulator (``tests/reference``).
+"""Shared fixtures: records of the independent reference simulator (``tests/reference``), and a Zenoh peer on
+loopback (``endpoint``, ``hub``) that the bus tests' sessions connect to.
 
 Records are cached on disk (``$FPDD_REFCACHE``, default ``tests/.refcache/``) under a
 hash of their full spec, so a session generates each one once; misses of one call are
@@ -7,7 +8,7 @@ simulated in two worker processes.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import pytest
 
@@ -23,3 +24,22 @@ def get_records(specs: Sequence[dict], workers: int = 2) -> list[Record]:
 def reference_records():
     """The function ``get_records(specs) -> list[Record]`` (cached)."""
     return get_records
+
+
+@pytest.fixture
+def endpoint() -> str:
+    """An explicit loopback endpoint on a free port (scouting stays off in every session's configuration)."""
+    from net_helpers import free_port
+
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def hub(endpoint: str) -> Iterator:
+    """The listening peer every other session connects to (a plain peer: it stands in for a site router)."""
+    import zenoh
+
+    from replay.zenohconf import zenoh_config
+
+    with zenoh.open(zenoh_config(listen=[endpoint])) as session:
+        yield session

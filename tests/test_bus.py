@@ -12,7 +12,6 @@ import multiprocessing
 import queue
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -29,7 +28,7 @@ from twin.errors import ConfigError, DataError, SourceError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.service.journal import AlarmJournal
 from twin.service.store import Store
-from net_helpers import free_port
+from net_helpers import connected
 from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
 
@@ -38,24 +37,6 @@ WAIT_S = 10.0  # upper bound of every wait; the happy path takes milliseconds
 
 def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
     return make_alarm(rig, i, seq, level="alarm" if i % 2 else "warning")
-
-
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-@pytest.fixture
-def hub(endpoint: str) -> Iterator[zenoh.Session]:
-    """The listening session (stands in for the site router)."""
-    with zenoh.open(zenoh_config(listen=[endpoint])) as session:
-        yield session
-
-
-@contextmanager
-def connected(endpoint: str) -> Iterator[zenoh.Session]:
-    with zenoh.open(zenoh_config(connect=[endpoint])) as session:
-        yield session
 
 
 @pytest.fixture

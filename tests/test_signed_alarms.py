@@ -27,8 +27,7 @@ import pytest
 import zenoh
 
 from event_helpers import alarm as make_alarm
-from net_helpers import free_port
-from replay.zenohconf import zenoh_config
+from net_helpers import connected
 from twin.cli import main as twin_main
 from twin.commands.alarms import add_arguments as add_alarms_arguments
 from twin.commands.alarms import run as run_alarms_cli
@@ -50,24 +49,6 @@ def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
 
 def unsigned(events: list[AlarmEvent]) -> list[AlarmEvent]:
     return [replace(e, signature="") for e in events]
-
-
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-@pytest.fixture
-def hub(endpoint: str) -> Iterator[zenoh.Session]:
-    """The listening peer every other peer connects to (a plain peer, not a router)."""
-    with zenoh.open(zenoh_config(listen=[endpoint])) as session:
-        yield session
-
-
-@contextmanager
-def connected(endpoint: str) -> Iterator[zenoh.Session]:
-    with zenoh.open(zenoh_config(connect=[endpoint])) as session:
-        yield session
 
 
 @pytest.fixture
