@@ -201,3 +201,30 @@ def test_measure_adds_seeded_noise():
     assert 1.5e-6 < np.std(a["x"] - c["x"]) < 2.5e-6
     q = measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3, quantisation={"pA": 1e3})
     assert np.allclose(q["pA"] / 1e3, np.round(q["pA"] / 1e3))
+
+
+def test_a_kernel_cache_is_dropped_when_a_module_it_inlines_changed(tmp_path):
+    """numba checks a cached kernel against its own file only: keep_fresh drops it when a dependency changed."""
+    from twin.models.jitcache import keep_fresh
+
+    mod, dep = tmp_path / "kernel.py", tmp_path / "layout.py"
+    mod.write_text("x = 1\n")
+    dep.write_text("I_A = 5\n")
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+
+    def cached() -> list[str]:
+        for name in ("kernel.step-10.py311.nbi", "kernel.step-10.py311.1.nbc"):
+            (cache / name).write_bytes(b"code")
+        (cache / "other.step-3.py311.nbi").write_bytes(b"not ours")
+        return sorted(p.name for p in cache.iterdir() if p.suffix in (".nbi", ".nbc"))
+
+    cached()
+    assert keep_fresh(str(mod), str(dep)) is True  # no stamp yet: whatever was cached is of unknown provenance
+    assert sorted(p.name for p in cache.iterdir()) == ["kernel.deps", "other.step-3.py311.nbi"]
+    before = cached()
+    assert keep_fresh(str(mod), str(dep)) is False  # nothing changed: the cache stays
+    assert sorted(p.name for p in cache.iterdir() if p.suffix in (".nbi", ".nbc")) == before
+    dep.write_text("I_A = 6\n")  # the layout the kernel inlined moved
+    assert keep_fresh(str(mod), str(dep)) is True
+    assert [p.name for p in cache.iterdir() if p.suffix in (".nbi", ".nbc")] == ["other.step-3.py311.nbi"]

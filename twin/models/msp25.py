@@ -53,6 +53,12 @@ from twin.errors import DataError
 from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec, Tracking
+from twin.models import intersample as _intersample_src
+from twin.models import base as _base_src
+from twin.models.jitcache import keep_fresh
+
+# the machine code cached for this module inlines these modules' compiled code and constants
+keep_fresh(__file__, _intersample_src.__file__, _base_src.__file__)
 
 TWO_PI = 2.0 * math.pi
 

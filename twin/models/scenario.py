@@ -19,6 +19,12 @@ from twin.errors import ParameterError
 from twin.models import msp25 as M
 from twin.params import ParameterSet
 from twin.record import Record
+from twin.models import intersample as _intersample_src
+from twin.models import base as _base_src
+from twin.models.jitcache import keep_fresh
+
+# the machine code cached for this module inlines these modules' compiled code and constants
+keep_fresh(__file__, M.__file__, _intersample_src.__file__, _base_src.__file__)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -84,6 +84,12 @@ import numpy as np
 
 from twin.models import msp25 as M
 from twin.models.intersample import input_at
+from twin.models import intersample as _intersample_src
+from twin.models import base as _base_src
+from twin.models.jitcache import keep_fresh
+
+# the machine code cached for this module inlines these modules' compiled code and constants
+keep_fresh(__file__, M.__file__, _intersample_src.__file__, _base_src.__file__)
 
 #: state scales (SI per filter unit) of the six model states
 STATE_SCALE = np.array([1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1])
