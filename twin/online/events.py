@@ -683,8 +683,9 @@ def _display_of_dict(name: str, item: Mapping[str, Any]) -> tuple[str, float]:
     if unit == item["unit"]:
         return unit, 1.0
     v, dv = item["value"], d.get("value")
-    ok = isinstance(dv, (int, float)) and not isinstance(dv, bool) and math.isfinite(dv) and v != 0
-    return unit, float(dv) / float(v) if ok else 1.0
+    if isinstance(dv, (int, float)) and not isinstance(dv, bool) and math.isfinite(dv) and v != 0:
+        return unit, float(dv) / float(v)
+    return unit, 1.0
 
 
 def _json_number(x: float | None) -> str:
