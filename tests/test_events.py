@@ -204,3 +204,27 @@ def test_alarm_names_the_si_unit_of_its_values_and_reads_older_payloads_without_
     old = {k: v for k, v in ev.to_dict().items() if k != "unit"}  # journaled before units were named
     assert AlarmEvent.from_dict(old).unit == "rad/s"
     assert AlarmEvent.from_dict(ev.to_dict()) == ev
+
+
+def test_each_parameter_carries_its_numbers_in_its_display_unit_the_same_by_event_encoder_and_json() -> None:
+    from twin.online.events import EstimateEncoder
+
+    names, units = ("wn", "CdAleak"), ("rad/s", "m^2")
+    bands = {"CdAleak": (2.1e-9, 5.2e-9, 3.4e-9)}
+    vals, stds = [2 * math.pi * 47.5, 3.9e-9], [2.0, 4e-10]
+    ev = EstimateEvent.of_tracker("msp25", T0_NS, 1.25, names, vals, stds, units, None, "ok", bands)
+    d = ev.to_dict()["params"]
+    assert d["wn"]["display"]["unit"] == "Hz" and d["wn"]["display"]["value"] == pytest.approx(47.5)
+    assert d["wn"]["display"]["hi95"] == pytest.approx(d["wn"]["hi95"] / (2 * math.pi))
+    assert d["wn"]["display"]["band_lo"] is None and d["wn"]["display"]["baseline"] is None  # null stays null
+    cd = d["CdAleak"]["display"]
+    assert cd["unit"] == "mm^2" and cd["value"] == pytest.approx(3.9e-3) and cd["lo95"] < cd["value"] < cd["hi95"]
+    assert (cd["band_lo"], cd["band_hi"], cd["baseline"]) == pytest.approx((2.1e-3, 5.2e-3, 3.4e-3))
+    text = event_to_json(ev)
+    assert EstimateEncoder("msp25", names, units, bands)(T0_NS, 1.25, vals, stds, math.nan, "ok") == text
+    assert event_to_json(EstimateEvent.from_dict(json.loads(text))) == text  # read back: the same text
+    si = json.loads(text)["params"]["wn"]
+    other = {**si, "display": {"unit": "rad/s", **{f: si[f] for f in ("value", "lo95", "hi95")}}}  # its own unit
+    assert EstimateEvent("msp25", T0_NS, 1.25, {"wn": other}).to_dict()["params"]["wn"]["display"]["value"] == vals[0]
+    with pytest.raises(DataError, match=r"EstimateEvent\.params\.wn\.display\.unit: 7 must be a string"):
+        EstimateEvent("msp25", T0_NS, 1.25, {"wn": {**other, "display": {**other["display"], "unit": 7}}})

@@ -213,10 +213,12 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
     fields = {topic: set(schema["properties"]) for topic, schema in TOPICS.values()}
     param_fields = set(json.loads(json.dumps(TOPICS["estimate"][1]))["properties"]["params"]
                        ["additionalProperties"]["properties"])
+    display_fields = set(json.loads(json.dumps(TOPICS["estimate"][1]))["properties"]["params"]
+                         ["additionalProperties"]["properties"]["display"]["properties"])
     paths = [p["value"] for c in shipped["configById"].values() for p in c.get("paths", [])]
-    for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):
+    for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):  # in display units, as `twin params` shows them
         for f in ("value", "lo95", "hi95", "band_lo", "band_hi"):
-            assert f"/twin/estimate{{rig==$rig}}.params.{name}.{f}" in paths
+            assert f"/twin/estimate{{rig==$rig}}.params.{name}.display.{f}" in paths
     forecast_fields = set(json.loads(json.dumps(TOPICS["forecast"][1]))["properties"]["forecasts"]
                           ["additionalProperties"]["properties"])
     for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):  # the remaining time with its 90 % interval
@@ -226,9 +228,11 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
         topic, rest = p.split("{", 1)
         field = rest.split("}.", 1)[1].split(".")
         assert field[0] in fields[topic] and (field[0] != "params" or field[2] in param_fields), p
+        assert field[0] != "params" or field[2] != "display" or field[3] in display_fields, p
         assert field[0] != "forecasts" or field[2] in forecast_fields, p
     titles = [c.get("title", "") for c in shipped["configById"].values()]
     assert any("leaves its band" in t and "[s]" in t for t in titles)
+    assert {"wn [Hz]", "CdAleak [mm²]", "Ffric [N]", "zeta"} <= set(titles)
     assert any(c.get("topicToRender") == "/twin/alarm_log" for c in shipped["configById"].values())
     assert shipped["globalVariables"]["rig"]
 
@@ -289,6 +293,10 @@ def test_an_estimate_is_the_same_message_in_the_twins_mcap_and_live(tmp_path):
         b = rig.baseline[name]
         assert p["lo95"] < p["value"] < p["hi95"] and p["unit"]
         assert (p["band_lo"], p["band_hi"], p["baseline"]) == pytest.approx((b.lo, b.hi, b.value))
+        spec = M.MODEL.params().spec(name)
+        assert p["display"]["unit"] == (spec.display_unit or spec.unit)
+        for f in ("value", "lo95", "hi95", "band_lo", "band_hi", "baseline"):
+            assert p["display"][f] == pytest.approx(p[f] * spec.display_scale, rel=1e-12), (name, f)
     # the service's Zenoh payload of the same numbers is that message too (without the Foxglove time)
     values = np.array([first["params"][n]["value"] for n in twin.tracker.tracked])
     stds = np.array([first["params"][n]["std"] for n in twin.tracker.tracked])
@@ -395,6 +403,14 @@ source = "zenoh://fpdd/idle/samples"
             for msg in ours[topic]:
                 value = _field(msg, field)
                 assert field == [] or isinstance(value, (int, float)) or value is None, p
+                if topic == "/twin/estimate" and field[0] == "params":  # display unit: SI x the spec's scale
+                    assert field[2] == "display", p
+                    spec = M.MODEL.params().spec(field[1])
+                    si = _field(msg, field[:2] + field[3:])
+                    assert _field(msg, field[:3] + ["unit"]) == (spec.display_unit or spec.unit)
+                    assert (value is None) == (si is None), p
+                    assert value is None or value == pytest.approx(si * spec.display_scale, rel=1e-12), p
+                    assert value is not None or field[3] not in ("value", "lo95", "hi95"), p
         if "topicToRender" in panel:
             assert ours[panel["topicToRender"]], panel["topicToRender"]
     assert ours["/twin/alarm"][0]["parameter"] == "Ffric"

@@ -26,9 +26,14 @@ def test_estimate_payloads_written_from_the_numbers_are_the_event_paths_text():
         status = str(rng.choice(["ok", "gated", "repaired_covariance"]))
         got = twin._estimate_json(t_ns, t_s, vals, stds, nis, status)
         want = event_to_json(EstimateEvent.of_tracker(rig.name, t_ns, t_s, tr.tracked, vals, stds, tr.units,
-                                                      nis if np.isfinite(nis) else None, status, rig.baseline))
+                                                      nis if np.isfinite(nis) else None, status, rig.baseline,
+                                                      tr.displays))
         assert got == want, k
         assert EstimateEvent.from_dict(json.loads(got)).rig == "rig-7.b"
+        for name, (unit, scale) in zip(tr.tracked, tr.displays):  # the display copy: SI x the spec's scale
+            p = json.loads(got)["params"][name]
+            assert p["display"]["unit"] == unit and p["display"]["value"] == p["value"] * scale
+            assert p["display"]["lo95"] == p["lo95"] * scale and p["display"]["hi95"] == p["hi95"] * scale
     bad = np.ones(len(tr.tracked))
     assert twin._estimate_json(0, 0.0, bad * np.nan, bad, 1.0, "ok") is None
     assert twin._estimate_json(0, 0.0, bad, -bad, 1.0, "ok") is None

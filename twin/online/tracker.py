@@ -174,6 +174,8 @@ class OnlineTracker:
             if o not in ukf.MEAS_INDEX:
                 raise ParameterError(f"unknown measurement {o!r}; known: x, pA, pB")
         self.units = tuple(self.ps.spec(t).unit for t in self.tracked)
+        self.displays = tuple((self.ps.spec(t).display_unit or self.ps.spec(t).unit, float(self.ps.spec(t).display_scale))
+                              for t in self.tracked)  # (display unit, scale) of each: value shown = SI x scale
         if isinstance(timing, str):
             timing = Timing.parse(timing)
         self.timing = timing or Timing()

@@ -14,7 +14,8 @@ kind of message, each with its JSON schema:
 * ``/twin/estimate`` (``EstimateEvent``): the very message the twin puts on
   Zenoh and in its MCAP (:class:`twin.online.events.EstimateEvent`, SI with the
   unit beside each parameter: ``value``, ``std``, ``lo95``/``hi95``, ``band_lo``/
-  ``band_hi``, ``baseline``), plus the Foxglove ``timestamp``.
+  ``band_hi``, ``baseline``; the same in the display unit under ``display``, which the layout's
+  plots read), plus the Foxglove ``timestamp``.
 * ``/twin/status`` (``StatusEvent``): service state, per-parameter status words, counters, message, as on
   Zenoh and in the MCAP.
 * ``/twin/forecast`` (``fpdd.Forecast``): when each parameter leaves its band, as on Zenoh
@@ -52,7 +53,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
-from twin.reports.units import Shown, label, signal_unit
+from twin.reports.units import Shown, signal_unit
 from twin.service.publisher import Publisher
 
 if TYPE_CHECKING:
@@ -127,7 +128,8 @@ def foxglove_time(t_ns: int) -> dict:
 
 def estimate_message(ev) -> dict:
     """The message of an :class:`~twin.online.events.EstimateEvent` on ``/twin/estimate``, live and in the
-    twin's MCAP alike: the event's dict (SI, unit beside each parameter, 95 % interval, band) and its Foxglove
+    twin's MCAP alike: the event's dict (SI, unit beside each parameter, 95 % interval, band, and the same in the
+    display unit under ``display``) and its Foxglove
     ``timestamp``."""
     return {**ev.to_dict(), "timestamp": foxglove_time(ev.t_ns)}
 
@@ -530,7 +532,8 @@ def _plot(title: str, series: list[tuple[str, str, str]], *, ylabel: str = "") -
 
 def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAMPLE_RIG) -> dict:
     """The Foxglove layout of the live view (``deploy/foxglove-layout.json``): per parameter its estimate,
-    95 % interval and healthy band over time (SI, as the twin publishes them, the unit in the title); the time
+    95 % interval and healthy band over time (the ``display`` numbers of each parameter, in the display units
+    of ``twin params``, the unit in the title: ``wn [Hz]``, ``CdAleak [mm²]``); the time
     until each parameter leaves its band with its 90 % interval (``/twin/forecast``, seconds); the rig's
     position and pressures (display units); the alarms (Log panel) and the last status.
     The variable ``rig`` selects the rig shown (default: the first rig of ``deploy/rigs.example.toml``)."""
@@ -539,9 +542,9 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAM
     plots = []
     for i, name in enumerate(parameters):
         sh = Shown(name, model)
-        base = f"/twin/estimate{sel}.params.{name}"
+        base = f"/twin/estimate{sel}.params.{name}.display"
         pid = f"Plot!param{i}"
-        config[pid] = _plot(label(name, sh.si_unit), [
+        config[pid] = _plot(sh.label, [
             (f"{base}.value", "estimate", "#0072BD"), (f"{base}.lo95", "95 % low", "#4DBEEE"),
             (f"{base}.hi95", "95 % high", "#4DBEEE"), (f"{base}.band_lo", "band low", "#77AC30"),
             (f"{base}.band_hi", "band high", "#77AC30")])

@@ -417,7 +417,7 @@ class RigTwin(Sink):
         ev = EstimateEvent.of_tracker(self.rig.name, int(out.t_ns[i]), float(t_s[i]), self.tracker.tracked,
                                       out.estimates[i], sd, self.tracker.units,
                                       float(out.nis[i]) if np.isfinite(out.nis[i]) else None, str(out.status[i]),
-                                      self.rig.baseline)
+                                      self.rig.baseline, self.tracker.displays)
         if self.publisher is not None:
             self.publisher.publish_estimate(ev)
         if self.recorder is not None:
@@ -433,7 +433,8 @@ class RigTwin(Sink):
             from twin.online.events import EstimateEncoder
 
             enc = self._encoder = (self.rig, EstimateEncoder(self.rig.name, self.tracker.tracked,
-                                                             self.tracker.units, self.rig.baseline))
+                                                             self.tracker.units, self.rig.baseline,
+                                                             self.tracker.displays))
         return enc[1](t_ns, t_s, values, stds, nis, status)
 
     def publish_status(self, force: bool = False) -> None:
