@@ -184,7 +184,7 @@ def test_cli_save_is_fitresult_save_with_units_and_commissions_track(tmp_path, c
               timing=Timing.parse(None, None))
     api = res.save(str(tmp_path / "api.json"))
     doc = json.loads(saved.read_text())
-    assert doc == json.loads(open(api).read())
+    assert doc == json.loads(__import__("pathlib").Path(api).read_text())
     assert doc["free"] == ["Ffric"] and set(doc["params"]) == set(RIG.params().names)
     specs = {s.name: s for s in RIG.params().specs}
     for name, v in doc["params"].items():
