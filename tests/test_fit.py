@@ -198,6 +198,11 @@ def test_cli_save_is_fitresult_save_with_units_and_commissions_track(tmp_path, c
     tracked = json.loads(capsys.readouterr().out)
     assert tracked["noise"]["x"]["nominal"] == pytest.approx(doc["noise"]["x"]["value"])
     assert tracked["final"]["Ffric"]["value"] == pytest.approx(80.0, rel=0.2)
+    doc["params"]["A"]["unit"] = "mm^2"  # a value in another unit than SI is refused, not misread
+    saved.write_text(json.dumps(doc))
+    assert cli.main(["track", str(path), "--params", str(saved), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "params.A.unit is 'mm^2', expected 'm^2'" in err[0], err
 
 
 def test_cli_params_lists_metadata_and_effects(capsys):

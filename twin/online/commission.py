@@ -68,6 +68,12 @@ def _number(path: str, field: str, v: Any) -> float:
     return float(v)
 
 
+def check_unit(source: str, field: str, v: Mapping, unit: str) -> None:
+    """A saved ``{"value", "unit"}`` must be in the SI unit ``unit`` (values are saved and read in SI)."""
+    if "unit" in v and v["unit"] != unit:
+        raise ConfigError(f"{source}: {field}.unit is {v['unit']!r}, expected {unit!r} (values are saved in SI)")
+
+
 def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     """A :class:`Commission` from the JSON document of ``twin fit --save``."""
     if not isinstance(doc, Mapping):
@@ -83,10 +89,13 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     if not isinstance(std_in, Mapping):
         raise ConfigError(f"{source}: std must be an object of standard errors")
     known = get_model(model).params().names
+    specs = {sp.name: sp for sp in get_model(model).params().specs}
     params, fitted = {}, {}
     for n, v in params_in.items():
         if isinstance(v, Mapping):  # FitResult.saved() / to_dict(): {"value", "unit"[, "std"]} in SI
             val = _number(source, f"params.{n}.value", v.get("value"))
+            if n in specs:
+                check_unit(source, f"params.{n}", v, specs[n].unit)
             if "std" in v:  # a fitted parameter (a known one has no std)
                 sd = v.get("std")
                 fitted[n] = (val, float(sd) if isinstance(sd, (int, float)) else math.nan)
