@@ -9,7 +9,8 @@
     replay record can://INTERFACE/CHANNEL|zenoh://KEY --out FILE [--duration S] [--limit N]
 
 ``info`` reads the whole log through the quality gate and prints its signals, sample
-count, duration (s), mean rate (Hz) and median step (s), per-signal ranges (SI), gaps,
+count, duration (s), mean rate (Hz) and median step (s), per-signal ranges (display units:
+x in mm, pressures in MPa, u in V, T_oil in degC; ``--json``: SI with ``"unit"`` beside), gaps,
 counts of skipped records and the first problems, plus format-specific facts (MCAP
 topics).  An MCAP file without rig samples (e.g. a twin output with ``/twin/estimate``,
 ``/twin/status``, ``/twin/alarm``) is described by its topics, message counts and time
@@ -117,7 +118,7 @@ def info(path: str, **options: Any) -> dict[str, Any]:
             "rate_hz": (n - 1) / duration if duration > 0 else None,
             "median_step_s": float(np.median(steps)) * 1e-9 if steps else None,
             "jitter_s": jitter * 1e-9,
-            "ranges": {k: {"min": v[0], "max": v[1]} for k, v in ranges.items()},
+            "ranges": {k: {"min": v[0], "max": v[1], "unit": _si_unit(k)} for k, v in ranges.items()},
             "report": src.report.to_dict(),
             "summary": src.report.summary(),
         }
@@ -125,6 +126,29 @@ def info(path: str, **options: Any) -> dict[str, Any]:
         if callable(describe):
             out["format"] = describe()
         return out
+
+
+def _si_unit(name: str) -> str:
+    """The SI unit a signal is read in (its :class:`~replay.base.SignalSpec`; ``""`` when unknown)."""
+    from replay.base import SIGNALS
+
+    spec = SIGNALS.get(name)
+    return spec.unit if spec is not None else ""
+
+
+#: SI unit -> the unit a test engineer reads a rig signal in (x in mm, pressures in MPa, T_oil in degC as the DBC)
+_DISPLAY_UNITS = {"m": "mm", "Pa": "MPa", "K": "degC", "V": "V", "N": "N"}
+
+
+def _shown_range(r: dict[str, Any]) -> str:
+    """``[lo, hi] unit`` of one signal's range, in its display unit (SI with its unit when none is known)."""
+    from replay.quality import UNITS
+
+    si = r.get("unit") or ""
+    unit = _DISPLAY_UNITS.get(si, si)
+    factor, offset, _ = UNITS.get(unit, (1.0, 0.0, si))
+    lo, hi = ((r[k] - offset) / factor for k in ("min", "max"))
+    return f"[{lo:.6g}, {hi:.6g}] {unit}".rstrip()
 
 
 def _t(t_ns: int | None) -> str:
@@ -150,7 +174,7 @@ def _print_info(d: dict[str, Any]) -> None:
     if d.get("jitter_s"):
         print(f"time stamps: jitter up to {d['jitter_s'] * 1e6:.4g} us, read on the grid of the median step")
     for k, r in d["ranges"].items():
-        print(f"  {k:>8}: [{r['min']:.6g}, {r['max']:.6g}]")
+        print(f"  {k:>8}: {_shown_range(r)}")
     print(f"gaps: {len(rep['gaps_ns'])}")
     for a, b in rep["gaps_ns"][:10]:
         print(f"  {a * 1e-9:.6f} s -> {b * 1e-9:.6f} s ({(b - a) * 1e-9:.6g} s)")

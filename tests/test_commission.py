@@ -74,13 +74,15 @@ def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path
     assert doc["commissioned"]["seconds"] == pytest.approx(12.0, abs=0.01)
     # the bands are centred on the truth within the fit's stated uncertainty
     for n in TRACKED:
-        truth, band, std = float(rec.truth[n]), twin.rig.baseline[n], doc["std"][n]
+        truth, band, std = float(rec.truth[n]), twin.rig.baseline[n], doc["params"][n]["std"]
         assert abs(band.value - truth) <= 4.0 * std, (n, band.value, truth, std)
         assert band.lo < truth < band.hi
         assert band.value != pytest.approx(default_baseline("msp25")[n].value, rel=0.01)  # not Table 9's
     # its noise levels and timing
-    assert twin.tracker.noise_levels()["x"]["nominal"] == pytest.approx(doc["noise"]["x"])
-    assert doc["noise"]["x"] == pytest.approx(2e-6, rel=0.2) and doc["noise"]["pA"] == pytest.approx(2e4, rel=0.2)
+    assert twin.tracker.noise_levels()["x"]["nominal"] == pytest.approx(doc["noise"]["x"]["value"])
+    assert doc["noise"]["x"] == {"value": pytest.approx(2e-6, rel=0.2), "unit": "m"}
+    assert doc["noise"]["pA"] == {"value": pytest.approx(2e4, rel=0.2), "unit": "Pa"}
+    assert doc["params"]["Ffric"]["unit"] == "N" and "std" not in doc["params"]["A"]  # a known value has no std
     assert doc["timing"]["controller"] == "digital"
     # statuses: commissioning (gathering, then fitting; no alarms, parameters say so), then commissioned
     sts = _statuses(tmp_path, "run1")
@@ -166,6 +168,7 @@ def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
     serve(cfg, summaries=summaries)
     assert summaries["rig-c"].state == "finished" and summaries["rig-c"].samples == 30000
     doc = json.loads((tmp_path / "journal" / "rig-c.commission.json").read_text())
-    assert abs(doc["params"]["Ffric"] - float(rec.truth["Ffric"])) <= 4.0 * doc["std"]["Ffric"]
+    ffric = doc["params"]["Ffric"]
+    assert abs(ffric["value"] - float(rec.truth["Ffric"])) <= 4.0 * ffric["std"] and ffric["unit"] == "N"
     states = [s.state for s in _statuses(tmp_path, "run1")]
     assert "commissioning" in states and states.index("commissioning") < states.index("running")

@@ -168,6 +168,43 @@ def test_cli_simulate_writes_a_record_that_fits_back(tmp_path, capsys, suffix):
     assert abs(out["params"]["Ffric"]["value"] - 80.0) < 3 * out["params"]["Ffric"]["std"]
 
 
+def test_cli_save_is_fitresult_save_with_units_and_commissions_track(tmp_path, capsys):
+    """``twin fit --save`` writes what ``FitResult.save()`` writes: every value SI with its unit beside, the
+    fitted ones with their std; ``twin track --params`` commissions from that file."""
+    from twin.models.base import Timing
+    from twin.record import load_records
+
+    path = tmp_path / "sim.csv"
+    assert cli.main(["-q", "simulate", "-o", str(path), "--duration", "3", "--set", "Ffric=80",
+                     "--seed", "1004"]) == 0
+    saved = tmp_path / "cli.json"
+    assert cli.main(["-q", "fit", str(path), "--free", "Ffric", "--save", str(saved)]) == 0
+    capsys.readouterr()
+    res = fit(RIG, load_records(str(path)), ["Ffric"], base=RIG.params(), start={}, noise={},
+              timing=Timing.parse(None, None))
+    api = res.save(str(tmp_path / "api.json"))
+    doc = json.loads(saved.read_text())
+    assert doc == json.loads(__import__("pathlib").Path(api).read_text())
+    assert doc["free"] == ["Ffric"] and set(doc["params"]) == set(RIG.params().names)
+    specs = {s.name: s for s in RIG.params().specs}
+    for name, v in doc["params"].items():
+        assert v["unit"] == specs[name].unit and isinstance(v["value"], float)
+        assert ("std" in v) == (name == "Ffric")
+    assert abs(doc["params"]["Ffric"]["value"] - 80.0) < 3 * doc["params"]["Ffric"]["std"]
+    assert {k: v["unit"] for k, v in doc["noise"].items()} == {"x": "m", "pA": "Pa", "pB": "Pa"}
+    assert all(v["value"] > 0 for v in doc["noise"].values())
+    rc = cli.main(["track", str(path), "--params", str(saved), "--out", str(tmp_path / "o"), "--json"])
+    assert rc == 0
+    tracked = json.loads(capsys.readouterr().out)
+    assert tracked["noise"]["x"]["nominal"] == pytest.approx(doc["noise"]["x"]["value"])
+    assert tracked["final"]["Ffric"]["value"] == pytest.approx(80.0, rel=0.2)
+    doc["params"]["A"]["unit"] = "mm^2"  # a value in another unit than SI is refused, not misread
+    saved.write_text(json.dumps(doc))
+    assert cli.main(["track", str(path), "--params", str(saved), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "params.A.unit is 'mm^2', expected 'm^2'" in err[0], err
+
+
 def test_cli_params_lists_metadata_and_effects(capsys):
     assert cli.main(["params", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -36,6 +36,31 @@ def test_info_json(capsys: pytest.CaptureFixture, name: str) -> None:
         assert topics == {"/rig/signals_block": 1, "/rig/signals": 200}
 
 
+def test_info_ranges_carry_units(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    """Text: each range in its display unit (x in mm, pressures in MPa, u in V, T_oil in degC as the DBC);
+    JSON: SI with the unit beside."""
+    code, out, _ = run(capsys, "info", str(DATA / "reference.csv"), "--json")
+    assert code == 0
+    ranges = json.loads(out)["ranges"]
+    assert {k: r["unit"] for k, r in ranges.items()} == {"x_ref": "m", "u": "V", "x": "m", "pA": "Pa", "pB": "Pa"}
+    code, text, _ = run(capsys, "info", str(DATA / "reference.csv"))
+    assert code == 0
+    shown = {line.split(":")[0].strip(): line.split(":", 1)[1].strip() for line in text.splitlines()
+             if line.startswith("  ") and line.rstrip().endswith(("mm", "MPa", "V"))}
+    for k, (unit, scale) in {"x_ref": ("mm", 1e3), "x": ("mm", 1e3), "u": ("V", 1.0), "pA": ("MPa", 1e-6),
+                             "pB": ("MPa", 1e-6)}.items():
+        lo, hi = (float(v) for v in shown[k].removesuffix(unit).strip().strip("[]").split(","))
+        assert lo == pytest.approx(ranges[k]["min"] * scale, rel=1e-5)
+        assert hi == pytest.approx(ranges[k]["max"] * scale, rel=1e-5)
+    path = tmp_path / "oil.csv"
+    path.write_text("t,T_oil\n" + "".join(f"{i * 1e-3!r},{313.15 + i}\n" for i in range(11)))
+    code, out, _ = run(capsys, "info", str(path), "--json")
+    assert json.loads(out)["ranges"]["T_oil"] == {"min": pytest.approx(313.15), "max": pytest.approx(323.15),
+                                                  "unit": "K"}
+    code, text, _ = run(capsys, "info", str(path))
+    assert "T_oil: [40, 50] degC" in text
+
+
 def test_info_text_reports_gaps_and_bad_rows(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
     path = tmp_path / "gappy.csv"
     rows = [f"{i * 1e-3!r},{0.001 * i!r}" for i in range(40)] + ["0.041,oops"]

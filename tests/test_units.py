@@ -50,9 +50,10 @@ def test_simulate_takes_display_units_the_params_table_shows(tmp_path, capsys):
     assert cli.main(["simulate", "-o", str(out), "--duration", "0.2", "--json",
                      "--set", "CdAleak=0.01mm^2,wn=40Hz,Ffric=0.08kN"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["params"]["CdAleak"] == pytest.approx(1e-8)
-    assert info["params"]["wn"] == pytest.approx(2 * math.pi * 40)
-    assert info["params"]["Ffric"] == pytest.approx(80.0)
+    assert info["params"]["CdAleak"] == {"value": pytest.approx(1e-8), "unit": "m^2"}
+    assert info["params"]["wn"] == {"value": pytest.approx(2 * math.pi * 40), "unit": "rad/s"}
+    assert info["params"]["Ffric"] == {"value": pytest.approx(80.0), "unit": "N"}
+    assert info["dt"] == {"value": 1e-3, "unit": "s"} and info["noise"]["pA"]["unit"] == "Pa"
 
 
 def test_a_value_with_the_wrong_unit_is_a_one_line_error(tmp_path, capsys):

@@ -73,7 +73,15 @@ def load_params_file(model, path: str | None, overrides: dict[str, float] | None
         if not isinstance(doc.get("params", {}), dict) or not isinstance(doc.get("effects", []), list):
             raise ConfigError(f"{path}: expected 'params' (an object) and 'effects' (a list)")
     ps = model.params(effects=tuple(doc.get("effects", [])) + tuple(effects))
-    known = {k: v for k, v in doc.get("params", {}).items() if k in ps.names}
+    from twin.online.commission import check_unit
+
+    known = {}
+    for k, v in doc.get("params", {}).items():
+        if k in ps.names:
+            if isinstance(v, dict):  # {"value", "unit"[, "std"]} in SI (twin fit --save), or a bare number
+                check_unit(path or "", f"params.{k}", v, ps.spec(k).unit)
+                v = v.get("value")
+            known[k] = v
     ps = ps.update({**known, **(overrides or {})})
     if not with_timing:
         return ps

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-
-from replay import jsonio
 from twin.models import MODELS
 from replay.options import EXIT_LOSS
 from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, loss_lines,
@@ -78,9 +75,7 @@ def run(args) -> int:
 
         report = fit_report(res, records, model, args.report)
     if args.save:
-        jsonio.write(args.save, {"model": model.name, "effects": list(res.params.effects),
-                                 "params": res.params.as_dict(), "std": res.std, "timing": res.timing,
-                                 "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs}})
+        res.save(args.save)
     if args.json:
         d = res.to_dict()
         d["plots"] = plots

@@ -57,8 +57,13 @@ def run(args) -> int:
                   seed=args.seed, name=args.output, timing=timing)
     with open_sink(args.output) as sink:
         sink.write(rec.to_samples())
-    info = {"output": args.output, "model": model.name, "samples": len(rec), "dt": args.dt,
-            "signals": list(rec.signals), "params": ps.as_dict(), "effects": list(ps.effects), "noise": noise,
+    from twin.units import SIGNAL_UNITS
+
+    info = {"output": args.output, "model": model.name, "samples": len(rec), "dt": {"value": args.dt, "unit": "s"},
+            "signals": list(rec.signals),
+            "params": {s.name: {"value": float(v), "unit": s.unit} for s, v in zip(ps.specs, ps.values)},
+            "effects": list(ps.effects),
+            "noise": {k: {"value": float(v), "unit": SIGNAL_UNITS.get(k, "")} for k, v in noise.items()},
             "timing": timing.to_dict()}
     if args.json:
         _dump(info)

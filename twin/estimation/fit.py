@@ -138,11 +138,20 @@ class FitResult:
                 f"{'converged' if self.success else 'NOT converged'}, nfev={self.nfev}, {self.time_s:.2f} s)")
 
     def saved(self) -> dict:
-        """What :meth:`save` writes (``twin fit --save``): the parameter set, its stds, loop timing and the
-        residual noise levels, read back by ``--params`` and the tracker."""
-        return {"model": self.model, "effects": list(self.params.effects), "params": self.params.as_dict(),
-                "std": self.std, "timing": self.timing,
-                "noise": {o: float(np.sqrt(self.mse[o])) for o in self.outputs}}
+        """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
+        fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
+        "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
+        from twin.units import SIGNAL_UNITS
+
+        params: dict[str, dict] = {}
+        for s, v in zip(self.params.specs, self.params.values):
+            params[s.name] = {"value": float(v), "unit": s.unit}
+            if s.name in self.free:
+                params[s.name]["std"] = float(self.std[s.name])
+        return {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
+                "params": params, "timing": self.timing,
+                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
+                          for o in self.outputs}}
 
     def save(self, path: str) -> str:
         """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""

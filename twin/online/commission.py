@@ -1,7 +1,8 @@
 """Commissioning a rig's twin: what the tracker and the drift test start from.
 
-A commissioning fit (``twin fit --save FIT.json``:
-``{"model", "effects", "params", "std", "timing", "noise"}``) says
+A commissioning fit (``twin fit --save FIT.json``: ``{"model", "effects", "free", "params", "timing",
+"noise"}``, each value ``{"value", "unit"}`` in SI, a fitted parameter's with its ``"std"``; the older
+``"params"`` of bare numbers with ``"std"`` beside is read too) says
 
 * the rig's parameter values (known and fitted), which become the tracker's
   reference values and starting point;
@@ -67,6 +68,12 @@ def _number(path: str, field: str, v: Any) -> float:
     return float(v)
 
 
+def check_unit(source: str, field: str, v: Mapping, unit: str) -> None:
+    """A saved ``{"value", "unit"}`` must be in the SI unit ``unit`` (values are saved and read in SI)."""
+    if "unit" in v and v["unit"] != unit:
+        raise ConfigError(f"{source}: {field}.unit is {v['unit']!r}, expected {unit!r} (values are saved in SI)")
+
+
 def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     """A :class:`Commission` from the JSON document of ``twin fit --save``."""
     if not isinstance(doc, Mapping):
@@ -82,12 +89,16 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     if not isinstance(std_in, Mapping):
         raise ConfigError(f"{source}: std must be an object of standard errors")
     known = get_model(model).params().names
+    specs = {sp.name: sp for sp in get_model(model).params().specs}
     params, fitted = {}, {}
     for n, v in params_in.items():
-        if isinstance(v, Mapping):  # FitResult.to_dict(): {"value", "std", ...}
+        if isinstance(v, Mapping):  # FitResult.saved() / to_dict(): {"value", "unit"[, "std"]} in SI
             val = _number(source, f"params.{n}.value", v.get("value"))
-            sd = v.get("std")
-            fitted[n] = (val, float(sd) if isinstance(sd, (int, float)) else math.nan)
+            if n in specs:
+                check_unit(source, f"params.{n}", v, specs[n].unit)
+            if "std" in v:  # a fitted parameter (a known one has no std)
+                sd = v.get("std")
+                fitted[n] = (val, float(sd) if isinstance(sd, (int, float)) else math.nan)
         else:
             val = _number(source, f"params.{n}", v)
             if n in std_in and std_in[n] is not None:
@@ -99,7 +110,8 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     for k, v in (doc.get("noise") or {}).items():
         if k not in NOISE_KEYS:
             continue
-        val = _number(source, f"noise.{k}", v)
+        val = _number(source, f"noise.{k}.value", v.get("value")) if isinstance(v, Mapping) else \
+            _number(source, f"noise.{k}", v)
         if not val > 0:
             raise ConfigError(f"{source}: noise.{k} must be a positive standard deviation (SI), got {val}")
         noise[k] = val
@@ -251,11 +263,7 @@ def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | No
             if not res.std[k] <= MAX_REL_STD * abs(res.estimate[k])]
     if weak:
         return None, f"too little excitation: {', '.join(weak)} (at most +-{100 * MAX_REL_STD:.0f} % usable)"
-    allp = base.as_dict()
-    allp.update({k: float(v) for k, v in res.estimate.items()})
-    doc = {"model": "msp25", "effects": [], "params": allp,
-           "std": {k: float(res.std[k]) for k in tracked}, "timing": res.timing,
-           "noise": {o: float(np.sqrt(res.mse[o])) for o in res.outputs if o in NOISE_KEYS},
+    doc = {**res.saved(),  # the twin fit --save format: values with their units, SI
            "commissioned": {"rig": rig, "first_t_ns": int(t_ns[0]), "last_t_ns": int(t_ns[-1]),
                             "seconds": seconds, "samples": n, "fit_pct": dict(res.fit_pct)}}
     return doc, ""
