@@ -99,3 +99,11 @@ def test_track_says_an_oscillator_record_is_not_a_rig_log(tmp_path, capsys):
     assert cli.main(["-q", "track", str(osc), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "oscillator" in err[0] and "msp25" in err[0]
+
+
+def test_a_signal_shown_by_a_factor_is_never_labelled_in_a_unit_with_an_offset():
+    """Plots and the live view convert a signal by a factor only: 313.15 K of oil must not read 313.15 °C."""
+    from twin.reports.units import SIGNALS
+
+    assert SIGNALS["T_oil"] == ("K", 1.0)
+    assert not [n for n, (unit, _) in SIGNALS.items() if unit in ("°C", "degC", "°F", "degF")]

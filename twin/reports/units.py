@@ -11,10 +11,11 @@ from __future__ import annotations
 import functools
 import math
 
-#: signal -> (display unit, factor from SI): the unit people read a rig's signals in
+#: signal -> (display unit, factor from SI): the unit people read a rig's signals in (a factor only: the oil
+#: temperature stays in kelvin here, as a degree Celsius needs an offset)
 SIGNALS: dict[str, tuple[str, float]] = {
     "x": ("mm", 1e3), "x_ref": ("mm", 1e3), "y": ("mm", 1e3), "u": ("V", 1.0),
-    "pA": ("MPa", 1e-6), "pB": ("MPa", 1e-6), "pP": ("MPa", 1e-6), "T_oil": ("°C", 1.0),
+    "pA": ("MPa", 1e-6), "pB": ("MPa", 1e-6), "pP": ("MPa", 1e-6), "T_oil": ("K", 1.0),
     "force": ("N", 1.0), "v": ("mm/s", 1e3),
 }
 #: the model's own input of the oscillator is a force (``u`` in N), not a voltage
