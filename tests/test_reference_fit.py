@@ -158,5 +158,6 @@ def test_cli_fits_a_reference_csv_with_the_rigs_timing(reference_records, tmp_pa
         assert abs(p["value"] - ref.truth[k]) < 3.0 * p["std"], (k, p, ref.truth[k])
     saved = json.loads((tmp_path / "fit.json").read_text())
     assert saved["timing"]["controller"] == "continuous"
-    assert saved["noise"]["x"] == pytest.approx(2e-6, rel=0.3)  # the sensor's noise, read off the residuals
-    assert all(math.isfinite(v) for v in saved["params"].values())
+    # the sensor's noise, read off the residuals; every saved value carries its SI unit
+    assert saved["noise"]["x"]["unit"] == "m" and saved["noise"]["x"]["value"] == pytest.approx(2e-6, rel=0.3)
+    assert all(math.isfinite(v["value"]) and isinstance(v["unit"], str) for v in saved["params"].values())
