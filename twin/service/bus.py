@@ -173,39 +173,24 @@ class History(Protocol):
 
 
 class StoreHistory:
-    """A rig's journal read from another process (no writer lock), plus alarms its writer could not write.
+    """A rig's journal read from another process (no writer lock).
 
     The service's main process answers history queries with it while the
-    rig's worker process owns the journal. ``add_pending`` keeps an alarm the
-    worker published without a durable write, until the file has it.
+    rig's worker process owns the journal (an alarm reaches the bus only once it is
+    in the journal's main file, so the file holds every alarm published).
     """
 
     def __init__(self, path: str | Path) -> None:
         from twin.service.store import Store
 
         self._store = Store(path, writer=False)
-        self._pending: dict[tuple[str, int], AlarmEvent] = {}
-        self._lock = threading.Lock()
-
-    def add_pending(self, event: AlarmEvent) -> None:
-        with self._lock:
-            self._pending[(event.rig, event.seq)] = event
 
     def read(self, since_seq: int | None = None, since_t_ns: int | None = None,
              rig: str | None = None) -> list[AlarmEvent]:
-        events = self._store.alarms(rig, since_seq, since_t_ns)
-        have = {(e.rig, e.seq) for e in events}
-        with self._lock:
-            for key in [k for k in self._pending if k in have]:
-                del self._pending[key]
-            extra = [e for e in self._pending.values() if (rig in (None, "*") or e.rig == rig)
-                     and (since_seq is None or e.seq >= since_seq) and (since_t_ns is None or e.t_ns >= since_t_ns)]
-        return sorted(events + extra, key=lambda e: (e.rig, e.seq))
+        return sorted(self._store.alarms(rig, since_seq, since_t_ns), key=lambda e: (e.rig, e.seq))
 
     def last_seq(self, rig: str) -> int:
-        with self._lock:
-            mine = [seq for (r, seq) in self._pending if r == rig]
-        return max([self._store.last_seq(rig), *mine])
+        return self._store.last_seq(rig)
 
     def close(self) -> None:
         self._store.close()

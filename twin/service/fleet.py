@@ -88,14 +88,13 @@ class BusFront:
 
     def __init__(self, session, histories: dict[str, Any],
                  on_alarm: Callable[[AlarmEvent], None] | None = None, signing_keys: dict[str, str] | None = None) -> None:
-        from twin.service.bus import StoreHistory, TwinPublisher
+        from twin.service.bus import TwinPublisher
         from twin.service.signing import load_signer
 
         self._pubs: dict[str, TwinPublisher] = {}
         self._signal_pubs: dict[str, Any] = {}
         self._session = session
         self._histories = histories
-        self._store_history = StoreHistory
         self.on_alarm = on_alarm
         self.state: dict[str, tuple[str, str]] = {}
         try:
@@ -127,10 +126,7 @@ class BusFront:
                         sp = self._signal_pubs[rig] = self._session.declare_publisher(signals_key(rig))
                     sp.put(item[1])
                 elif kind == "alarm":
-                    event, durable = item[1], item[2]
-                    history = self._histories[rig]
-                    if not durable and isinstance(history, self._store_history):
-                        history.add_pending(event)
+                    event = item[1]
                     pub.put_alarm(event)
                     if self.on_alarm is not None:
                         self.on_alarm(event)

@@ -19,7 +19,7 @@ class Outbox(Publisher):
     """A runner's publisher for its :class:`RigTwin`: journals alarms, batches bus messages.
 
     Messages (put on ``out`` as ``("batch", rig, [...])`` after each block):
-    ``("alarm", AlarmEvent, durable)``, ``("estimate", json)``,
+    ``("alarm", AlarmEvent)`` (only once it is in the journal's main file), ``("estimate", json)``,
     ``("status", json, state, message)``, ``("forecast", dict)``.
     """
 
@@ -42,7 +42,7 @@ class Outbox(Publisher):
             return None
         if recorded.durable:  # an alarm goes on the bus once it is in the journal's main file, and at once
             self._seq = max(self._seq, recorded.event.seq)
-            self._batch.append(("alarm", recorded.event, True))
+            self._batch.append(("alarm", recorded.event))
             self.flush()
         return recorded.event  # one the journal holds (write failed) goes out when written (flush)
 
@@ -84,7 +84,7 @@ class Outbox(Publisher):
         written = self.journal.take_written()
         for ev in written:
             self._seq = max(self._seq, ev.seq)
-            self._batch.append(("alarm", ev, True))
+            self._batch.append(("alarm", ev))
         if self._batch and (force or written or time.monotonic() - self._last_flush >= FLUSH_S):
             batch, self._batch = self._batch, []
             self.out.put(("batch", self.rig, batch))
