@@ -396,7 +396,7 @@ def test_the_service_front_signs_live_alarms_and_history(
                 got = [sub.recv(timeout=WAIT_S)]  # from the history
                 assert front._pubs["r1"].wait_for_alarm_subscribers(WAIT_S)
                 second = journal.append(alarm("r1", 2))
-                front.handle("r1", [("alarm", second, True)])  # live
+                front.handle("r1", [("alarm", second)])  # live
                 got.append(sub.recv(timeout=WAIT_S))
         finally:
             front.close()
