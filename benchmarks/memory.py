@@ -28,19 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.service import _Statuses, _free_port, _log, _start, _stop, _tree
+from benchmarks.service import _config, _Statuses, _free_port, _log, _start, _stop, _tree
 
 TARGET_MB_PER_RIG = 20.0
-
-
-def _config(directory: Path, logs: list[Path], rigs: int, port: int, speed: float) -> Path:
-    lines = [f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
-             f'[service]\njournal_dir = "{directory / "journal"}"\nworkers = 1\n']
-    for i in range(rigs):
-        lines.append(f'[[rig]]\nname = "rig-{i:03d}"\nsource = "{logs[i % len(logs)]}"\nspeed = {speed:g}\n')
-    path = directory / "rigs.toml"
-    path.write_text("\n".join(lines))
-    return path
 
 
 def memory_kib(pid: int) -> dict[str, int]:
@@ -79,7 +69,7 @@ def run_count(d: Path, logs: list[Path], rigs: int, seconds: float, speed: float
     run = d / f"n{rigs}"
     run.mkdir()
     port = _free_port()
-    proc = _start(_config(run, logs, rigs, port, speed))
+    proc = _start(_config(run, logs, rigs, port, workers="1", speed=speed))
     watch = _Statuses(f"tcp/127.0.0.1:{port}")
     reporting: set[str] = set()
     ended: set[str] = set()

@@ -65,11 +65,12 @@ def _free_port() -> int:
     return free_port()
 
 
-def _config(directory: Path, logs: list[Path], rigs: int, port: int, workers: str = '"auto"') -> Path:
+def _config(directory: Path, logs: list[Path], rigs: int, port: int, workers: str = '"auto"',
+            speed: float = 1.0) -> Path:
     lines = [f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
              f'[service]\njournal_dir = "{directory / "journal"}"\nworkers = {workers}\n']
     for i in range(rigs):
-        lines.append(f'[[rig]]\nname = "rig-{i:03d}"\nsource = "{logs[i % len(logs)]}"\nspeed = 1.0\n')
+        lines.append(f'[[rig]]\nname = "rig-{i:03d}"\nsource = "{logs[i % len(logs)]}"\nspeed = {speed:g}\n')
     path = directory / "rigs.toml"
     path.write_text("\n".join(lines))
     return path
