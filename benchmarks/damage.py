@@ -458,7 +458,7 @@ def configs() -> list[Config]:
 # --- running one case in its own process ---------------------------------------------------------------
 
 def _read(path: Path, options: dict) -> dict:
-    from replay.errors import TwinError
+    from fpdd.errors import TwinError
     from replay.factory import open_source
 
     try:
@@ -474,7 +474,7 @@ def _read(path: Path, options: dict) -> dict:
 
 
 def _load(path: Path) -> dict:
-    from twin.errors import TwinError
+    from fpdd.errors import TwinError
     from twin.service.config import load_config
 
     try:

@@ -120,7 +120,7 @@ class _Statuses:
     def __init__(self, endpoint: str) -> None:
         import zenoh
 
-        from replay.zenohconf import zenoh_config
+        from fpdd.zenohconf import zenoh_config
 
         self.q: queue.Queue = queue.Queue()
         self.session = zenoh.open(zenoh_config("peer", connect=[endpoint]))
@@ -315,7 +315,7 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
 
     from replay.factory import open_source
     from twin.online import ukf
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
     from twin.service.bus import StoreHistory
     from twin.online.commission import tracker_for
     from twin.service.config import parse_config

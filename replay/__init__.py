@@ -20,8 +20,8 @@ from typing import Any
 _EXPORTS = {
     "Samples": "replay.base", "Source": "replay.base", "Sink": "replay.base", "ReadReport": "replay.base",
     "open_source": "replay.factory", "open_sink": "replay.factory",
-    "TwinError": "replay.errors", "DataError": "replay.errors", "LogFormatError": "replay.errors",
-    "SourceError": "replay.errors",
+    "TwinError": "fpdd.errors", "DataError": "fpdd.errors", "LogFormatError": "fpdd.errors",
+    "SourceError": "fpdd.errors",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -39,7 +39,7 @@ from collections.abc import Sequence
 
 from replay import formats
 from replay.options import add_input_options, loss_warning, source_options
-from replay.errors import TwinError
+from fpdd.errors import TwinError
 
 
 try:

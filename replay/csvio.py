@@ -61,7 +61,7 @@ import numpy as np
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec, Sink, Source
 from replay.quality import ACCEPTED_RATE_HZ, UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
-from replay.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 
 #: Name of the time column (seconds).
 TIME_COLUMN = "t"
@@ -90,7 +90,7 @@ def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str
     :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`replay.base.SIGNALS`, ``t``
     for the time column, or an extra signal's name; ``UNIT`` is the unit the column is in
     (:data:`replay.quality.UNITS`).  Every command that reads a record calls this for its
-    ``--map`` option.  Raises :class:`~twin.errors.DataError` naming the item and the
+    ``--map`` option.  Raises :class:`~fpdd.errors.DataError` naming the item and the
     expected syntax (a swapped ``COLUMN=NAME`` is recognised and the right order suggested).
     """
     from replay.quality import UNITS
@@ -266,7 +266,7 @@ class CsvSource(Source):
     """Read rig samples from a CSV file (see the module docstring for the layout).
 
     ``mapping``: foreign column -> signal name or (signal name, unit).  ``required``:
-    signals that must be present (:class:`~twin.errors.DataError` otherwise).
+    signals that must be present (:class:`~fpdd.errors.DataError` otherwise).
     ``quality``: gate options (gaps, range check).  ``delimiter``: field separator.
     ``rate_hz`` (or ``dt_s``): the sample rate of a file without a time column (sample i
     is at ``i / rate_hz`` s, counting every data row, so a bad row leaves its gap).

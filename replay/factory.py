@@ -13,10 +13,10 @@ path or URI                 source / sink
 
 The suffixes and classes come from the one registry :mod:`replay.formats`; modules
 are imported only when asked for.  Options are passed on as keyword arguments to the
-class.  An unknown format raises :class:`~twin.errors.LogFormatError` naming the path
+class.  An unknown format raises :class:`~fpdd.errors.LogFormatError` naming the path
 and the formats known; a file that cannot be read (missing, a directory, no
-permission, empty) raises :class:`~twin.errors.SourceError` /
-:class:`~twin.errors.LogFormatError` naming it.
+permission, empty) raises :class:`~fpdd.errors.SourceError` /
+:class:`~fpdd.errors.LogFormatError` naming it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any
 from replay import formats
 from replay.base import Sink, Source
 from replay.formats import CAN_LOG_SUFFIXES, FILE_SUFFIXES, URI_SCHEMES
-from replay.errors import LogFormatError, SourceError
+from fpdd.errors import LogFormatError, SourceError
 
 
 def _scheme(path_or_uri: str) -> str | None:

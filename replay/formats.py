@@ -27,7 +27,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from replay.errors import LogFormatError
+from fpdd.errors import LogFormatError
 
 #: URI schemes of live inputs (``can://INTERFACE/CHANNEL``, ``zenoh://KEYEXPR``).
 URI_SCHEMES: dict[str, str] = {

@@ -87,7 +87,7 @@ since the last usable data), ``stale`` and :meth:`health` (a dict: stale, idle_s
 stale_events, samples_out, dropped counts per cause).  :meth:`close` may be called
 from another thread: the iterating thread sees it within ``poll_s`` and the
 iteration ends.  ``signals`` of a source that was not told them waits up to
-``timeout_s`` for the first data and raises :class:`~twin.errors.SourceError` if none
+``timeout_s`` for the first data and raises :class:`~fpdd.errors.SourceError` if none
 came (the iteration itself keeps waiting).
 """
 
@@ -107,13 +107,13 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import zenoh
 
-from replay.zenohconf import open_session, zenoh_config
+from fpdd.zenohconf import open_session, zenoh_config
 from replay.base import Problem, ReadReport, Samples, Sink, Source
 from replay.can.decode import CanStream, split_block, make_plan, probe_plan
 from replay.can.encode import FrameScheduler
 from replay.can.codec import Frames, VectorCodec
 from replay.quality import QualityGate, QualityOptions
-from replay.errors import DataError, LogFormatError, SourceError, TwinError
+from fpdd.errors import DataError, LogFormatError, SourceError, TwinError
 
 log = logging.getLogger("replay.live")
 

@@ -112,10 +112,10 @@ from mcap.stream_reader import breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
-from replay import jsonio
+from fpdd import jsonio
 from replay.base import SIGNALS, Problem, ReadReport, Samples, Sink, Source
 from replay.quality import QualityGate, QualityOptions, require_signals
-from replay.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 
 SIGNALS_TOPIC = "/rig/signals"
 SIGNALS_SCHEMA = "fpdd.RigSignals"
@@ -217,7 +217,7 @@ def _generic_schema(title: str, payload: Mapping[str, Any]) -> dict:
 
 
 def encode_json(payload: Mapping[str, Any]) -> bytes:
-    """Compact JSON bytes; non-finite numbers become ``null`` (:func:`replay.jsonio.compact`)."""
+    """Compact JSON bytes; non-finite numbers become ``null`` (:func:`fpdd.jsonio.compact`)."""
     return jsonio.compact(payload)
 
 

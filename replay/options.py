@@ -10,7 +10,7 @@ import sys
 from typing import Any
 
 from replay import formats
-from replay.errors import TwinError
+from fpdd.errors import TwinError
 
 #: Exit status of a command that completed but lost input on the way.
 EXIT_LOSS = 3
@@ -20,7 +20,7 @@ def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
     """Constructor options for the input's source; each option only where its format takes it.
 
     Raises :class:`argparse.ArgumentTypeError` for an option its input does not take and
-    :class:`~twin.errors.DataError` for a malformed ``--map``.
+    :class:`~fpdd.errors.DataError` for a malformed ``--map``.
     """
     from replay.csvio import parse_map
 

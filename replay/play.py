@@ -151,7 +151,7 @@ def _open_sink(args: argparse.Namespace) -> Sink:
 
         return CanBusSink(args.channel, dbc=args.dbc)
     from replay.live import ZenohCanSink, ZenohSampleSink
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
 
     conf = zenoh_config(listen=args.zenoh_listen or (), connect=args.zenoh_connect or (),
                         multicast_scouting=None if args.zenoh_config else not (args.zenoh_listen or args.zenoh_connect),

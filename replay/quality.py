@@ -15,7 +15,7 @@ What the gate does to a block (all vectorised with numpy, in this order):
    (:data:`replay.base.SIGNALS`): an isolated glitch (at most ``range_tolerance`` of
    the samples checked so far, at least one sample per 1000) is dropped and counted
    under ``out_of_range``; anything more is systematic and raises
-   :class:`~twin.errors.DataError` naming file, signal, observed range and expected
+   :class:`~fpdd.errors.DataError` naming file, signal, observed range and expected
    unit, with a hint when the values look like another unit (a pressure in bar or MPa
    where Pa is expected, a displacement in mm where m is expected, a temperature in
    degC where K is expected).  A hydraulic pressure whose magnitude never exceeds
@@ -28,7 +28,7 @@ What the gate does to a block (all vectorised with numpy, in this order):
    (times in another unit: an MCAP ``log_time`` in us read as ns is 1 MHz times 1000).
 
 A **missing required signal** is checked once, when a source knows its columns:
-:func:`require_signals` raises :class:`~twin.errors.DataError` naming file, signal
+:func:`require_signals` raises :class:`~fpdd.errors.DataError` naming file, signal
 and what the file has.
 
 Skipped samples are counted in the report, never raised: nothing already accepted is
@@ -45,7 +45,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 
 from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec
-from replay.errors import DataError
+from fpdd.errors import DataError
 
 #: Sample rates a record may have at all (Hz): below 10 Hz no rig dynamics (tens to hundreds of Hz) is
 #: observable; above 10 MHz no rig data acquisition samples.  A file read at a rate outside is refused.

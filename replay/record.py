@@ -42,10 +42,10 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
-from replay.argtypes import positive_int
+from fpdd.argtypes import positive_int
 from replay import formats
 from replay.base import ReadReport
-from replay.errors import DataError, SourceError
+from fpdd.errors import DataError, SourceError
 
 #: Longest recording one command takes (s): a week.
 MAX_DURATION_S = 7 * 24 * 3600.0
@@ -283,7 +283,7 @@ def _duration(text: str) -> float:
 
 def cmd_record(args: argparse.Namespace) -> int:
     from replay.options import loss_warning
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
 
     conf = None
     if args.input.startswith("zenoh://"):

@@ -39,7 +39,7 @@ def hub(endpoint: str) -> Iterator:
     """The listening peer every other session connects to (a plain peer: it stands in for a site router)."""
     import zenoh
 
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
 
     with zenoh.open(zenoh_config(listen=[endpoint])) as session:
         yield session

@@ -19,7 +19,7 @@ def connected(endpoint: str) -> Iterator:
     """A Zenoh peer session connected to ``endpoint`` (explicit, no scouting)."""
     import zenoh
 
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
 
     with zenoh.open(zenoh_config(connect=[endpoint])) as session:
         yield session

@@ -47,7 +47,7 @@ def test_the_api_reads_like_the_command_line(tmp_path):
 
     from twin.commands.common import load_params_file
     from twin.estimation.diagnose import Diagnosis
-    from twin.errors import DataError, ParameterError
+    from fpdd.errors import DataError, ParameterError
 
     here = pathlib.Path(__file__).parent
     lines = (here / "data" / "reference.csv").read_text(encoding="utf-8").splitlines()

@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from twin import cli
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from net_helpers import free_port
 
 GOOD = """
@@ -199,7 +199,7 @@ def test_generated_configurations(tmp_path: Path) -> None:
     """The configuration corpus of ``python -m benchmarks.damage`` (>= 80): every valid one loads, every bad one
     is refused with one line naming the file and the key; none is accepted silently, none raises anything else."""
     from benchmarks import damage
-    from twin.errors import ConfigError
+    from fpdd.errors import ConfigError
     from twin.service.config import load_config
 
     log = tmp_path / "rig.mcap"

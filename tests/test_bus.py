@@ -20,11 +20,11 @@ from zenoh import ext as zext
 
 from twin.service.bus import RigKeys, TwinPublisher, fetch_latest, format_alarm, live_twins
 from twin.service.subscriber import AlarmSubscriber
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.commands.alarms import add_arguments as add_alarms_arguments
 from twin.commands.alarms import parse_since
 from twin.commands.alarms import run as run_alarms_cli
-from twin.errors import ConfigError, DataError, SourceError
+from fpdd.errors import ConfigError, DataError, SourceError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, event_to_json
 from twin.service.journal import AlarmJournal
 from twin.service.store import Store

@@ -19,7 +19,7 @@ from replay.base import RIG_SIGNALS, Samples
 from benchmarks.can import msp25_samples
 from replay.can.logs import CanLogSink, CanLogSource
 from replay.can.codec import DEFAULT_DBC, VectorCodec, load_dbc
-from twin.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 
 from roundtrip_base import RoundTripBase
 

@@ -18,7 +18,7 @@ import pytest
 from event_helpers import alarm
 from net_helpers import free_port
 from replay.mcapio import McapSink
-from twin.errors import LogFormatError
+from fpdd.errors import LogFormatError
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
 from twin.models.simulate import DEFAULT_NOISE, excite

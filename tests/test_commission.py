@@ -19,7 +19,7 @@ from tests.conftest import get_records, msp25_spec
 from twin.online.baseline import default_baseline
 from twin.service.config import parse_config, with_commission_s
 from twin.commands.demo import free_port
-from twin.errors import ConfigError, LogFormatError
+from fpdd.errors import ConfigError, LogFormatError
 from twin.online.events import StatusEvent
 from twin.service.serve import serve
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from twin.service.config import load_config, parse_config
-from twin.errors import ConfigError
+from fpdd.errors import ConfigError
 
 GOOD = """
 [zenoh]

@@ -32,7 +32,7 @@ from replay.csvio import CsvSource, parse_map
 from replay.factory import open_source
 from replay.live import PayloadError, frames_to_payload, json_to_samples, payload_to_frames
 from replay.mcapio import BLOCK_TOPIC, SIGNALS_TOPIC, McapSink
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 
 DATA = Path(__file__).parent / "data"
 N_REF = 200  # samples of reference.csv / reference.mcap

@@ -16,7 +16,7 @@ import pytest
 
 from diag_reference import IN_CATALOGUE, reference_record
 from twin import cli
-from replay.jsonio import finite_or_none
+from fpdd.jsonio import finite_or_none
 from twin.estimation.diagnose import CONTROLLER_RATE, _gain, _implausible, diagnose, holm
 from twin.estimation.fit import fit
 from twin.models import get_model

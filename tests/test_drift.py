@@ -12,7 +12,7 @@ import pytest
 from twin.online.baseline import Baseline, default_baseline
 from twin.online.baseline import baseline_from_fit
 from twin.online.drift import DriftMonitor
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.online.events import AlarmEvent
 from twin.models import msp25 as M
 

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.online.events import (
     AlarmEvent,
     EstimateEvent,

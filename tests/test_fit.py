@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from twin import cli
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.estimation.fit import fit, likelihood_ratio
 from twin.models import get_model
 from twin.estimation.paper import CASES, run_all

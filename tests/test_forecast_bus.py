@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from net_helpers import free_port
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.online.events import validate
 from twin.online.forecast import FORECAST_SCHEMA, FORECAST_UNITS
 from twin.service.bus import FORECAST_S, ForecastGate, RigKeys, TwinPublisher, fetch_forecasts

@@ -16,7 +16,7 @@ import pytest
 
 from event_helpers import T0_NS
 from event_helpers import alarm
-from twin.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 from twin.online.events import event_to_json
 from twin.service.journal import AlarmJournal
 from twin.service.checkpoint_file import Checkpoint

@@ -18,11 +18,11 @@ from replay.base import Samples
 from benchmarks.can import msp25_samples
 from replay.can.bus import CanBusSink, CanBusSource, parse_can_uri
 from replay.live import ZenohCanSink, ZenohSampleSink, ZenohSource, frames_to_payload, payload_to_frames
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from replay.live import samples_to_json as samples_json
 from replay.can.encode import FrameScheduler
 from replay.can.codec import VectorCodec
-from twin.errors import SourceError
+from fpdd.errors import SourceError
 
 LSB_X = 1e-7
 
@@ -186,7 +186,7 @@ def _publish_can_in_child(endpoint: str, key: str, seconds: float, seed: int) ->
     """Another process: encode samples to MSP25 frames and publish them raw on Zenoh."""
     from benchmarks.can import msp25_samples as make
     from replay.live import ZenohCanSink as Sink
-    from replay.zenohconf import zenoh_config as conf
+    from fpdd.zenohconf import zenoh_config as conf
 
     with Sink(key, config=conf(connect=[endpoint])) as sink:
         if not sink.wait_for_subscriber(10.0):

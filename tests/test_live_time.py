@@ -13,7 +13,7 @@ import zenoh
 from net_helpers import free_port
 from replay.base import Samples
 from replay.live import ZenohSampleSink
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
 from twin.models.simulate import DEFAULT_NOISE, excite

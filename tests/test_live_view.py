@@ -23,7 +23,7 @@ from websockets.sync.client import connect
 
 from replay.base import Samples
 from twin.service.bus import TwinPublisher
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.online.baseline import default_baseline
 from net_helpers import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate
@@ -462,7 +462,7 @@ def test_forecasts_are_shown_with_their_schema_from_a_twin_and_over_zenoh(view, 
 
 
 def test_a_port_in_use_is_one_line(view):
-    from twin.errors import SourceError
+    from fpdd.errors import SourceError
 
     with pytest.raises(SourceError, match=rf"Foxglove live view: cannot listen on 127.0.0.1:{view.port}: "):
         LiveView(port=view.port)

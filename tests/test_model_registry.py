@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.models import MODELS, REGISTRY, get_model, trackable_models
 from twin.online.baseline import default_baseline
 from twin.online.drift import DriftMonitor

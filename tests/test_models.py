@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import integrate, signal
 
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.models import get_model
 from twin.models import msp25 as M
 from twin.models import oscillator as O

@@ -23,7 +23,7 @@ from benchmarks.can import msp25_samples
 from replay.can.logs import CanLogSink, CanLogSource
 from replay.can.bus import CanBusSink
 from replay.live import ZenohSource
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from replay.play import play, register
 
 class JitterProbe:

@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from net_helpers import free_port
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.online.events import EstimateEvent, event_to_json
 from twin.service.bus import TwinPublisher
 from twin.service.config import parse_config

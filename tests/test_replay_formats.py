@@ -22,7 +22,7 @@ from replay.quality import QualityOptions
 from replay.mcapio import (BLOCK_SCHEMA, BLOCK_TOPIC, LAYOUT_METADATA, SIGNALS_SCHEMA, SIGNALS_TOPIC, McapSink,
                            McapSource)
 from roundtrip_base import DATA, RoundTripBase
-from twin.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 
 sys.path.insert(0, str(DATA))
 from make_reference import oscillator_samples, reference_samples  # noqa: E402

@@ -10,7 +10,7 @@ import pytest
 from replay.base import SIGNALS, ReadReport, Samples
 from replay.csvio import CsvSource
 from replay.quality import QualityGate, QualityOptions, require_signals, to_si, unit_hint
-from twin.errors import DataError
+from fpdd.errors import DataError
 
 MS = 1_000_000
 

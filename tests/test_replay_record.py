@@ -21,7 +21,7 @@ from replay.can.encode import FrameScheduler, frames_to_messages
 from replay.can.codec import VectorCodec
 from replay.factory import open_source
 from replay.live import ZenohCanSink, ZenohSampleSink
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from replay.record import record
 
 LSB_X = 1e-7

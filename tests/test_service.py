@@ -17,7 +17,7 @@ from mcap.reader import make_reader
 from replay.mcapio import McapSink
 from twin import cli
 from twin.service.subscriber import AlarmSubscriber
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.service.config import parse_config
 from net_helpers import free_port
 from twin.commands.demo import run as run_demo

@@ -31,7 +31,7 @@ from net_helpers import connected
 from twin.cli import main as twin_main
 from twin.commands.alarms import add_arguments as add_alarms_arguments
 from twin.commands.alarms import run as run_alarms_cli
-from twin.errors import ConfigError
+from fpdd.errors import ConfigError
 from twin.online.events import AlarmEvent, event_to_json
 from twin.service.bus import TwinPublisher
 from twin.service.subscriber import AlarmSubscriber

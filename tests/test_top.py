@@ -20,7 +20,7 @@ import pytest
 import zenoh
 
 from twin.service.bus import TwinPublisher
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from net_helpers import free_port
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.service.journal import AlarmJournal
@@ -170,7 +170,7 @@ def test_help_and_json_needs_once():
 
 SERVING = """
 import sys, time, zenoh
-from replay.zenohconf import zenoh_config
+from fpdd.zenohconf import zenoh_config
 from twin.online.events import StatusEvent
 from twin.service.bus import TwinPublisher
 from twin.service.journal import AlarmJournal

@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 
 from replay.csvio import CsvSink
 from twin import cli
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear

@@ -10,7 +10,7 @@ import pytest
 from replay.base import Samples
 from twin.online.baseline import default_baseline
 from twin.online.drift import DriftMonitor
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
 from twin.models.simulate import DEFAULT_NOISE, excite

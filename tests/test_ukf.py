@@ -12,7 +12,7 @@ from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from replay.base import Samples
 from twin.online import ukf
-from twin.errors import FilterError
+from fpdd.errors import FilterError
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
 from twin.models.simulate import DEFAULT_NOISE, excite

@@ -9,7 +9,7 @@ import pytest
 
 from twin import cli
 from twin.commands.common import kv
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.units import to_si
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from twin import cli
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models import msp25 as M

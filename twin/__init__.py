@@ -42,7 +42,7 @@ _EXPORTS = {
     "AlarmEvent": "twin.online.events",
     "EstimateEvent": "twin.online.events",
     "StatusEvent": "twin.online.events",
-    "TwinError": "twin.errors",
+    "TwinError": "fpdd.errors",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

@@ -11,7 +11,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 
 #: subcommand -> (module, function adding its arguments, function running it, one-line help).  Only the
 #: module of the subcommand being run is imported: ``twin --help`` imports none of them.

@@ -22,7 +22,7 @@ import math
 from collections.abc import Iterable, Mapping
 
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 
 CATEGORIES = ("geometric", "physical", "phenomenological", "extension", "initial")
 #: what can excite a tracked parameter (the filter freezes it while its signal is quiet)

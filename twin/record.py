@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import numpy as np
 
-from twin.errors import DataError
+from fpdd.errors import DataError
 
 
 @dataclasses.dataclass

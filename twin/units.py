@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import math
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 
 #: SI units of the logged signals (noise levels, quantisation steps)
 SIGNAL_UNITS = {"x": "m", "x_ref": "m", "y": "m", "pA": "Pa", "pB": "Pa", "u": "V"}

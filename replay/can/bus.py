@@ -18,7 +18,7 @@ from replay.base import ReadReport, Samples, Sink, Source
 from replay.can.codec import FrameCollector, Frames, VectorCodec
 from replay.can.decode import BLOCK_FRAMES, CanStream, make_plan, probe_plan, split_block
 from replay.can.encode import FrameScheduler, frames_to_messages
-from replay.errors import DataError, SourceError, TwinError
+from fpdd.errors import DataError, SourceError, TwinError
 from replay.live import MAX_FRAMES_PER_S, _Live
 from replay.quality import require_signals
 

@@ -55,7 +55,7 @@ import numpy as np
 
 from replay.base import SIGNALS
 from replay.quality import UNITS
-from replay.errors import LogFormatError, SourceError
+from fpdd.errors import LogFormatError, SourceError
 
 #: The DBC shipped for the MSP25 rig.
 DEFAULT_DBC: Path = Path(__file__).parent.parent / "data" / "msp25.dbc"
@@ -439,10 +439,10 @@ class VectorCodec:
         """Frames (n, 8) uint8 of message ``key`` from physical values in DBC units.
 
         Signals missing from ``values`` are encoded as raw 0.  Raises
-        :class:`~twin.errors.DataError` (naming signal and row) for a value that is not
+        :class:`~fpdd.errors.DataError` (naming signal and row) for a value that is not
         finite, outside the DBC's [minimum, maximum] or does not fit the bit field.
         """
-        from replay.errors import DataError
+        from fpdd.errors import DataError
 
         lay = self.messages[int(key)]
         if lay.multiplexed:

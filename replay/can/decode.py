@@ -56,7 +56,7 @@ import numpy as np
 from replay.base import SIGNALS, Problem, ReadReport, Samples
 from replay.can.codec import COUNTER, Frames, MessageLayout, VectorCodec, key_str
 from replay.quality import time_spikes
-from replay.errors import DataError
+from fpdd.errors import DataError
 
 
 #: A forward jump of a frame's time beyond this (ns) followed by a time back in line is a wild timestamp.

@@ -11,7 +11,7 @@ import numpy as np
 
 from replay.base import Samples
 from replay.can.codec import EFF_FLAG, Frames, VectorCodec
-from replay.errors import DataError
+from fpdd.errors import DataError
 
 
 class FrameScheduler:

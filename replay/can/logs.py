@@ -34,7 +34,7 @@ from replay.can.codec import FrameCollector, Frames
 from replay.quality import require_signals
 from replay.can.decode import BLOCK_FRAMES, MAX_AGE_PERIODS, CanStream, as_codec, probe_plan, split_block
 from replay.can.encode import FrameScheduler, frames_to_messages
-from replay.errors import LogFormatError, SourceError
+from fpdd.errors import LogFormatError, SourceError
 
 #: CAN log formats by suffix -> (python-can reader, python-can writer, text format?), from the
 #: one registry :data:`replay.formats.FORMATS`.

@@ -19,13 +19,13 @@ from pathlib import Path
 
 import zenoh
 
-from replay.argtypes import non_negative_seconds, positive_int, positive_seconds
-from replay import jsonio
-from twin.errors import ConfigError, SourceError
+from fpdd.argtypes import non_negative_seconds, positive_int, positive_seconds
+from fpdd import jsonio
+from fpdd.errors import ConfigError, SourceError
 from twin.online.events import format_alarm
 from twin.service.bus import RigKeys, live_twins
 from twin.service.subscriber import AlarmSubscriber
-from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
+from fpdd.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
 
 _DURATION_RE = re.compile(r"^(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)$")
 _UNIT_S = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}

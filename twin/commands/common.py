@@ -5,8 +5,8 @@ from __future__ import annotations
 import sys
 
 
-from replay import jsonio
-from twin.errors import ParameterError
+from fpdd import jsonio
+from fpdd.errors import ParameterError
 
 
 def kv(text: str | None) -> dict[str, float]:
@@ -61,7 +61,7 @@ def load_params_file(model, path: str | None, overrides: dict[str, float] | None
     (``{"model", "effects", "params"[, "timing"]}``), with ``effects`` added and ``overrides`` applied;
     with ``with_timing`` also the saved loop timing (or None)."""
     from twin.online.commission import read_saved
-    from twin.errors import ConfigError
+    from fpdd.errors import ConfigError
 
     doc: dict = {"effects": [], "params": {}}
     if path:
@@ -119,7 +119,7 @@ def timing_of(args, default=None):
     from twin.service.config import MAX_CONTROLLER_HZ
 
     if timing.rate_hz is not None and timing.rate_hz > MAX_CONTROLLER_HZ:
-        from twin.errors import ParameterError
+        from fpdd.errors import ParameterError
 
         raise ParameterError(f"--controller: a digital controller at {timing.rate_hz:g} Hz; at most "
                              f"{MAX_CONTROLLER_HZ:g} Hz (servo-hydraulic controllers run at 1-10 kHz)")
@@ -143,14 +143,14 @@ def source_options(args, path: str) -> dict:
     try:
         rate = rate_options(args, path)
     except Exception as exc:  # argparse.ArgumentTypeError: a plain one-line message
-        from twin.errors import DataError
+        from fpdd.errors import DataError
 
         raise DataError(str(exc)) from None
     items = getattr(args, "map", None)
     if not items:
         return rate
     if not str(path).lower().endswith((".csv", ".csv.gz")):
-        from twin.errors import DataError
+        from fpdd.errors import DataError
 
         raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
                         "its format)")

@@ -55,7 +55,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
 
     from replay.mcapio import McapSink
     from twin.service.subscriber import AlarmSubscriber
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
     from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig, ServiceConfig
     from twin.models import msp25 as M

@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from replay import jsonio
+from fpdd import jsonio
 from twin.models import MODELS
 from replay.options import EXIT_LOSS
 from twin.commands.common import add_map_argument, add_timing_arguments, dump, loss_lines, source_options, timing_of

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``twin keys``: returns 0; errors are one-line :class:`~twin.errors.ConfigError`."""
+    """``twin keys``: returns 0; errors are one-line :class:`~fpdd.errors.ConfigError`."""
     from twin.commands.common import dump
     from twin.service.signing import init_keys, key_file_info
 

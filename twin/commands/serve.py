@@ -9,7 +9,7 @@ import logging
 import threading
 
 from replay.options import EXIT_LOSS
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.online.events import AlarmEvent, format_alarm
 from twin.service.config import ServiceConfig, load_config, with_commission_s
 
@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def startup_line(cfg: ServiceConfig, workers: int) -> str:
-    from replay.zenohconf import config_endpoints
+    from fpdd.zenohconf import config_endpoints
     from twin.service.serve import zenoh_settings
 
     from twin.service.checkpoints import journal_path

@@ -30,8 +30,8 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
-from replay.argtypes import positive_seconds
-from replay import jsonio
+from fpdd.argtypes import positive_seconds
+from fpdd import jsonio
 from twin.models import MODELS
 from twin.reports.units import Shown, pretty_unit
 
@@ -268,15 +268,15 @@ def _fill(session, state: TopState, rig: str, timeout: float) -> None:
 
 def run_top(args) -> int:
     from twin.service.bus import RigKeys
-    from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
-    from twin.errors import SourceError
+    from fpdd.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
+    from fpdd.errors import SourceError
     from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, validate
     from twin.online.forecast import FORECAST_SCHEMA
 
     for e in args.connect:
         check_endpoint(e, "--connect")
     if args.json and not args.once:
-        from twin.errors import ConfigError
+        from fpdd.errors import ConfigError
 
         raise ConfigError("--json needs --once (a snapshot); the live view is for a terminal")
     scouting = True if not args.connect and args.zenoh_config is None else None

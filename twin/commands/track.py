@@ -48,7 +48,7 @@ def _check_rig_log(path: str) -> None:
     except OSError:
         return  # the reader names the problem
     if "y" in header and not {"x", "pA", "pB"} & set(header):
-        from twin.errors import DataError
+        from fpdd.errors import DataError
 
         raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the msp25 "
                         "rig model (it needs u or x_ref and at least one of x, pA, pB)")
@@ -73,7 +73,7 @@ def run(args) -> int:
     _check_rig_log(args.log)
     horizon = getattr(args, "forecast_horizon", None)
     if horizon is not None and not (horizon > 0 and horizon < float("inf")):
-        from twin.errors import ParameterError
+        from fpdd.errors import ParameterError
 
         raise ParameterError(f"--forecast-horizon: expected a positive number of seconds, got {horizon!r}")
     params = {}
@@ -99,7 +99,7 @@ def run(args) -> int:
     if noise:
         bad = [k for k in noise if k not in ("x", "pA", "pB")]
         if bad or any(not v > 0 for v in noise.values()):
-            from twin.errors import ParameterError
+            from fpdd.errors import ParameterError
 
             raise ParameterError(f"--noise-levels: expected positive standard deviations of x, pA, pB (SI), got "
                                  f"{args.noise_levels!r}")
@@ -114,7 +114,7 @@ def run(args) -> int:
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:
-        from twin.errors import DataError
+        from fpdd.errors import DataError
 
         raise DataError(f"{args.log}: no usable samples ({reports[0].summary() if reports else 'nothing read'})")
     lost = loss_lines("track", reports)

@@ -95,8 +95,8 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from replay.jsonio import finite_or_none
-from twin.errors import DataError, ParameterError
+from fpdd.jsonio import finite_or_none
+from fpdd.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, noise_levels, resolve_outputs
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, INTERSAMPLE, Timing
@@ -370,7 +370,7 @@ class Diagnosis:
 
     def save(self, path: str) -> str:
         """Write the extended parameter set (as ``twin diagnose --save``: JSON for twin fit / the tracker)."""
-        from replay import jsonio
+        from fpdd import jsonio
 
         return jsonio.write(path, self.extended_params())
 
@@ -378,7 +378,7 @@ class Diagnosis:
         """Write the HTML diagnosis report with its plots (as ``twin diagnose --report``); returns its path."""
         import os
 
-        from replay import jsonio
+        from fpdd import jsonio
         from twin.reports import diagnose_report
         from twin.reports.plots import diagnosis_plots
 

@@ -43,7 +43,7 @@
   uncertainty many times over.  ``std_white`` keeps the textbook figure.
 
 :func:`fit` returns a :class:`FitResult` and never raises on non-convergence;
-it raises :class:`~twin.errors.DataError` / :class:`~twin.errors.ParameterError`
+it raises :class:`~fpdd.errors.DataError` / :class:`~fpdd.errors.ParameterError`
 only for malformed input.
 """
 
@@ -57,7 +57,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
@@ -155,7 +155,7 @@ class FitResult:
 
     def save(self, path: str) -> str:
         """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
-        from replay import jsonio
+        from fpdd import jsonio
 
         return jsonio.write(path, self.saved())
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.models.base import Model, SimResult
 
 #: model name -> module defining ``MODEL`` (the registry)

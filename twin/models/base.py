@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.params import Effect, ParameterSet, ParamSpec, Tracking, check_names
 
 

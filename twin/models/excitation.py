@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal as sps
 
-from twin.errors import DataError
+from fpdd.errors import DataError
 
 
 def _grid(duration_s: float, dt: float) -> np.ndarray:

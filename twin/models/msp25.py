@@ -49,7 +49,7 @@ from collections.abc import Mapping
 import numba as nb
 import numpy as np
 
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec, Tracking

@@ -23,7 +23,7 @@ from collections.abc import Mapping
 import numba as nb
 import numpy as np
 
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.models.base import DEFAULT_TIMING, INTERSAMPLE_CODE, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at
 from twin.params import Effect, ParamSpec

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 import numba as nb
 import numpy as np
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.models import msp25 as M
 from twin.params import ParameterSet
 from twin.record import Record

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from twin.models import excitation
-from twin.errors import DataError
+from fpdd.errors import DataError
 from twin.models import Model, get_model
 from twin.models.base import Timing
 from twin.params import ParameterSet

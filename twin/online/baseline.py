@@ -10,7 +10,7 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
-from twin.errors import ParameterError
+from fpdd.errors import ParameterError
 from twin.models import get_model
 
 

@@ -26,7 +26,7 @@ import math
 from typing import Any
 from collections.abc import Mapping, Sequence
 
-from twin.errors import ConfigError, ParameterError
+from fpdd.errors import ConfigError, ParameterError
 from twin.models import MODELS, get_model, trackable_models
 from twin.models.base import Timing
 

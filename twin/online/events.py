@@ -3,7 +3,7 @@
 Each event is a frozen dataclass with ``to_dict()`` / ``from_dict()`` and a
 JSON schema (draft 2020-12, a plain ``dict``) in its ``SCHEMA`` class
 attribute. The same schema drives validation: ``from_dict`` checks a decoded
-payload against it and raises :class:`~twin.errors.DataError` with a message
+payload against it and raises :class:`~fpdd.errors.DataError` with a message
 that names the event, the field, the value and what was expected, e.g.::
 
     AlarmEvent.level: 'alrm' is not one of ['ok', 'warning', 'alarm', 'early']
@@ -34,8 +34,8 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, ClassVar, Self
 
-from replay import jsonio
-from twin.errors import DataError
+from fpdd import jsonio
+from fpdd.errors import DataError
 from datetime import UTC
 
 __all__ = [

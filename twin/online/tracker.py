@@ -46,7 +46,7 @@ import numpy as np
 
 from replay.base import Samples
 from twin.online import chi2, sigma, ukf
-from twin.errors import DataError, FilterError, ParameterError
+from fpdd.errors import DataError, FilterError, ParameterError
 from twin.models import get_model, trackable_models
 from twin.models import msp25 as M
 from twin.models.base import Timing

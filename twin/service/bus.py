@@ -75,8 +75,8 @@ from typing import Any, Protocol, Self
 import zenoh
 from zenoh import ext as zext
 
-from replay.zenohconf import (zenoh_text)
-from twin.errors import ConfigError, DataError, SourceError
+from fpdd.zenohconf import (zenoh_text)
+from fpdd.errors import ConfigError, DataError, SourceError
 from twin.online.events import (
     RIG_PATTERN,
     validate,
@@ -430,7 +430,7 @@ class TwinPublisher(_Declarations, Publisher):
         """
         if msg.get("rig") != self.rig:
             raise DataError(f"forecast.rig: {msg.get('rig')!r} published through the twin of rig {self.rig!r}")
-        from replay import jsonio
+        from fpdd import jsonio
 
         payload = jsonio.dumps(msg, indent=None)
         with self._latest_lock:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.errors import LogFormatError, SourceError
+from fpdd.errors import LogFormatError, SourceError
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "Checkpoint", "checkpoint_path", "decode_state",
            "encode_state", "read_checkpoints", "write_checkpoints"]

@@ -9,7 +9,7 @@ import logging
 import time
 from pathlib import Path
 
-from twin.errors import SourceError, TwinError
+from fpdd.errors import SourceError, TwinError
 from twin.service.config import ServiceConfig
 from twin.service.outcome import RigFailure
 from twin.service.runner_core import RunnerCore

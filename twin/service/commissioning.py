@@ -8,7 +8,7 @@ import logging
 import os
 import time
 
-from twin.errors import FilterError, TwinError
+from fpdd.errors import FilterError, TwinError
 from twin.service.checkpoints import commission_path
 from twin.service.outcome import RigFailure, Stopped
 from twin.service.rig import fingerprint

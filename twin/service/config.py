@@ -58,7 +58,7 @@ import os
 import tomllib
 from typing import TYPE_CHECKING, Any
 
-from twin.errors import ConfigError, ParameterError
+from fpdd.errors import ConfigError, ParameterError
 from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
 from twin.models import MODELS, get_model, trackable_models
@@ -292,7 +292,7 @@ def _check_source(source: str, where: str) -> None:
 
 
 def _endpoints(z: dict, key: str, where: str) -> tuple[str, ...]:
-    from replay.zenohconf import check_endpoint
+    from fpdd.zenohconf import check_endpoint
 
     items = _strings(z, key, where)
     for i, item in enumerate(items):
@@ -565,7 +565,7 @@ def _map(r: dict, where: str) -> tuple[str, ...]:
     else:
         items = _strings(r, "map", where)
     from replay.csvio import parse_map
-    from twin.errors import DataError
+    from fpdd.errors import DataError
 
     try:
         parse_map(items, option="map item")

@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from collections.abc import Callable
 
-from twin.errors import ConfigError, TwinError
+from fpdd.errors import ConfigError, TwinError
 from twin.online.events import AlarmEvent
 from twin.service.checkpoints import commission_path, journal_path, legacy_journal_path
 from twin.service.config import RigConfig, ServiceConfig

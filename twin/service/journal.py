@@ -49,7 +49,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-from twin.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent
 from twin.service.checkpoint_file import Checkpoint, checkpoint_path, read_checkpoints, write_checkpoints
 from twin.service.store import Continuity, NotFolded, Store

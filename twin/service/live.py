@@ -10,7 +10,7 @@ import logging
 import time
 
 from replay.base import Samples
-from twin.errors import SourceError, TwinError
+from fpdd.errors import SourceError, TwinError
 from twin.service.inputs import open_rig_source
 from twin.service.outcome import RigFailure, Stopped
 from twin.service.pacing import MAX_BLOCK_S, READ_CHUNK, LiveLag

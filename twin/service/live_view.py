@@ -144,7 +144,7 @@ def signals_key(rig: str = "*") -> str:
 def signals_to_json(rig: str, samples) -> bytes:
     """A block of samples as the service puts it on :func:`signals_key`: ``{"rig", "t_ns": [...], "signals":
     {name: [...]}, "units": {name: SI unit}}`` (SI; a non-finite sample is ``null``)."""
-    from replay import jsonio
+    from fpdd import jsonio
     from twin.units import SIGNAL_UNITS
 
     return jsonio.compact({"rig": rig, "t_ns": [int(t) for t in samples.t_ns],
@@ -330,7 +330,7 @@ class LiveView:
 
     def forecast(self, msg: Mapping) -> None:
         """A forecast message (:func:`twin.online.forecast.forecast_message`, as on Zenoh and in the MCAP) with
-        its Foxglove ``timestamp``; one that does not follow its schema raises :class:`twin.errors.DataError`."""
+        its Foxglove ``timestamp``; one that does not follow its schema raises :class:`fpdd.errors.DataError`."""
         from twin.online.events import validate
         from twin.online.forecast import FORECAST_SCHEMA as SCHEMA
 
@@ -427,7 +427,7 @@ class _Front:
         if self._error is not None:
             self._thread.join()
             if isinstance(self._error, OSError):  # a port in use, an address not here: one line
-                from twin.errors import SourceError
+                from fpdd.errors import SourceError
 
                 raise SourceError(f"Foxglove live view: cannot listen on {host}:{port}: "
                                   f"{self._error.strerror or self._error}") from None

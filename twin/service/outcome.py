@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.service.rig import RigStats
 
 

@@ -15,8 +15,8 @@ import threading
 
 
 def main(argv=None) -> int:
-    from replay.zenohconf import config_endpoints, open_session, zenoh_config
-    from twin.errors import TwinError
+    from fpdd.zenohconf import config_endpoints, open_session, zenoh_config
+    from fpdd.errors import TwinError
 
     ap = argparse.ArgumentParser(prog="python -m twin.service.router", description=__doc__.split("\n")[0])
     ap.add_argument("config", help="Zenoh router configuration (JSON5), e.g. deploy/zenoh-router.json5")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from replay.base import Samples
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.service.checkpoints import Checkpoints
 from twin.service.commissioning import Commissioner
 from twin.service.inputs import is_live, open_rig_source

@@ -13,7 +13,7 @@ import time
 from typing import TYPE_CHECKING
 
 from replay.base import Samples
-from twin.errors import DataError, FilterError
+from fpdd.errors import DataError, FilterError
 from twin.service.config import RigConfig, ServiceConfig
 from twin.service.journal import AlarmJournal
 from twin.service.outbox import Outbox

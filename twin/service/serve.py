@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.online.events import AlarmEvent
 from twin.service.config import ServiceConfig
 from twin.service.rig import RigStats, RigTwin
@@ -53,8 +53,8 @@ def zenoh_settings(cfg: ServiceConfig):
     """The service's Zenoh configuration: ``ZENOH_CONFIG`` (if set), then what ``[zenoh]`` gives explicitly."""
     import os
 
-    from replay.zenohconf import zenoh_config
-    from twin.errors import ConfigError
+    from fpdd.zenohconf import zenoh_config
+    from fpdd.errors import ConfigError
 
     file = os.environ.get("ZENOH_CONFIG") or None
     try:
@@ -66,6 +66,6 @@ def zenoh_settings(cfg: ServiceConfig):
 
 
 def open_service_session(cfg: ServiceConfig):
-    from replay.zenohconf import open_session
+    from fpdd.zenohconf import open_session
 
     return open_session(zenoh_settings(cfg), "twin serve")

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from twin.errors import ConfigError
+from fpdd.errors import ConfigError
 from twin.online.events import RIG_PATTERN, AlarmEvent
 
 __all__ = [
@@ -97,7 +97,7 @@ class Signer:
 
     def signature(self, event: AlarmEvent) -> str:
         """The base64 signature of ``event`` (over every field of its payload but ``signature``)."""
-        from replay import jsonio
+        from fpdd import jsonio
 
         if event.rig != self.rig:
             raise ConfigError(f"{self.path}: the signing key of rig {self.rig!r} cannot sign an alarm of rig "
@@ -110,7 +110,7 @@ class Signer:
 
     def payload(self, event: AlarmEvent) -> str:
         """The signed JSON payload of ``event`` (what is put and what a history reply carries)."""
-        from replay import jsonio
+        from fpdd import jsonio
 
         data = event.to_dict()
         data[SIGNATURE_FIELD] = self.signature(event)

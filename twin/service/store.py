@@ -27,7 +27,7 @@ Checkpoints are data only, in a file beside the journal
 
 Corruption is detected, reported and never repaired: the open runs
 ``PRAGMA quick_check`` and verifies every alarm's CRC and the sequence numbers;
-any failure raises :class:`~twin.errors.LogFormatError` naming the file (and
+any failure raises :class:`~fpdd.errors.LogFormatError` naming the file (and
 the rig and seq of a damaged alarm) and leaves the file untouched, so that an
 operator can restore it from a backup. Nothing committed is ever deleted.
 
@@ -56,7 +56,7 @@ from types import TracebackType
 from typing import BinaryIO, Self
 
 
-from twin.errors import DataError, LogFormatError, SourceError
+from fpdd.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent, AlarmIdentity, event_to_json
 
 __all__ = ["Continuity", "NotFolded", "Store"]

@@ -16,8 +16,8 @@ from typing import Any
 
 import zenoh
 
-from replay.zenohconf import zenoh_text
-from twin.errors import DataError
+from fpdd.zenohconf import zenoh_text
+from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, StatusEvent
 from twin.service.bus import RigKeys, _Declarations, _open_error, _ranges
 from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, TrustStore, Verdict

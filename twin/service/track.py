@@ -75,7 +75,7 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
         return
     items = [source] if isinstance(source, (Record, Samples)) else source
     if not isinstance(items, Iterable):
-        from twin.errors import DataError
+        from fpdd.errors import DataError
 
         raise DataError(f"track reads a log path, a Record, Samples or an iterable of them, "
                         f"not {type(source).__name__}")

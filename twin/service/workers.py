@@ -10,7 +10,7 @@ import threading
 import time
 from typing import Any
 
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.service.checkpoints import commission_path, journal_path
 from twin.service.config import RigConfig, ServiceConfig
 from twin.service.inputs import is_live

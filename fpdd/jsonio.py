@@ -1,7 +1,7 @@
 """Strict JSON, one writer for every output of the project: MCAP payloads, ``--json``, ``--save``, reports.
 
 Strict means what RFC 8259 allows: no ``NaN`` or ``Infinity`` (they become ``null``), numpy scalars and
-arrays as plain numbers and lists.  An unwritable file is a one-line :class:`~replay.errors.DataError` naming
+arrays as plain numbers and lists.  An unwritable file is a one-line :class:`~fpdd.errors.DataError` naming
 it, never a traceback.
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from replay.errors import DataError
+from fpdd.errors import DataError
 
 __all__ = ["default", "finite_or_none", "dumps", "compact", "write"]
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import zenoh
 
-from replay.errors import ConfigError, SourceError
+from fpdd.errors import ConfigError, SourceError
 
 
 #: link protocols of Zenoh 1.x endpoints; those before ``unixsock-stream`` need ``HOST:PORT``

@@ -1,4 +1,4 @@
-"""The exception tree of fpdd-twin, at the bottom layer: ``replay`` owns it, ``twin`` re-exports it.
+"""The exception tree of fpdd-twin, at the bottom layer (:mod:`fpdd`), beneath both ``replay`` and ``twin``.
 
 ::
 
