@@ -30,7 +30,8 @@ from pathlib import Path
 def _twin(d: Path):
     from twin.models import msp25 as M
     from twin.models.scenario import simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
     from twin.service.config import parse_config
     from twin.service.rig import make_twin
 
@@ -38,7 +39,7 @@ def _twin(d: Path):
                        "<bench>").rigs[0]
     twin = make_twin(rig)
     _, xr = excite(M.MODEL, 2.0, 1e-3, seed=1003)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=1003)
     twin.write(rec.to_samples())
     return twin

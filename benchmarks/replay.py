@@ -33,7 +33,8 @@ from collections.abc import Callable
 import numpy as np
 from mcap.reader import make_reader
 
-from replay.base import RIG_SIGNALS, Samples
+from fpdd.units import RIG_SIGNALS
+from replay.base import Samples
 from replay.csvio import CsvSink, CsvSource
 from replay.mcapio import SIGNALS_TOPIC, McapSink, McapSource
 

@@ -50,11 +50,12 @@ def _log(path: Path, seconds: float, seed: int) -> None:
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
 
     _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 2.0, seconds / 2, shape="step")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
     with McapSink(str(path)) as sink:
         sink.write(rec.to_samples())
 

@@ -2,7 +2,7 @@
 
 Time convention: integer nanoseconds (``t_ns``, int64, UNIX epoch or record start)
 at the ingest boundary, float seconds (``t_s``) only inside models.  Signal values
-are float64 in SI units (m, V, Pa, N, K).
+are float64 in SI units (m, V, Pa, N, K; the signals and their units: :data:`fpdd.units.SIGNALS`).
 
 A :class:`Samples` block is columnar: ``t_ns`` has shape ``(n,)`` and every signal
 in ``signals`` has shape ``(n,)`` too (time first).  Sources yield blocks for
@@ -19,51 +19,6 @@ from collections.abc import Iterator, Mapping
 from typing import Self
 
 import numpy as np
-
-# --- the signal vocabulary ------------------------------------------------------------
-
-@dataclasses.dataclass(frozen=True)
-class SignalSpec:
-    """One rig signal: SI unit, plausible physical range in that unit, meaning.
-
-    ``accepts``: other SI units a column mapped onto this signal may be in (``"*"``: any,
-    a generic signal such as the oscillator's ``y``); the value is converted to that
-    unit's SI unit and kept in it.
-    """
-
-    name: str
-    unit: str
-    lo: float
-    hi: float
-    meaning: str
-    accepts: tuple[str, ...] = ()
-
-    def takes(self, si: str) -> bool:
-        """True when a column in SI unit ``si`` may be mapped onto this signal."""
-        return si == self.unit or si in self.accepts or "*" in self.accepts
-
-
-#: The rig signals every source maps onto (names of the fit issue), SI units.
-SIGNALS: dict[str, SignalSpec] = {
-    s.name: s
-    for s in (
-        SignalSpec("x_ref", "m", -0.5, 0.5, "demanded rod displacement"),
-        SignalSpec("u", "V", -15.0, 15.0, "controller output (servo-valve voltage)"),
-        SignalSpec("x", "m", -0.5, 0.5, "measured rod displacement (LVDT)"),
-        SignalSpec("pA", "Pa", -1.0e6, 60.0e6, "pressure in chamber A"),
-        SignalSpec("pB", "Pa", -1.0e6, 60.0e6, "pressure in chamber B"),
-        SignalSpec("F", "N", -1.0e6, 1.0e6, "rod force (load cell)"),
-        SignalSpec("T_oil", "K", 233.15, 423.15, "oil temperature"),
-        SignalSpec("pP", "Pa", -1.0e6, 60.0e6, "supply pressure"),
-        # the oscillator's signals (the paper's basic demonstration)
-        SignalSpec("y", "m", -10.0, 10.0, "oscillator output (displacement, or any quantity: volts "
-                   "of a circuit)", accepts=("*",)),
-    )
-}
-
-#: The signals a rig record normally carries (any may be missing).
-RIG_SIGNALS: tuple[str, ...] = ("x_ref", "u", "x", "pA", "pB")
-
 
 # --- samples ---------------------------------------------------------------------------
 

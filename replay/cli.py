@@ -10,7 +10,7 @@
 
 ``info`` reads the whole log through the quality gate and prints its signals, sample
 count, duration (s), mean rate (Hz) and median step (s), per-signal ranges (display units:
-x in mm, pressures in MPa, u in V, T_oil in degC; ``--json``: SI with ``"unit"`` beside), gaps,
+x in mm, pressures in MPa, u in V, T_oil in K; ``--json``: SI with ``"unit"`` beside), gaps,
 counts of skipped records and the first problems, plus format-specific facts (MCAP
 topics).  An MCAP file without rig samples (e.g. a twin output with ``/twin/estimate``,
 ``/twin/status``, ``/twin/alarm``) is described by its topics, message counts and time
@@ -129,25 +129,18 @@ def info(path: str, **options: Any) -> dict[str, Any]:
 
 
 def _si_unit(name: str) -> str:
-    """The SI unit a signal is read in (its :class:`~replay.base.SignalSpec`; ``""`` when unknown)."""
-    from replay.base import SIGNALS
+    """The SI unit a signal is read in (its :class:`~fpdd.units.SignalSpec`; ``""`` when unknown)."""
+    from fpdd.units import SIGNAL_UNITS
 
-    spec = SIGNALS.get(name)
-    return spec.unit if spec is not None else ""
-
-
-#: SI unit -> the unit a test engineer reads a rig signal in (x in mm, pressures in MPa, T_oil in degC as the DBC)
-_DISPLAY_UNITS = {"m": "mm", "Pa": "MPa", "K": "degC", "V": "V", "N": "N"}
+    return SIGNAL_UNITS.get(name, "")
 
 
 def _shown_range(r: dict[str, Any]) -> str:
     """``[lo, hi] unit`` of one signal's range, in its display unit (SI with its unit when none is known)."""
-    from replay.quality import UNITS
+    from fpdd.units import display
 
-    si = r.get("unit") or ""
-    unit = _DISPLAY_UNITS.get(si, si)
-    factor, offset, _ = UNITS.get(unit, (1.0, 0.0, si))
-    lo, hi = ((r[k] - offset) / factor for k in ("min", "max"))
+    unit, factor = display(r.get("unit") or "")
+    lo, hi = (r[k] * factor for k in ("min", "max"))
     return f"[{lo:.6g}, {hi:.6g}] {unit}".rstrip()
 
 

@@ -9,7 +9,7 @@ Layout::
 * ``t`` is the time in seconds (float); it becomes integer nanoseconds at ingest
   (``round(t * 1e9)``).  A float64 holds epoch seconds to about 0.2 us, record-relative
   seconds exactly enough for any rig rate.
-* Every other column is a signal in the SI unit of :data:`replay.base.SIGNALS`
+* Every other column is a signal in the SI unit of :data:`fpdd.units.SIGNALS`
   (columns not in that table are kept as extra signals, unchecked; with a
   ``mapping``, such a column that is not mapped is not read, and the report's
   ``header`` problem names it).
@@ -22,7 +22,7 @@ Layout::
 * The oscillator contract is the same layout with the columns ``t, u, y``.
 * ``mapping`` renames foreign columns and converts units at ingest, e.g.
   ``{"pos_mm": ("x", "mm"), "p_a_bar": ("pA", "bar"), "time": ("t", "ms")}``; a plain
-  string renames only.  Units: :data:`replay.quality.UNITS`.  On the command line
+  string renames only.  Units: :data:`fpdd.units.UNITS`.  On the command line
   this is ``--map NAME=COLUMN[:UNIT]`` (``--map x=pos_mm:mm --map t=time:ms``),
   parsed by :func:`parse_map` for every command that reads a record.
 * A time column whose median step gives a rate outside 10 Hz .. 200 kHz (a time in ms
@@ -59,8 +59,9 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec, Sink, Source
-from replay.quality import ACCEPTED_RATE_HZ, UNITS, QualityGate, QualityOptions, add_skips, require_signals, si_unit, to_si
+from fpdd.units import SIGNALS, UNITS, SignalSpec, si_unit, to_si
+from replay.base import Problem, ReadReport, Samples, Sink, Source
+from replay.quality import ACCEPTED_RATE_HZ, QualityGate, QualityOptions, add_skips, require_signals
 from fpdd.errors import DataError, LogFormatError, SourceError
 
 #: Name of the time column (seconds).
@@ -87,13 +88,12 @@ def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str
 
     ``["x=pos_mm:mm", "pA=p_a", "t=time:ms"]`` -> ``{"pos_mm": ("x", "mm"), "p_a": "pA",
     "time": ("t", "ms")}`` (foreign column -> signal name or (signal, unit), the form
-    :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`replay.base.SIGNALS`, ``t``
+    :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`fpdd.units.SIGNALS`, ``t``
     for the time column, or an extra signal's name; ``UNIT`` is the unit the column is in
-    (:data:`replay.quality.UNITS`).  Every command that reads a record calls this for its
+    (:data:`fpdd.units.UNITS`).  Every command that reads a record calls this for its
     ``--map`` option.  Raises :class:`~fpdd.errors.DataError` naming the item and the
     expected syntax (a swapped ``COLUMN=NAME`` is recognised and the right order suggested).
     """
-    from replay.quality import UNITS
 
     out: dict[str, str | tuple[str, str]] = {}
     names: dict[str, str] = {}
@@ -126,7 +126,7 @@ def _parse_mapping(file: str, mapping: ColumnMap | None,
     """Normalise ``mapping`` to ``{foreign column: (signal, unit or None)}`` and check units.
 
     A unit must be dimensionally compatible with the signal (``specs``, default
-    :data:`~replay.base.SIGNALS`): ``x`` takes mm, not bar; a generic signal (the
+    :data:`~fpdd.units.SIGNALS`): ``x`` takes mm, not bar; a generic signal (the
     oscillator's ``y``) takes any unit.
     """
     specs = SIGNALS if specs is None else specs
@@ -213,7 +213,7 @@ _UNIT_WORDS: dict[str, str] = {u.lower(): u for u in UNITS} | {"c": "degC", "deg
 def split_unit(column: str) -> tuple[str, str | None]:
     """``"x[mm]"``, ``"x (mm)"`` -> ``("x", "mm")``: a column name and the unit written in it, if any.
 
-    Only a unit of :data:`replay.quality.UNITS` counts; ``"pos[furlong]"`` -> ``("pos[furlong]", None)``.
+    Only a unit of :data:`fpdd.units.UNITS` counts; ``"pos[furlong]"`` -> ``("pos[furlong]", None)``.
     """
     m = _UNIT_IN_NAME.match(column)
     if m:

@@ -20,7 +20,7 @@ Two payloads travel on a key expression; a :class:`ZenohSource` accepts either
     {"format": "fpdd.samples/1", "t_ns": [1700000000000000000, ...],
      "signals": {"x": [0.0012, ...], "u": [...], ...}}
 
-SI units (``replay.base.SIGNALS``), every list as long as ``t_ns``, ``t_ns`` integers
+SI units (``fpdd.units.SIGNALS``), every list as long as ``t_ns``, ``t_ns`` integers
 in the int64 range, ``null`` for a missing value (delivered as NaN: the tracker takes
 it as a missing measurement).  A single sample is a block of one (scalars instead of
 lists).  The end of a stream is ``{"format": "fpdd.samples/1", "end": true}``.

@@ -15,7 +15,7 @@ convention of :mod:`replay.base`).
   ``t`` is the sample time in seconds (``log_time / 1e9``, for plotting only: readers
   take the exact time from ``log_time``), ``timestamp`` the same time exactly as the
   Foxglove ``time`` type (:data:`TIME_SCHEMA`), every other field a signal in its SI unit
-  (:data:`replay.base.SIGNALS`; a non-finite value is written as ``null``).  Foxglove
+  (:data:`fpdd.units.SIGNALS`; a non-finite value is written as ``null``).  Foxglove
   plots ``/rig/signals.x`` directly.  The channel metadata ``signals`` and ``units``
   list the fields in order (comma separated).
 
@@ -113,7 +113,8 @@ from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from fpdd import jsonio
-from replay.base import SIGNALS, Problem, ReadReport, Samples, Sink, Source
+from fpdd.units import SIGNALS
+from replay.base import Problem, ReadReport, Samples, Sink, Source
 from replay.quality import QualityGate, QualityOptions, require_signals
 from fpdd.errors import DataError, LogFormatError, SourceError
 

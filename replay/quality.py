@@ -12,7 +12,7 @@ What the gate does to a block (all vectorised with numpy, in this order):
    dropped and counted under ``time_backwards`` / ``time_repeated`` (duplicates are
    never passed on).
 3. **Values outside the physical range** of the signal's SI unit
-   (:data:`replay.base.SIGNALS`): an isolated glitch (at most ``range_tolerance`` of
+   (:data:`fpdd.units.SIGNALS`): an isolated glitch (at most ``range_tolerance`` of
    the samples checked so far, at least one sample per 1000) is dropped and counted
    under ``out_of_range``; anything more is systematic and raises
    :class:`~fpdd.errors.DataError` naming file, signal, observed range and expected
@@ -32,8 +32,8 @@ A **missing required signal** is checked once, when a source knows its columns:
 and what the file has.
 
 Skipped samples are counted in the report, never raised: nothing already accepted is
-lost.  The unit table :data:`UNITS` converts foreign units to SI at one boundary
-(readers call :func:`to_si`).
+lost.  The unit table :data:`fpdd.units.UNITS` converts foreign units to SI at one boundary
+(readers call :func:`fpdd.units.to_si`).
 """
 
 from __future__ import annotations
@@ -44,40 +44,15 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from replay.base import SIGNALS, Problem, ReadReport, Samples, SignalSpec
+from replay.base import Problem, ReadReport, Samples
 from fpdd.errors import DataError
+from fpdd.units import SIGNALS, UNITS, SignalSpec
 
 #: Sample rates a record may have at all (Hz): below 10 Hz no rig dynamics (tens to hundreds of Hz) is
 #: observable; above 10 MHz no rig data acquisition samples.  A file read at a rate outside is refused.
 ACCEPTED_RATE_HZ = (10.0, 10.0e6)
 
 # --- units ---------------------------------------------------------------------------------
-
-#: unit -> (factor, offset, SI unit): ``si = value * factor + offset``.
-UNITS: dict[str, tuple[float, float, str]] = {
-    "m": (1.0, 0.0, "m"),
-    "mm": (1e-3, 0.0, "m"),
-    "um": (1e-6, 0.0, "m"),
-    "µm": (1e-6, 0.0, "m"),
-    "Pa": (1.0, 0.0, "Pa"),
-    "kPa": (1e3, 0.0, "Pa"),
-    "bar": (1e5, 0.0, "Pa"),
-    "MPa": (1e6, 0.0, "Pa"),
-    "mbar": (1e2, 0.0, "Pa"),
-    "psi": (6894.757293168361, 0.0, "Pa"),
-    "V": (1.0, 0.0, "V"),
-    "mV": (1e-3, 0.0, "V"),
-    "N": (1.0, 0.0, "N"),
-    "kN": (1e3, 0.0, "N"),
-    "K": (1.0, 0.0, "K"),
-    "degC": (1.0, 273.15, "K"),
-    "°C": (1.0, 273.15, "K"),
-    # time, for a foreign time column only
-    "s": (1.0, 0.0, "s"),
-    "ms": (1e-3, 0.0, "s"),
-    "us": (1e-6, 0.0, "s"),
-    "ns": (1e-9, 0.0, "s"),
-}
 
 #: Foreign units tried, in this order, when values look like a wrong unit.
 _UNIT_SUSPECTS: dict[str, tuple[str, ...]] = {
@@ -87,28 +62,6 @@ _UNIT_SUSPECTS: dict[str, tuple[str, ...]] = {
     "N": ("kN",),
     "V": ("mV",),
 }
-
-
-def to_si(values: np.ndarray, unit: str, *, what: str = "value") -> np.ndarray:
-    """Convert ``values`` given in ``unit`` (a key of :data:`UNITS`) to SI, float64."""
-    try:
-        factor, offset, _ = UNITS[unit]
-    except KeyError:
-        raise DataError(f"{what}: unknown unit {unit!r}, known units: {', '.join(UNITS)}") from None
-    out = np.asarray(values, dtype=np.float64)
-    if factor != 1.0:
-        out = out * factor
-    if offset != 0.0:
-        out = out + offset
-    return out
-
-
-def si_unit(unit: str, *, what: str = "value") -> str:
-    """The SI unit a unit of :data:`UNITS` converts to (``"bar"`` -> ``"Pa"``)."""
-    try:
-        return UNITS[unit][2]
-    except KeyError:
-        raise DataError(f"{what}: unknown unit {unit!r}, known units: {', '.join(UNITS)}") from None
 
 
 def unit_hint(spec: SignalSpec, lo: float, hi: float) -> str:
@@ -175,7 +128,7 @@ class QualityOptions:
     samples.  ``range_tolerance``: fraction of samples (at least 1 per 1000 checked)
     that may be out of range before the read is refused as a wrong unit.
     ``check_range``: turn the range and unit check off (e.g. for raw diagnostics).
-    ``specs``: signal specifications that replace :data:`~replay.base.SIGNALS` for this
+    ``specs``: signal specifications that replace :data:`~fpdd.units.SIGNALS` for this
     read (e.g. the oscillator's ``u`` is a force in N, not a valve voltage).
     ``keep_nan``: pass NaN through as a missing value (live streams: ``null``); infinite
     values are still dropped.  ``systematic``: ``"raise"`` (files: a wrong unit refuses

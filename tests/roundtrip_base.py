@@ -22,7 +22,8 @@ from collections.abc import Mapping
 import numpy as np
 import pytest
 
-from replay.base import RIG_SIGNALS, Samples, Sink, Source
+from fpdd.units import RIG_SIGNALS
+from replay.base import Samples, Sink, Source
 from replay.factory import open_sink, open_source
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -7,6 +7,7 @@ import re
 
 import replay
 import twin
+from twin.reports import fit_report
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 
@@ -80,7 +81,7 @@ def test_the_api_reads_like_the_command_line(tmp_path):
     saved = result.save(str(tmp_path / "fit.json"))
     back = load_params_file(model, saved)
     assert back["Ffric"] == pytest.approx(result.estimate["Ffric"])
-    html = result.report([record], str(tmp_path / "report"))
+    html = fit_report(result, [record], model, str(tmp_path / "report"))
     assert pathlib.Path(html).stat().st_size > 1000
 
     diag = Diagnosis(model="msp25", causes=["spool_deadband"], unexplained=False, nominal=None, final=None,  # type: ignore[arg-type]

@@ -15,7 +15,8 @@ import cantools
 import numpy as np
 import pytest
 
-from replay.base import RIG_SIGNALS, Samples
+from fpdd.units import RIG_SIGNALS
+from replay.base import Samples
 from benchmarks.can import msp25_samples
 from replay.can.logs import CanLogSink, CanLogSource
 from replay.can.codec import DEFAULT_DBC, VectorCodec, load_dbc

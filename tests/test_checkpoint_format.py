@@ -21,7 +21,8 @@ from replay.mcapio import McapSink
 from fpdd.errors import LogFormatError
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.service.config import parse_config
 from twin.service.journal import AlarmJournal
 from twin.service.rig import make_twin
@@ -155,7 +156,7 @@ def test_a_pickled_checkpoint_never_runs(tmp_path: Path) -> None:
 def _wear_log(path: Path, seed: int) -> None:
     _, xr = excite(M.MODEL, 12.0, 1e-3, seed=seed)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 3.0, shape="step")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
     with McapSink(str(path)) as sink:
         sink.write(rec.to_samples())
 
@@ -203,7 +204,7 @@ def _blocks(seed: int):
     _, xr = excite(M.MODEL, 10.0, 1e-3, seed=seed)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 3.0, shape="step"),
                                                        Drift("CdAleak", 30.0, 5.0, 8.0, "ramp")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
     s = rec.to_samples()
     return [s.slice(i, min(i + 500, len(s))) for i in range(0, len(s), 500)]
 

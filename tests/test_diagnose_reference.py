@@ -21,7 +21,7 @@ from twin.estimation.diagnose import CONTROLLER_RATE, _gain, _implausible, diagn
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.base import Timing
-from twin.models.simulate import DEFAULT_NOISE
+from fpdd.units import NOMINAL_NOISE
 from twin.estimation.noise_model import block_bootstrap, fit_noise_model, long_run_variance
 
 RIG = get_model("msp25")
@@ -141,7 +141,7 @@ def test_a_noise_model_whose_errors_stay_predictable_gets_a_higher_order():
     d = diagnose(RIG, rec, seed=0)
     assert d.causes == ["spool_deadband"] and not d.unexplained, d.text()
     n = d.n_fit[0]
-    resid = [np.array([(rec[o][:n] - d.final.predicted[0][o][:n]) / DEFAULT_NOISE[o] for o in d.outputs])]
+    resid = [np.array([(rec[o][:n] - d.final.predicted[0][o][:n]) / NOMINAL_NOISE[o] for o in d.outputs])]
     by_aic = fit_noise_model(resid, d.outputs).orders["x"]
     white = d.final.adequacy["whiteness"]["x"]
     assert white["ar_order"] > by_aic and not white["material"], (white, by_aic)  # raised above AIC's choice

@@ -405,7 +405,8 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
     from twin.service.config import parse_config
     from twin.service.checkpoints import journal_path
     from twin.service.runner import RigRunner
@@ -413,7 +414,7 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
     _, xr = excite(M.MODEL, 16.0, 1e-3, seed=1011)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3,
                            [Drift("Ffric", 3.0, 3.0, shape="step"), Drift("wn", 0.6, 6.0, 12.0, "ramp")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=1011)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=1011)
     log = tmp_path / "rig.mcap"
     with McapSink(str(log)) as sink:
         sink.write(rec.to_samples())

@@ -16,7 +16,8 @@ from replay.live import ZenohSampleSink
 from fpdd.zenohconf import zenoh_config
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.online.events import StatusEvent
 from twin.service.config import parse_config
 from twin.service.live_time import TIME_JUMP_S
@@ -31,7 +32,7 @@ HOUR_NS = 3600 * 10**9
 def _samples(seconds: float, seed: int) -> Samples:
     """A rig record at 1 kHz stamped in UNIX time, as a rig on a synchronised clock does, starting a minute ago."""
     _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=seed)
     s = rec.to_samples()
     start = (time.time_ns() // 10**6 - 60_000) * 10**6

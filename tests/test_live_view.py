@@ -260,14 +260,15 @@ def test_an_estimate_is_the_same_message_in_the_twins_mcap_and_live(tmp_path):
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
     from twin.online.events import event_to_json
     from twin.service.config import parse_config
     from twin.service.rig import RigTwin
 
     rig = parse_config({"rig": [{"name": "rig-m", "source": "x.mcap"}]}, "rigs.toml").rigs[0]
     _, xr = excite(M.MODEL, 2.0, 1e-3, seed=1001)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=1001)
     path = tmp_path / "twin.mcap"
     with LiveView(port=0) as view:
@@ -327,12 +328,13 @@ def test_twin_serve_feeds_every_topic_and_field_of_its_layout_and_stops_cleanly_
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
 
     log = tmp_path / "rig.mcap"
     _, xr = excite(M.MODEL, 12.0, 1e-3, seed=1002)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 5.0, shape="step")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=1002)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=1002)
     with McapSink(str(log)) as sink:
         sink.write(rec.to_samples())
     cfg = tmp_path / "rigs.toml"

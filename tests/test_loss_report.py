@@ -24,7 +24,8 @@ from replay.mcapio import McapSink
 from twin import cli
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 
 N = 2000  # samples of the record (2 s at 1 kHz)
 
@@ -32,7 +33,7 @@ N = 2000  # samples of the record (2 s at 1 kHz)
 @pytest.fixture(scope="module")
 def good(tmp_path_factory) -> Samples:
     _, xr = excite(M.MODEL, N * 1e-3, 1e-3, seed=1031)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=1031)
     return rec.to_samples()
 

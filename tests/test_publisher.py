@@ -32,10 +32,11 @@ PROBE = '{"probe":true}'
 def samples():
     from twin.models import msp25 as M
     from twin.models.scenario import simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
 
     _, xr = excite(M.MODEL, 1.0, 1e-3, seed=1031)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [], noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=1031)
     return rec.to_samples()
 

@@ -37,8 +37,8 @@ def test_info_json(capsys: pytest.CaptureFixture, name: str) -> None:
 
 
 def test_info_ranges_carry_units(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
-    """Text: each range in its display unit (x in mm, pressures in MPa, u in V, T_oil in degC as the DBC);
-    JSON: SI with the unit beside."""
+    """Text: each range in its display unit (x in mm, pressures in MPa, u in V, T_oil in K: the one display table
+    of fpdd.units, a factor only, as in the reports); JSON: SI with the unit beside."""
     code, out, _ = run(capsys, "info", str(DATA / "reference.csv"), "--json")
     assert code == 0
     ranges = json.loads(out)["ranges"]
@@ -58,7 +58,7 @@ def test_info_ranges_carry_units(capsys: pytest.CaptureFixture, tmp_path: Path) 
     assert json.loads(out)["ranges"]["T_oil"] == {"min": pytest.approx(313.15), "max": pytest.approx(323.15),
                                                   "unit": "K"}
     code, text, _ = run(capsys, "info", str(path))
-    assert "T_oil: [40, 50] degC" in text
+    assert "T_oil: [313.15, 323.15] K" in text
 
 
 def test_info_text_reports_gaps_and_bad_rows(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:

@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from replay.base import SIGNALS, ReadReport, Samples
+from fpdd.units import SIGNALS, to_si
+from replay.base import ReadReport, Samples
 from replay.csvio import CsvSource
-from replay.quality import QualityGate, QualityOptions, require_signals, to_si, unit_hint
+from replay.quality import QualityGate, QualityOptions, require_signals, unit_hint
 from fpdd.errors import DataError
 
 MS = 1_000_000

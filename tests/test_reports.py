@@ -160,11 +160,12 @@ def test_track_report(tmp_path):
     from twin.online.baseline import Baseline
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
     from twin.service.track import track
 
     name, xr = excite(M.MODEL, 6.0, 1e-3, seed=0)
-    noise = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+    noise = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("CdAleak", 30.0, 1.0, 4.0, "ramp")], noise=noise,
                            seed=0, name="wear")
     tight = {"CdAleak": Baseline(M.NOMINAL["CdAleak"], M.NOMINAL["CdAleak"] / 2, M.NOMINAL["CdAleak"] * 2)}

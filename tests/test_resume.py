@@ -20,7 +20,8 @@ from net_helpers import free_port
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
 from twin.service.serve import serve
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.service.store import Store
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -103,7 +104,7 @@ def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_
     _, xr = excite(M.MODEL, 16.0, 1e-3, seed=11)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3,
                            [Drift("Ffric", 3.0, 3.0, shape="step"), Drift("wn", 0.6, 6.0, 12.0, "ramp")],
-                           noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}, seed=11)
+                           noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=11)
     log = tmp_path / "rig.mcap"
     with McapSink(str(log)) as sink:
         sink.write(rec.to_samples())

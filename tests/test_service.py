@@ -26,9 +26,10 @@ from twin.models.scenario import Drift, simulate_wear
 from twin.online.events import StatusEvent
 from twin.service.serve import serve
 from twin.service.store import Store
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 
-NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+NOISE = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
 
 
 def _log(path, duration, drifts, seed=0):

@@ -27,7 +27,7 @@ from scipy import integrate, interpolate
 
 from twin.estimation.diagnose import diagnose
 from twin.estimation.fit import fit, initial_from_data
-from twin.estimation.noise_model import bartlett_lag
+from twin.estimation.hac import bartlett_lag
 from twin.models import get_model
 from tests.realdata import realdata
 from twin.record import Record, load_records

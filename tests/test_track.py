@@ -15,10 +15,11 @@ from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.service.track import track
 
-NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+NOISE = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
 STEP = Drift("Ffric", 3.0, 5.0, shape="step")  # 50 -> 150 N at 5 s
 
 

@@ -13,10 +13,11 @@ from twin.online.drift import DriftMonitor
 from fpdd.errors import DataError, ParameterError
 from twin.models import msp25 as M
 from twin.models.scenario import Drift, simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.online.tracker import OnlineTracker
 
-NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+NOISE = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
 BASE = default_baseline("msp25")
 WRONG = {"Ffric": 75.0, "CdAleak": 3.2863e-9 * 0.5, "Cd": 0.2191 * 1.5, "zeta": 0.3701 * 0.5,
          "wn": M.NOMINAL["wn"] * 1.5}

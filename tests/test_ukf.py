@@ -15,11 +15,12 @@ from twin.online import ukf
 from fpdd.errors import FilterError
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
-from twin.models.simulate import DEFAULT_NOISE, excite
+from fpdd.units import NOMINAL_NOISE
+from twin.models.simulate import excite
 from twin.online.tracker import OnlineTracker
 from tests.ukf_mirror import mirror, ours
 
-NOISE = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+NOISE = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
 WRONG = {"Ffric": 75.0, "CdAleak": 3.2863e-9 * 0.5, "Cd": 0.2191 * 1.5, "zeta": 0.3701 * 0.5,
          "wn": M.NOMINAL["wn"] * 1.5}
 NAMES = ("x", "pA", "pB")

@@ -82,10 +82,10 @@ class ParamSpec:
         """Return ``value`` as float or raise a :class:`ParameterError` naming the parameter; a string may carry
         a unit (``"2000mm^2"``, ``"43Hz"``: converted to SI as ``--set`` does)."""
         if isinstance(value, str):
-            from twin.units import to_si
+            from fpdd.units import text_to_si
 
             try:
-                value = to_si(self.name, value, self.unit)
+                value = text_to_si(self.name, value, self.unit)
             except ParameterError as exc:
                 reason = str(exc).removeprefix(f"{self.name}: ")
                 raise ParameterError(f"{self.name} (={value!r}) must be a number in {self.unit} or a value with a "

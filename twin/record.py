@@ -129,7 +129,7 @@ def signal_specs(model: str):
     """The signal vocabulary of ``model``'s records: the rig's, except that the
     oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage; its
     ``u`` and ``y`` are generic (a circuit's volts are read as volts)."""
-    from replay.base import SIGNALS, SignalSpec
+    from fpdd.units import SIGNALS, SignalSpec
 
     if model == "oscillator":
         return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input (force, or any quantity)",

@@ -24,7 +24,7 @@ The controller sends ``MSP25_Position`` and then ``MSP25_Valve`` in every 1 ms
 control cycle, ``MSP25_Pressure`` every second cycle; the hydraulic power unit's PLC
 sends ``HPU_Status`` (big-endian, as PLCs do) every 100 ms.  The signal attribute
 ``RigSignal`` maps a CAN signal onto an fpdd-twin signal name of
-:data:`replay.base.SIGNALS` (``"counter"`` marks a rolling counter); without the
+:data:`fpdd.units.SIGNALS` (``"counter"`` marks a rolling counter); without the
 attribute a CAN signal whose name is a rig signal name maps onto it.  The message
 attribute ``GenMsgCycleTime`` (ms) gives the nominal period used for alignment.
 Values in the DBC are in the units the rig reports; :data:`UNIT_TO_SI` converts them.
@@ -53,8 +53,7 @@ import cantools
 import cantools.database
 import numpy as np
 
-from replay.base import SIGNALS
-from replay.quality import UNITS
+from fpdd.units import SIGNALS, UNITS
 from fpdd.errors import LogFormatError, SourceError
 
 #: The DBC shipped for the MSP25 rig.

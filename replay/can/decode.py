@@ -53,7 +53,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from replay.base import SIGNALS, Problem, ReadReport, Samples
+from fpdd.units import SIGNALS
+from replay.base import Problem, ReadReport, Samples
 from replay.can.codec import COUNTER, Frames, MessageLayout, VectorCodec, key_str
 from replay.quality import time_spikes
 from fpdd.errors import DataError

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from replay.base import RIG_SIGNALS, Samples
+from fpdd.units import RIG_SIGNALS
+from replay.base import Samples
 from replay.csvio import CsvSink
 from replay.mcapio import McapSink
 

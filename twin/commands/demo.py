@@ -40,11 +40,12 @@ def free_port() -> int:
 def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float):
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
 
     name, xr = excite(M.MODEL, duration_s, 1e-3, seed=seed)
     drift = Drift("CdAleak", factor, t_start, t_end, "ramp")
-    noise = {k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")}
+    noise = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
     rec, P = simulate_wear(M.MODEL.params(), xr, 1e-3, [drift], noise=noise, seed=seed, name="demo-rig")
     return rec, P, drift
 

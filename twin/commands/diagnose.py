@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 from fpdd import jsonio
@@ -46,7 +45,6 @@ def run(args) -> int:
     from twin.models import get_model
     from twin.models.base import DEFAULT_TIMING
     from twin.record import Record, load_records
-    from twin.reports.plots import diagnosis_plots
 
     model = get_model(args.model)
     records: list[Record] = []
@@ -64,12 +62,9 @@ def run(args) -> int:
                     drive=args.drive, seed=args.seed, progress=progress, timing=timing_of(args, DEFAULT_TIMING),
                     test_timing=not args.no_timing_test)
     if args.report:
-        diag.plots = diagnosis_plots(diag, args.report)
-        jsonio.write(os.path.join(args.report, "extended_params.json"), diag.extended_params())
-        jsonio.write(os.path.join(args.report, "diagnosis.json"), diag.to_dict())
-        from twin.reports import diagnose_report
+        from twin.reports.diagnose import write_diagnosis
 
-        html = diagnose_report(diag, args.report)
+        html = write_diagnosis(diag, args.report)
         if not args.json:
             print(f"report: {html}", file=sys.stderr)
     if args.save:

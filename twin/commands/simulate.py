@@ -57,7 +57,7 @@ def run(args) -> int:
                   seed=args.seed, name=args.output, timing=timing)
     with open_sink(args.output) as sink:
         sink.write(rec.to_samples())
-    from twin.units import SIGNAL_UNITS
+    from fpdd.units import SIGNAL_UNITS
 
     info = {"output": args.output, "model": model.name, "samples": len(rec), "dt": {"value": args.dt, "unit": "s"},
             "signals": list(rec.signals),

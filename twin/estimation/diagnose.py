@@ -101,12 +101,11 @@ from twin.estimation.fit import FitResult, fit, noise_levels, resolve_outputs
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, INTERSAMPLE, Timing
 from twin.estimation.noise_model import ORDERS as NOISE_ORDERS
-from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
-                                         long_run_variance)
+from twin.estimation.hac import bartlett_lag
+from twin.estimation.noise_model import NoiseModel, block_bootstrap, fit_noise_model, long_run_variance
 from twin.params import Effect, ParameterSet, check_names
 from twin.record import Record
 from twin.estimation.residuals import ResidualAnalysis, analyse, ljung_box
-from twin.models.simulate import DEFAULT_NOISE  # noqa: F401  (the plots' residual scale)
 
 #: significance level of the screen, the LR test and the adequacy tests (family-wise, after Holm/Bonferroni)
 ALPHA = 1e-3
@@ -172,7 +171,6 @@ SIGNATURE_AXIS = {
 
 
 #: SI units of the outputs, for plot labels
-UNITS = {"x": "m", "pA": "Pa", "pB": "Pa", "y": "m"}
 #: effects whose signature is best seen as a residual force (A times the pressure-difference residual)
 FORCE_EFFECTS = ("viscous_friction", "stribeck_friction", "specimen_stiffness")
 
@@ -373,19 +371,6 @@ class Diagnosis:
         from fpdd import jsonio
 
         return jsonio.write(path, self.extended_params())
-
-    def report(self, out_dir: str = "diagnosis_report") -> str:
-        """Write the HTML diagnosis report with its plots (as ``twin diagnose --report``); returns its path."""
-        import os
-
-        from fpdd import jsonio
-        from twin.reports import diagnose_report
-        from twin.reports.plots import diagnosis_plots
-
-        self.plots = diagnosis_plots(self, out_dir)
-        jsonio.write(os.path.join(out_dir, "extended_params.json"), self.extended_params())
-        jsonio.write(os.path.join(out_dir, "diagnosis.json"), self.to_dict())
-        return diagnose_report(self, out_dir)
 
     def effect_params(self, effect: str) -> dict:
         return _effect_params(self.final, effect)

@@ -61,8 +61,9 @@ from fpdd.errors import DataError, ParameterError
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
+from twin.estimation.hac import bartlett_lag
 from twin.record import Record
-from twin.models.simulate import DEFAULT_NOISE
+from fpdd.units import NOMINAL_NOISE
 
 FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
 LOOP_NOISE_BAND = 0.4  # the loop noise's level is read off the residual above this fraction of Nyquist
@@ -141,7 +142,7 @@ class FitResult:
         """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
         fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
         "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
-        from twin.units import SIGNAL_UNITS
+        from fpdd.units import SIGNAL_UNITS
 
         params: dict[str, dict] = {}
         for s, v in zip(self.params.specs, self.params.values):
@@ -158,12 +159,6 @@ class FitResult:
         from fpdd import jsonio
 
         return jsonio.write(path, self.saved())
-
-    def report(self, records, out_dir: str = "fit_report") -> str:
-        """Write the HTML fit report (as ``twin fit --report``) of the ``records`` fitted; returns its path."""
-        from twin.reports import fit_report
-
-        return fit_report(self, records, self.model, out_dir)
 
     def table(self) -> str:
         specs = {s.name: s for s in self.params.specs}
@@ -405,9 +400,9 @@ def noise_levels(model: Model, records: Sequence[Record], outputs: Sequence[str]
         elif model.NOISE_FROM_DATA:
             y = np.concatenate([np.asarray(r[o], dtype=np.float64) for r in records if o in r])
             rms = float(np.std(y)) if y.size else 0.0
-            out[o] = RELATIVE_NOISE * rms if rms > 0 and math.isfinite(rms) else DEFAULT_NOISE.get(o, 1.0)
+            out[o] = RELATIVE_NOISE * rms if rms > 0 and math.isfinite(rms) else NOMINAL_NOISE.get(o, 1.0)
         else:
-            out[o] = float(DEFAULT_NOISE.get(o, 1.0))
+            out[o] = float(NOMINAL_NOISE.get(o, 1.0))
     return out
 
 
@@ -662,32 +657,6 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         warnings=warnings)
 
 
-def _bartlett_lag(g: np.ndarray) -> int:
-    """Bartlett bandwidth for the score series ``g [n, p]``: Andrews' (1991) AR(1) plug-in, at least ``sqrt(n)``.
-
-    The floor: the scores of a closed loop are white sensor noise plus the slower response of the loop to the
-    noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks a handful of
-    lags, which on the reference simulator left the friction's standard error 20 % short (lag 9 on 12 000
-    samples; from lag 50 on every parameter's spread matches its standard error)."""
-    n = g.shape[0]
-    num = den = 0.0
-    for a in range(g.shape[1]):
-        x = g[:, a]
-        v = float(x @ x)
-        if v <= 0:
-            continue
-        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
-        if not (math.isfinite(v) and math.isfinite(rho)):  # non-finite scores (a diverged fit): no weight
-            continue
-        s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
-        num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
-        den += s4 / (1 - rho) ** 4
-    floor = math.ceil(math.sqrt(n))
-    if den <= 0:
-        return min(floor, n // 4)
-    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), floor), n // 4))
-
-
 def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
                    H_inv: np.ndarray) -> np.ndarray:
     """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
@@ -704,7 +673,11 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int
         G = (J[start:start + m * n] * r[start:start + m * n, None]).reshape(m, n, -1).sum(axis=0)
         start += m * n
         Sm += G.T @ G
-        L = _bartlett_lag(G)
+        # at least sqrt(n): the scores of a closed loop are white sensor noise plus the slower response of the
+        # loop to the noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks
+        # a handful of lags, which on the reference simulator left the friction's standard error 20 % short
+        # (lag 9 on 12 000 samples; from lag 50 on every parameter's spread matches its standard error)
+        L = min(max(bartlett_lag(G), math.ceil(math.sqrt(n))), n // 4)
         for lag in range(1, L + 1):
             w = 1.0 - lag / (L + 1.0)
             C = G[lag:].T @ G[:-lag]

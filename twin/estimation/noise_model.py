@@ -34,6 +34,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from twin.estimation.hac import bartlett_lag
+
 #: orders of the autoregression tried (BIC picks one)
 ORDERS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 20, 25, 30, 40, 50, 60)
 
@@ -160,21 +162,6 @@ def fit_noise_model(blocks: Sequence[np.ndarray], outputs: Sequence[str], orders
 
 
 # --- statistics of what whitening leaves ---------------------------------------------------------
-def bartlett_lag(g: np.ndarray) -> int:
-    """Andrews' AR(1) plug-in bandwidth for Bartlett weights of a series ``g [n]`` (at most n/4)."""
-    g = np.asarray(g, dtype=float)
-    if not np.all(np.isfinite(g)):  # a diverged candidate's scores: no bandwidth to estimate
-        return 0
-    g = g - np.mean(g)
-    n = g.size
-    v = float(g @ g)
-    if n < 8 or not 0 < v < math.inf:
-        return 0
-    rho = float(np.clip(g[1:] @ g[:-1] / v, -0.97, 0.97))
-    a = 4 * rho * rho / ((1 - rho) ** 2 * (1 + rho) ** 2)
-    return int(min(max(1.1447 * (a * n) ** (1 / 3), 0), n // 4))
-
-
 def long_run_variance(g: np.ndarray, lag: int | None = None) -> float:
     """Newey-West long-run variance of the mean-zero score series ``g [n]``: ``Var(sum g) / n``."""
     g = np.asarray(g, dtype=float)

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from twin.models import excitation
+from fpdd.units import NOMINAL_NOISE
 from fpdd.errors import DataError
 from twin.models import Model, get_model
 from twin.models.base import Timing
@@ -19,7 +20,6 @@ from twin.params import ParameterSet
 from twin.record import Record
 
 #: realistic sensor noise, standard deviation in SI units
-DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4, "y": 1e-6, "u": 0.0, "x_ref": 0.0}
 
 #: default experiments per model: (excitation kind, driving signal, amplitude, band)
 DEFAULT_EXPERIMENT: dict[str, dict[str, Any]] = {
@@ -82,4 +82,4 @@ def measure(model: Model, ps: ParameterSet, drive_name: str, drive: np.ndarray, 
 
 
 def default_noise(model: Model) -> dict[str, float]:
-    return {k: DEFAULT_NOISE[k] for k in model.OUTPUTS}
+    return {k: NOMINAL_NOISE[k] for k in model.OUTPUTS}

@@ -31,7 +31,7 @@ wn         1/3 .. 3                    0.01: a valve's first stage degrades over
 =========  ==========================  =====================================================
 
 Sensor noise is a property of the rig: ``noise=`` (standard deviations, SI),
-else the commissioning fit's residual RMS, else :data:`DEFAULT_NOISE`; the
+else the commissioning fit's residual RMS, else :data:`fpdd.units.NOMINAL_NOISE`; the
 filter learns it online (and its colour) from the innovations unless
 ``adapt_noise=False``.
 """
@@ -46,6 +46,7 @@ import numpy as np
 
 from replay.base import Samples
 from twin.online import chi2, sigma, ukf
+from fpdd.units import NOMINAL_NOISE
 from fpdd.errors import DataError, FilterError, ParameterError
 from twin.models import get_model, trackable_models
 from twin.models import msp25 as M
@@ -53,7 +54,6 @@ from twin.models.base import Timing
 from twin.params import EXCITATION
 
 #: nominal sensor noise (standard deviation, SI) when neither the rig nor a commissioning fit says
-DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4}
 #: per-step process noise of the scaled model states (filter units, variance per sample at 1 kHz)
 DEFAULT_Q_STATE = np.array([1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7])
 #: prior standard deviation of the parameters (log units): +-50 % starting errors are inside 1 sigma
@@ -223,7 +223,7 @@ class OnlineTracker:
         self.q_state = np.array(DEFAULT_Q_STATE if q_state is None else q_state, dtype=float)
         self.meas_idx = np.array([ukf.MEAS_INDEX[o] for o in self.outputs], dtype=np.int64)
         self.x_col = self.outputs.index("x") if "x" in self.outputs else -1
-        noise = {**DEFAULT_NOISE, **dict(noise or {})}
+        noise = {**NOMINAL_NOISE, **dict(noise or {})}
         for o in self.outputs:
             v = noise[o]
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):

@@ -4,7 +4,8 @@
   textbook standard errors, correlation matrix, loop timing;
 * :func:`paper_report` (``twin paper``): the cases with our error beside the paper's;
 * :func:`diagnose_report` (``twin diagnose``): nominal vs extended, gains with
-  their intervals, corrected p-values, the verdict;
+  their intervals, corrected p-values, the verdict; :func:`write_diagnosis` writes it
+  with its plots and JSON files (``twin diagnose --report DIR``);
 * :func:`track_report` (``twin track``): parameter trends with band and 95 %
   interval, alarms, statuses.
 
@@ -33,6 +34,12 @@ def diagnose_report(*args, **kw):
     return f(*args, **kw)
 
 
+def write_diagnosis(*args, **kw):
+    from twin.reports.diagnose import write_diagnosis as f
+
+    return f(*args, **kw)
+
+
 def track_report(*args, **kw):
     from twin.reports.track import track_report as f
 
@@ -45,4 +52,4 @@ def track_summary(*args, **kw):
     return f(*args, **kw)
 
 
-__all__ = ["fit_report", "paper_report", "diagnose_report", "track_report", "track_summary"]
+__all__ = ["fit_report", "paper_report", "diagnose_report", "write_diagnosis", "track_report", "track_summary"]

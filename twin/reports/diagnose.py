@@ -261,3 +261,18 @@ def _screen_figure(screen, alpha: float):
         ax.legend(loc="lower right")
         fig.tight_layout()
     return fig
+
+
+def write_diagnosis(diagnosis: Any, out_dir: str) -> str:
+    """The whole report of ``twin diagnose --report DIR``: the plots, the extended model
+    (``extended_params.json``, for ``twin fit``/``track --params``), the diagnosis as JSON and the HTML page;
+    returns the page's path."""
+    import os
+
+    from fpdd import jsonio
+    from twin.reports.plots import diagnosis_plots
+
+    diagnosis.plots = diagnosis_plots(diagnosis, out_dir)
+    jsonio.write(os.path.join(out_dir, "extended_params.json"), diagnosis.extended_params())
+    jsonio.write(os.path.join(out_dir, "diagnosis.json"), diagnosis.to_dict())
+    return diagnose_report(diagnosis, out_dir)

@@ -168,8 +168,8 @@ def _binned(x: np.ndarray, y: np.ndarray, n: int = 30) -> tuple[np.ndarray, np.n
 
 def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     """PNG plots of a diagnosis in ``out_dir`` (matplotlib Agg); returns the paths."""
-    from twin.estimation.diagnose import (CONTROLLER_RATE, DEFAULT_NOISE, FORCE_EFFECTS, SIGNATURE_AXIS,
-                                          TIMING_EFFECTS, UNITS)
+    from fpdd.units import NOMINAL_NOISE, SIGNAL_UNITS
+    from twin.estimation.diagnose import CONTROLLER_RATE, FORCE_EFFECTS, SIGNATURE_AXIS, TIMING_EFFECTS
     import matplotlib
 
     matplotlib.use("Agg")
@@ -193,7 +193,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
         ax.plot(t[sl], nom[o][sl], color="C0", lw=0.9, label="nominal")
         if diag.causes:
             ax.plot(t[sl], fin[o][sl], color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
-        ax.set_ylabel(f"{o} [{UNITS.get(o, '-')}]")
+        ax.set_ylabel(f"{o} [{SIGNAL_UNITS.get(o, '-')}]")
     axes[0, 0].legend(fontsize=7, ncol=3)
     axes[0, 0].set_title("Held-out part: measured vs nominal vs extended")
     axes[-1, 0].set_xlabel("t [s]")
@@ -209,7 +209,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
         if diag.causes:
             ax.plot(t, rec[o] - fin[o], color="C3", lw=0.6, label="extended")
         ax.axvline(t[n_fit], color="k", lw=0.8, ls=":")
-        ax.set_ylabel(f"residual {o} [{UNITS.get(o, '-')}]")
+        ax.set_ylabel(f"residual {o} [{SIGNAL_UNITS.get(o, '-')}]")
     axes[0, 0].legend(fontsize=7)
     axes[0, 0].set_title("Residuals before and after (dotted: start of the held-out part)")
     axes[-1, 0].set_xlabel("t [s]")
@@ -232,12 +232,12 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
         var = SIGNATURE_AXIS.get(c, "velocity")
         xv = reg.get(var, reg["velocity"])
         # (residual before, the effect's contribution, noise level) per signal shown
-        shown = {o: (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0)) for o in outs}
+        shown = {o: (rec[o] - before[o], after[o] - before[o], NOMINAL_NOISE.get(o, 1.0)) for o in outs}
         if {"pA", "pB"} <= set(outs):
             area = diag.final.params["A"]
             dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
             shown["force [N]"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
-                                  area * math.sqrt(2.0) * DEFAULT_NOISE["pA"])
+                                  area * math.sqrt(2.0) * NOMINAL_NOISE["pA"])
         if c in FORCE_EFFECTS and "force [N]" in shown:
             o = "force [N]"
         else:

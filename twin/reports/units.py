@@ -11,15 +11,15 @@ from __future__ import annotations
 import functools
 import math
 
-#: signal -> (display unit, factor from SI): the unit people read a rig's signals in (a factor only: the oil
-#: temperature stays in kelvin here, as a degree Celsius needs an offset)
-SIGNALS: dict[str, tuple[str, float]] = {
-    "x": ("mm", 1e3), "x_ref": ("mm", 1e3), "y": ("mm", 1e3), "u": ("V", 1.0),
-    "pA": ("MPa", 1e-6), "pB": ("MPa", 1e-6), "pP": ("MPa", 1e-6), "T_oil": ("K", 1.0),
-    "force": ("N", 1.0), "v": ("mm/s", 1e3),
-}
+from fpdd.units import SIGNALS as _SIGNAL_SPECS
+from fpdd.units import display
+
+#: signal -> (display unit, factor from SI): the unit people read a rig's signals in (:data:`fpdd.units.DISPLAY`,
+#: a factor only: the oil temperature stays in kelvin, as a degree Celsius needs an offset)
+SIGNALS: dict[str, tuple[str, float]] = {**{n: s.display for n, s in _SIGNAL_SPECS.items()},
+                                         "force": display("N"), "v": display("m/s")}
 #: the model's own input of the oscillator is a force (``u`` in N), not a voltage
-SIGNALS_BY_MODEL: dict[str, dict[str, tuple[str, float]]] = {"oscillator": {"u": ("N", 1.0)}}
+SIGNALS_BY_MODEL: dict[str, dict[str, tuple[str, float]]] = {"oscillator": {"u": display("N")}}
 
 DIMENSIONLESS = ("1", "", "-", None)
 

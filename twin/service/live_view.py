@@ -145,7 +145,7 @@ def signals_to_json(rig: str, samples) -> bytes:
     """A block of samples as the service puts it on :func:`signals_key`: ``{"rig", "t_ns": [...], "signals":
     {name: [...]}, "units": {name: SI unit}}`` (SI; a non-finite sample is ``null``)."""
     from fpdd import jsonio
-    from twin.units import SIGNAL_UNITS
+    from fpdd.units import SIGNAL_UNITS
 
     return jsonio.compact({"rig": rig, "t_ns": [int(t) for t in samples.t_ns],
                            "signals": {k: v.tolist() for k, v in samples.signals.items()},
