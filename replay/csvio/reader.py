@@ -1,4 +1,4 @@
-"""CSV files: one header row naming the signals, one row per sample.
+"""Reading CSV files (:class:`CsvSource`): one header row naming the signals, one row per sample.
 
 Layout::
 
@@ -49,217 +49,30 @@ from __future__ import annotations
 import dataclasses
 import gzip
 import os
-import re
-import shlex
 import warnings
 from zlib import error as zlib_error
 from collections import Counter
 from typing import IO
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from fpdd.units import SIGNALS, UNITS, SignalSpec, si_unit, to_si
-from replay.base import Problem, ReadReport, Samples, Sink, Source
+from fpdd.units import SIGNALS, UNITS, to_si
+from replay.base import Problem, ReadReport, Samples, Source
 from replay.quality import ACCEPTED_RATE_HZ, QualityGate, QualityOptions, add_skips, require_signals
 from fpdd.errors import DataError, LogFormatError, SourceError
-
-#: Name of the time column (seconds).
-TIME_COLUMN = "t"
-
-ColumnMap = Mapping[str, "str | tuple[str, str]"]
+from replay.csvio.columns import (MAP_SYNTAX, MAX_COLUMNS, TIME_COLUMN, ColumnMap, expected_columns, parse_mapping,
+                                  show_columns, sniff_text, split_unit, suggest_map)
 
 #: Sample rates a rig record plausibly has (Hz); a time column outside is taken as a wrong unit.
 PLAUSIBLE_RATE_HZ = (10.0, 200.0e3)
 _TIME_UNITS = ("ms", "us", "ns")
 _SNIFF_BYTES = 1 << 16
-MAP_SYNTAX = "--map NAME=COLUMN[:UNIT]"
-#: Bounds of what is parsed at all: a header of more columns, or a line longer than this, is refused
-#: (a rig record has tens of columns; a row of them is well under a kilobyte).
-MAX_COLUMNS = 4096
+#: Bounds of what is parsed at all: a line longer than this is refused (a row of tens of columns is well
+#: under a kilobyte); :data:`~replay.csvio.columns.MAX_COLUMNS` bounds the header.
 MAX_LINE_CHARS = 1 << 20
 _MAX_T_S = 9.2e9  # what int64 nanoseconds hold, in seconds
 _CUT = "\x01"  # marks the last line of a file that ends without a line end
-_UNIT_IN_NAME = re.compile(r"^(?P<name>.*?)\s*[\[(](?P<unit>[^\[\]()]*)[\])]\s*$")
-
-
-def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str, str | tuple[str, str]]:
-    """Parse command-line column mappings ``NAME=COLUMN[:UNIT]`` into a CSV ``mapping``.
-
-    ``["x=pos_mm:mm", "pA=p_a", "t=time:ms"]`` -> ``{"pos_mm": ("x", "mm"), "p_a": "pA",
-    "time": ("t", "ms")}`` (foreign column -> signal name or (signal, unit), the form
-    :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`fpdd.units.SIGNALS`, ``t``
-    for the time column, or an extra signal's name; ``UNIT`` is the unit the column is in
-    (:data:`fpdd.units.UNITS`).  Every command that reads a record calls this for its
-    ``--map`` option.  Raises :class:`~fpdd.errors.DataError` naming the item and the
-    expected syntax (a swapped ``COLUMN=NAME`` is recognised and the right order suggested).
-    """
-
-    out: dict[str, str | tuple[str, str]] = {}
-    names: dict[str, str] = {}
-    for item in items or ():
-        name, sep, target = str(item).partition("=")
-        name, target = name.strip(), target.strip()
-        column, colon, unit = target.rpartition(":") if ":" in target else (target, "", "")
-        column, unit = column.strip(), unit.strip()
-        if not sep or not name or not column or (colon and not unit):
-            raise DataError(f"{option} {item!r}: expected {option} NAME=COLUMN[:UNIT], e.g. "
-                            f"{option} x=pos_mm:mm (signal x is the column pos_mm, in mm)")
-        known_name = name == TIME_COLUMN or name in SIGNALS
-        if not known_name and (column == TIME_COLUMN or column in SIGNALS):
-            swapped = f"{column}={name}" + (f":{unit}" if unit else "")
-            raise DataError(f"{option} {item!r}: {name!r} is not a signal name but {column!r} is; the syntax is "
-                            f"NAME=COLUMN[:UNIT]: did you mean {option} {swapped}?")
-        if unit and unit not in UNITS:
-            raise DataError(f"{option} {item!r}: unknown unit {unit!r}; known units: {', '.join(UNITS)}")
-        if name in names:
-            raise DataError(f"{option} {item!r}: signal {name!r} is already mapped to column {names[name]!r}")
-        if column in out:
-            raise DataError(f"{option} {item!r}: column {column!r} is already mapped")
-        names[name] = column
-        out[column] = (name, unit) if unit else name
-    return out
-
-
-def _parse_mapping(file: str, mapping: ColumnMap | None,
-                   specs: Mapping[str, SignalSpec] | None = None) -> dict[str, tuple[str, str | None]]:
-    """Normalise ``mapping`` to ``{foreign column: (signal, unit or None)}`` and check units.
-
-    A unit must be dimensionally compatible with the signal (``specs``, default
-    :data:`~fpdd.units.SIGNALS`): ``x`` takes mm, not bar; a generic signal (the
-    oscillator's ``y``) takes any unit.
-    """
-    specs = SIGNALS if specs is None else specs
-    out: dict[str, tuple[str, str | None]] = {}
-    for column, target in (mapping or {}).items():
-        if isinstance(target, str):
-            out[column] = (target, None)
-            continue
-        try:
-            name, unit = target
-        except (TypeError, ValueError):
-            raise DataError(f"{file}: mapping for column {column!r} is {target!r}, "
-                            "expected a signal name or a (signal, unit) pair") from None
-        si = si_unit(unit, what=f"{file}: mapping for column {column!r}")
-        spec = specs.get(name) or SIGNALS.get(name)
-        if name == TIME_COLUMN:
-            ok, expected = si == "s", "s"
-        elif spec is not None:
-            ok = spec.takes(si)
-            expected = " or ".join((spec.unit, *(a for a in spec.accepts if a != "*")))
-        else:
-            ok, expected = True, si
-        if not ok:
-            raise DataError(f"{file}: mapping {column!r} -> ({name!r}, {unit!r}): {unit} converts to {si}, "
-                            f"but {name!r} is in {expected}")
-        out[column] = (name, unit)
-    return out
-
-
-def _expected_columns() -> str:
-    return ", ".join(f"{k} ({v.unit})" for k, v in SIGNALS.items())
-
-
-def sniff_text(path: str, head: bytes, what: str = "CSV") -> str:
-    """The encoding to read ``path`` with, from its first bytes; LogFormatError for what is not text.
-
-    UTF-8 (with or without BOM) and ASCII are read; UTF-16/32, binary data (NUL bytes)
-    and bytes that are not UTF-8 in the header line are refused with the byte offset.
-    """
-    for bom, name in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
-                      (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16")):
-        if head.startswith(bom):
-            raise LogFormatError(f"{path}: {name} encoded text (byte order mark {bom.hex(' ')}); expected a UTF-8 "
-                                 f"or ASCII {what} file: convert it, e.g. iconv -f {name} -t UTF-8 IN > OUT")
-    nul = head.find(b"\x00")
-    if nul >= 0:
-        even = head[0:64:2].count(0) + head[1:64:2].count(0)
-        kind = ("UTF-16 encoded text without byte order mark" if even >= 8 and len(set(head[1:64:2])) <= 2
-                else "binary data")
-        raise LogFormatError(f"{path}: {kind} (NUL byte at offset {nul}); expected a UTF-8 or ASCII {what} file")
-    if head.startswith(b"\xef\xbb\xbf"):
-        return "utf-8-sig"
-    first_line = head.split(b"\n", 1)[0]
-    try:
-        head.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        # a cut multi-byte character at the end of the sniffed bytes is fine
-        bad_at = exc.start
-        cut = bad_at >= len(head) - 4 and exc.reason == "unexpected end of data"
-        n_bad = sum(1 for b in head if b >= 0x80) if not cut else 0
-        if not cut and (bad_at <= len(first_line) or n_bad > max(16, len(head) // 100)):
-            line = head[:bad_at].count(b"\n") + 1
-            raise LogFormatError(f"{path}: not UTF-8 text: byte 0x{head[bad_at]:02x} at offset {bad_at} (line {line}) "
-                                 f"cannot be decoded; expected a UTF-8 or ASCII {what} file") from None
-    return "utf-8"
-
-
-#: Words in a foreign column's name that say which signal it is (lower case; matched per word).
-_SYNONYMS: dict[str, tuple[str, ...]] = {
-    TIME_COLUMN: ("t", "time", "timestamp", "zeit", "sec", "secs", "seconds", "elapsed", "timems", "time_ms"),
-    "x_ref": ("ref", "xref", "demand", "dem", "setpoint", "sp", "cmd", "command", "target", "soll", "desired"),
-    "x": ("x", "pos", "position", "disp", "displacement", "lvdt", "stroke", "ist", "actual"),
-    "u": ("u", "valve", "servo", "sv", "drive", "volt", "voltage", "spool"),
-    "pA": ("pa", "pressa", "p1"),
-    "pB": ("pb", "pressb", "p2"),
-    "F": ("f", "force", "load", "loadcell"),
-    "T_oil": ("temp", "temperature", "toil", "oil"),
-    "pP": ("ps", "pp", "supply", "psupply"),
-    "y": ("y", "out", "output"),
-}
-_UNIT_WORDS: dict[str, str] = {u.lower(): u for u in UNITS} | {"c": "degC", "degc": "degC", "sec": "s"}
-
-
-def split_unit(column: str) -> tuple[str, str | None]:
-    """``"x[mm]"``, ``"x (mm)"`` -> ``("x", "mm")``: a column name and the unit written in it, if any.
-
-    Only a unit of :data:`fpdd.units.UNITS` counts; ``"pos[furlong]"`` -> ``("pos[furlong]", None)``.
-    """
-    m = _UNIT_IN_NAME.match(column)
-    if m:
-        unit = _UNIT_WORDS.get(m.group("unit").strip().lower())
-        if unit is not None and m.group("name").strip():
-            return m.group("name").strip(), unit
-    return column, None
-
-
-def _guess(column: str) -> tuple[str | None, str | None]:
-    """(signal, unit) a foreign column name suggests, e.g. ``"pos_mm"`` -> ``("x", "mm")``."""
-    stem, unit = split_unit(column)
-    words = [w for w in re.split(r"[^0-9a-zA-Z]+", stem.lower()) if w]
-    if unit is None and len(words) > 1 and words[-1] in _UNIT_WORDS:
-        unit = _UNIT_WORDS[words[-1]]
-        words = words[:-1]
-    si = UNITS[unit][2] if unit else None
-    joined = "".join(words)
-    for name, syn in _SYNONYMS.items():
-        if joined in syn or any(w in syn for w in words):
-            want = "s" if name == TIME_COLUMN else SIGNALS[name].unit
-            if si is None or si == want or (name != TIME_COLUMN and SIGNALS[name].takes(si)):
-                return name, unit
-    if si == "s":
-        return TIME_COLUMN, unit
-    return None, unit
-
-
-def suggest_map(columns: Sequence[str], needed: Sequence[str]) -> str:
-    """``--map`` items that map foreign ``columns`` onto the ``needed`` names, from the words and units
-    in the column names (``time_ms`` -> ``t=time_ms:ms``, ``dem_mm`` -> ``x_ref=dem_mm:mm``);
-    "" when no column name says what it is.  A column is suggested for one name only."""
-    out: list[str] = []
-    taken: set[str] = set()
-    for column in columns[:MAX_COLUMNS]:
-        name, unit = _guess(column)
-        if name is None or name in taken or name not in needed:
-            continue
-        taken.add(name)
-        out.append("--map " + shlex.quote(f"{name}={column}" + (f":{unit}" if unit else "")))
-    return " ".join(out)
-
-
-def _show_columns(columns: Sequence[str], limit: int = 12) -> str:
-    shown = ", ".join(repr(c[:40] + ("..." if len(c) > 40 else "")) for c in columns[:limit])
-    return shown + (f", ... ({len(columns)} columns)" if len(columns) > limit else "")
 
 
 class CsvSource(Source):
@@ -286,7 +99,7 @@ class CsvSource(Source):
             options = dataclasses.replace(options, required=tuple(required))
         self._options = options
         self._dt_ns = self._sample_period(rate_hz, dt_s)
-        mapped = _parse_mapping(self.path, mapping, options.specs)
+        mapped = parse_mapping(self.path, mapping, options.specs)
         gz = self.path.lower().endswith(".gz")
         try:
             with (gzip.open(self.path, "rb") if gz else open(self.path, "rb")) as raw:
@@ -348,7 +161,7 @@ class CsvSource(Source):
             else:
                 name, unit = split_unit(col)
                 if unit is not None and (name == TIME_COLUMN or name in SIGNALS):
-                    _parse_mapping(self.path, {col: (name, unit)}, self._options.specs)  # the unit fits
+                    parse_mapping(self.path, {col: (name, unit)}, self._options.specs)  # the unit fits
                 else:
                     name, unit = col, None
             names.append(name)
@@ -358,12 +171,12 @@ class CsvSource(Source):
         if unused:
             raise DataError(f"{self.path}: line {self._header_line}: mapped column(s) "
                             f"{', '.join(repr(c) for c in unused)} not in the header; the file has "
-                            f"{_show_columns(columns)}")
+                            f"{show_columns(columns)}")
         counts = Counter(names)
         dup = sorted(n for n, k in counts.items() if k > 1)
         if dup:
             raise LogFormatError(f"{self.path}: line {self._header_line}: column(s) {', '.join(dup[:8])} "
-                                 f"appear more than once (after mapping) in the header ({_show_columns(columns)})")
+                                 f"appear more than once (after mapping) in the header ({show_columns(columns)})")
         specs = self._options.specs if self._options.specs is not None else SIGNALS
         has_time = TIME_COLUMN in counts
         has_signal = any(n in specs or n in SIGNALS for n in counts if n != TIME_COLUMN)
@@ -372,7 +185,7 @@ class CsvSource(Source):
                             f"{columns[names.index(TIME_COLUMN)]!r}; a sample rate (--rate/--dt) is for a file "
                             "without one: drop the rate, or read the times")
         if not has_signal or (not has_time and self._dt_ns is None):
-            found = _show_columns(columns)
+            found = show_columns(columns)
             lacks = " and ".join(w for w, ok in ((f"no time column {TIME_COLUMN!r} (s)", has_time),
                                                  ("no column that is a known signal", has_signal)) if not ok)
             foreign = [c for c, n in zip(columns, names) if n == c and c not in (TIME_COLUMN, *SIGNALS)]
@@ -382,7 +195,7 @@ class CsvSource(Source):
             if not has_time:
                 advice.append("a file without a time column needs its sample rate: --rate HZ (or --dt S)")
             raise DataError(f"{self.path}: line {self._header_line}: {lacks}; found columns {found}; needed: the "
-                            f"time {TIME_COLUMN!r} (s) or a sample rate, and any of {_expected_columns()}; "
+                            f"time {TIME_COLUMN!r} (s) or a sample rate, and any of {expected_columns()}; "
                             + "; ".join(advice))
         self._names = names
         self._units = units
@@ -395,13 +208,13 @@ class CsvSource(Source):
         skipped = [c for j, c in enumerate(columns) if j not in used]
         if skipped:
             self.report.problems.append(Problem(
-                self.path, "header", f"column(s) {_show_columns(skipped, 8)} not read: neither a known signal nor "
+                self.path, "header", f"column(s) {show_columns(skipped, 8)} not read: neither a known signal nor "
                 f"mapped (map them with {MAP_SYNTAX} to read them)"))
         extra = [columns[j] for j in self._use if names[j] not in known and columns[j] not in mapped]
         if extra:
             hint = suggest_map(extra, [n for n in (TIME_COLUMN, *SIGNALS) if n not in counts])
             self.report.problems.append(Problem(
-                self.path, "header", f"column(s) {_show_columns(extra, 8)} not understood: no known signal "
+                self.path, "header", f"column(s) {show_columns(extra, 8)} not understood: no known signal "
                 f"(kept as extra signals, unchecked; map them with {MAP_SYNTAX}"
                 + (f", e.g. {hint})" if hint else ")")))
         self._t_pos = self._use.index(self._t_col) if self._t_col is not None else None
@@ -701,7 +514,7 @@ class CsvSource(Source):
                 continue
             if text == "\0":
                 self.report.skip("bad_row", where, f"line longer than {MAX_LINE_CHARS} characters, expected "
-                                 f"{ncol} fields ({_show_columns(self._columns, 6)})")
+                                 f"{ncol} fields ({show_columns(self._columns, 6)})")
                 continue
             fields = text.split(self._delimiter, ncol + 1)
             if len(fields) > ncol and not "".join(fields[ncol:]).strip():
@@ -709,7 +522,7 @@ class CsvSource(Source):
             if len(fields) != ncol:
                 count = text.count(self._delimiter) + 1
                 self.report.skip("bad_row", where, f"{count} fields, expected {ncol} "
-                                 f"({','.join(self._columns) if ncol <= 12 else _show_columns(self._columns, 6)})")
+                                 f"({','.join(self._columns) if ncol <= 12 else show_columns(self._columns, 6)})")
                 continue
             fields = [fields[j].strip().strip('"') for j in self._use]
             try:
@@ -728,62 +541,3 @@ class CsvSource(Source):
         table = np.array(rows, dtype=np.float64).reshape(len(rows), len(self._use))
         return table, np.array(labels, dtype=np.int64), np.array(index, dtype=np.int64)
 
-
-def format_t_s(t_ns: np.ndarray) -> list[str]:
-    """Exact decimal seconds ``"s.nnnnnnnnn"`` for integer nanoseconds (negative times too)."""
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    sign = np.where(t_ns < 0, "-", "")
-    mag = np.abs(t_ns)
-    sec = (mag // 1_000_000_000).tolist()
-    frac = (mag % 1_000_000_000).tolist()
-    return [f"{s}{a}.{b:09d}" for s, a, b in zip(sign.tolist(), sec, frac)]
-
-
-class CsvSink(Sink):
-    """Write samples as CSV: header ``t,<signals>``; ``t`` in exact decimal seconds, values
-    in SI with the shortest repr that reads back to the same float64 (``nan``/``inf`` as is).
-
-    ``signals``: column order; default: the signals of the first block written.  Every
-    block must carry these signals.  The file is flushed after each :meth:`write`.  A path
-    ending in ``.gz`` is written through gzip.
-    """
-
-    def __init__(self, path: str | os.PathLike, signals: Sequence[str] | None = None) -> None:
-        self.path = str(path)
-        self._signals: tuple[str, ...] | None = tuple(signals) if signals is not None else None
-        try:
-            self._file: IO[str] = (gzip.open(self.path, "wt", encoding="utf-8", newline="")
-                                   if self.path.lower().endswith(".gz") else
-                                   open(self.path, "w", encoding="utf-8", newline=""))
-        except OSError as exc:
-            raise SourceError(f"{self.path}: cannot create CSV file: {exc.strerror or exc}") from exc
-        self._header_written = False
-
-    def write(self, samples: Samples) -> None:
-        if self._signals is None:
-            self._signals = samples.names
-        missing = [s for s in self._signals if s not in samples.signals]
-        if missing:
-            raise DataError(f"{self.path}: block to write lacks signal(s) {missing}; "
-                            f"the file's columns are {list(self._signals)}")
-        if TIME_COLUMN in self._signals:
-            raise DataError(f"{self.path}: a signal may not be named {TIME_COLUMN!r} (the time column)")
-        if not self._header_written:
-            self._file.write(",".join((TIME_COLUMN, *self._signals)) + "\n")
-            self._header_written = True
-        if not len(samples):
-            return
-        cols = [format_t_s(samples.t_ns)] + [list(map(repr, samples.signals[k].tolist()))
-                                              for k in self._signals]
-        self._file.write("\n".join(map(",".join, zip(*cols))) + "\n")
-        self._file.flush()
-
-    def close(self) -> None:
-        if not self._file.closed:
-            if not self._header_written and self._signals is not None:
-                self._file.write(",".join((TIME_COLUMN, *self._signals)) + "\n")
-            self._file.close()
-
-
-__all__ = ["CsvSource", "CsvSink", "TIME_COLUMN", "format_t_s", "parse_map", "sniff_text", "split_unit", "suggest_map",
-           "MAP_SYNTAX"]
