@@ -1,0 +1,104 @@
+"""Service status (:class:`StatusEvent`): the life-cycle state of the twin serving one rig, its parameters', sensors'
+and filter's health."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, ClassVar
+
+from fpdd.errors import DataError
+from twin.online.events.schema import (INT64_MAX, NAME_PATTERN, RIG_PATTERN, SENSOR_STATES, SERVICE_STATES,
+                                       STATUS_PATTERN, FromJson, check)
+
+
+_STATUS_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "fpdd-twin/status-event.schema.json",
+    "title": "StatusEvent",
+    "description": "Health of the twin serving one rig (key fpdd/<rig>/status).",
+    "type": "object",
+    "required": ["rig", "t_ns", "state", "parameters", "counters", "message", "sensors", "consistency"],
+    "properties": {
+        "rig": {"type": "string", "pattern": RIG_PATTERN},
+        "t_ns": {"type": "integer", "minimum": 0, "maximum": INT64_MAX, "description": "ingest time [ns]"},
+        "state": {"type": "string", "enum": list(SERVICE_STATES)},
+        "parameters": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "string", "pattern": STATUS_PATTERN},
+            "description": "parameter name -> status: ok, frozen (not excited), unresolved (not identifiable from recent data), warning, alarm",
+        },
+        "counters": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "integer", "minimum": 0, "maximum": INT64_MAX},
+            "description": "non-negative counters: samples, alarms, gated, repaired_covariance, bad_blocks, source_errors, ...; 'alarm_seq' is the last journaled alarm seq; gauges 'lag_ms' (how far behind real time) and 'stale_ms' (how long without input)",
+        },
+        "message": {"type": "string"},
+        "sensors": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "string", "enum": list(SENSOR_STATES)},
+            "description": "measured signal -> sensor status: ok, noisy, stuck, clipped, offset, wrong_unit, "
+                           "missing (a faulty signal is left out of the filter and parameter alarms are held)",
+        },
+        "consistency": {
+            "type": "string",
+            "description": "the filter's consistency with the data: 'consistent', or why not (the drift test "
+                           "holds its evidence meanwhile)",
+        },
+    },
+}
+
+
+@dataclass(frozen=True, slots=True)
+class StatusEvent(FromJson):
+    """Health of the twin serving one rig.
+
+    :ivar rig: rig id.
+    :ivar t_ns: ingest time [ns].
+    :ivar state: one of :data:`SERVICE_STATES`.
+    :ivar parameters: parameter name -> status word (``ok``, ``frozen``,
+        ``unresolved``, ``warning``, ``alarm``), read-only.
+    :ivar counters: counter name -> non-negative int, read-only. The key
+        ``alarm_seq`` (last journaled alarm of the rig) is filled in by
+        :meth:`twin.service.bus.TwinPublisher.publish_status`; subscribers use it to
+        notice a lost last alarm.
+    :ivar message: one human-readable line.
+    :ivar sensors: measured signal -> sensor status (:data:`SENSOR_STATES`).
+    :ivar consistency: ``consistent`` or why the filter is not consistent with the data.
+    """
+
+    rig: str
+    t_ns: int
+    state: str
+    parameters: Mapping[str, str] = field(default_factory=dict)
+    counters: Mapping[str, int] = field(default_factory=dict)
+    message: str = ""
+    sensors: Mapping[str, str] = field(default_factory=dict)
+    consistency: str = "consistent"
+
+    SCHEMA: ClassVar[dict[str, Any]] = _STATUS_SCHEMA
+
+    def __post_init__(self) -> None:
+        for name in ("parameters", "counters", "sensors"):
+            value = getattr(self, name)
+            if not isinstance(value, Mapping):
+                raise DataError(f"StatusEvent.{name}: {value!r} must be an object")
+            object.__setattr__(self, name, MappingProxyType(dict(value)))
+        check("StatusEvent", self.SCHEMA, self.to_dict())
+
+    def to_dict(self) -> dict[str, Any]:
+        """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/status``)."""
+        return {
+            "rig": self.rig,
+            "t_ns": self.t_ns,
+            "state": self.state,
+            "parameters": dict(self.parameters),
+            "counters": dict(self.counters),
+            "message": self.message,
+            "sensors": dict(self.sensors),
+            "consistency": self.consistency,
+        }
