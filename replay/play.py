@@ -191,9 +191,9 @@ def cmd_play(args: argparse.Namespace) -> int:
         args.parser.error(str(exc))
     with open_source(args.log, **options) as src, _open_sink(args) as sink:
         if args.to == "zenoh" and args.wait_s > 0:
-            from replay.live import _ZenohPublisher
+            from replay.live.sinks import ZenohPublisher
 
-            assert isinstance(sink, _ZenohPublisher)  # what _open_sink makes for --to zenoh
+            assert isinstance(sink, ZenohPublisher)  # what _open_sink makes for --to zenoh
             sink.wait_for_subscriber(args.wait_s)
         stats = play(src, sink, args.speed, progress=None if args.quiet else _print_progress(0.0))
         if not args.quiet:

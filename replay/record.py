@@ -177,7 +177,8 @@ def _zenoh_to_can_log(uri: str, out: str, until: _Until, poll_s: float, conf, se
     import zenoh
 
     from replay.can.encode import frames_to_messages
-    from replay.live import PayloadError, _open_session, parse_zenoh_uri, payload_to_frames
+    from replay.live.payloads import PayloadError, payload_to_frames
+    from replay.live.sinks import open_live_session, parse_zenoh_uri
 
     key = parse_zenoh_uri(uri)
     writer = _can_log_writer(out)
@@ -194,7 +195,7 @@ def _zenoh_to_can_log(uri: str, out: str, until: _Until, poll_s: float, conf, se
 
     owned = session is None
     try:
-        sess = session if session is not None else _open_session(conf, uri)
+        sess = session if session is not None else open_live_session(conf, uri)
     except Exception:
         writer.stop()
         os.unlink(out)

@@ -1,7 +1,7 @@
 """A live CAN bus (any python-can interface) as a sample source, and samples onto a bus: ``can://INTERFACE/CHANNEL``.
 
 Frames are decoded and aligned exactly as a CAN log's (:mod:`replay.can.decode`); what the live sources share
-(drop counting, rate-limited logging, staleness) is :class:`replay.live._Live`."""
+(drop counting, rate-limited logging, staleness) is :class:`replay.live.watch.Live`."""
 
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ from replay.can.codec import FrameCollector, Frames, VectorCodec
 from replay.can.decode import BLOCK_FRAMES, CanStream, make_plan, probe_plan, split_block
 from replay.can.encode import FrameScheduler, frames_to_messages
 from fpdd.errors import DataError, SourceError, TwinError
-from replay.live import MAX_FRAMES_PER_S, _Live
+from replay.live.payloads import MAX_FRAMES_PER_S
+from replay.live.watch import Live
 from replay.quality import require_signals
 
 
@@ -60,7 +61,7 @@ def open_bus(uri_or_bus: str | can.BusABC, **kwargs) -> tuple[can.BusABC, bool]:
         raise SourceError(f"{uri_or_bus}: cannot open CAN bus: {type(e).__name__}: {e}{hint}") from e
 
 
-class CanBusSource(_Live, Source):
+class CanBusSource(Live, Source):
     """Rig samples decoded live from a python-can bus.
 
     :param bus: ``can://INTERFACE/CHANNEL`` or an open :class:`can.BusABC` (then not shut down here).
