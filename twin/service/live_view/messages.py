@@ -1,0 +1,127 @@
+"""The live view's channels: one JSON topic per kind of message, each with its schema, and the messages on them.
+
+:class:`LiveView` serves the Foxglove WebSocket protocol (loopback ``127.0.0.1``
+by default) under both subprotocol names: ``foxglove.websocket.v1`` (the
+documented one, which Foxglove and most clients offer) and ``foxglove.sdk.v1``
+(the name ``foxglove-sdk`` >= 0.30 servers answer to).  The SDK's server runs
+on an internal loopback port; a small WebSocket front on the public port
+accepts either name and relays the frames unchanged.  One JSON channel per
+kind of message, each with its JSON schema:
+
+* ``/rig/signals`` (``fpdd.live.Signals``): the rig's signals, decimated to
+  ``signal_rate_hz``, in display units named in the field (``x_mm``,
+  ``x_ref_mm``, ``u_V``, ``pA_MPa``, ``pB_MPa``: whatever the rig logs).
+* ``/twin/estimate`` (``EstimateEvent``): the very message the twin puts on
+  Zenoh and in its MCAP (:class:`twin.online.events.EstimateEvent`, SI with the
+  unit beside each parameter: ``value``, ``std``, ``lo95``/``hi95``, ``band_lo``/
+  ``band_hi``, ``baseline``; the same in the display unit under ``display``, which the layout's
+  plots read), plus the Foxglove ``timestamp``.
+* ``/twin/status`` (``StatusEvent``): service state, per-parameter status words, counters, message, as on
+  Zenoh and in the MCAP.
+* ``/twin/forecast`` (``fpdd.Forecast``): when each parameter leaves its band, as on Zenoh
+  (``fpdd/<rig>/forecast``) and in the MCAP: per parameter the median exit time and its 90 % interval (record
+  seconds) and the remaining time (``remaining_s``, ``remaining_lo_s``, ``remaining_hi_s``), SI with ``units``.
+* ``/twin/alarm`` (``AlarmEvent``): every alarm event as on Zenoh and in the MCAP (SI, unit beside, the
+  record's ``t_ns`` and the wall-clock ``wall_ns``).
+* ``/twin/alarm_log`` (``foxglove.Log``): the same alarms as the lines a person reads (display units, the
+  wall-clock time first); the Log panel lists them.
+
+Every message carries ``rig`` (several rigs share the topics; Foxglove filters
+with ``/twin/estimate{rig=="msp25-hall1-a"}``) and ``timestamp`` as Foxglove
+time ``{sec, nsec}``; its log time is the sample's ``t_ns``.  The layout
+``deploy/foxglove-layout.json`` plots each parameter's trend with its band and
+interval, the remaining time until each parameter leaves its band with its 90 % interval, the rig's
+position and pressures, and lists the alarms (open it in
+Foxglove: Layouts, Import from file; connect to ``ws://127.0.0.1:PORT``);
+``twin serve --foxglove`` writes one whose variable ``rig`` is the first rig served.
+
+Feeding it: :meth:`LiveView.signals` with sample blocks, :meth:`estimate`,
+:meth:`status`, :meth:`alarm` with the events of :mod:`twin.online.events` (or their
+dicts), :meth:`payload` with the JSON the service puts on Zenoh;
+:meth:`tee` wraps a :class:`twin.service.rig.RigTwin` publisher so everything it
+publishes is shown too; :meth:`follow` subscribes to a Zenoh session's
+``fpdd/<rig>/{estimate,status,forecast,alarm,signals}`` (any process, any number of twins;
+a service puts ``signals`` when its ``signals_hz`` is set, as ``twin serve
+--foxglove`` does).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+
+if TYPE_CHECKING:
+    pass
+
+SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
+"""The subprotocol names the live view accepts: the documented one first, then foxglove-sdk's own."""
+EXAMPLE_RIG = "msp25-hall1-a"
+"""The first rig of ``deploy/rigs.example.toml``: the shipped layout's default ``rig``."""
+
+_TIME = {"type": "object", "title": "time", "description": "Foxglove time: seconds and nanoseconds since the epoch "
+         "(of the ingest clock: a replayed log's own time)",
+         "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0,
+                                                                          "maximum": 999999999}},
+         "required": ["sec", "nsec"]}
+_NUM = {"type": "number"}
+_NUM_OR_NULL = {"type": ["number", "null"]}
+
+SIGNALS_SCHEMA: dict = {
+    "title": "fpdd.live.Signals", "type": "object",
+    "description": "Rig signals in display units (field name = signal_unit), decimated for display",
+    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "t_s": {**_NUM, "description": "s from the start"},
+                   "x_mm": _NUM, "x_ref_mm": _NUM, "u_V": _NUM, "pA_MPa": _NUM, "pB_MPa": _NUM, "y_mm": _NUM},
+    "additionalProperties": _NUM_OR_NULL, "required": ["timestamp", "rig", "t_s"],
+}
+
+
+def _event_schema(kind: str) -> dict:
+    """The schema of a twin event (``EstimateEvent``, ``StatusEvent``, ``AlarmEvent``) with the Foxglove
+    ``timestamp``: as the twin's MCAP records it."""
+    from replay.mcapio import with_time_schema
+    from twin.online import events
+
+    return dict(with_time_schema(getattr(events, kind).SCHEMA))
+
+
+ESTIMATE_SCHEMA: dict = _event_schema("EstimateEvent")
+STATUS_SCHEMA: dict = _event_schema("StatusEvent")
+ALARM_SCHEMA: dict = _event_schema("AlarmEvent")
+
+
+def _forecast_schema() -> dict:
+    from replay.mcapio import with_time_schema
+    from twin.online.forecast import FORECAST_SCHEMA
+
+    return dict(with_time_schema(FORECAST_SCHEMA))
+
+
+FORECAST_SCHEMA: dict = _forecast_schema()
+LOG_SCHEMA: dict = {
+    "title": "foxglove.Log", "type": "object",
+    "description": "Foxglove's well-known log message (the Log panel lists them): one line per alarm event",
+    "properties": {"timestamp": _TIME, "level": {"type": "integer", "minimum": 0, "maximum": 5,
+                                                 "description": "2 info (returned), 3 warning, 4 error (alarm)"},
+                   "message": {"type": "string"}, "name": {"type": "string", "description": "the rig"},
+                   "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}},
+    "required": ["timestamp", "level", "message", "name", "file", "line"],
+}
+TOPICS = {"signals": ("/rig/signals", SIGNALS_SCHEMA), "estimate": ("/twin/estimate", ESTIMATE_SCHEMA),
+          "status": ("/twin/status", STATUS_SCHEMA), "forecast": ("/twin/forecast", FORECAST_SCHEMA),
+          "alarm": ("/twin/alarm", ALARM_SCHEMA),
+          "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
+LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
+
+
+def foxglove_time(t_ns: int) -> dict:
+    """``{"sec", "nsec"}`` of integer nanoseconds."""
+    t_ns = max(0, int(t_ns))
+    return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+
+
+def estimate_message(ev) -> dict:
+    """The message of an :class:`~twin.online.events.EstimateEvent` on ``/twin/estimate``, live and in the
+    twin's MCAP alike: the event's dict (SI, unit beside each parameter, 95 % interval, band, and the same in the
+    display unit under ``display``) and its Foxglove
+    ``timestamp``."""
+    return {**ev.to_dict(), "timestamp": foxglove_time(ev.t_ns)}
