@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "3 completed but input was lost (see the warning line)")
     parser.add_argument("--version", action=_Version, nargs=0, help="show the version and exit")
     parser.add_argument("-q", "--quiet", dest="quiet_all", action="store_true",
-                        help="no progress on stderr (any command; also after it: replay play -q ...)")
+                        help="no progress on stderr (any command; also after it: replay play LOG -q ...)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     logs = ", ".join(formats.FILE_SUFFIXES)
     p = sub.add_parser("info", help="signals, duration, rates, gaps and bad records of a log",
@@ -226,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("log", metavar="LOG", help=f"log file ({logs})")
     add_input_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p = sub.add_parser("convert", help="convert a log to another format",
                        description="Read IN through the quality checks and write the kept samples to OUT; "
                                    "the formats come from the suffixes.")
@@ -233,6 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output", metavar="OUT", help=f"output file ({logs})")
     add_input_options(p)
     p.add_argument("--json", action="store_true", help="print the read report as one JSON object")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     if _play is not None:
         _play.register(sub)
     from replay import record as _record

@@ -23,6 +23,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from fpdd.argtypes import non_negative_seconds
 from replay.base import Sink, Source
 
 #: Seconds between two progress reports.
@@ -239,8 +240,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", help="Zenoh json5 config file")
-    p.add_argument("--wait-s", type=float, default=2.0,
-                   help="Zenoh: wait up to this long for a subscriber before starting (default 2)")
+    p.add_argument("--wait", "--wait-s", dest="wait_s", type=non_negative_seconds, default=2.0, metavar="S",
+                   help="Zenoh: wait up to S seconds for a subscriber before starting (default 2; as twin alarms "
+                   "--wait)")
     add_input_options(p)
     p.set_defaults(dbc=None)
     p.add_argument("--json", action="store_true", help="print the statistics and read report as JSON")

@@ -98,3 +98,30 @@ def test_replay_help_imports_no_heavy_library_nor_package_metadata(command):
                        timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout.strip().splitlines()[-1]) == [], f"replay {command} --help"
+
+
+def test_one_flag_convention_in_both_commands(tmp_path, capsys):
+    """--for (old name --timeout) runs for S seconds and --wait waits for the other side in twin alarms and
+    twin top alike; replay play waits with --wait too; -q goes after any subcommand; -o/--out names the output;
+    a Zenoh endpoint is --zenoh-connect everywhere."""
+    from replay import cli as replay_cli
+    from twin import cli as twin_cli
+
+    def parsed(command: str, *flags: str):
+        return twin_cli.build_parser([command]).parse_args([command, *flags])
+
+    for command, run_for in (("alarms", "timeout"), ("top", "duration")):
+        a = parsed(command, "--timeout", "7", "--wait", "3", "--zenoh-connect", "tcp/127.0.0.1:7447")
+        b = parsed(command, "--for", "7", "--wait", "3", "--connect", "tcp/127.0.0.1:7447")
+        assert getattr(a, run_for) == getattr(b, run_for) == 7.0 and a.wait == b.wait == 3.0, command
+        assert a.connect == b.connect == ["tcp/127.0.0.1:7447"], command
+    assert parsed("simulate", "--out", "a.csv").output == parsed("simulate", "-o", "a.csv").output == "a.csv"
+    play = replay_cli.build_parser().parse_args(["play", "x.csv", "--to", "zenoh", "--wait", "0.5", "--speed", "0"])
+    assert play.wait_s == 0.5 and play.speed == float("inf")  # --speed 0: as fast as possible, as twin demo
+    assert parsed("demo", "--speed", "0").speed == 0.0
+    log = tmp_path / "a.csv"
+    log.write_text("t,x\n" + "".join(f"{i * 1e-3!r},{i * 1e-6!r}\n" for i in range(50)))
+    for argv in (["info", str(log), "-q", "--json"], ["-q", "info", str(log), "--json"],
+                 ["convert", str(log), str(tmp_path / "b.csv"), "-q"]):
+        assert replay_cli.main(argv) == 0, argv
+    assert capsys.readouterr().err == ""

@@ -63,7 +63,7 @@ def twin_on_bus(tmp_path):
 
 def test_once_json_snapshot(twin_on_bus):
     endpoint, _ = twin_on_bus
-    r = subprocess.run([*TWIN, "top", "--connect", endpoint, "--once", "--json", "--timeout", "20"],
+    r = subprocess.run([*TWIN, "top", "--connect", endpoint, "--once", "--json", "--wait", "20"],
                        capture_output=True, text=True, timeout=WAIT_S + 30)
     assert r.returncode == 0, r.stderr
     snap = json.loads(r.stdout)
@@ -92,7 +92,7 @@ def test_live_view_in_a_terminal(twin_on_bus):
     pid, fd = pty.fork()
     if pid == 0:  # the child: twin top on the terminal
         os.environ["COLUMNS"], os.environ["LINES"] = "120", "40"
-        os.execv(sys.executable, [*TWIN, "top", "--connect", endpoint, "--timeout", "20"])
+        os.execv(sys.executable, [*TWIN, "top", "--connect", endpoint, "--wait", "20"])
     screen = ""
 
     def read_until(pattern: str) -> str:
@@ -153,7 +153,7 @@ def test_live_view_in_a_terminal(twin_on_bus):
 def test_no_twin_is_one_line_naming_the_endpoint():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with zenoh.open(zenoh_config(listen=[endpoint])):  # a router-like peer, but no twin behind it
-        r = subprocess.run([*TWIN, "top", "--connect", endpoint, "--once", "--timeout", "1"], capture_output=True,
+        r = subprocess.run([*TWIN, "top", "--connect", endpoint, "--once", "--wait", "1"], capture_output=True,
                            text=True, timeout=WAIT_S + 30)
     assert r.returncode == 2 and r.stdout == ""
     lines = r.stderr.strip().splitlines()

@@ -113,9 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--no-history", action="store_true", help="live alarms only, do not fetch the history first"
     )
     parser.add_argument(
-        "--connect", action="append", default=[], metavar="ENDPOINT",
-        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable); "
-        "without --connect or --zenoh-config, peers are discovered by multicast scouting",
+        "--zenoh-connect", "--connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable; as replay's --zenoh-connect); "
+        "without it or --zenoh-config, peers are discovered by multicast scouting",
     )
     parser.add_argument(
         "--mode", choices=("peer", "client"), default=None,
@@ -139,7 +139,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--count", type=positive_int, metavar="N", help="exit after N alarms")
     parser.add_argument(
         "--for", "--timeout", dest="timeout", type=positive_seconds, metavar="S",
-        help="exit after S seconds (default: run until stopped; as twin top --for; --timeout is the old name)"
+        help="exit after S seconds (default: run until stopped; as twin top --for, --timeout too)"
     )
     parser.add_argument(
         "--wait", type=non_negative_seconds, default=10.0, metavar="S",
@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     trust = TrustStore(args.keys) if args.keys is not None else None
     scouting = True if not args.connect and args.zenoh_config is None else None
     for e in args.connect:
-        check_endpoint(e, "--connect")
+        check_endpoint(e, "--zenoh-connect")
     config = zenoh_config(
         mode=args.mode,
         connect=args.connect,

@@ -15,7 +15,8 @@ HELP = "simulate an identification experiment and write CSV or MCAP"
 
 def add_arguments(p) -> None:
     p.add_argument("--model", default="msp25", choices=MODELS)
-    p.add_argument("-o", "--output", required=True, help="output file (.csv or .mcap)")
+    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FILE",
+                   help="output file (.csv or .mcap)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
     p.add_argument("--dt", type=float, default=1e-3, help="sample time in s (default 1e-3)")
     p.add_argument("--excitation", default=None, choices=("multisine", "chirp", "steps"))

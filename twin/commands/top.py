@@ -46,21 +46,21 @@ STATE_STYLE = {"running": "green", "finished": "blue", "degraded": "yellow", "st
 
 def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable); without --connect "
-                   "or --zenoh-config, twins are found by multicast scouting")
+    p.add_argument("--zenoh-connect", "--connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; as replay's "
+                   "--zenoh-connect); without it or --zenoh-config, twins are found by multicast scouting")
     p.add_argument("--mode", choices=("peer", "client"), default=None,
                    help="Zenoh session mode (default: the --zenoh-config file's, else peer)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
     p.add_argument("--model", default="msp25", choices=MODELS,
                    help="the rigs' model, for display units (default msp25)")
-    p.add_argument("--wait", "--timeout", dest="wait", type=positive_seconds, default=10.0, metavar="S",
+    p.add_argument("--wait", dest="wait", type=positive_seconds, default=10.0, metavar="S",
                    help="give up (exit status 2) when no twin answers within S seconds (default 10; as in "
-                   "twin alarms; --timeout is the old name)")
+                   "twin alarms)")
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--json", action="store_true", help="with --once: the snapshot as JSON")
-    p.add_argument("--for", dest="duration", type=positive_seconds, metavar="S", help="exit after S seconds (default: "
-                   "until Ctrl-C)")
+    p.add_argument("--for", "--timeout", dest="duration", type=positive_seconds, metavar="S",
+                   help="exit after S seconds (default: until Ctrl-C; as twin alarms --for, --timeout too)")
 
 
 class TopState:
@@ -274,7 +274,7 @@ def run_top(args) -> int:
     from twin.online.forecast import FORECAST_SCHEMA
 
     for e in args.connect:
-        check_endpoint(e, "--connect")
+        check_endpoint(e, "--zenoh-connect")
     if args.json and not args.once:
         from fpdd.errors import ConfigError
 
