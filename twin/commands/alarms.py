@@ -113,8 +113,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--no-history", action="store_true", help="live alarms only, do not fetch the history first"
     )
     parser.add_argument(
-        "--zenoh-connect", "--connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
-        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable; as replay's --zenoh-connect); "
+        "--connect", "--zenoh-connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tls/router.site:7447 (repeatable; --zenoh-connect too, as in replay); "
         "without it or --zenoh-config, peers are discovered by multicast scouting",
     )
     parser.add_argument(
@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     trust = TrustStore(args.keys) if args.keys is not None else None
     scouting = True if not args.connect and args.zenoh_config is None else None
     for e in args.connect:
-        check_endpoint(e, "--zenoh-connect")
+        check_endpoint(e, "--connect")
     config = zenoh_config(
         mode=args.mode,
         connect=args.connect,

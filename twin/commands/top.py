@@ -46,9 +46,9 @@ STATE_STYLE = {"running": "green", "finished": "blue", "degraded": "yellow", "st
 
 def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", default="*", help="rig id, or '*' for every rig (default)")
-    p.add_argument("--zenoh-connect", "--connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; as replay's "
-                   "--zenoh-connect); without it or --zenoh-config, twins are found by multicast scouting")
+    p.add_argument("--connect", "--zenoh-connect", dest="connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; --zenoh-connect too, "
+                   "as in replay); without it or --zenoh-config, twins are found by multicast scouting")
     p.add_argument("--mode", choices=("peer", "client"), default=None,
                    help="Zenoh session mode (default: the --zenoh-config file's, else peer)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
@@ -274,7 +274,7 @@ def run_top(args) -> int:
     from twin.online.forecast import FORECAST_SCHEMA
 
     for e in args.connect:
-        check_endpoint(e, "--zenoh-connect")
+        check_endpoint(e, "--connect")
     if args.json and not args.once:
         from fpdd.errors import ConfigError
 
