@@ -18,8 +18,6 @@ from fpdd.units import display
 #: a factor only: the oil temperature stays in kelvin, as a degree Celsius needs an offset)
 SIGNALS: dict[str, tuple[str, float]] = {**{n: s.display for n, s in _SIGNAL_SPECS.items()},
                                          "force": display("N"), "v": display("m/s")}
-#: the model's own input of the oscillator is a force (``u`` in N), not a voltage
-SIGNALS_BY_MODEL: dict[str, dict[str, tuple[str, float]]] = {"oscillator": {"u": display("N")}}
 
 DIMENSIONLESS = ("1", "", "-", None)
 
@@ -39,9 +37,12 @@ def label(name: str, unit: str | None) -> str:
 
 
 def signal_unit(name: str, model: str | None = None) -> tuple[str, float]:
-    """(display unit, factor from SI) of a logged signal (SI and factor 1 when unknown)."""
-    own = SIGNALS_BY_MODEL.get(model or "", {})
-    return own.get(name) or SIGNALS.get(name) or ("", 1.0)
+    """(display unit, factor from SI) of a logged signal of ``model``'s records (:func:`twin.record.signal_specs`:
+    the oscillator's ``u`` is a force in N); SI and factor 1 when unknown."""
+    from twin.record import signal_specs
+
+    spec = signal_specs(model or "").get(name)
+    return spec.display if spec is not None else SIGNALS.get(name, ("", 1.0))
 
 
 @functools.cache
