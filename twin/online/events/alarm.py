@@ -11,7 +11,7 @@ from fpdd.errors import DataError
 from datetime import UTC
 from twin.online.events.schema import (ALARM_KINDS, EVENT_LEVELS, INT64_MAX, NAME_PATTERN, RIG_PATTERN, FromJson,
                                        as_mapping, check, num)
-from twin.online.events.units import parameter_si_unit
+from twin.units import known_units
 
 
 # --------------------------------------------------------------------------- alarms
@@ -121,7 +121,7 @@ class AlarmEvent(FromJson):
 
     def __post_init__(self) -> None:
         if not self.unit:  # the SI unit of the parameter, named beside every value on the wire
-            object.__setattr__(self, "unit", parameter_si_unit(self.parameter))
+            object.__setattr__(self, "unit", known_units().get(self.parameter, "1"))
         data = self.to_dict()
         # seq 0 (not journaled yet) is legal in memory, never on the wire.
         check("AlarmEvent", self.SCHEMA, {**data, "seq": self.seq or 1})
@@ -164,7 +164,7 @@ class AlarmEvent(FromJson):
         journaled before wall-clock times were kept ``wall_ns=None``."""
         data = as_mapping(data, cls.__name__)
         if "unit" not in data and isinstance(data.get("parameter"), str):
-            data = {**data, "unit": parameter_si_unit(data["parameter"])}
+            data = {**data, "unit": known_units().get(data["parameter"], "1")}
         if "wall_ns" not in data:  # journaled before wall-clock times were kept: unknown
             data = {**data, "wall_ns": None}
         # slots dataclass: no zero-argument super

@@ -12,7 +12,11 @@ from typing import Any, ClassVar, Self
 from fpdd.errors import DataError
 from twin.online.events.schema import (INT64_MAX, NAME_PATTERN, RIG_PATTERN, STATUS_PATTERN, FromJson, check, num,
                                        validate)
-from twin.online.events.units import display_of, scaled
+from twin.units import display_of
+
+
+def _scaled(x: float | None, scale: float) -> float | None:
+    return None if x is None else x * scale
 
 
 _PARAM_ESTIMATE_SCHEMA: dict[str, Any] = {
@@ -138,8 +142,8 @@ class ParamEstimate:
         return {"value": self.value, "std": self.std, "lo95": lo, "hi95": hi, "band_lo": self.band_lo,
                 "band_hi": self.band_hi, "baseline": self.baseline, "unit": self.unit,
                 "display": {"unit": self.display_unit, "value": self.value * k, "lo95": lo * k, "hi95": hi * k,
-                            "band_lo": scaled(self.band_lo, k), "band_hi": scaled(self.band_hi, k),
-                            "baseline": scaled(self.baseline, k)}}
+                            "band_lo": _scaled(self.band_lo, k), "band_hi": _scaled(self.band_hi, k),
+                            "baseline": _scaled(self.baseline, k)}}
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,8 +295,8 @@ class EstimateEncoder:
         for j in self._order:
             lo, hi, base = _band((bands or {}).get(names[j]))
             k = float(ds[j][1])
-            shown = (f'"display":{{"band_hi":{_json_number(scaled(hi, k))},"band_lo":{_json_number(scaled(lo, k))},'
-                     f'"baseline":{_json_number(scaled(base, k))},"hi95":%r,"lo95":%r,"unit":{text(ds[j][0])},'
+            shown = (f'"display":{{"band_hi":{_json_number(_scaled(hi, k))},"band_lo":{_json_number(_scaled(lo, k))},'
+                     f'"baseline":{_json_number(_scaled(base, k))},"hi95":%r,"lo95":%r,"unit":{text(ds[j][0])},'
                      '"value":%r}')
             parts.append(f'{text(names[j])}:{{"band_hi":{_json_number(hi)},"band_lo":{_json_number(lo)},'
                          f'"baseline":{_json_number(base)},{shown},"hi95":%r,"lo95":%r,"std":%r,'
