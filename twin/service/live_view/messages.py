@@ -114,9 +114,11 @@ LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 
 
 def foxglove_time(t_ns: int) -> dict:
-    """``{"sec", "nsec"}`` of integer nanoseconds."""
-    t_ns = max(0, int(t_ns))
-    return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+    """``{"sec", "nsec"}`` of integer nanoseconds as the MCAP files carry it (:func:`replay.mcapio.foxglove_time`),
+    a time before 0 shown at 0 (the live view's time has no negative seconds)."""
+    from replay.mcapio import foxglove_time as mcap_time
+
+    return mcap_time(max(0, int(t_ns)))
 
 
 def estimate_message(ev) -> dict:
