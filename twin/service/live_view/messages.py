@@ -49,6 +49,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from replay.mcapio import foxglove_time as mcap_time
+
 
 if TYPE_CHECKING:
     pass
@@ -116,8 +118,6 @@ LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 def foxglove_time(t_ns: int) -> dict:
     """``{"sec", "nsec"}`` of integer nanoseconds as the MCAP files carry it (:func:`replay.mcapio.foxglove_time`),
     a time before 0 shown at 0 (the live view's time has no negative seconds)."""
-    from replay.mcapio import foxglove_time as mcap_time
-
     return mcap_time(max(0, int(t_ns)))
 
 
