@@ -54,7 +54,6 @@ _ALARM_SCHEMA: dict[str, Any] = {
 }
 
 
-
 @dataclass(frozen=True, slots=True)
 class AlarmIdentity:
     """What makes an alarm the same alarm: rig, parameter, level, kind and the sample time.
@@ -178,7 +177,6 @@ class AlarmEvent(FromJson):
     def identity(self) -> AlarmIdentity:
         """(rig, parameter, level, kind, t_ns): equal for the same alarm raised twice."""
         return AlarmIdentity(self.rig, self.parameter, self.level, self.kind, self.t_ns)
-
 
 
 def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = True) -> str:

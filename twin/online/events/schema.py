@@ -189,7 +189,6 @@ def event_to_json(event: FromJson) -> str:
     return jsonio.dumps(event.to_dict(), indent=None, sort_keys=True)
 
 
-
 def num(description: str, **extra: Any) -> dict[str, Any]:
     return {"type": "number", "description": description, **extra}
 

@@ -4,12 +4,9 @@
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING
 
 from twin.reports.units import Shown
 
-if TYPE_CHECKING:
-    pass
 from twin.service.live_view.messages import EXAMPLE_RIG
 
 PARAMETERS = ("Ffric", "CdAleak", "Cd", "zeta", "wn")

@@ -47,13 +47,9 @@ a service puts ``signals`` when its ``signals_hz`` is set, as ``twin serve
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 
 from replay.mcapio import foxglove_time as mcap_time
 
-
-if TYPE_CHECKING:
-    pass
 
 SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
 """The subprotocol names the live view accepts: the documented one first, then foxglove-sdk's own."""

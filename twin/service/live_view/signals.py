@@ -4,11 +4,6 @@ to the display rate."""
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING
-
-
-if TYPE_CHECKING:
-    pass
 
 
 def signals_key(rig: str = "*") -> str:
