@@ -22,12 +22,12 @@ from replay.live.watch import Live
 
 
 class ZenohSource(Live, Source):
-    """Rig samples received on a Zenoh key expression (either payload of the module docstring).
+    """Rig samples received on a Zenoh key expression (either payload of :mod:`replay.live.payloads`).
 
     The subscriber is declared in the constructor, so a publisher started afterwards
     is not missed (Zenoh does not replay what was published before a subscriber joined).
     The stream ends at the sender's end marker or on :meth:`close`; a quiet key only
-    makes the source stale (module docstring).  Every payload is validated; what
+    makes the source stale (:mod:`replay.live.watch`).  Every payload is validated; what
     cannot be used is dropped and counted per cause.
 
     :param key: key expression or ``zenoh://KEY``.

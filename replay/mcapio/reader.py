@@ -51,7 +51,7 @@ from replay.mcapio.index import (DAMAGE, MCAP_MAGIC, OPCODES, RECORD_SIZE_LIMIT,
 
 
 class McapSource(SampleDecoding, Source):
-    """Read rig samples from an MCAP file (layout in the module docstring).
+    """Read rig samples from an MCAP file (layout: :mod:`replay.mcapio.layout`).
 
     ``topic``: the samples topic (default: ``/rig/signals_block`` when present, else
     ``/rig/signals``; a per-sample JSON topic of another writer works too: its fields

@@ -30,7 +30,7 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 
 
 class McapSink(Sink):
-    """Write rig samples (and other JSON topics) to an MCAP file in the layout above.
+    """Write rig samples (and other JSON topics) to an MCAP file in the layout of :mod:`replay.mcapio.layout`.
 
     ``signals``: the signal fields, in order (default: those of the first block).
     ``per_sample``: write ``/rig/signals`` (one message per sample, for Foxglove).

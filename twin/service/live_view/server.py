@@ -28,7 +28,7 @@ def _as_dict(ev: Any) -> dict:
 
 
 class LiveView:
-    """A Foxglove WebSocket server showing the twins live (see the module docstring).
+    """A Foxglove WebSocket server showing the twins live (channels: :mod:`twin.service.live_view.messages`).
 
     :param host: address to listen on (default loopback; ``0.0.0.0`` exposes it to the network).
     :param port: TCP port (0: any free port, see :attr:`port`).
