@@ -18,7 +18,8 @@ import pytest
 import zenoh
 from zenoh import ext as zext
 
-from twin.service.bus import RigKeys, TwinPublisher, fetch_latest, format_alarm, live_twins
+from twin.service.bus import RigKeys, TwinPublisher, format_alarm
+from twin.service.queries import fetch_latest, live_twins
 from twin.service.subscriber import AlarmSubscriber
 from fpdd.zenohconf import zenoh_config
 from twin.commands.alarms import add_arguments as add_alarms_arguments

@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from twin.service.bus import TwinPublisher, live_twins
+from twin.service.bus import TwinPublisher
+from twin.service.queries import live_twins
 from twin.service.subscriber import AlarmSubscriber
 from twin.service.config import load_config
 from twin.online.events import AlarmEvent, event_to_json

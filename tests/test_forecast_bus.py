@@ -21,7 +21,8 @@ from net_helpers import free_port
 from fpdd.zenohconf import zenoh_config
 from twin.online.events import validate
 from twin.online.forecast import FORECAST_SCHEMA, FORECAST_UNITS
-from twin.service.bus import FORECAST_S, ForecastGate, RigKeys, TwinPublisher, fetch_forecasts
+from twin.service.bus import FORECAST_S, ForecastGate, RigKeys, TwinPublisher
+from twin.service.queries import fetch_forecasts
 from twin.service.config import parse_config
 from twin.service.journal import AlarmJournal
 from twin.service.serve import serve

@@ -23,7 +23,8 @@ from fpdd.argtypes import non_negative_seconds, positive_int, positive_seconds
 from fpdd import jsonio
 from fpdd.errors import ConfigError, SourceError
 from twin.online.events import format_alarm
-from twin.service.bus import RigKeys, live_twins
+from twin.service.bus import RigKeys
+from twin.service.queries import live_twins
 from twin.service.subscriber import AlarmSubscriber
 from fpdd.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
 

@@ -243,7 +243,8 @@ def _fill(session, state: TopState, rig: str, timeout: float) -> None:
     """Latest estimate, status and forecast of every twin (queryables), and each rig's last journaled alarm."""
     import zenoh
 
-    from twin.service.bus import RigKeys, fetch_forecasts, fetch_latest
+    from twin.service.bus import RigKeys
+    from twin.service.queries import fetch_forecasts, fetch_latest
 
     for kind in ("estimate", "status"):
         for ev in fetch_latest(session, kind, rig, timeout=timeout):

@@ -1,5 +1,5 @@
-"""The Zenoh layer: the key space, publishing the twin's events (:class:`TwinPublisher`) and querying the
-latest values; subscribing to its alarms is :mod:`twin.service.subscriber`.
+"""The Zenoh layer: the key space and publishing the twin's events (:class:`TwinPublisher`); querying the
+latest values is :mod:`twin.service.queries`, subscribing to its alarms :mod:`twin.service.subscriber`.
 
 Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
 :data:`twin.online.events.RIG_PATTERN`)::
@@ -79,7 +79,6 @@ from fpdd.zenohconf import (zenoh_text)
 from fpdd.errors import ConfigError, DataError, SourceError
 from twin.online.events import (
     RIG_PATTERN,
-    validate,
     AlarmEvent,
     EstimateEvent,
     StatusEvent,
@@ -95,10 +94,7 @@ __all__ = [
     "ForecastGate",
     "RigKeys",
     "TwinPublisher",
-    "fetch_forecasts",
-    "fetch_latest",
     "format_alarm",
-    "live_twins",
 ]
 
 log = logging.getLogger(__name__)
@@ -559,64 +555,3 @@ def _int_parameter(parameters: zenoh.Parameters, name: str) -> int | None:
     if value < 0:
         raise DataError(f"selector parameter {name}: {value} must be >= 0")
     return value
-
-
-# --------------------------------------------------------------------------- queries
-
-
-def fetch_forecasts(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[dict[str, Any]]:
-    """The latest forecast message of each matching running twin (a plain ``get`` on ``fpdd/<rig>/forecast``),
-    sorted by rig; a reply that does not follow :data:`twin.online.forecast.FORECAST_SCHEMA` is left out (logged).
-    """
-    from twin.online.forecast import FORECAST_SCHEMA
-
-    out = []
-    for reply in session.get(RigKeys(rig).forecast, target=zenoh.QueryTarget.ALL, timeout=timeout):
-        if reply.ok is None:
-            continue
-        try:
-            d = json.loads(reply.ok.payload.to_string())
-            validate(d, FORECAST_SCHEMA, "forecast")
-        except (DataError, ValueError) as exc:
-            log.warning("%s: rejected forecast reply: %s", reply.ok.key_expr, exc)
-            continue
-        out.append(d)
-    return sorted(out, key=lambda d: d["rig"])
-
-
-def fetch_latest(
-    session: zenoh.Session,
-    what: str,
-    rig: str = "*",
-    *,
-    timeout: float = 5.0,
-) -> list[EstimateEvent | StatusEvent]:
-    """The latest estimate or status of each matching running twin (a plain ``get``).
-
-    :param what: ``"estimate"`` or ``"status"``.
-    :param rig: a rig id or ``"*"``.
-    :param timeout: how long to wait for replies [s].
-    :returns: one event per twin that has published one, sorted by rig.
-    """
-    keys = RigKeys(rig)
-    parse: Callable[[Any], EstimateEvent | StatusEvent]
-    if what == "estimate":
-        key, parse = keys.estimate, EstimateEvent.from_dict
-    elif what == "status":
-        key, parse = keys.status, StatusEvent.from_dict
-    else:
-        raise ConfigError(f"what: {what!r} is not one of ['estimate', 'status']")
-    events = []
-    for reply in session.get(key, target=zenoh.QueryTarget.ALL, timeout=timeout):
-        if reply.ok is not None:
-            events.append(parse(json.loads(reply.ok.payload.to_string())))
-    return sorted(events, key=lambda e: e.rig)
-
-
-def live_twins(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[str]:
-    """The rigs whose twin is currently alive (liveliness tokens ``fpdd/<rig>/twin``), sorted."""
-    rigs = set()
-    for reply in session.liveliness().get(RigKeys(rig).twin, timeout=timeout):
-        if reply.ok is not None:
-            rigs.add(RigKeys.rig_of(reply.ok.key_expr))
-    return sorted(rigs)
