@@ -80,6 +80,7 @@ MAX_PATH_COMPONENT = 255
 
 if TYPE_CHECKING:
     from twin.online.commission import Commission
+    from twin.service.ownership import FailoverConfig
 
 @dataclasses.dataclass(frozen=True)
 class RigConfig:
@@ -141,9 +142,11 @@ class ServiceConfig:
     signals_hz: float = 0.0
     """Rig signals put on ``fpdd/<rig>/signals`` for live views, at most this many samples per second and rig
     (0: none; ``twin serve --foxglove`` sets it)."""
+    failover: FailoverConfig | None = None
+    """``[failover]``: rigs shared with other services, one runs each (:mod:`twin.service.ownership`)."""
 
 
-TOP_KEYS = ("zenoh", "service", "rig")
+TOP_KEYS = ("zenoh", "service", "rig", "failover")
 ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s", "signing_keys")
@@ -369,6 +372,9 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     else:
         raise ConfigError(f"{path}: service.workers: expected \"auto\" or an integer 0..256 "
                           f"(0 = threads in the service's process), got {workers_raw!r}")
+    from twin.service.ownership import parse_failover
+
+    failover = parse_failover(doc, path)
     journal_dir = _path(s, "journal_dir", sw, os.path.join(".", "fpdd-journal"))
     if not journal_dir.strip():
         raise ConfigError(f"{path}: service.journal_dir: expected a directory path, got an empty string")
@@ -385,6 +391,7 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
                             f"{sw}.lag_warn_s", "a day"),
         stale_s=_at_most(_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"), 86400.0, f"{sw}.stale_s",
                          "a day: a dead input must be noticed"),
+        failover=failover,
     )
 
 
