@@ -182,6 +182,23 @@ def received(sub: Proc) -> list[dict]:
     return [json.loads(line) for line in sub.drain() if line.startswith("{")]
 
 
+def estimate_after_kill(session, owner: Proc, after_s: float) -> float:
+    """Kill ``owner`` after ``after_s``; the time from the kill to the rig's next estimate (published by the
+    service that took it over) [s]."""
+    estimates: list[float] = []
+    sub = session.declare_subscriber(f"fpdd/{RIG}/estimate", lambda s: estimates.append(time.monotonic()))
+    try:
+        time.sleep(after_s)
+        killed = time.monotonic()
+        owner.kill()
+        deadline = killed + WAIT_S
+        while not [t for t in estimates if t > killed] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return min(t for t in estimates if t > killed) - killed
+    finally:
+        sub.undeclare()
+
+
 def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lost_or_repeated(tmp_path, wear_log):
     log, reference = wear_log
     rng = np.random.default_rng(1001)
@@ -192,11 +209,9 @@ def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lo
     a.wait_for(ALARM_LINE)  # svc-a runs the rig and raised its first alarm; svc-b starts late
     b = serve_proc(service_config(tmp_path, "svc-b", ep, str(log), priority=1, speed=1.5))
     b.wait_for(RUNNING)
-    time.sleep(CLAIM_S + float(rng.uniform(0.0, 2.0)))  # a random moment (seeded) before the next alarms
-    killed = time.monotonic()
-    a.kill()
-    b.wait_for(TOOK_OVER)
-    took = time.monotonic() - killed
+    with connected(ep) as session:
+        took = estimate_after_kill(session, a, CLAIM_S + float(rng.uniform(0.0, 2.0)))  # seeded random moment
+    assert b.wait_for(TOOK_OVER)[1] == "svc-a"
     assert took < LEASE_S + TAKEOVER_S, f"took over {took:.2f} s after the kill"
     back = serve_proc(service_config(tmp_path, "svc-a", ep, str(log), priority=0, speed=1.5))  # the owner returns
     assert b.finish() == 0, "\n".join(b.seen[-20:])
@@ -213,3 +228,57 @@ def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lo
     # the late standby caught up: the first alarm in its journal is svc-a's own (same raise time), not raised again
     assert jb[0].wall_ns == ja[0].wall_ns and key(jb[0]) == key(ja[0])
     print(f"took over {took:.2f} s after the kill; {len(reference)} alarms")
+
+
+def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a_preferred_owner_takes_it_back(
+        tmp_path, wear_log):
+    import zenoh
+
+    log, _ = wear_log
+    rng = np.random.default_rng(1002)
+    ep = router(tmp_path)
+    source = f"zenoh://fpdd/{RIG}/samples"
+    a = serve_proc(service_config(tmp_path, "svc-a", ep, source, priority=0, speed=1.0))
+    a.wait_for(CLAIMING)
+    b = serve_proc(service_config(tmp_path, "svc-b", ep, source, priority=1, speed=1.0))
+    b.wait_for(RUNNING)
+    estimates: list[float] = []
+    with connected(ep) as session:
+        sub = session.declare_subscriber(f"fpdd/{RIG}/estimate", lambda s: estimates.append(time.monotonic()))
+        try:
+            Proc(["-m", "replay.cli", "play", str(log), "--to", "zenoh", "--key", f"fpdd/{RIG}/samples",
+                  "--zenoh-connect", ep, "--speed", "1", "--wait-s", "10", "-q"], stdout=True)
+            a.wait_for(ALARM_LINE)
+            time.sleep(float(rng.uniform(0.3, 1.5)))  # a random moment (seeded)
+            killed = time.monotonic()
+            a.kill()
+            unwatched = float(b.wait_for(re.compile(r"^twin serve: rig rig-f: ([0-9.]+) s of input not watched"))[1])
+            deadline = time.monotonic() + WAIT_S
+            while not [t for t in estimates if t > killed] and time.monotonic() < deadline:
+                time.sleep(0.01)
+            took = min(t for t in estimates if t > killed) - killed  # the rig watched again: its next estimate
+            # what nobody watched is at most the takeover, give or take the estimate period (50 samples at 1 kHz)
+            assert unwatched <= took + 0.05, (unwatched, took)
+            assert took < LEASE_S + TAKEOVER_S
+            time.sleep(1.5)  # a status or two of the new owner
+            status = next(r.ok for r in session.get(f"fpdd/{RIG}/status", timeout=5.0) if r.ok is not None)
+            st = json.loads(status.payload.to_string())
+            assert st["state"] == "running" and "took over from svc-a" in st["message"], st
+            assert st["counters"]["unwatched_ms"] == int(unwatched * 1000 + 0.5) or \
+                abs(st["counters"]["unwatched_ms"] - unwatched * 1000) <= 10
+            assert 0 <= st["counters"]["took_over_ms"] <= took * 1000
+            # svc-a comes back told to take its rig back: svc-b stands down, svc-a runs the rig from now
+            back = serve_proc(service_config(tmp_path, "svc-a", ep, source, priority=0, speed=1.0, prefer=True))
+            assert back.wait_for(TOOK_OVER)[1] == "svc-b"
+            b.wait_for(re.compile(r"^twin serve: rig rig-f: standing down for svc-a"))
+            b.wait_for(re.compile(r"^twin serve: rig rig-f: stood down; standing by"))
+        finally:
+            sub.undeclare()
+    back.kill(signal.SIGTERM)
+    b.kill(signal.SIGTERM)
+    ja, jb = journal(tmp_path, "svc-a"), journal(tmp_path, "svc-b")
+    seqs = {}
+    for x in ja + jb:  # one alarm per number on every service, numbers 1..n
+        assert seqs.setdefault(x.seq, key(x)) == key(x)
+    assert sorted(seqs) == list(range(1, len(seqs) + 1)) and len(set(seqs.values())) == len(seqs)
+    print(f"live: took over {took:.2f} s after the kill, {unwatched:.2f} s unwatched; {len(seqs)} alarms")
