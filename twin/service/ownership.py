@@ -186,17 +186,3 @@ class Ownership:
             self._sub.undeclare()
         except Exception as exc:  # noqa: BLE001
             log.debug("undeclare the token subscriber: %s", exc)
-
-
-def fetch_owners(session, rig: str = "*", timeout: float = 2.0) -> dict[str, dict[str, list[str]]]:
-    """Per rig the live ``owner``, ``standby`` and ``prefer`` service ids, each list by the rule's order
-    (``twin top``)."""
-    views: dict[str, RigView] = {}
-    for reply in session.liveliness().get(f"fpdd/{rig}/*/*/*", timeout=timeout):
-        if reply.ok is None:
-            continue
-        parsed = parse_token(str(reply.ok.key_expr))
-        if parsed is not None:
-            r, role, prio, sid = parsed
-            views.setdefault(r, RigView()).roles[role][sid] = prio
-    return {r: v.as_dict() for r, v in sorted(views.items())}
