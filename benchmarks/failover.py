@@ -281,9 +281,10 @@ def run(kills: int = 10, seed: int = 1000, quick: bool = False) -> dict:
             ep = router(tmp)
             sub = subscriber(ep)
             names = ["svc-0", "svc-1", "svc-2"]
-            procs = {n: serve_proc(service_config(tmp, n, ep, str(log), priority=i, speed=1.0))
-                     for i, n in enumerate(names)}
-            procs["svc-0"].wait_for(CLAIMING)
+            procs = {"svc-0": serve_proc(service_config(tmp, "svc-0", ep, str(log), priority=0, speed=1.0))}
+            procs["svc-0"].wait_for(CLAIMING)  # first, so that it owns the rig
+            for i, n in enumerate(names[1:], 1):
+                procs[n] = serve_proc(service_config(tmp, n, ep, str(log), priority=i, speed=1.0))
             for n in names[1:]:
                 procs[n].wait_for(RUNNING)
             owner = "svc-0"

@@ -75,6 +75,8 @@ class FailoverService:
         own = Ownership(self.session, list(self.slots), self.me, self._wake.set)
         self.ownership = own
         started = time.monotonic()
+        warm = threading.Thread(target=self._warm_up, name="failover-warm-up", daemon=True)
+        warm.start()
         try:
             for slot in self.slots.values():
                 self._stand_by(slot)
@@ -93,7 +95,18 @@ class FailoverService:
             for slot in self.slots.values():
                 self._end(slot)
             own.close()
+            warm.join()
         return self.summaries
+
+    def _warm_up(self) -> None:
+        """Load each model's compiled filter now (about 2 s from the disk cache), not when a rig is taken over."""
+        from twin.service.rig import make_twin
+
+        for rig in {r.model: r for r in self.cfg.rigs}.values():
+            try:
+                make_twin(rig)
+            except Exception as exc:  # noqa: BLE001 - the takeover will say what is wrong
+                log.debug("rig %s: warm-up: %s", rig.name, exc)
 
     # ------------------------------------------------------------------ transitions
 
