@@ -372,12 +372,12 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     else:
         raise ConfigError(f"{path}: service.workers: expected \"auto\" or an integer 0..256 "
                           f"(0 = threads in the service's process), got {workers_raw!r}")
-    from twin.service.ownership import parse_failover
-
-    failover = parse_failover(doc, path)
     journal_dir = _path(s, "journal_dir", sw, os.path.join(".", "fpdd-journal"))
     if not journal_dir.strip():
         raise ConfigError(f"{path}: service.journal_dir: expected a directory path, got an empty string")
+    from twin.service.ownership import parse_failover
+
+    failover = parse_failover(doc, path, journal_dir)
     return ServiceConfig(
         path=path, zenoh_mode=mode, listen=listen, connect=connect,
         journal_dir=journal_dir,

@@ -41,7 +41,8 @@ class FailoverConfig:
     """``[failover]`` of ``rigs.toml``: this service shares its rigs with others (see the module docstring)."""
 
     service_id: str
-    """This service's name on the bus (one key chunk, unique among the services sharing a rig)."""
+    """This service's name on the bus (one key chunk, unique among the services sharing a rig; default: the
+    host name and a digest of ``journal_dir``)."""
     priority: int = 100
     """Preference order: the lowest runs a rig first (ties: the lower ``service_id``)."""
     prefer: bool = False
@@ -52,8 +53,20 @@ class FailoverConfig:
     """How long a claim waits for a competing owner's token before the rig runs [s]."""
 
 
-def parse_failover(doc: dict, path: str) -> FailoverConfig | None:
-    """The ``[failover]`` table (``None`` without one); errors name the file and the key."""
+def default_service_id(journal_dir: str) -> str:
+    """``<host name>-<6 hex digits of the journal directory's absolute path>``: one id per host and journal, the
+    same at every start (so two services on one host differ, and a restarted service is the one it was)."""
+    import hashlib
+    import os
+    import socket
+
+    host = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname()).strip("-.")[:40] or "host"
+    return f"{host}-{hashlib.sha1(os.path.abspath(journal_dir).encode()).hexdigest()[:6]}"
+
+
+def parse_failover(doc: dict, path: str, journal_dir: str) -> FailoverConfig | None:
+    """The ``[failover]`` table (``None`` without one); errors name the file and the key. Without
+    ``service_id``: :func:`default_service_id`."""
     if "failover" not in doc:
         return None
     f = doc["failover"]
@@ -63,7 +76,7 @@ def parse_failover(doc: dict, path: str) -> FailoverConfig | None:
     from twin.service.config import _check_keys, _get, _number
 
     _check_keys(f, FAILOVER_KEYS, where)
-    sid = _get(f, "service_id", str, where)
+    sid = _get(f, "service_id", str, where, "") or default_service_id(journal_dir)
     if not re.match(RIG_PATTERN, sid) or len(sid) > 64:
         raise ConfigError(f"{where}.service_id: {sid!r} must be 1-64 letters, digits, _ . - (one key chunk)")
     prio = _get(f, "priority", int, where, 100)
@@ -122,13 +135,16 @@ class Ownership:
         self._views = {r: RigView() for r in rigs}
         self._tokens: dict[tuple[str, str], Any] = {}
         self._on_change = on_change
-        self._sub = session.liveliness().declare_subscriber("fpdd/**", self._on_sample, history=True)
-        try:  # what is there already, answered before any decision (the subscriber's history may come later)
-            for reply in session.liveliness().get("fpdd/**", timeout=2.0):
-                if reply.ok is not None:
-                    self._seen(str(reply.ok.key_expr), True)
-        except Exception as exc:  # noqa: BLE001 - zenoh.ZError: the subscriber still reports them
-            log.debug("liveliness get: %s", exc)
+        # one subscription per rig: a site's access control grants a service its rigs' keys only
+        self._subs = [session.liveliness().declare_subscriber(f"fpdd/{r}/*/*/*", self._on_sample, history=True)
+                      for r in rigs]
+        for r in rigs:  # what is there already, answered before any decision (the subscriber's history may come later)
+            try:
+                for reply in session.liveliness().get(f"fpdd/{r}/*/*/*", timeout=2.0):
+                    if reply.ok is not None:
+                        self._seen(str(reply.ok.key_expr), True)
+            except Exception as exc:  # noqa: BLE001 - zenoh.ZError: the subscriber still reports them
+                log.debug("liveliness get: %s", exc)
 
     @property
     def my_rank(self) -> tuple[int, str]:
@@ -182,7 +198,8 @@ class Ownership:
     def close(self) -> None:
         for k in list(self._tokens):
             self.hold(*k, on=False)
-        try:
-            self._sub.undeclare()
-        except Exception as exc:  # noqa: BLE001
-            log.debug("undeclare the token subscriber: %s", exc)
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception as exc:  # noqa: BLE001
+                log.debug("undeclare the token subscriber: %s", exc)
