@@ -57,6 +57,7 @@ class Proc:
     started: list[Proc] = []
 
     def __init__(self, args: list[str], *, stdout: bool = False) -> None:
+        self.args = args
         self.proc = subprocess.Popen([sys.executable, *args], env=ENV, text=True,
                                      stdout=subprocess.PIPE if stdout else subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL if stdout else subprocess.PIPE)
@@ -326,7 +327,7 @@ def run(kills: int = 10, seed: int = 1000, quick: bool = False, freeze: bool = F
             counts = tally(reference, received(sub), [journal(tmp, n) for n in names])
         except BaseException:
             for p in Proc.started:  # what each process said, for the failure's cause
-                print(f"failover: {' '.join(p.proc.args[1:4])} ...:\n  " + "\n  ".join(p.drain()[-8:]), file=sys.stderr)
+                print(f"failover: {' '.join(p.args[:3])} ...:\n  " + "\n  ".join(p.drain()[-8:]), file=sys.stderr)
             raise
         finally:
             Proc.cleanup()

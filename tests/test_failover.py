@@ -19,7 +19,7 @@ import pytest
 from net_helpers import connected
 from twin.models.scenario import Drift
 
-from benchmarks.failover import (ALARM_LINE, CLAIM_S, CLAIMING, LEASE_S, RIG, RUNNING, TOOK_OVER, WAIT_S, ENV,
+from benchmarks.failover import (ALARM_LINE, CLAIM_S, CLAIMING, ENV, LEASE_S, RIG, ROOT, RUNNING, TOOK_OVER, WAIT_S,
                                  Estimates, Proc, journal, key, received, router, serve_proc, service_config,
                                  subscriber, wear_log)
 
@@ -145,3 +145,19 @@ def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a
     assert sorted(seqs) == list(range(1, len(seqs) + 1)) and len(set(seqs.values())) == len(seqs)
     print(f"live: took over {took:.2f} s after the kill, {unwatched:.2f} s unwatched within a gap of {gap:.2f} s "
           f"between estimates; {len(seqs)} alarms")
+
+
+def test_the_lab_configurations_load_and_differ_only_where_a_site_must():
+    import zenoh
+
+    from twin.service.config import load_config
+
+    lab = ROOT / "deploy" / "lab"
+    for name in ("router-site-a", "router-site-b", "twin-site-a", "twin-site-b"):
+        zenoh.Config.from_file(str(lab / f"{name}.json5"))  # zenoh refuses unknown keys and message names
+    a, b = (load_config(str(lab / f"rigs-site-{s}.toml")) for s in "ab")
+    assert a.failover is not None and b.failover is not None and a.failover.service_id != b.failover.service_id
+    same = ("journal_dir", "out_dir", "path", "failover")
+    assert {k: v for k, v in vars(a).items() if k not in same} == {k: v for k, v in vars(b).items() if k not in same}
+    assert {k: v for k, v in vars(a.failover).items() if k != "service_id"} == \
+           {k: v for k, v in vars(b.failover).items() if k != "service_id"}
