@@ -147,6 +147,37 @@ def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a
           f"between estimates; {len(seqs)} alarms")
 
 
+def test_a_frozen_owner_is_taken_over_at_its_lease_and_when_it_thaws_the_rule_keeps_one_owner(tmp_path, wear):
+    """A host that hangs (SIGSTOP) looks like a split network: its tokens go when its lease expires, a standby
+    takes the rig; when it comes back both run the rig until they see each other, and the one the rule ranks
+    after stands down. The journals agree alarm for alarm."""
+    log, reference = wear
+    ep = router(tmp_path)
+    a = serve_proc(service_config(tmp_path, "svc-a", ep, str(log), priority=0, speed=1.5))
+    a.wait_for(CLAIMING)
+    b = serve_proc(service_config(tmp_path, "svc-b", ep, str(log), priority=1, speed=1.5))
+    b.wait_for(RUNNING)
+    with connected(ep) as session:
+        est = Estimates(session)
+        try:
+            est.first_after(time.monotonic())
+            time.sleep(1.0)
+            frozen = time.monotonic()
+            a.proc.send_signal(signal.SIGSTOP)
+            took = est.first_after(frozen)[0] - frozen
+        finally:
+            est.close()
+    assert b.wait_for(TOOK_OVER)[1] == "svc-a"
+    assert LEASE_S <= took < LEASE_S + TAKEOVER_S, f"took over {took:.2f} s after the freeze (lease {LEASE_S:g} s)"
+    time.sleep(1.0)
+    a.proc.send_signal(signal.SIGCONT)  # back: svc-a ranks first, svc-b stands down
+    b.wait_for(re.compile(r"^twin serve: rig rig-f: standing down for svc-a \(it runs the rig too"))
+    b.wait_for(re.compile(r"^twin serve: rig rig-f: stood down; standing by"))
+    assert a.finish() == 0 and b.finish() == 0
+    assert [key(x) for x in journal(tmp_path, "svc-a")] == [key(x) for x in journal(tmp_path, "svc-b")] == \
+           [key(x) for x in reference]
+
+
 def test_the_lab_configurations_load_and_differ_only_where_a_site_must():
     import zenoh
 
