@@ -191,6 +191,9 @@ class Replica:
                             self._checkpoint(reply.ok.payload.to_string())
             except (TwinError, zenoh.ZError, ValueError) as exc:
                 log.warning("rig %s: replica: %s", self.rig, exc)
+            except Exception as exc:  # noqa: BLE001 - a bug: said, and the replica goes on with the next message
+                log.error("rig %s: replica: unexpected %s: %s", self.rig, type(exc).__name__, exc)
+                log.debug("rig %s: replica", self.rig, exc_info=True)
 
     @staticmethod
     def _event(payload: str) -> AlarmEvent:
