@@ -82,6 +82,12 @@ def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lo
     ja, jb = journal(tmp_path, "svc-a"), journal(tmp_path, "svc-b")
     union = got | {key(x) for x in ja} | {key(x) for x in jb}
     assert sorted(union) == [key(x) for x in reference]  # seq 1..n, none lost, none twice
+    # who watched when: svc-a ran the rig from the start, svc-b from svc-a's checkpoint to the end of the log
+    owners = {n: [json.loads(x) for x in (tmp_path / n / f"{RIG}.owners.jsonl").read_text().splitlines()]
+              for n in ("svc-a", "svc-b")}
+    assert [(o["event"], o.get("previous")) for o in owners["svc-a"]] == [("runs", None)]  # killed: no end
+    assert [(o["event"], o.get("previous")) for o in owners["svc-b"]] == [("runs", "svc-a"), ("finished", None)]
+    assert owners["svc-a"][0]["wall_ns"] < owners["svc-b"][0]["wall_ns"] and owners["svc-b"][0]["resumed_t_ns"] > 0
     # the late standby caught up: the first alarm in its journal is svc-a's own (same raise time), not raised again
     assert jb[0].wall_ns == ja[0].wall_ns and key(jb[0]) == key(ja[0])
     print(f"took over {took:.2f} s after the kill; {len(reference)} alarms")

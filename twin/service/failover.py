@@ -12,7 +12,9 @@ process), resuming from the replica's checkpoint: a replayed log from that check
 after it is processed again and raises its alarms again, which the journal recognises by identity or numbers
 next, never publishing one twice); a live input from now. Its status says so for the rest of the run
 (``took over from <id>``, counters ``took_over_ms``: from the last owner's token gone to the rig running,
-``unwatched_ms``: record time no service watched, live inputs only) and the console logs it.
+``unwatched_ms``: record time no service watched, live inputs only) and the console logs it. Each service
+appends to ``<journal_dir>/<rig>.owners.jsonl`` when it starts and stops running a rig (:meth:`FailoverService._record`):
+the files of the services sharing a rig say together who watched it when.
 """
 
 from __future__ import annotations
@@ -204,6 +206,9 @@ class FailoverService:
 
         slot.thread = threading.Thread(target=run, name=f"owner-{name}", daemon=True)
         slot.state = "owner"
+        self._record(name, "runs", previous=previous or None,
+                     took_over_ms=takeover["counters"]["took_over_ms"] if takeover else None,
+                     resumed_t_ns=cp.t_ns if cp is not None else None)
         slot.thread.start()
 
     def _ended(self, slot: Slot) -> None:
@@ -215,6 +220,8 @@ class FailoverService:
             slot.source = None
         self.ownership.hold(name, "owner", False)
         slot.thread = None
+        self._record(name, "stood_down" if slot.standing_down and summary.state == "stopped" else summary.state,
+                     message=summary.message or None)
         if slot.standing_down and not self.stop.is_set() and summary.state == "stopped":
             log.info("rig %s: stood down; standing by", name)
             self._stand_by(slot)
@@ -222,6 +229,20 @@ class FailoverService:
         self._done(slot, summary)
         if summary.state == "failed":
             self.stop.set()  # as a service of its own: the others stop, the process exits non-zero
+
+    def _record(self, rig: str, event: str, **info) -> None:
+        """Who watched the rig when: a line appended to ``<journal_dir>/<rig>.owners.jsonl`` when this service
+        starts (``runs``) and stops running it (``finished``, ``stopped``, ``failed``, ``stood_down``)."""
+        import json
+        from pathlib import Path
+
+        line = json.dumps({"wall_ns": time.time_ns(), "service_id": self.me.service_id, "rig": rig, "event": event,
+                           **{k: v for k, v in info.items() if v is not None}})
+        try:
+            with open(Path(self.cfg.journal_dir) / f"{rig}.owners.jsonl", "a", encoding="utf-8") as f:
+                f.write(line + "\n")
+        except OSError as exc:
+            log.warning("rig %s: cannot record who runs it: %s", rig, exc)
 
     def _done(self, slot: Slot, summary: RigSummary) -> None:
         if slot.replica is not None:
