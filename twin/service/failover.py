@@ -174,6 +174,7 @@ class FailoverService:
         self.ownership.hold(name, "standby", False)
         self.ownership.hold(name, "prefer", False)
         takeover = None
+        took_ms = None
         if previous:
             took_ms = int(max(0.0, time.monotonic() - gone) * 1000) if gone is not None else 0
             if is_live(slot.rig.source):
@@ -207,7 +208,7 @@ class FailoverService:
         slot.thread = threading.Thread(target=run, name=f"owner-{name}", daemon=True)
         slot.state = "owner"
         self._record(name, "runs", previous=previous or None,
-                     took_over_ms=takeover["counters"]["took_over_ms"] if takeover else None,
+                     took_over_ms=took_ms,
                      resumed_t_ns=cp.t_ns if cp is not None else None)
         slot.thread.start()
 
