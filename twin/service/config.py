@@ -18,6 +18,9 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     lag_warn_s = 1.0                    # status 'degraded' when a rig is this far behind real time
     stale_s = 1.0                       # a live input quiet this long is 'stale_input'
 
+    [failover]                          # optional: these rigs are shared with other services, one runs
+    priority = 100                      #   each, the others stand by (keys: twin/service/ownership.py)
+
     [[rig]]
     name = "msp25-a"
     model = "msp25"
