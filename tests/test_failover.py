@@ -9,6 +9,7 @@ import json
 import re
 import signal
 import subprocess
+import threading
 import sys
 import time
 from pathlib import Path
@@ -16,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from net_helpers import connected
+from net_helpers import connected, free_port
+from twin.service.store import Store
 from twin.models.scenario import Drift
 
 from benchmarks.failover import (ALARM_LINE, CLAIM_S, CLAIMING, ENV, LEASE_S, RIG, ROOT, RUNNING, TOOK_OVER, WAIT_S,
@@ -198,3 +200,71 @@ def test_the_lab_configurations_load_and_differ_only_where_a_site_must():
     assert {k: v for k, v in vars(a).items() if k not in same} == {k: v for k, v in vars(b).items() if k not in same}
     assert {k: v for k, v in vars(a.failover).items() if k != "service_id"} == \
            {k: v for k, v in vars(b.failover).items() if k != "service_id"}
+
+
+def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_path, wear):
+    """deploy/lab's router (mTLS, access control) with the two sites' twin certificates: the owner of site A
+    runs the rig, site B stands by (replica, tokens, history) and takes the rig over when site A's service
+    stops; B's journal ends with exactly the uninterrupted run's alarms."""
+    import zenoh
+
+    from test_deploy import readme_certificate_script
+    from twin.service.config import parse_config
+    from twin.service.serve import serve
+
+    log, reference = wear
+    certs = tmp_path / "tls"
+    certs.mkdir()
+    subprocess.run(["bash", "-euo", "pipefail", "-c", readme_certificate_script()
+                    + 'issue router-local fpdd-router-site-a "IP:127.0.0.1"\n'
+                    + 'issue lab-a fpdd-twin-lab-a "DNS:lab-a"\nissue lab-b fpdd-twin-lab-b "DNS:lab-b"\n'],
+                   cwd=certs, check=True, capture_output=True, timeout=60)
+    lab = ROOT / "deploy" / "lab"
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+
+    def config(file: str, name: str, router: bool = False) -> zenoh.Config:
+        conf = zenoh.Config.from_file(str(lab / file))
+        tls = {"root_ca_certificate": "ca.pem", "connect_certificate": f"{name}.pem",
+               "connect_private_key": f"{name}.key"}
+        if router:
+            conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+            conf.insert_json5("connect/endpoints", "[]")  # site B's router is not part of this test
+            tls |= {"listen_certificate": f"{name}.pem", "listen_private_key": f"{name}.key"}
+        else:
+            conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        for k, file_ in tls.items():
+            conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(certs / file_)))
+        return conf
+
+    def rigs(name: str, priority: int):
+        return parse_config({"service": {"journal_dir": str(tmp_path / name), "checkpoint_s": 0.3},
+                             "failover": {"service_id": name, "priority": priority, "lease_s": LEASE_S,
+                                          "claim_s": CLAIM_S},
+                             "rig": [{"name": "msp25-lab-1", "source": str(log), "speed": 3.0}]}, name)
+
+    first_alarm = threading.Event()
+    stops = {"lab-a": threading.Event(), "lab-b": threading.Event()}
+    results: dict = {}
+
+    def run(name: str, priority: int, session) -> None:
+        results[name] = serve(rigs(name, priority), stops[name], on_alarm=lambda ev: first_alarm.set(),
+                              session=session)
+
+    with zenoh.open(config("router-site-a.json5", "router-local", router=True)), \
+            zenoh.open(config("twin-site-a.json5", "lab-a")) as sa, zenoh.open(config("twin-site-b.json5", "lab-b")) as sb:
+        ta = threading.Thread(target=run, args=("lab-a", 0, sa))
+        ta.start()
+        assert first_alarm.wait(WAIT_S)  # site A runs the rig
+        tb = threading.Thread(target=run, args=("lab-b", 1, sb))
+        tb.start()
+        time.sleep(1.0)  # site B stands by: its replica follows
+        stops["lab-a"].set()  # site A's service stops: its last checkpoint goes to site B, which takes over
+        ta.join(WAIT_S)
+        tb.join(WAIT_S)
+        assert not ta.is_alive() and not tb.is_alive()
+    assert results["lab-b"]["msp25-lab-1"].samples > 0
+    owners = [json.loads(x) for x in (tmp_path / "lab-b" / "msp25-lab-1.owners.jsonl").read_text().splitlines()]
+    assert [(o["event"], o.get("previous")) for o in owners] == [("runs", "lab-a"), ("finished", None)]
+    with Store(tmp_path / "lab-b" / "msp25-lab-1.db", writer=False) as store:
+        got = store.alarms("msp25-lab-1")
+    assert [key(x) for x in got] == [key(x) for x in reference]
