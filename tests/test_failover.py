@@ -258,6 +258,7 @@ def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_p
         tb = threading.Thread(target=run, args=("lab-b", 1, sb))
         tb.start()
         time.sleep(1.0)  # site B stands by: its replica follows
+        stopped_ns = time.time_ns()
         stops["lab-a"].set()  # site A's service stops: its last checkpoint goes to site B, which takes over
         ta.join(WAIT_S)
         tb.join(WAIT_S)
@@ -265,6 +266,7 @@ def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_p
     assert results["lab-b"]["msp25-lab-1"].samples > 0
     owners = [json.loads(x) for x in (tmp_path / "lab-b" / "msp25-lab-1.owners.jsonl").read_text().splitlines()]
     assert [(o["event"], o.get("previous")) for o in owners] == [("runs", "lab-a"), ("finished", None)]
+    assert owners[0]["wall_ns"] > stopped_ns  # site B saw site A's owner token until then
     with Store(tmp_path / "lab-b" / "msp25-lab-1.db", writer=False) as store:
         got = store.alarms("msp25-lab-1")
     assert [key(x) for x in got] == [key(x) for x in reference]
