@@ -270,3 +270,39 @@ def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_p
     with Store(tmp_path / "lab-b" / "msp25-lab-1.db", writer=False) as store:
         got = store.alarms("msp25-lab-1")
     assert [key(x) for x in got] == [key(x) for x in reference]
+
+
+def test_a_replica_message_is_data_only_and_a_damaged_one_is_refused_with_one_line():
+    from twin.errors import DataError
+    from twin.service.checkpoint_file import Checkpoint
+    from twin.service.replication import decode_replica, encode_replica
+
+    state = {"x": np.arange(3.0), "n": 4, "flags": np.array([True, False]), "name": "ukf", "nan": float("nan")}
+    payload = encode_replica(Checkpoint("rig-r", 5_000_000, 5000, "fp", state, 1.5e9, 3), "finished", "svc-a")
+    cp, rig_state, owner = decode_replica(payload, "rig-r")
+    assert (cp.t_ns, cp.samples, cp.alarm_seq, rig_state, owner) == (5_000_000, 5000, 3, "finished", "svc-a")
+    assert np.array_equal(cp.state["x"], state["x"]) and cp.state["flags"].tolist() == [True, False]
+    assert cp.state["n"] == 4 and np.isnan(cp.state["nan"])
+    doc = json.loads(payload)
+    doc["body"]["alarm_seq"] = 2  # changed on the way
+    for bad, what in ((json.dumps(doc), "SHA-256"), ("not json", "not JSON"), ('{"format": "x"}', "not a replica"),
+                      (payload, "rig")):
+        with pytest.raises(DataError) as err:
+            decode_replica(bad, "rig-r" if what != "rig" else "rig-s")
+        assert what in str(err.value) and "\n" not in str(err.value) and "fpdd/" in str(err.value)
+
+
+@pytest.mark.parametrize("table, message", [
+    ({"service_id": "a/b"}, "failover.service_id: 'a/b' must be"),
+    ({"priority": -1}, "failover.priority: -1; expected 0..1000000"),
+    ({"lease_s": 0.1}, "failover.lease_s: 0.1 seconds; expected 0.5 to 60"),
+    ({"prefr": True}, "failover: unknown key 'prefr' (did you mean 'prefer'?)"),
+    ({"prefer": "yes"}, "failover.prefer: expected true or false"),
+])
+def test_a_bad_failover_table_is_refused_with_one_line_naming_the_key(table, message):
+    from twin.errors import ConfigError
+    from twin.service.config import parse_config
+
+    with pytest.raises(ConfigError) as err:
+        parse_config({"failover": table, "rig": [{"name": "r", "source": "r.mcap"}]}, "rigs.toml")
+    assert str(err.value).startswith(f"rigs.toml: {message}"), str(err.value)

@@ -8,7 +8,7 @@ Key space::
 
 A replica message is the checkpoint as :mod:`twin.service.checkpoint_file` writes it (data only: numbers,
 strings, raw little-endian arrays in base64; never executed), with the rig's state (``running``,
-``finished``, ``stopped``), the owner's ``service_id`` and the SHA-256 of its body; a damaged or foreign
+``finished``, ``stopped``, ``failed``), the owner's ``service_id`` and the SHA-256 of its body; a damaged or foreign
 message is refused (logged) and the previous checkpoint kept.
 
 A standby journals the owner's alarms (``fpdd/<rig>/alarm``) under the owner's numbers; a gap is filled from
@@ -102,6 +102,9 @@ class ReplicaSource:
         self._q = session.declare_queryable(key, self._on_query)
 
     def publish(self, cp: Checkpoint, rig_state: str) -> None:
+        """Put ``cp``; ``rig_state``: the runner's (``finished``, ``stopped`` and ``failed`` are said as they
+        are, anything else is ``running``)."""
+        rig_state = rig_state if rig_state in ("finished", "stopped", "failed") else "running"
         payload = encode_replica(cp, rig_state, self.service_id)
         with self._lock:
             self._latest = payload
