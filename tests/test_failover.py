@@ -127,7 +127,8 @@ def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a
             time.sleep(1.5)  # a status or two of the new owner
             status = next(r.ok for r in session.get(f"fpdd/{RIG}/status", timeout=5.0) if r.ok is not None)
             st = json.loads(status.payload.to_string())
-            assert st["state"] == "running" and "took over from svc-a" in st["message"], st
+            # running (or degraded while it catches up with the live input after its start)
+            assert st["state"] in ("running", "degraded") and st["message"].startswith("took over from svc-a "), st
             assert st["counters"]["unwatched_ms"] == int(unwatched * 1000 + 0.5) or \
                 abs(st["counters"]["unwatched_ms"] - unwatched * 1000) <= 10
             assert 0 <= st["counters"]["took_over_ms"] <= took * 1000 + 10
