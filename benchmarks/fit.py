@@ -172,7 +172,7 @@ def _five_parameter_command() -> dict:
 
 def _others(quick: bool) -> list[dict]:
     rows = []
-    for mod in ("benchmarks.tracker", "benchmarks.diagnose", "benchmarks.replay"):
+    for mod in ("benchmarks.tracker", "benchmarks.diagnose", "benchmarks.replay", "benchmarks.failover"):
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -9,6 +9,9 @@ Zenoh to ``fpdd/<rig>/{estimate,status,forecast,alarm}`` (the key space of
 :mod:`twin.service.bus`), after fetching each twin's latest estimate, status and
 forecast and its last journaled alarm, so the screen is filled at once.
 
+A rig shared by several services (``[failover]`` of ``twin serve``) shows the service that runs it
+(``owner``) and those standing by for it (``standby``), from their liveliness tokens.
+
 Each rig's title says whether its twin is still there: ``gone`` when its
 liveliness token ``fpdd/<rig>/twin`` went away (the process died or lost the
 bus), ``stale`` when nothing came from it for :data:`STALE_PERIODS` status
@@ -76,8 +79,34 @@ class TopState:
         """rig -> wall-clock time [s] of its last message received here"""
         self.alive: dict[str, bool] = {}
         """rig -> whether its liveliness token is there (unknown rigs: not asked yet)"""
+        self.roles: dict[str, dict[str, dict[str, int]]] = {}
+        """rig -> role (owner, standby, prefer) -> {service_id: priority}: services sharing it (failover)"""
         self.lock = threading.Lock()
         self.changed = threading.Event()
+
+    def token(self, key: str, alive: bool) -> None:
+        """A failover token (``fpdd/<rig>/owner|standby|prefer/<priority>/<service_id>``) came or went."""
+        from twin.service.ownership import ROLES, parse_token
+
+        parsed = parse_token(key)
+        if parsed is None:
+            return
+        rig, role, prio, sid = parsed
+        with self.lock:
+            held = self.roles.setdefault(rig, {r: {} for r in ROLES})[role]
+            if alive:
+                held[sid] = prio
+            else:
+                held.pop(sid, None)
+        self.changed.set()
+
+    def sharing(self, rig: str) -> dict[str, list[str]]:
+        """``{"owner": [...], "standby": [...]}``: the services running and standing by for ``rig``, each by the
+        failover rule's order (empty lists: not shared)."""
+        with self.lock:
+            roles = self.roles.get(rig, {})
+            return {role: [s for _, s in sorted((p, s) for s, p in roles.get(role, {}).items())]
+                    for role in ("owner", "standby")}
 
     def liveliness(self, rig: str, alive: bool) -> None:
         """The twin of ``rig`` declared (``True``) or lost (``False``) its liveliness token."""
@@ -149,7 +178,7 @@ class TopState:
                         "samples": ((st or {}).get("counters") or {}).get("samples"),
                         "params": params, "soonest_exit": soonest,
                         "last_alarm": self.alarm_text(al) if al else None,
-                        "last_alarm_event": al}
+                        "last_alarm_event": al, **self.sharing(rig)}
         return out
 
     def alarm_text(self, a: dict) -> str:
@@ -199,7 +228,9 @@ def render(snap: dict, where: str, live: bool = True):
         title = Text.assemble(("rig ", "bold"), (rig, "bold"), "  ", (state, STATE_STYLE.get(state, "")), mark,
                               f"  t = {r['t_s']:.2f} s" if r["t_s"] is not None else "",
                               f"  samples {r['samples']}" if r["samples"] is not None else "",
-                              f"  filter {r['filter']}" if r["filter"] else "")
+                              f"  filter {r['filter']}" if r["filter"] else "",
+                              f"  owner {', '.join(r['owner'])}" if r.get("owner") else "",
+                              f"  standby {', '.join(r['standby'])}" if r.get("standby") else "")
         parts.append(title)
         t = Table(expand=False, show_edge=True)
         t.add_column("parameter")
@@ -268,6 +299,8 @@ def _fill(session, state: TopState, rig: str, timeout: float) -> None:
 
 
 def run_top(args) -> int:
+    import zenoh
+
     from twin.service.bus import RigKeys
     from fpdd.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
     from fpdd.errors import SourceError
@@ -322,6 +355,9 @@ def run_top(args) -> int:
             state.liveliness(rig, sample.kind == zenoh.SampleKind.PUT)
 
         subs.append(session.liveliness().declare_subscriber(keys.twin, on_token, history=True))
+        subs.append(session.liveliness().declare_subscriber(  # who runs and who stands by (failover)
+            f"fpdd/{args.rig}/*/*/*", lambda s: state.token(str(s.key_expr), s.kind == zenoh.SampleKind.PUT),
+            history=True))
         deadline = time.monotonic() + args.wait
         while True:
             _fill(session, state, args.rig, timeout=max(0.2, min(2.0, deadline - time.monotonic())))

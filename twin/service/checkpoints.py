@@ -64,8 +64,10 @@ class Checkpoints(RunnerCore):
         if twin is None or twin.last_t_ns is None or twin.commissioning is not None:
             return  # nothing tracked yet (a restart during the commissioning gathers its window again)
         try:
-            self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples, self._fp,
-                                                    twin.state(), time.time()))
+            saved = self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples,
+                                                            self._fp, twin.state(), time.time()))
+            if self.cfg.failover is not None:  # to the standbys (twin.service.replication)
+                self.outbox.publish_checkpoint(saved, self.summary.state)
             if self._cp_error:
                 log.warning("rig %s: checkpoints are written again", self.rig.name)
             self._cp_error = None

@@ -18,6 +18,9 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     lag_warn_s = 1.0                    # status 'degraded' when a rig is this far behind real time
     stale_s = 1.0                       # a live input quiet this long is 'stale_input'
 
+    [failover]                          # optional: these rigs are shared with other services, one runs
+    priority = 100                      #   each, the others stand by (keys: twin/service/ownership.py)
+
     [[rig]]
     name = "msp25-a"
     model = "msp25"
@@ -80,6 +83,7 @@ MAX_PATH_COMPONENT = 255
 
 if TYPE_CHECKING:
     from twin.online.commission import Commission
+    from twin.service.ownership import FailoverConfig
 
 @dataclasses.dataclass(frozen=True)
 class RigConfig:
@@ -141,9 +145,11 @@ class ServiceConfig:
     signals_hz: float = 0.0
     """Rig signals put on ``fpdd/<rig>/signals`` for live views, at most this many samples per second and rig
     (0: none; ``twin serve --foxglove`` sets it)."""
+    failover: FailoverConfig | None = None
+    """``[failover]``: rigs shared with other services, one runs each (:mod:`twin.service.ownership`)."""
 
 
-TOP_KEYS = ("zenoh", "service", "rig")
+TOP_KEYS = ("zenoh", "service", "rig", "failover")
 ZENOH_KEYS = ("mode", "listen", "connect")
 SERVICE_KEYS = ("journal_dir", "out_dir", "estimate_every", "workers", "checkpoint_s", "block_s", "lag_warn_s",
                 "stale_s", "signing_keys")
@@ -372,6 +378,9 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
     journal_dir = _path(s, "journal_dir", sw, os.path.join(".", "fpdd-journal"))
     if not journal_dir.strip():
         raise ConfigError(f"{path}: service.journal_dir: expected a directory path, got an empty string")
+    from twin.service.ownership import parse_failover
+
+    failover = parse_failover(doc, path, journal_dir)
     return ServiceConfig(
         path=path, zenoh_mode=mode, listen=listen, connect=connect,
         journal_dir=journal_dir,
@@ -385,6 +394,7 @@ def parse_config(doc: dict, path: str = "<config>") -> ServiceConfig:
                             f"{sw}.lag_warn_s", "a day"),
         stale_s=_at_most(_number(s, "stale_s", sw, 1.0, lo=0.05, what=" seconds"), 86400.0, f"{sw}.stale_s",
                          "a day: a dead input must be noticed"),
+        failover=failover,
     )
 
 

@@ -96,6 +96,7 @@ class BusFront:
         self._session = session
         self._histories = histories
         self.on_alarm = on_alarm
+        self.replicate: Callable[[str, Any, str], None] | None = None
         self.state: dict[str, tuple[str, str]] = {}
         try:
             for rig, history in histories.items():
@@ -125,6 +126,9 @@ class BusFront:
 
                         sp = self._signal_pubs[rig] = self._session.declare_publisher(signals_key(rig))
                     sp.put(item[1])
+                elif kind == "checkpoint":  # replicated to the standbys (twin.service.replication)
+                    if self.replicate is not None:
+                        self.replicate(rig, item[1], item[2])
                 elif kind == "alarm":
                     event = item[1]
                     pub.put_alarm(event)
@@ -149,8 +153,11 @@ class Fleet:
     """
 
     def __init__(self, cfg: ServiceConfig, session, stop: threading.Event, *,
-                 on_alarm: Callable[[AlarmEvent], None] | None = None, keep: dict | None = None) -> None:
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, keep: dict | None = None,
+                 replicate: Callable[[str, Any, str], None] | None = None, takeover: dict | None = None) -> None:
         self.cfg = cfg
+        self.replicate = replicate  # each checkpoint to the standbys (twin.service.failover)
+        self.takeover = takeover or {}  # rig -> what a takeover tells its runner (twin.service.failover)
         self.session = session
         self.stop = stop
         self.on_alarm = on_alarm
@@ -201,9 +208,11 @@ class Fleet:
             histories.update(journals)
             front = BusFront(self.session, histories, self.on_alarm,
                              {r.name: r.signing_key for r in cfg.rigs if r.signing_key})
+            front.replicate = self.replicate
             for rig in self.local:
                 runner = RigRunner(rig, cfg, journals[rig.name], inbox, self.stop, session=self.session,
                                    keep=self.keep)
+                runner.takeover = self.takeover.get(rig.name)
                 threads.append(threading.Thread(target=runner.run, name=f"rig-{rig.name}", daemon=True))
             for i, group in enumerate(self.remote):
                 reader, writer = ctx.Pipe(duplex=False)

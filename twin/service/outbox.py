@@ -59,6 +59,11 @@ class Outbox(Publisher):
         :meth:`twin.service.bus.TwinPublisher.publish_forecast` (which decides when it goes on the bus)."""
         self._batch.append(("forecast", message))
 
+    def publish_checkpoint(self, cp, rig_state: str) -> None:
+        """A checkpoint just saved, for the standbys (``("checkpoint", Checkpoint, state)``, see
+        :mod:`twin.service.replication`)."""
+        self._batch.append(("checkpoint", cp, rig_state))
+
     def publish_signals(self, samples: Samples) -> None:
         """The rig's samples, decimated to ``signals_hz`` (nothing when it is 0)."""
         if self._decimate is not None:

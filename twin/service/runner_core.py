@@ -69,6 +69,7 @@ class RunnerCore(abc.ABC):
         self._lead_s = 0.0  # how far the last time_jump was ahead of the rig's present [s]
         self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
         self._back_since: float | None = None  # monotonic time of the first block all time_backwards since then
+        self.takeover: dict | None = None  # set when this run took the rig over (twin.service.failover)
 
     def _set_state(self, state: str, message: str = "") -> None:
         self.summary.state = state
@@ -88,6 +89,11 @@ class RunnerCore(abc.ABC):
             if cleaned is None:
                 return
             block = cleaned
+        if self.takeover is not None and self.takeover.get("watched_until_ns") is not None:  # first live block
+            gap = max(0, int(block.t_ns[0]) - self.takeover.pop("watched_until_ns"))
+            self.takeover["counters"]["unwatched_ms"] = gap // 1_000_000
+            self.takeover["note"] += f"; {gap * 1e-9:.2f} s of input not watched"
+            log.warning("rig %s: %.2f s of input not watched", self.rig.name, gap * 1e-9)
         last = twin.last_t_ns
         dt = twin.tracker.dt
         if last is not None and dt and (int(block.t_ns[0]) - last) * 1e-9 > max(GAP_S, 20 * dt):
@@ -155,6 +161,9 @@ class RunnerCore(abc.ABC):
             log.warning("rig %s: %s", self.rig.name, "; ".join(warn))
         h.state = state
         h.message = "; ".join(warn) or self._notes
+        if self.takeover is not None:  # said for the rest of the run
+            h.counters.update(self.takeover["counters"])
+            h.message = "; ".join(m for m in (self.takeover["note"], h.message) if m)
         twin.publish_status()
         if time.monotonic() - self._last_cp >= self.cfg.checkpoint_s:
             self._checkpoint()

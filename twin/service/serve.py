@@ -36,8 +36,12 @@ def serve(cfg: ServiceConfig, stop: threading.Event | None = None,
     if own_session:
         session = open_service_session(cfg)
     try:
-        fleet = Fleet(cfg, session, stop, on_alarm=on_alarm, keep=twins)
-        result = fleet.run()
+        if cfg.failover is not None:  # rigs shared with other services (twin.service.failover)
+            from twin.service.failover import serve_failover
+
+            result = serve_failover(cfg, session, stop, on_alarm)
+        else:
+            result = Fleet(cfg, session, stop, on_alarm=on_alarm, keep=twins).run()
     finally:
         if own_session:
             session.close()
@@ -58,7 +62,10 @@ def zenoh_settings(cfg: ServiceConfig):
 
     file = os.environ.get("ZENOH_CONFIG") or None
     try:
-        return zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect, None, config_file=file)
+        conf = zenoh_config(cfg.zenoh_mode, cfg.listen, cfg.connect, None, config_file=file)
+        if cfg.failover is not None:  # a host silent this long is dead: its rigs' tokens go (twin.service.ownership)
+            conf.insert_json5("transport/link/tx/lease", str(int(cfg.failover.lease_s * 1000)))
+        return conf
     except ConfigError as exc:
         text = str(exc)
         raise ConfigError(f"ZENOH_CONFIG={text}" if file and text.startswith(file) else f"{cfg.path}: zenoh: {text}") \
