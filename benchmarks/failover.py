@@ -183,12 +183,13 @@ def wear_log(tmp: Path, seconds: float, drifts: list, seed: int) -> tuple[Path, 
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import simulate_wear
-    from twin.models.simulate import DEFAULT_NOISE, excite
+    from fpdd.units import NOMINAL_NOISE
+    from twin.models.simulate import excite
     from twin.service.config import load_config
     from twin.service.serve import serve
 
     _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, drifts, noise={k: DEFAULT_NOISE[k] for k in ("x", "pA", "pB")},
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, drifts, noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
                            seed=seed)
     log = tmp / "rig.mcap"
     with McapSink(str(log)) as sink:
@@ -264,7 +265,7 @@ def run(kills: int = 10, seed: int = 1000, quick: bool = False, freeze: bool = F
     once the rig runs elsewhere."""
     import numpy as np
 
-    from replay.zenohconf import zenoh_config
+    from fpdd.zenohconf import zenoh_config
     from twin.models.scenario import Drift
 
     import zenoh

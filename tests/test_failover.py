@@ -274,7 +274,7 @@ def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_p
 
 
 def test_a_replica_message_is_data_only_and_a_damaged_one_is_refused_with_one_line():
-    from twin.errors import DataError
+    from fpdd.errors import DataError
     from twin.service.checkpoint_file import Checkpoint
     from twin.service.replication import decode_replica, encode_replica
 
@@ -301,7 +301,7 @@ def test_a_replica_message_is_data_only_and_a_damaged_one_is_refused_with_one_li
     ({"prefer": "yes"}, "failover.prefer: expected true or false"),
 ])
 def test_a_bad_failover_table_is_refused_with_one_line_naming_the_key(table, message):
-    from twin.errors import ConfigError
+    from fpdd.errors import ConfigError
     from twin.service.config import parse_config
 
     with pytest.raises(ConfigError) as err:

@@ -25,7 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from twin.errors import TwinError
+from fpdd.errors import TwinError
 from twin.online.events import AlarmEvent
 from twin.service.config import RigConfig, ServiceConfig
 from twin.service.inputs import is_live

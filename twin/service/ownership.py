@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from twin.errors import ConfigError
+from fpdd.errors import ConfigError
 from twin.online.events import RIG_PATTERN
 
 log = logging.getLogger("twin.serve")

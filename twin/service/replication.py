@@ -31,7 +31,7 @@ from typing import Any
 
 import zenoh
 
-from twin.errors import DataError, TwinError
+from fpdd.errors import DataError, TwinError
 from twin.online.events import AlarmEvent
 from twin.service.checkpoint_file import Checkpoint, decode_state, encode_state
 from twin.service.config import RigConfig, ServiceConfig
