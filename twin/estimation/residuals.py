@@ -196,7 +196,7 @@ def band_table(r: np.ndarray, dt: float, noise: float) -> list[dict]:
         if not m.any():
             continue
         ratio = float(np.mean(pxx[m]) / white) if white > 0 else float("inf")
-        rows.append({"f_lo": lo, "f_hi": min(hi, nyq), "power_ratio": ratio})
+        rows.append({"f_lo_hz": lo, "f_hi_hz": min(hi, nyq), "power_ratio": ratio})
     return rows
 
 
@@ -239,23 +239,30 @@ class ResidualAnalysis:
         return sorted(self.regimes[output], key=lambda row: -row["ratio"])[:top]
 
     def summary(self) -> dict:
+        """As JSON: residual levels in SI with their unit beside (``rms_unit``, ``noise_unit``, a row's ``unit``)."""
+        from twin.units import SIGNAL_UNITS
+
+        unit = {o: SIGNAL_UNITS.get(o, "") for o in self.outputs}
         return {
             "outputs": list(self.outputs),
-            "noise": self.noise, "rms": self.rms, "excess": self.excess,
+            "noise": self.noise, "noise_unit": unit, "rms": self.rms, "rms_unit": unit, "excess": self.excess,
             "ljung_box": self.ljung_box, "white": self.white, "adequate": self.adequate,
             "acf_band": self.acf_band,
             "acf": {o: np.round(self.acf[o][: min(11, self.max_lag + 1)], 4).tolist() for o in self.outputs},
             "xcorr": {k: {kk: vv for kk, vv in v.items() if kk not in ("lags", "values")}
                       for k, v in self.xcorr.items()},
-            "concentration": {o: self.concentration(o) for o in self.outputs},
+            "concentration": {o: [dict(row, unit=unit[o]) for row in self.concentration(o)] for o in self.outputs},
             "bands": self.bands,
         }
 
     def text(self) -> str:
+        from twin.reports.units import signal_unit
+
         lines = []
         for o in self.outputs:
             lb = self.ljung_box[o]
-            lines.append(f"  {o}: rms {self.rms[o]:.4g}, noise floor {self.noise[o]:.4g}, "
+            shown, k = signal_unit(o)
+            lines.append(f"  {o}: rms {self.rms[o] * k:.4g} {shown}, noise floor {self.noise[o] * k:.4g} {shown}, "
                          f"excess x{self.excess[o]:.3g}, Ljung-Box Q={lb['Q']:.4g} (df {lb['df']}) "
                          f"p={lb['p']:.3g} -> {'white' if self.white[o] else 'NOT white'}")
             conc = self.concentration(o, 2)
