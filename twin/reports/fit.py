@@ -163,7 +163,8 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
     body = [P.table(_timing_text(_get(result, "timing")), text_columns=("setting", "value"))]
     if any(init):
         body.append(P.note("Initial state of each record (read off the data, refined where estimated):"))
-        body.append(P.table([{"record": getattr(rec, "name", i), **{k: fmt(v) for k, v in d.items()}}
+        body.append(P.table([{"record": getattr(rec, "name", i), **{_init_label(k, model_name): _init_value(k, v, model_name)
+                                                                     for k, v in d.items()}}
                              for i, (rec, d) in enumerate(zip(records, init))], text_columns=("record",)))
     pg.add("timing", "Loop timing used", "\n".join(body))
 
@@ -171,6 +172,24 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
     if hist:
         pg.add("convergence", "Convergence", P.figure(_convergence(hist), "Cost of each refined start per iteration."))
     return pg.write(out_dir, filename)
+
+
+#: initial-state quantity -> the signal whose display unit it is shown in (``v0`` as a velocity)
+_INIT_SIGNAL = {"x0": "x", "v0": "v", "dp0": "pA", "pA0": "pA", "pB0": "pB", "u0": "u"}
+
+
+def _init_label(name: str, model: str) -> str:
+    """``x0 [mm]``, ``pA0 [MPa]``: an initial-state column with its display unit."""
+    from twin.reports.units import label
+
+    return label(name, signal_unit(_INIT_SIGNAL.get(name, name), model)[0])
+
+
+def _init_value(name: str, value, model: str) -> str:
+    """In the display unit, fixed point to 0.1 µm, 0.1 kPa, 0.1 mV (a start near zero reads 0.0000, not 6.8e-05)."""
+    if value is None or not math.isfinite(float(value)):
+        return "n/a"
+    return f"{float(value) * signal_unit(_INIT_SIGNAL.get(name, name), model)[1]:.4f}"
 
 
 def _fit_pct(y, yh) -> float:
