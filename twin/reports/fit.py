@@ -210,10 +210,10 @@ LOW_FIT_PCT = 90.0
 def snr_rows(result, records: Sequence, model: str) -> dict[str, dict]:
     """Per output: the noise level ``noise`` (SI std: the fit's weighting noise, else the sensor's default),
     the best Fit % an exact model reaches under that noise ``best_pct`` (``100 (1 − σ √N / ‖y − mean y‖)``),
-    and a ``note`` for the report when that best Fit is low (below ``LOW_FIT_PCT``): how far the signal
-    swings against the noise, and whether the fit reached what the noise allows (its mean square error
-    within the 95 % range of a white noise's sample variance, ``σ² (1 + 1.96 √(2/N))``) or the model misses
-    something (``model_misses``)."""
+    the share of the signal's power above the noise that the model explains ``explained``
+    (``1 − (mse − σ²) / (var y − σ²)``), and a ``note`` for the report when the best Fit is low (below
+    ``LOW_FIT_PCT``): how far the signal swings against the noise, and whether the model explains most of
+    what is above the noise (a low signal-to-noise ratio) or not (``model_misses``)."""
     from twin.estimation.fit import noise_levels
 
     given = _get(result, "noise") or {}
@@ -230,20 +230,25 @@ def snr_rows(result, records: Sequence, model: str) -> dict[str, dict]:
         y = np.concatenate(ys) if ys else np.zeros(0)
         den = float(np.linalg.norm(y - y.mean())) if y.size else 0.0
         best = 100.0 * (1.0 - sigma * math.sqrt(y.size) / den) if den > 0 and sigma > 0 else None
-        row = {"noise": sigma, "best_pct": best, "note": "", "model_misses": False}
+        above = float(np.var(y)) - sigma ** 2 if y.size else 0.0  # the signal's power above the noise
+        m = float(mse.get(o, float("nan")))
+        explained = 1.0 - max(m - sigma ** 2, 0.0) / above if above > 0 and math.isfinite(m) else None
+        row = {"noise": sigma, "best_pct": best, "explained": explained, "note": "", "model_misses": False}
         if best is not None and best < LOW_FIT_PCT:
             unit, sc = signal_unit(o, model)
-            swing = float(np.ptp(y)) * sc
-            bound = sigma ** 2 * (1.0 + 1.96 * math.sqrt(2.0 / y.size))
-            misses = o in mse and float(mse[o]) > bound
+            u = pretty_unit(unit)
+            misses = explained is not None and explained < 0.5
             row["model_misses"] = misses
-            row["note"] = (f"Low signal-to-noise ratio: {o} swings {fmt(swing, 3)} {pretty_unit(unit)} (peak to peak, "
-                           f"standard deviation {fmt(float(np.std(y)) * sc, 3)} {pretty_unit(unit)}) under "
-                           f"{fmt(sigma * sc, 3)} {pretty_unit(unit)} of sensor noise: the best achievable Fit is "
-                           f"about {best:.0f} %; this fit reaches {fit_pct[o]:.1f} %. "
-                           + ("Its error is larger than the noise (beyond the 95 % range of the noise's variance): "
-                              "the model misses something in this output." if misses else
-                              "Its error is the noise: a low Fit here is the sensor, not the model."))
+            head = (f"Low signal-to-noise ratio: {o} swings {fmt(float(np.ptp(y)) * sc, 3)} {u} (peak to peak, "
+                    f"standard deviation {fmt(float(np.std(y)) * sc, 3)} {u}) under {fmt(sigma * sc, 3)} {u} of "
+                    f"sensor noise: the best achievable Fit is about {max(best, 0.0):.0f} %; this fit reaches "
+                    f"{fit_pct[o]:.1f} %")
+            if explained is None:
+                row["note"] = head + f". {o} does not rise above its noise: no model can fit it."
+            else:
+                row["note"] = head + (f" and explains {100 * max(explained, 0.0):.0f} % of the signal's power above "
+                                      "the noise. " + ("The model misses something in this output." if misses else
+                                                       "A low Fit here is the sensor, not the model."))
         out[o] = row
     return out
 
