@@ -254,7 +254,7 @@ def outputs(tmp_path_factory):
     def keep(name: str, res: tuple[int, str, str], json_out: bool = False) -> None:
         rc, out, err = res
         assert rc == 0, f"{name}: exit {rc}: {err[-2000:]}"
-        texts[f"{name} (stderr)"] = err
+        texts[f"{name}{' --json' if json_out else ''} (stderr)"] = err
         if json_out:
             docs[f"{name} --json"] = json.loads(out)
         else:
