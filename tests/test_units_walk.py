@@ -36,14 +36,15 @@ sys.path.insert(0, os.path.dirname(__file__))
 from net_helpers import free_port  # noqa: E402
 
 #: a key ending so names its unit
-UNIT_SUFFIX = re.compile(r"_(s|ns|ms|us|hz|pct|mm|mpa)$", re.IGNORECASE)
+UNIT_SUFFIX = re.compile(r"(^|_)(s|ns|ms|us|hz|pct|mm|mpa|v|k|sec|nsec)(_per_[a-z]+)?$", re.IGNORECASE)
 
 #: numbers that are no physical quantity: counts, indices, ratios, statistics and probabilities (by their key)
 DIMENSIONLESS = frozenset({
     # counts and indices
     "samples", "n", "n_obs", "n_par", "nfev", "status", "iteration", "start", "seq", "df", "lags", "order",
     "ar_order", "n_tests", "n_innovations", "records_read", "samples_out", "samples_lost", "seed", "messages",
-    "blocks", "duplicates", "estimates", "statuses", "alarms", "received_by_subscriber",
+    "blocks", "duplicates", "estimates", "statuses", "alarms", "received_by_subscriber", "level", "line",
+    "speed", "factor",  # a replay speed (x real time), a drift's factor
     # ratios and relative values
     "ratio", "power_ratio", "share", "excess", "nrmse", "r2", "r2_excess", "ar1", "holdout_fraction",
     "holdout_gain", "acf_band",
@@ -59,11 +60,17 @@ DIMENSIONLESS_TREES = frozenset({
 })
 
 
-def unitless(doc, where: str, described: frozenset = frozenset()) -> list[str]:
+#: display units: in a machine output only inside a ``display`` block (beside the SI value)
+NOT_SI = frozenset({"mm", "um", "µm", "mm^2", "mm²", "MPa", "kPa", "bar", "Hz", "kHz", "ms", "cm^3", "mm/s", "kN/mm",
+                    "V/MPa", "degC", "°C"})
+
+
+def unitless(doc, where: str, described: frozenset = frozenset(), si: bool = True) -> list[str]:
     """Paths of the numbers in ``doc`` that are neither beside a unit nor named dimensionless.
 
     ``described``: key paths (list indices left out) whose unit the message's schema names (an MCAP channel's
-    JSON schema: ``"description": "measured rod displacement (LVDT), m"``)."""
+    JSON schema: ``"description": "measured rod displacement (LVDT), m"``).  With ``si``, a ``"unit"`` must be
+    SI (:data:`NOT_SI`) outside a ``display`` block."""
     bad: list[str] = []
 
     def walk(obj, path: tuple, parents: tuple) -> None:
@@ -78,6 +85,9 @@ def unitless(doc, where: str, described: frozenset = frozenset()) -> list[str]:
             if tuple(keys) in described:
                 return
             if parents and isinstance(parents[-1], dict) and "unit" in parents[-1]:
+                unit = parents[-1]["unit"]
+                if si and unit in NOT_SI and "display" not in keys:
+                    bad.append(f"{where}: {'/'.join(str(k) for k in path)} in {unit!r}, not SI")
                 return
             if keys and keys[-1] in DIMENSIONLESS or any(UNIT_SUFFIX.search(k) or k in DIMENSIONLESS_TREES
                                                           for k in keys):
@@ -296,7 +306,63 @@ def outputs(tmp_path_factory):
     texts_z, docs_z = _serve(d, str(d / "r.mcap"))
     texts.update(texts_z)
     docs.update(docs_z)
+    # the demo, short, with its leak alarm inside the record: console, summary, HTML alarm table, its MCAPs
+    from twin.commands.demo import run as run_demo
+    from twin.online.tracker import fmt_estimate
+
+    lines: list[str] = []
+    summary = run_demo(str(d / "demo"), duration_s=10.0, speed=0.0, seed=1000, t_start=1.0, t_end=6.0,
+                       say=lines.append)
+    assert summary["alarms"], "the demo raised no alarm: its alarm table is not walked"
+    texts["demo (console)"] = "\n".join(lines + [fmt_estimate(n, v["value"], v["std"])
+                                                 for n, v in summary["final"].items()])
+    docs["demo --json"] = json.loads(json.dumps(summary, default=str))
+    texts["demo report"] = html_text(summary["files"]["html"])
+    mcaps["demo rig mcap"] = summary["files"]["rig_mcap"]
+    mcaps["demo twin mcap"] = summary["files"]["twin_mcap"]
+    # the live view: what a Foxglove client receives of these signals, estimates, statuses and alarms
+    live, log_lines = _live_view(str(d / "r.mcap"), str(d / "track" / "rig.twin.mcap"), summary["alarms"])
+    docs.update(live)
+    texts["live view alarm log"] = "\n".join(log_lines)
     return texts, docs, mcaps
+
+
+def _live_view(signals_mcap: str, twin_mcap: str, alarms: list[dict]) -> tuple[dict, list[str]]:
+    from mcap.reader import make_reader
+
+    from replay.factory import open_source
+    from test_live_view import Client
+    from twin.service.live_view import LiveView
+
+    with open(twin_mcap, "rb") as f:
+        msgs = [(ch.topic, json.loads(m.data)) for _, ch, m in make_reader(f).iter_messages()]
+    estimates = [m for t, m in msgs if t == "/twin/estimate"][:3]
+    statuses = [m for t, m in msgs if t == "/twin/status"][:1]
+    assert estimates and statuses
+    with open_source(signals_mcap) as src:
+        block = next(iter(src.chunks()))
+    with LiveView(port=0, signal_rate_hz=100.0) as view:
+        client = Client(view.url)
+        try:
+            client.subscribe([t for t in client.channels if t != "/twin/forecast"])
+            for topic in client.sub_of.values():
+                assert view.wait_subscribed(topic, 30.0), topic
+            sent = view.signals("rig-w", block)
+            for e in estimates:
+                view.estimate(dict(e, rig="rig-w"))
+            for e in statuses:
+                view.status(dict(e, rig="rig-w"))
+            for a in alarms[:2]:
+                view.alarm(a)
+            got = client.messages({"/rig/signals": sent, "/twin/estimate": len(estimates), "/twin/status": 1,
+                                   "/twin/alarm": min(2, len(alarms)), "/twin/alarm_log": min(2, len(alarms))},
+                                  timeout=30.0)
+        finally:
+            client.close()
+    docs = {f"live view {topic}": [m for _, m in got[topic]] for topic in got if topic != "/twin/alarm_log"}
+    docs["live view /twin/alarm_log"] = [{k: v for k, v in m.items() if k != "message"}
+                                         for _, m in got["/twin/alarm_log"]]
+    return docs, [m["message"] for _, m in got["/twin/alarm_log"]]
 
 
 def _serve(d, log: str) -> tuple[dict, dict]:
@@ -347,7 +413,8 @@ def test_every_machine_output_names_the_unit_of_each_physical_value(outputs):
     _, docs, mcaps = outputs
     assert {"fit --json", "fit --save", "diagnose --save", "diagnose --json", "track --json", "paper --json",
             "params --json", "simulate --json", "replay info --json", "serve zenoh"} <= set(docs)
-    bad = [b for name, doc in docs.items() for b in unitless(doc, name)]
+    # the live view's payloads feed Foxglove's plots: their unit is named (x_mm, pA_MPa), display units allowed
+    bad = [b for name, doc in docs.items() for b in unitless(doc, name, si=not name.startswith("live view"))]
     for name, path in mcaps.items():
         found, topics = mcap_check(path, name)
         assert topics, f"{name}: no JSON message in {path}"
@@ -389,6 +456,8 @@ def test_the_checks_catch_what_they_are_for():
     """The walkers themselves: each kind of bare value is caught, each kind of labelled value passes."""
     assert unitless({"mse": {"x": 1e-12}}, "d") and not unitless({"mse": {"x": 1e-12}, "mse_unit": {"x": "m^2"}}, "d")
     assert not unitless({"wn": {"value": 270.0, "unit": "rad/s"}, "time_s": 1.0, "nfev": 3}, "d")
+    assert unitless({"wn": {"value": 43.0, "unit": "Hz"}}, "d")  # a machine output is SI
+    assert not unitless({"wn": {"value": 270.0, "unit": "rad/s", "display": {"value": 43.0, "unit": "Hz"}}}, "d")
     assert unitless({"params": {"wn": 270.0}}, "d")
     assert bare_si("CdAleak 3.2863e-09", "t") and bare_si("start 0: wn=270.177 cost 3", "t")
     assert bare_si("rms 2.005e+04, noise floor 1.9e+04", "t") and bare_si("wn 270.177 270.17696 4e-06", "t")
