@@ -89,7 +89,7 @@ def unitless(doc, where: str, described: frozenset = frozenset(), si: bool = Tru
                 if si and unit in NOT_SI and "display" not in keys:
                     bad.append(f"{where}: {'/'.join(str(k) for k in path)} in {unit!r}, not SI")
                 return
-            if keys and keys[-1] in DIMENSIONLESS or any(UNIT_SUFFIX.search(k) or k in DIMENSIONLESS_TREES
+            if keys and keys[-1] in DIMENSIONLESS or any(UNIT_SUFFIX.search(k) or "_pct_" in k or k in DIMENSIONLESS_TREES
                                                           for k in keys):
                 return
             for depth in range(len(path)):
@@ -120,8 +120,9 @@ def _display_units() -> dict[str, tuple[str, str]]:
 
 NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:e[-+]?\d+)?(?![\d.])"
 #: a statistic printed in scientific notation is no physical value: p-values, LM/LR, costs
-STATISTIC_BEFORE = re.compile(r"(\bp(_Holm|_adj\w*| \(Holm\))?|α|alpha|LM|LR|Q|cost|AIC\w*|BIC|FPE|dAICc|ΔAICc)"
-                              r"\s*[=:<>]?\s*$")
+STATISTIC_BEFORE = re.compile(r"(\bp(_Holm|_adj\w*| \(Holm\)| × probes)?|α|alpha|LM|LR|Q|cost|AIC\w*|BIC|FPE|"
+                              r"dAICc|ΔAICc|share|NRMSE|ratio|correlation|relative std|HAC / textbook)"
+                              r"[\s=:<>~]*$")
 #: what may follow a number to name its unit (or a percentage)
 UNIT_AFTER = re.compile(r"\s?[A-Za-zµ°%]")
 
@@ -170,6 +171,8 @@ def bare_si(text: str, where: str, tables: bool = True) -> list[str]:
     for m in re.finditer(rf"(?<![\w.])({NUMBER})\s*(rad/s|m\^2|m²|Pa|m\^3/s)(?![\w^²/])", text):
         bad.append(f"{where}: a value in SI {m.group(2)!r} where the display unit is meant: "
                    f"{text[max(0, m.start() - 30):m.end() + 10]!r}")
+    for m in re.finditer(r"\bunit: (rad/s|m\^2|m²|Pa|m\^3|m³)(?![\w^²³/])", text):  # a table's unit column
+        bad.append(f"{where}: a table column in SI {m.group(1)!r}: {text[max(0, m.start() - 60):m.end()]!r}")
     unit_next = "|".join(re.escape(u) for u in sorted(units, key=len, reverse=True))
     for name, (_, shown) in _display_units().items():
         for m in re.finditer(rf"(?<![\w/.-]){re.escape(name)}\s*[=:]\s*({NUMBER})(?!\s*(?:{unit_next})(?![\w^]))",
@@ -186,11 +189,24 @@ def bare_si(text: str, where: str, tables: bool = True) -> list[str]:
     return bad
 
 
+def _table_lines(m: re.Match) -> str:
+    """A table as lines ``header: cell | header: cell ...`` (each cell read under its column's header)."""
+    rows = re.findall(r"<tr\b[^>]*>(.*?)</tr>", m.group(0), flags=re.S)
+    if not rows:
+        return ""
+    cells = [[re.sub(r"<[^>]+>", " ", c).strip() for c in re.findall(r"<t[hd]\b[^>]*>(.*?)</t[hd]>", r, flags=re.S)]
+             for r in rows]
+    head = cells[0]
+    return "\n" + "\n".join(" | ".join(f"{h}: {c}" for h, c in zip(head, row)) for row in cells[1:]) + "\n"
+
+
 def html_text(path: str) -> str:
-    """The visible text of an HTML report (tags, scripts, styles and embedded images removed)."""
+    """The visible text of an HTML report (tags, scripts, styles and embedded images removed); a table's cells
+    are read under their column's header (``p (Holm): <1e-300``, ``estimate: 43.1 | unit: Hz``)."""
     with open(path, encoding="utf-8") as f:
         page = f.read()
     page = re.sub(r"<(script|style)\b.*?</\1>", " ", page, flags=re.S | re.I)
+    page = re.sub(r"<table\b.*?</table>", _table_lines, page, flags=re.S | re.I)
     page = re.sub(r"</(tr|p|h\d|li|figcaption|div)>|<br\s*/?>", "\n", page, flags=re.I)  # a row, a line
     page = re.sub(r"<[^>]+>", " ", page)
     return htmllib.unescape(page)
@@ -283,7 +299,11 @@ def outputs(tmp_path_factory):
     keep("fit", run(*fit_args, "--json"), json_out=True)
     docs["fit --save"] = json.loads((d / "fit.json").read_text())
     texts["fit report"] = html_text(str(d / "fit" / "fit_report.html"))
-    diag_args = ["diagnose", rec, "--candidates", "laminar_leakage,pressure_sensor_offset", "--no-timing-test"]
+    # the diagnosis on a record with a cause to name (a pressure sensor offset): its parameters, signature
+    rec_e = str(d / "offset.csv")
+    keep("simulate offset", run("simulate", "-o", rec_e, "--duration", "1.5", "--seed", "1002", "--effects",
+                                "pressure_sensor_offset", "--set", "CdAleak=0.006mm^2,wn=47Hz,pA_off=0.2MPa"))
+    diag_args = ["diagnose", rec_e, "--candidates", "laminar_leakage,pressure_sensor_offset", "--no-timing-test"]
     keep("diagnose", run(*diag_args, "--save", str(d / "diag.json"), "--report", str(d / "diag")))
     keep("diagnose", run(*diag_args, "--json"), json_out=True)
     docs["diagnose --save"] = json.loads((d / "diag.json").read_text())
@@ -449,6 +469,8 @@ def test_every_human_output_is_in_the_display_units_of_twin_params(outputs):
     assert re.search(r"wn\s+4\d\.\d+ Hz", texts["fit (stdout)"])
     assert "CdAleak=" in texts["fit (stderr)"] and "mm^2" in texts["fit (stderr)"]
     assert re.search(r"rig-A-wn\s+wn\s+43\s", texts["paper (stdout)"])
+    assert re.search(r"pA_off\s+0\.\d+ MPa \+/- [\d.]+ MPa", texts["diagnose (stdout)"])  # the cause, displayed
+    assert "Signature of pressure_sensor_offset" in texts["diagnose report"]
     assert "MPa" in texts["replay info (stdout)"] and "mm" in texts["replay info (stdout)"]
 
 
@@ -462,4 +484,6 @@ def test_the_checks_catch_what_they_are_for():
     assert bare_si("CdAleak 3.2863e-09", "t") and bare_si("start 0: wn=270.177 cost 3", "t")
     assert bare_si("rms 2.005e+04, noise floor 1.9e+04", "t") and bare_si("wn 270.177 270.17696 4e-06", "t")
     assert bare_si("A = 1.72447e-08 (alarm)", "t") and bare_si("final 3e-09 m^2", "t")
+    assert bare_si("parameter: wn | estimate: 270.18 | unit: rad/s", "t", tables=False)
+    assert not bare_si("parameter: wn | estimate: 43.001 | unit: Hz\np (Holm): <1e-300 | share: 2.5e-05", "t")
     assert not bare_si("wn=43.0051 Hz, CdAleak=0.0032863 mm^2, p_Holm=1e-30, p=2.5e-12", "t")

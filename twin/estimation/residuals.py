@@ -136,6 +136,10 @@ def regime_signals(model_name: str, record, predicted: Mapping[str, np.ndarray])
     return out
 
 
+#: the regime variables' display units in the bin labels (position in mm, pressure difference in MPa, ...)
+_REGIME_SHOWN = {"position": (" mm", 1e3), "dp": (" MPa", 1e-6), "spool_opening": (" V", 1.0), "force": (" N", 1.0)}
+
+
 def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float, dt: float,
                  n_bins: int = 5) -> list[dict]:
     """RMS of ``r`` per operating-regime bin, as a ratio to the noise floor ``noise``.
@@ -160,7 +164,7 @@ def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float,
         for sign, sm in (("+", v > 0), ("-", v < 0)):
             mag = np.abs(v)
             for lo, hi, lab in ((0.0, 0.1, "slow"), (0.1, 0.5, "medium"), (0.5, 1.01, "fast")):
-                add("velocity", f"{sign}{lab} (|v| {lo * vmax:.3g}..{hi * vmax:.3g})",
+                add("velocity", f"{sign}{lab} (|v| {lo * vmax * 1e3:.3g}..{hi * vmax * 1e3:.3g} mm/s)",
                     sm & (mag >= lo * vmax) & (mag < hi * vmax))
         rev = np.flatnonzero(np.diff(np.signbit(v)))
         near = np.zeros(v.size, dtype=bool)
@@ -173,11 +177,12 @@ def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float,
         s = regimes.get(name)
         if s is None:
             continue
+        unit, k = _REGIME_SHOWN.get(name, ("", 1.0))
         b = _quantile_bins(s, n_bins)
         for j in range(int(b.max()) + 1):
             m = b == j
-            if m.any():
-                add(name, f"q{j + 1} ({float(s[m].min()):.4g}..{float(s[m].max()):.4g})", m)
+            if m.any():  # the bin's range in display units (a label a person reads)
+                add(name, f"q{j + 1} ({float(s[m].min()) * k:.4g}..{float(s[m].max()) * k:.4g}{unit})", m)
     return rows
 
 

@@ -369,7 +369,7 @@ def signature_figure(sig: Mapping):
         ax.errorbar(bx, by, yerr=Z95 * bse, fmt="o", color=BLUE, ms=3, capsize=2, lw=0.8, zorder=2,
                     label="residual before: bin mean ±1.96 s.e.")
         ax.plot(cx, cy, "-", color=RED, lw=1.6, zorder=3, label=f"{sig['cause']}: extended − before")
-        vals = np.concatenate([by + Z95 * bse, by - Z95 * bse, cy]) if by.size or cy.size else np.zeros(1)
+        vals = np.concatenate([by + Z95 * bse, by - Z95 * bse, cy, [0.0]])  # zero in view: a shift shows
         vals = vals[np.isfinite(vals)]
         if vals.size:
             lo, hi = float(vals.min()), float(vals.max())
@@ -388,11 +388,11 @@ def signature_figure(sig: Mapping):
 
 
 def signature_flatness(x: np.ndarray, contribution: np.ndarray, residual: np.ndarray) -> tuple[bool, float, float]:
-    """(flat, span of the contribution's bin means, median standard error of the residual's bin means): the
-    signature is flat in this view when the cause changes the binned output by less than twice the scatter
-    of a bin mean of the residual (what a bin of noise would show)."""
+    """(flat, span of the contribution's bin means and zero, median standard error of the residual's bin
+    means): the signature is flat in this view when the cause changes the binned output (a shape or a shift
+    from zero) by less than twice the scatter of a bin mean of the residual (what a bin of noise would show)."""
     _, cy, _ = binned_means(x, contribution)
     _, _, se = binned_means(x, residual)
-    span = float(np.ptp(cy)) if cy.size else 0.0
+    span = float(np.ptp(np.append(cy, 0.0)))
     scatter = float(np.median(se)) if se.size else 0.0
     return bool(span < 2.0 * scatter), span, scatter
