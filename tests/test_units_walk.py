@@ -175,7 +175,8 @@ def bare_si(text: str, where: str, tables: bool = True) -> list[str]:
         bad.append(f"{where}: a table column in SI {m.group(1)!r}: {text[max(0, m.start() - 60):m.end()]!r}")
     unit_next = "|".join(re.escape(u) for u in sorted(units, key=len, reverse=True))
     for name, (_, shown) in _display_units().items():
-        for m in re.finditer(rf"(?<![\w/.-]){re.escape(name)}\s*[=:]\s*({NUMBER})(?!\s*(?:{unit_next})(?![\w^]))",
+        sep = "[=:]" if tables else "="  # in a report's table `NAME: x` is a cell under the column NAME
+        for m in re.finditer(rf"(?<![\w/.-]){re.escape(name)}\s*{sep}\s*({NUMBER})(?!\s*(?:{unit_next})(?![\w^]))",
                              text):
             bad.append(f"{where}: {name} without its unit ({shown}): {text[m.start():m.end() + 12]!r}")
         if not tables:
