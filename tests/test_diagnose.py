@@ -188,5 +188,5 @@ def test_closed_loop_feedback_lags_are_reported_but_not_counted_as_model_error()
     assert xc["feedback_lags_outside_band"] > 0 and "feedback" in xc["note"]
     assert {row["regime"] for row in an.regimes["x"]} >= {"velocity", "reversal", "position", "dp",
                                                            "spool_opening"}
-    assert [b["f_lo"] for b in an.bands["x"]][:3] == [0.0, 1.0, 5.0]
+    assert [b["f_lo_hz"] for b in an.bands["x"]][:3] == [0.0, 1.0, 5.0]
     assert not an.adequate
