@@ -188,11 +188,11 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
     sl = slice(n_fit, len(rec))
     for ax, o in zip(axes[:, 0], outs):
-        unit, k = signal_unit(o, diag.model)
-        ax.plot(t[sl], rec[o][sl] * k, color="0.6", lw=1.6, label="measured")
-        ax.plot(t[sl], nom[o][sl] * k, color="C0", lw=0.9, label="nominal")
+        unit, scale = signal_unit(o, diag.model)
+        ax.plot(t[sl], rec[o][sl] * scale, color="0.6", lw=1.6, label="measured")
+        ax.plot(t[sl], nom[o][sl] * scale, color="C0", lw=0.9, label="nominal")
         if diag.causes:
-            ax.plot(t[sl], fin[o][sl] * k, color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
+            ax.plot(t[sl], fin[o][sl] * scale, color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
         ax.set_ylabel(label(o, unit))
     axes[0, 0].legend(fontsize=7, ncol=3)
     axes[0, 0].set_title("Held-out part: measured vs nominal vs extended")
@@ -205,10 +205,10 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     # residuals before and after
     fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
     for ax, o in zip(axes[:, 0], outs):
-        unit, k = signal_unit(o, diag.model)
-        ax.plot(t, (rec[o] - nom[o]) * k, color="C0", lw=0.6, label="nominal")
+        unit, scale = signal_unit(o, diag.model)
+        ax.plot(t, (rec[o] - nom[o]) * scale, color="C0", lw=0.6, label="nominal")
         if diag.causes:
-            ax.plot(t, (rec[o] - fin[o]) * k, color="C3", lw=0.6, label="extended")
+            ax.plot(t, (rec[o] - fin[o]) * scale, color="C3", lw=0.6, label="extended")
         ax.axvline(t[n_fit], color="k", lw=0.8, ls=":")
         ax.set_ylabel(label(f"residual {o}", unit))
     axes[0, 0].legend(fontsize=7)

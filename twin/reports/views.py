@@ -118,7 +118,7 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
             fig.suptitle(title, x=0.01, ha="left", fontsize=10)
         fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.45 / fig.get_figheight() - (0.25 / fig.get_figheight() if title else 0),
                             bottom=0.5 / fig.get_figheight())
-    fig.zooms = zooms  # type: ignore[attr-defined]  # (first, last) time of each output's zoom, s
+    fig.zooms = zooms  # (first, last) time of each output's zoom, s
     return fig
 
 
@@ -321,7 +321,7 @@ def error_figure(t: np.ndarray, outputs: Sequence[dict], t_split: float | None =
                     ax.set_title(f"zoom: {t[zoom][0]:.2f} … {t[zoom][-1]:.2f} s (largest error)", loc="left")
                 ax.set_xlabel("t [s]")
         fig.tight_layout()
-    fig.zooms = zooms  # type: ignore[attr-defined]
+    fig.zooms = zooms
     return fig
 
 
