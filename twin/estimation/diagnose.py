@@ -291,14 +291,13 @@ class ScreenRow:
 
     def to_dict(self) -> dict:
         """As JSON; the estimate in SI with each parameter's unit in ``estimate_unit``."""
+        from twin.models import MODELS
         from twin.reports.units import param_spec
 
         d = dataclasses.asdict(self)
         d["estimate_unit"] = {}
-        for n in self.estimate:
-            spec = None
-            for model in ("msp25", "oscillator"):
-                spec = spec or param_spec(model, n)
+        for n in self.estimate:  # an effect's parameter: the same name has the same unit in every model
+            spec = next((sp for sp in (param_spec(m, n) for m in MODELS) if sp is not None), None)
             d["estimate_unit"][n] = spec.unit if spec is not None else ""
         return d
 
