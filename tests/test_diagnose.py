@@ -56,7 +56,7 @@ def test_hidden_effect_is_named_recovered_and_pays_off(model, effect, seed, kind
     assert out["extended_params"]["effects"] == [effect]
     # the saved extended set is a valid parameter set of the model with the effect switched on by name
     ext = out["extended_params"]
-    ps = model.params(effects=ext["effects"], **ext["params"])
+    ps = model.params(effects=ext["effects"], **{k: v["value"] for k, v in ext["params"].items()})
     assert ps[E.names[0]] == pytest.approx(found[E.names[0]]["value"])
 
 
@@ -137,7 +137,7 @@ def test_cli_json_contract_and_report(tmp_path, capsys):
     for name in names:
         assert (report / name).stat().st_size > 1000
     saved = json.loads(save.read_text())
-    assert saved["effects"] == ["supply_pressure_droop"] and "R_sup" in saved["params"] and "R_sup" in saved["std"]
+    assert saved["effects"] == ["supply_pressure_droop"] and "std" in saved["params"]["R_sup"]
     assert json.loads((report / "extended_params.json").read_text()) == saved
     assert json.loads((report / "diagnosis.json").read_text())["causes"] == ["supply_pressure_droop"]
     # the human-readable form names the cause and its uncertainty
@@ -188,5 +188,5 @@ def test_closed_loop_feedback_lags_are_reported_but_not_counted_as_model_error()
     assert xc["feedback_lags_outside_band"] > 0 and "feedback" in xc["note"]
     assert {row["regime"] for row in an.regimes["x"]} >= {"velocity", "reversal", "position", "dp",
                                                            "spool_opening"}
-    assert [b["f_lo"] for b in an.bands["x"]][:3] == [0.0, 1.0, 5.0]
+    assert [b["f_lo_hz"] for b in an.bands["x"]][:3] == [0.0, 1.0, 5.0]
     assert not an.adequate

@@ -186,3 +186,87 @@ def test_units_never_label_a_dimensionless_axis_with_1():
     assert wn.unit == "Hz" and wn.text(2 * np.pi * 43.0, 4) == "43 Hz"
     assert Shown("zeta", "msp25").text(0.37) == "0.37"
     assert Shown("unknown", "msp25", "N").text(3.0) == "3 N"
+
+
+# --- what a report must explain: low Fit from noise, the error panel, a zoom on long records, signatures --------
+def test_fit_report_explains_a_low_pressure_fit_by_the_noise(tmp_path):
+    """A healthy rig's pressure Fit is low because the pressures barely swing under 20 kPa of noise: the report
+    says so with the best Fit the noise allows (computed here from the record), and that the fit reached it;
+    a wrong model (wn held 30 % low) is told apart: its error is beyond the noise."""
+    from diag_reference import reference_record
+    from twin.estimation.fit import fit
+    from twin.models import get_model
+
+    model = get_model("msp25")
+    rec, info = reference_record((), seed=1001, duration=2.0)
+    res = fit(model, [rec], model.PHENOMENOLOGICAL, seed=0)
+    path = fit_report(res, [rec], model, str(tmp_path / "fit"))
+    dom = check_page(path, tmp_path, ["compare", "resid", "parameters"], "fit")
+    for o in ("pA", "pB"):
+        y = rec[o]
+        best = 100.0 * (1.0 - 2e4 * np.sqrt(y.size) / np.linalg.norm(y - y.mean()))
+        explained = 1.0 - (res.mse[o] - 2e4 ** 2) / (np.var(y) - 2e4 ** 2)  # of the signal above the noise
+        assert best < 60.0 and explained > 0.8, (o, best, res.fit_pct[o], explained)  # the healthy fit: most
+        assert f"{o} swings" in dom and f"the best achievable Fit is about {best:.0f} %" in dom
+        assert f"explains {100 * explained:.0f} % of the signal" in dom
+    assert dom.count("A low Fit here is the sensor, not the model") == 2 and "LOW SNR" in dom
+    assert "0.02 MPa" in dom and "best Fit the noise allows" in dom  # the noise in display units, the column
+    wrong = model.params(**{k: v for k, v in info["truth"].items() if k in model.params().names})
+    wrong = wrong.update({"wn": 0.7 * wrong["wn"]})
+    res2 = fit(model, [rec], ("Ffric",), base=wrong, seed=0)
+    with open(fit_report(res2, [rec], model, str(tmp_path / "wrong")), encoding="utf-8") as f:
+        dom2 = f.read()
+    assert "MODEL MISSES" in dom2 and "The model misses something in this output" in dom2
+
+
+def test_diagnose_report_has_the_error_panel_and_a_visible_signature_per_cause(tmp_path):
+    from diag_helpers import OSC, record
+    from twin.estimation.diagnose import diagnose
+    from twin.reports import views
+    from twin.reports.diagnose import signature_data
+
+    rec = record(OSC, ("coulomb_friction",), seed=1002, duration_s=3.0)
+    diag = diagnose(OSC, [rec], seed=0, candidates=["coulomb_friction", "cubic_stiffness"])
+    assert diag.causes == ["coulomb_friction"]
+    dom = check_page(diagnose_report(diag, str(tmp_path / "diag")), tmp_path,
+                     ["verdict", "compare", "error", "gain", "signatures", "pvalues", "models"], "diagnose")
+    assert "noise band" in dom and "±1.96 σ" in dom and "RMS error, extended" in dom and " mm" in dom
+    assert re.search(r"zoom where the error is largest, t = [\d.]+ … [\d.]+ s \(0\.\d+ s\)", dom)
+    # the signature: in display units, not flat, scaled so that the cause's curve fills the axis
+    (sig,) = signature_data(diag)
+    assert sig["cause"] == "coulomb_friction" and sig["axis"] == "velocity" and not sig["flat"]
+    fig = views.signature_figure(sig)
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "velocity [mm/s]" and ax.get_ylabel() == "residual of y [mm]"
+    lo, hi = ax.get_ylim()
+    red = [ln for ln in ax.get_lines() if "coulomb_friction" in str(ln.get_label())][0].get_ydata()
+    assert np.ptp(red) > 0.3 * (hi - lo), "the signature is drawn flat"
+    assert "Signature of coulomb_friction" in dom and "Flat in this view" not in dom
+    # a signature within the bins' scatter is said to be flat, and why
+    rng = np.random.default_rng(1003)
+    x = rng.normal(size=4000)
+    flat = dict(sig, x=x, residual=rng.normal(size=4000) * 1e-6, contribution=1e-9 * x)
+    flat["flat"], flat["span"], flat["scatter"] = views.signature_flatness(x, flat["contribution"], flat["residual"])
+    assert flat["flat"] and "flat" in views.signature_figure(flat).axes[0].get_title(loc="left")
+    # the error panel's axes carry their units
+    efig = views.error_figure(rec.t_s, [{"name": "y", "unit": "mm", "scale": 1e3, "noise": 1e-6,
+                                         "errors": [("nominal", rec["y"] - diag.nominal.predicted[0]["y"])]}])
+    assert efig.axes[0].get_ylabel() == "error of y [mm]" and efig.axes[0].get_xlabel() == "t [s]"
+
+
+def test_a_long_record_is_shown_with_a_short_zoom_beside_it(tmp_path):
+    """60 s at 1 kHz is a solid band at full width: the compare and error views show a zoom of at most 0.5 s."""
+    from diag_helpers import OSC, record
+    from twin.estimation.diagnose import diagnose
+
+    rec = record(OSC, (), seed=1004, duration_s=2.0)
+    d = diagnose(OSC, [rec], seed=0, candidates=["coulomb_friction"]).to_dict()
+    rng = np.random.default_rng(1004)
+    t = np.arange(60_000) * 1e-3
+    y = 1e-3 * np.sin(2 * np.pi * 7 * t)
+    compare = {"t": t, "n_fit": 45_000, "measured": {"y": y + 1e-6 * rng.normal(size=t.size)},
+               "nominal": {"y": 0.98 * y}, "extended": None}
+    dom = check_page(diagnose_report(d, str(tmp_path / "long"), compare=compare), tmp_path,
+                     ["compare", "error"], "diagnose")
+    spans = [float(s) for s in re.findall(r"t = [\d.]+ … [\d.]+ s \(([\d.]+) s\)", dom)]
+    assert len(spans) >= 2 and all(0.2 <= s <= 0.5 for s in spans), spans  # compare and error views

@@ -121,7 +121,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     first = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "alarm"), None)
     summary = {
         "rig": rig_name, "samples": stats[rig_name].samples, "duration_s": duration_s, "speed": speed,
-        "truth": {"parameter": "CdAleak", "factor": factor, "t_start": t_start, "t_end": t_end,
+        "truth": {"parameter": "CdAleak", "factor": factor, "t_start_s": t_start, "t_end_s": t_end,
                   "crosses_band_at_s": t_cross},
         "alarms": [a.to_dict() for a in alarms],
         "received_by_subscriber": len(received),

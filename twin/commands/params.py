@@ -28,13 +28,22 @@ def table(ps) -> str:
     return "\n".join(rows)
 
 
+def _param_json(spec, value: float) -> dict:
+    """One parameter as JSON: SI value, bounds and unit; its tracking settings name their units (``band`` and
+    ``bounds`` are relative: ``"1"``; ``drift_rate`` is a random-walk intensity in log units per √s)."""
+    d = dict(spec.to_dict(), value=value)
+    if isinstance(d.get("tracking"), dict):
+        d["tracking"] = dict(d["tracking"], band_unit="1", bounds_unit="1", drift_rate_unit="1/s^0.5")
+    return d
+
+
 def run(args) -> int:
     from twin.models import get_model
 
     model = get_model(args.model)
     ps = model.params(effects=_names(args.effects))
     if args.json:
-        _dump({"model": model.name, "params": [dict(s.to_dict(), value=v) for s, v in zip(ps.specs, ps.values)],
+        _dump({"model": model.name, "params": [_param_json(s, v) for s, v in zip(ps.specs, ps.values)],
                "effects": {n: {"description": e.description, "signature": e.signature,
                                "params": list(e.names), "mimicked_by": list(e.mimicked_by),
                                "mimicry": e.mimicry} for n, e in model.EFFECTS.items()}})

@@ -120,6 +120,8 @@ def run(args) -> int:
     lost = loss_lines("track", reports)
     png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
                            title=f"Tracked parameters of {args.rig} ({os.path.basename(args.log)})")
+    from twin.units import SIGNAL_UNITS
+
     result = {
         "log": args.log, "rig": args.rig, "samples": twin.stats.samples,
         "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
@@ -130,7 +132,7 @@ def run(args) -> int:
         "counters": twin.tracker.counters,
         "consistency": twin.drift.guard,
         "sensors": twin.tracker.sensor_status(),
-        "noise": twin.tracker.noise_levels(),
+        "noise": {o: dict(v, unit=SIGNAL_UNITS.get(o, "")) for o, v in twin.tracker.noise_levels().items()},
         "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
         "input_lost": lost,

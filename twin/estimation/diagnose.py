@@ -95,6 +95,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from fpdd.units import SIGNAL_UNITS
 from fpdd.jsonio import finite_or_none
 from fpdd.errors import DataError, ParameterError
 from twin.estimation.fit import FitResult, fit, noise_levels, resolve_outputs
@@ -266,7 +267,9 @@ class ModelState:
                 "aicc": self.fit.aicc, "aic": self.fit.aic, "loglik": self.fit.loglik, "n_par": self.fit.n_par,
                 "fit_pct": self.fit.fit_pct, "nrmse": self.fit.nrmse, "converged": self.fit.success,
                 "fit_message": self.fit.message,
-                "holdout": self.holdout, "innovations_ss": self.wcost, "n_innovations": self.n_w,
+                "holdout": {o: dict(v, rms_unit=SIGNAL_UNITS.get(o, "")) if isinstance(v, dict) and "rms" in v else v
+                            for o, v in self.holdout.items()},
+                "innovations_ss": self.wcost, "n_innovations": self.n_w,
                 "noise_model": self.noise.summary() if self.noise is not None else None,
                 "adequacy": self.adequacy,
                 "residuals": self.analysis.summary() if self.analysis is not None else None}
@@ -286,7 +289,16 @@ class ScreenRow:
     share: float               # share of the excess misfit the linearised effect would remove
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """As JSON; the estimate in SI with each parameter's unit in ``estimate_unit``."""
+        from twin.models import MODELS
+        from twin.reports.units import param_spec
+
+        d = dataclasses.asdict(self)
+        d["estimate_unit"] = {}
+        for n in self.estimate:  # an effect's parameter: the same name has the same unit in every model
+            spec = next((sp for sp in (param_spec(m, n) for m in MODELS) if sp is not None), None)
+            d["estimate_unit"][n] = spec.unit if spec is not None else ""
+        return d
 
 
 @dataclasses.dataclass
@@ -378,10 +390,16 @@ class Diagnosis:
     def extended_params(self) -> dict:
         """The extended model as JSON usable by ``twin fit`` and the tracker (effects by name + values)."""
         ps = self.final.params
-        return {"model": self.model, "effects": list(ps.effects), "params": ps.as_dict(),
-                "std": dict(self.final.fit.std), "timing": self.final.timing.to_dict(),
-                "set": ",".join(f"{k}={v:.10g}" for k, v in ps.as_dict().items()
-                                if k in self.final.free),
+        std = self.final.fit.std
+        params: dict[str, dict] = {}
+        for s, v in zip(ps.specs, ps.values):  # as twin fit --save: {"value", "unit"[, "std"]} in SI
+            params[s.name] = {"value": float(v), "unit": s.unit}
+            if s.name in std:
+                params[s.name]["std"] = float(std[s.name])
+        return {"model": self.model, "effects": list(ps.effects), "params": params,
+                "timing": self.final.timing.to_dict(),
+                "set": ",".join(f"{s.name}={_typed(s, v)}" for s, v in zip(ps.specs, ps.values)
+                                if s.name in self.final.free),
                 "free": list(self.final.free)}
 
     def verdict(self) -> str:
@@ -476,6 +494,13 @@ class Diagnosis:
         for p in self.plots:
             lines.append(f"plot: {p}")
         return "\n".join(lines)
+
+
+def _typed(spec, value: float) -> str:
+    """``value`` as typed after ``--set``: in the display unit, e.g. ``wn=43.13512051Hz`` (read back by pint)."""
+    unit = spec.display_unit or spec.unit
+    text = f"{float(value) * spec.display_scale:.10g}"
+    return text if unit in ("1", "") else text + unit.replace(" ", "*")
 
 
 def _adequacy_text(st: ModelState) -> str:

@@ -74,6 +74,8 @@ RELATIVE_NOISE = 1e-3
 #: a fit whose Fit % of an output is at or below this explains almost nothing of it: converged or not, the
 #: result carries a warning (Fit % = 100 (1 - |e| / |y - mean y|): 10 % leaves 81 % of the variance)
 FIT_WARN_PCT = 10.0
+#: SI units of the initial-state quantities (``FitResult.init``)
+INIT_UNITS = {"x0": "m", "v0": "m/s", "dp0": "Pa", "pA0": "Pa", "pB0": "Pa", "u0": "V"}
 
 
 @dataclasses.dataclass
@@ -111,9 +113,18 @@ class FitResult:
     timing: dict = dataclasses.field(default_factory=dict)
     #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
     warnings: list[str] = dataclasses.field(default_factory=list)
+    #: the noise level (SI std) that weighted each output's residuals: the sensor noise the fit assumed
+    noise: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
+        """Every number in SI with its unit beside it: ``{"value", "unit"}``, a sibling ``"unit"``, or a
+        sibling ``"<key>_unit"`` naming the unit of each entry of ``<key>`` (``mse_unit``, ``theta_unit``)."""
+        from twin.units import SIGNAL_UNITS
+
         specs = {s.name: s for s in self.params.specs}
+        theta_unit = {n: specs[n].unit for n in self.free}
+        out_unit = {o: SIGNAL_UNITS.get(o, "") for o in self.outputs}
+        init_units = {k: INIT_UNITS.get(k, "") for d in self.init for k in d}
         return {
             "model": self.model,
             "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
@@ -122,12 +133,15 @@ class FitResult:
             "effects": list(self.params.effects),
             "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
             "outputs": list(self.outputs),
-            "fit_pct": self.fit_pct, "mse": self.mse, "nrmse": self.nrmse,
+            "fit_pct": self.fit_pct, "mse": self.mse, "mse_unit": {o: _squared(u) for o, u in out_unit.items()},
+            "nrmse": self.nrmse,
+            "noise_levels": {o: {"value": v, "unit": out_unit.get(o, "")} for o, v in self.noise.items()},
             "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
             "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
             "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "starts": self.starts,
-            "history": self.history,
+            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "init_unit": init_units,
+            "starts": [dict(d, theta_unit=theta_unit) for d in self.starts],
+            "history": [dict(d, theta_unit=theta_unit) for d in self.history],
         }
 
     def __repr__(self) -> str:
@@ -551,9 +565,9 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
             th = prob.from_z(z)[0]
             history.append({"start": rank, "iteration": len([h for h in history if h["start"] == rank]),
                             "cost": float(0.5 * R[0] @ R[0]), "theta": dict(zip(prob.free, th.tolist()))})
-            if progress:
+            if progress:  # a person reads it: each value in its display unit (``wn=43.0051 Hz``)
                 progress(f"start {rank}: iteration {history[-1]['iteration']:3d} cost {history[-1]['cost']:.6g} "
-                         + " ".join(f"{k}={v:.6g}" for k, v in history[-1]["theta"].items()))
+                         + ", ".join(f"{s.name}={s.show(v)}" for s, v in zip(prob.specs, th.tolist())))
             return J
 
         return optimize.least_squares(fun, z_start, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
@@ -654,7 +668,12 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         cost=float(res.cost), success=bool(res.status > 0), status=int(res.status),
         message=message, nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed,
         predicted=pred, std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict(),
-        warnings=warnings)
+        warnings=warnings, noise=dict(prob.sigma))
+
+
+def _squared(unit: str) -> str:
+    """The unit of a mean square: ``m`` -> ``m^2``, ``Pa`` -> ``Pa^2``; dimensionless stays ``""``."""
+    return f"{unit}^2" if unit and unit != "1" else ""
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],

@@ -136,6 +136,10 @@ def regime_signals(model_name: str, record, predicted: Mapping[str, np.ndarray])
     return out
 
 
+#: the regime variables' display units in the bin labels (position in mm, pressure difference in MPa, ...)
+_REGIME_SHOWN = {"position": (" mm", 1e3), "dp": (" MPa", 1e-6), "spool_opening": (" V", 1.0), "force": (" N", 1.0)}
+
+
 def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float, dt: float,
                  n_bins: int = 5) -> list[dict]:
     """RMS of ``r`` per operating-regime bin, as a ratio to the noise floor ``noise``.
@@ -160,7 +164,7 @@ def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float,
         for sign, sm in (("+", v > 0), ("-", v < 0)):
             mag = np.abs(v)
             for lo, hi, lab in ((0.0, 0.1, "slow"), (0.1, 0.5, "medium"), (0.5, 1.01, "fast")):
-                add("velocity", f"{sign}{lab} (|v| {lo * vmax:.3g}..{hi * vmax:.3g})",
+                add("velocity", f"{sign}{lab} (|v| {lo * vmax * 1e3:.3g}..{hi * vmax * 1e3:.3g} mm/s)",
                     sm & (mag >= lo * vmax) & (mag < hi * vmax))
         rev = np.flatnonzero(np.diff(np.signbit(v)))
         near = np.zeros(v.size, dtype=bool)
@@ -173,11 +177,12 @@ def regime_table(r: np.ndarray, regimes: Mapping[str, np.ndarray], noise: float,
         s = regimes.get(name)
         if s is None:
             continue
+        unit, k = _REGIME_SHOWN.get(name, ("", 1.0))
         b = _quantile_bins(s, n_bins)
         for j in range(int(b.max()) + 1):
             m = b == j
-            if m.any():
-                add(name, f"q{j + 1} ({float(s[m].min()):.4g}..{float(s[m].max()):.4g})", m)
+            if m.any():  # the bin's range in display units (a label a person reads)
+                add(name, f"q{j + 1} ({float(s[m].min()) * k:.4g}..{float(s[m].max()) * k:.4g}{unit})", m)
     return rows
 
 
@@ -196,7 +201,7 @@ def band_table(r: np.ndarray, dt: float, noise: float) -> list[dict]:
         if not m.any():
             continue
         ratio = float(np.mean(pxx[m]) / white) if white > 0 else float("inf")
-        rows.append({"f_lo": lo, "f_hi": min(hi, nyq), "power_ratio": ratio})
+        rows.append({"f_lo_hz": lo, "f_hi_hz": min(hi, nyq), "power_ratio": ratio})
     return rows
 
 
@@ -239,23 +244,30 @@ class ResidualAnalysis:
         return sorted(self.regimes[output], key=lambda row: -row["ratio"])[:top]
 
     def summary(self) -> dict:
+        """As JSON: residual levels in SI with their unit beside (``rms_unit``, ``noise_unit``, a row's ``unit``)."""
+        from twin.units import SIGNAL_UNITS
+
+        unit = {o: SIGNAL_UNITS.get(o, "") for o in self.outputs}
         return {
             "outputs": list(self.outputs),
-            "noise": self.noise, "rms": self.rms, "excess": self.excess,
+            "noise": self.noise, "noise_unit": unit, "rms": self.rms, "rms_unit": unit, "excess": self.excess,
             "ljung_box": self.ljung_box, "white": self.white, "adequate": self.adequate,
             "acf_band": self.acf_band,
             "acf": {o: np.round(self.acf[o][: min(11, self.max_lag + 1)], 4).tolist() for o in self.outputs},
             "xcorr": {k: {kk: vv for kk, vv in v.items() if kk not in ("lags", "values")}
                       for k, v in self.xcorr.items()},
-            "concentration": {o: self.concentration(o) for o in self.outputs},
+            "concentration": {o: [dict(row, unit=unit[o]) for row in self.concentration(o)] for o in self.outputs},
             "bands": self.bands,
         }
 
     def text(self) -> str:
+        from twin.reports.units import signal_unit
+
         lines = []
         for o in self.outputs:
             lb = self.ljung_box[o]
-            lines.append(f"  {o}: rms {self.rms[o]:.4g}, noise floor {self.noise[o]:.4g}, "
+            shown, k = signal_unit(o)
+            lines.append(f"  {o}: rms {self.rms[o] * k:.4g} {shown}, noise floor {self.noise[o] * k:.4g} {shown}, "
                          f"excess x{self.excess[o]:.3g}, Ljung-Box Q={lb['Q']:.4g} (df {lb['df']}) "
                          f"p={lb['p']:.3g} -> {'white' if self.white[o] else 'NOT white'}")
             conc = self.concentration(o, 2)

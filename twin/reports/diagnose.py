@@ -10,7 +10,7 @@ import numpy as np
 
 from twin.reports import page as P
 from twin.reports import views
-from twin.reports.units import Shown, fmt, pct, signal_unit
+from twin.reports.units import Shown, fmt, pct, pretty_unit, signal_unit
 
 VERDICT_BADGE = {"adequate": "ok", "explained": "info", "partly explained": "warn", "unexplained": "bad"}
 VERDICT_TEXT = {
@@ -37,6 +37,64 @@ def compare_data(diagnosis: Any) -> dict | None:
                 "extended": {o: diagnosis.final.predicted[0][o] for o in outs} if diagnosis.causes else None}
     except (AttributeError, IndexError, KeyError, TypeError):
         return None
+
+
+#: the regime variable of a signature -> the signal whose display unit it is shown in
+_AXIS_SIGNAL = {"position": "x", "velocity": "v", "dp": "pA", "spool_opening": "u", "demand": "x_ref",
+                "force": "force"}
+
+
+def signature_data(diagnosis: Any) -> list[dict]:
+    """Per accepted cause (from a :class:`twin.estimation.diagnose.Diagnosis`; ``[]`` from its dict): the regime
+    variable its signature is read against (``x``, SI, with ``axis_unit``/``axis_scale``), the residual of the
+    model before the cause was added and the cause's contribution (extended − before) on the signal where it
+    is largest against the noise (``signal``, SI arrays with ``unit``/``scale``), and whether it is flat in
+    that view (:func:`twin.reports.views.signature_flatness`)."""
+    try:
+        from fpdd.units import NOMINAL_NOISE as DEFAULT_NOISE
+        from twin.estimation.diagnose import CONTROLLER_RATE, FORCE_EFFECTS, SIGNATURE_AXIS, TIMING_EFFECTS
+        from twin.estimation.residuals import regime_signals
+
+        rec = diagnosis.records[0]
+        path = diagnosis.path
+        outs = list(diagnosis.outputs)
+        reg = regime_signals(diagnosis.model, rec, diagnosis.nominal.predicted[0])
+    except (AttributeError, IndexError, KeyError, TypeError):
+        return []
+    steps: list[tuple[int, str]] = []
+    for i in range(1, len(path)):
+        new = [c for c in diagnosis.causes if c not in path[i - 1].effects and c in path[i].effects]
+        if path[i].timing != path[i - 1].timing:
+            new.append(next((c for c in diagnosis.causes if c in TIMING_EFFECTS), CONTROLLER_RATE))
+        steps.extend((i, c) for c in new)
+    out = []
+    for i, c in steps:
+        before = path[i - 1].predicted[0]
+        after = path[i].predicted[0]
+        axis = SIGNATURE_AXIS.get(c, "velocity")
+        if axis not in reg:
+            axis = "velocity"
+        # (residual before, the cause's contribution, noise level, name, display unit and scale) per signal
+        shown = {}
+        for o in outs:
+            unit, sc = signal_unit(o, diagnosis.model)
+            shown[o] = (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0), unit, sc)
+        if {"pA", "pB"} <= set(outs):
+            area = diagnosis.final.params["A"]
+            dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
+            shown["force"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
+                              area * math.sqrt(2.0) * DEFAULT_NOISE["pA"], "N", 1.0)
+        if c in FORCE_EFFECTS and "force" in shown:
+            o = "force"
+        else:
+            o = max(shown, key=lambda k: float(np.std(shown[k][1])) / shown[k][2])
+        res, contrib, _, unit, sc = shown[o]
+        a_unit, a_sc = signal_unit(_AXIS_SIGNAL.get(axis, axis), diagnosis.model)
+        flat, span, scatter = views.signature_flatness(reg[axis], contrib, res)
+        out.append({"cause": c, "axis": axis, "axis_unit": a_unit, "axis_scale": a_sc, "x": reg[axis],
+                    "signal": o, "unit": unit, "scale": sc, "residual": res, "contribution": contrib,
+                    "flat": flat, "span": span, "scatter": scatter})
+    return out
 
 
 def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = None, title: str | None = None,
@@ -100,9 +158,10 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
             outs.append({"name": o, "unit": unit, "scale": sc, "measured": np.asarray(compare["measured"][o])[sl],
                          "models": models, "title": f"{o}: held-out part, measured vs nominal"
                          + (" vs extended" if len(models) > 1 else "")})
-        body.append(P.figure(views.compare_figure(t[sl], outs),
-                             "Held-out part of the first record (not used by the fits): measured (grey), "
-                             "nominal model (blue), extended model (orange, dashed); errors under each."))
+        fig = views.compare_figure(t[sl], outs)
+        body.append(P.figure(fig, "Held-out part of the first record (not used by the fits): measured (grey), "
+                             "nominal model (blue), extended model (orange, dashed); errors under each. Right: "
+                             f"a zoom where the error is largest, {views.zoom_text(fig)}."))
     else:
         body.append(P.note("the records are not in a diagnosis read from JSON: pass the Diagnosis object (or "
                            "compare=...) for the before/after plot"))
@@ -117,6 +176,33 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
                      "NRMSE, nominal": fmt(b.get("nrmse"), 4), "NRMSE, extended": fmt(a.get("nrmse"), 4) if a else "—"})
     body.append(P.table(rows))
     pg.add("compare", "Nominal vs extended model (before / after)", "\n".join(body))
+
+    # the simulation error per output with its noise band
+    noise = ((d.get("nominal") or {}).get("residuals") or {}).get("noise") or {}
+    if compare is not None:
+        t = np.asarray(compare["t"])
+        n_fit = int(compare["n_fit"])
+        outs = []
+        for o in outputs:
+            unit, sc = signal_unit(o, model)
+            y = np.asarray(compare["measured"][o])
+            errs = [("nominal", y - np.asarray(compare["nominal"][o]))]
+            if compare.get("extended") is not None:
+                errs.append(("extended", y - np.asarray(compare["extended"][o])))
+            outs.append({"name": o, "unit": unit, "scale": sc, "errors": errs, "noise": _noise_of(o, noise, errs)})
+        fig = views.error_figure(t, outs, t_split=float(t[n_fit]) if 0 < n_fit < t.size else None)
+        rows = [{"output": o["name"], "noise σ": f"{fmt(o['noise'] * o['scale'], 3)} {pretty_unit(o['unit'])}",
+                 **{f"RMS error, {lbl}": f"{fmt(float(np.sqrt(np.mean(e ** 2))) * o['scale'], 3)} "
+                                         f"{pretty_unit(o['unit'])}" for lbl, e in o["errors"]}} for o in outs]
+        body = [P.figure(fig, "Simulation error (measured − simulated) of each output over the whole record, "
+                         "with the band ±1.96 σ of the sensor noise (σ: the residual's noise floor, from its "
+                         "sample-to-sample differences): inside the band the error is the noise; dotted: the "
+                         f"start of the held-out part. Right: a zoom where the error is largest, {views.zoom_text(fig)}."),
+                P.table(rows, text_columns=("output",))]
+    else:
+        body = [P.note("the records are not in a diagnosis read from JSON: pass the Diagnosis object (or "
+                       "compare=...) for the error panel")]
+    pg.add("error", "Simulation error and the noise band", "\n".join(body))
 
     # gains
     body = []
@@ -134,6 +220,25 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
     else:
         body.append(P.note("no effect accepted: no gain to show"))
     pg.add("gain", "Gain and its interval", "\n".join(body))
+
+    # each cause's signature
+    if causes:
+        sigs = signature_data(diagnosis)
+        body = []
+        for sig in sigs:
+            cap = (f"Signature of {sig['cause']}: the residual of {sig['signal']} before it was added (binned by "
+                   f"{sig['axis']}, mean ± 1.96 standard errors) and its contribution (red); the vertical scale is "
+                   "the binned curves', the samples behind go beyond it.")
+            if sig["flat"]:
+                cap += (f" Flat in this view: {sig['cause']} changes the binned {sig['signal']} by "
+                        f"{fmt(sig['span'] * sig['scale'], 3)} {pretty_unit(sig['unit'])}, less than twice a bin "
+                        f"mean's scatter ({fmt(sig['scatter'] * sig['scale'], 3)} {pretty_unit(sig['unit'])}): its "
+                        "evidence is the held-out gain and the likelihood ratio above, spread over the record.")
+            body.append(P.figure(views.signature_figure(sig), cap))
+        if not sigs:
+            body.append(P.note("the records are not in a diagnosis read from JSON: pass the Diagnosis object for "
+                               "each cause's signature"))
+        pg.add("signatures", "What each cause changes (its signature)", "\n".join(body))
 
     # screens and trials: corrected p-values
     body = []
@@ -191,6 +296,19 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
                 for o, v in (sig.get("ljung_box") or {}).items()]
         pg.add("signature", "Unexplained: residual signature", P.table(rows))
     return pg.write(out_dir, filename)
+
+
+def _noise_of(o: str, noise: Mapping, errs) -> float:
+    """The noise std of output ``o`` (SI): the diagnosis's noise floor, else the sensor's default, else the
+    error's own sample-to-sample scatter."""
+    if noise.get(o):
+        return float(noise[o])
+    from fpdd.units import NOMINAL_NOISE
+
+    if o in NOMINAL_NOISE:
+        return float(NOMINAL_NOISE[o])
+    e = np.asarray(errs[0][1], float)
+    return float(np.std(np.diff(e)) / math.sqrt(2.0)) if e.size > 2 else 0.0
 
 
 def _timing(t: Mapping) -> str:

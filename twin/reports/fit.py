@@ -11,7 +11,7 @@ import numpy as np
 from twin.models import get_model
 from twin.reports import page as P
 from twin.reports import views
-from twin.reports.units import Shown, fmt, pct, signal_unit
+from twin.reports.units import Shown, fmt, pct, pretty_unit, signal_unit
 
 #: records shown in the compare view (the fit uses them all)
 MAX_RECORDS_SHOWN = 3
@@ -90,18 +90,28 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
                 outs.append({"name": o, "unit": unit, "scale": sc, "measured": rec[o],
                              "models": [(f"simulated: Fit {rec_fit:.2f} %", pred[o])],
                              "title": f"{o}: measured vs simulated, Fit {rec_fit:.2f} % ({getattr(rec, 'name', r)})"})
-            body.append(P.figure(views.compare_figure(rec.t_s, outs),
-                                 f"Record {getattr(rec, 'name', r)}: measured (grey) and simulated (blue) output, "
-                                 "the error (measured − simulated) under each; right: the stretch where the "
-                                 "error is largest."))
+            fig = views.compare_figure(rec.t_s, outs)
+            body.append(P.figure(fig, f"Record {getattr(rec, 'name', r)}: measured (grey) and simulated (blue) "
+                                 "output, the error (measured − simulated) under each; right: a zoom where the "
+                                 f"error is largest, {views.zoom_text(fig)}."))
         if len(records) > MAX_RECORDS_SHOWN:
             body.append(P.note(f"{len(records) - MAX_RECORDS_SHOWN} more record(s) fitted, not drawn."))
     else:
         body.append(P.note("no simulated outputs in the result: compare view not available"))
-    body.append(P.table([{"output": o, "Fit": pct(fit_pct[o]), "NRMSE": fmt(_get(result, "nrmse")[o], 4),
+    snr = snr_rows(result, records, model_name)
+    body.append(P.table([{"output": o, "Fit": pct(fit_pct[o]), "best Fit the noise allows": pct(snr[o]["best_pct"], 3),
+                          "NRMSE": fmt(_get(result, "nrmse")[o], 4),
                           "RMS error": f"{fmt(math.sqrt(_get(result, 'mse')[o]) * signal_unit(o, model_name)[1], 4)} "
-                                       f"{signal_unit(o, model_name)[0]}"} for o in outputs]))
-    body.append(P.note("Fit = 100 (1 − ‖y − ŷ‖ / ‖y − mean y‖) over all records, as MATLAB's compare."))
+                                       f"{signal_unit(o, model_name)[0]}",
+                          "noise σ": f"{fmt(snr[o]['noise'] * signal_unit(o, model_name)[1], 3)} "
+                                     f"{signal_unit(o, model_name)[0]}"} for o in outputs]))
+    body.append(P.note("Fit = 100 (1 − ‖y − ŷ‖ / ‖y − mean y‖) over all records, as MATLAB's compare. Even an exact "
+                       "model leaves the sensor noise: its best Fit is 100 (1 − σ √N / ‖y − mean y‖) (σ: the noise "
+                       "level the fit weighted the output with)."))
+    for o in outputs:
+        if snr[o]["note"]:
+            body.append(f'<p class="snr">{P.badge("MODEL MISSES" if snr[o]["model_misses"] else "LOW SNR", "warn" if snr[o]["model_misses"] else "info")} '
+                        f"{P.esc(snr[o]['note'])}</p>")
     pg.add("compare", "Measured vs simulated (compare)", "\n".join(body))
 
     # resid
@@ -163,7 +173,8 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
     body = [P.table(_timing_text(_get(result, "timing")), text_columns=("setting", "value"))]
     if any(init):
         body.append(P.note("Initial state of each record (read off the data, refined where estimated):"))
-        body.append(P.table([{"record": getattr(rec, "name", i), **{k: fmt(v) for k, v in d.items()}}
+        body.append(P.table([{"record": getattr(rec, "name", i), **{_init_label(k, model_name): _init_value(k, v, model_name)
+                                                                     for k, v in d.items()}}
                              for i, (rec, d) in enumerate(zip(records, init))], text_columns=("record",)))
     pg.add("timing", "Loop timing used", "\n".join(body))
 
@@ -171,6 +182,75 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
     if hist:
         pg.add("convergence", "Convergence", P.figure(_convergence(hist), "Cost of each refined start per iteration."))
     return pg.write(out_dir, filename)
+
+
+#: initial-state quantity -> the signal whose display unit it is shown in (``v0`` as a velocity)
+_INIT_SIGNAL = {"x0": "x", "v0": "v", "dp0": "pA", "pA0": "pA", "pB0": "pB", "u0": "u"}
+
+
+def _init_label(name: str, model: str) -> str:
+    """``x0 [mm]``, ``pA0 [MPa]``: an initial-state column with its display unit."""
+    from twin.reports.units import label
+
+    return label(name, signal_unit(_INIT_SIGNAL.get(name, name), model)[0])
+
+
+def _init_value(name: str, value, model: str) -> str:
+    """In the display unit, fixed point to 0.1 µm, 0.1 kPa, 0.1 mV (a start near zero reads 0.0000, not 6.8e-05)."""
+    if value is None or not math.isfinite(float(value)):
+        return "n/a"
+    return f"{float(value) * signal_unit(_INIT_SIGNAL.get(name, name), model)[1]:.4f}"
+
+
+#: a Fit % the noise alone keeps below this is explained in the report as a low signal-to-noise ratio (a
+#: MATLAB user reads a Fit under 90 % as a poor model)
+LOW_FIT_PCT = 90.0
+
+
+def snr_rows(result, records: Sequence, model: str) -> dict[str, dict]:
+    """Per output: the noise level ``noise`` (SI std: the fit's weighting noise, else the sensor's default),
+    the best Fit % an exact model reaches under that noise ``best_pct`` (``100 (1 − σ √N / ‖y − mean y‖)``),
+    the share of the signal's power above the noise that the model explains ``explained``
+    (``1 − (mse − σ²) / (var y − σ²)``), and a ``note`` for the report when the best Fit is low (below
+    ``LOW_FIT_PCT``): how far the signal swings against the noise, and whether the model explains most of
+    what is above the noise (a low signal-to-noise ratio) or not (``model_misses``)."""
+    from twin.estimation.fit import noise_levels
+
+    given = _get(result, "noise") or {}
+    if isinstance(_get(result, "noise_levels"), Mapping):
+        given = {o: v.get("value") for o, v in _get(result, "noise_levels").items() if isinstance(v, Mapping)}
+    outputs = list(_get(result, "outputs"))
+    fallback = noise_levels(get_model(model), records, outputs) if records else {}
+    fit_pct = dict(_get(result, "fit_pct"))
+    mse = dict(_get(result, "mse") or {})
+    out = {}
+    for o in outputs:
+        sigma = float(given.get(o) or fallback.get(o) or 0.0)
+        ys = [np.asarray(r[o], float) for r in records if o in getattr(r, "signals", r)]
+        y = np.concatenate(ys) if ys else np.zeros(0)
+        den = float(np.linalg.norm(y - y.mean())) if y.size else 0.0
+        best = 100.0 * (1.0 - sigma * math.sqrt(y.size) / den) if den > 0 and sigma > 0 else None
+        above = float(np.var(y)) - sigma ** 2 if y.size else 0.0  # the signal's power above the noise
+        m = float(mse.get(o, float("nan")))
+        explained = 1.0 - max(m - sigma ** 2, 0.0) / above if above > 0 and math.isfinite(m) else None
+        row = {"noise": sigma, "best_pct": best, "explained": explained, "note": "", "model_misses": False}
+        if best is not None and best < LOW_FIT_PCT:
+            unit, sc = signal_unit(o, model)
+            u = pretty_unit(unit)
+            misses = explained is not None and explained < 0.5
+            row["model_misses"] = misses
+            head = (f"Low signal-to-noise ratio: {o} swings {fmt(float(np.ptp(y)) * sc, 3)} {u} (peak to peak, "
+                    f"standard deviation {fmt(float(np.std(y)) * sc, 3)} {u}) under {fmt(sigma * sc, 3)} {u} of "
+                    f"sensor noise: the best achievable Fit is about {max(best, 0.0):.0f} %; this fit reaches "
+                    f"{fit_pct[o]:.1f} %")
+            if explained is None:
+                row["note"] = head + f". {o} does not rise above its noise: no model can fit it."
+            else:
+                row["note"] = head + (f" and explains {100 * max(explained, 0.0):.0f} % of the signal's power above "
+                                      "the noise. " + ("The model misses something in this output." if misses else
+                                                       "A low Fit here is the sensor, not the model."))
+        out[o] = row
+    return out
 
 
 def _fit_pct(y, yh) -> float:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import os
@@ -168,14 +167,14 @@ def _binned(x: np.ndarray, y: np.ndarray, n: int = 30) -> tuple[np.ndarray, np.n
 
 def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     """PNG plots of a diagnosis in ``out_dir`` (matplotlib Agg); returns the paths."""
-    from fpdd.units import NOMINAL_NOISE, SIGNAL_UNITS
-    from twin.estimation.diagnose import CONTROLLER_RATE, FORCE_EFFECTS, SIGNATURE_AXIS, TIMING_EFFECTS
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from twin.estimation.residuals import regime_signals
+    from twin.reports.diagnose import _AXIS_SIGNAL
+    from twin.reports.units import label, signal_unit
 
     os.makedirs(out_dir, exist_ok=True)
     paths = []
@@ -189,11 +188,12 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
     sl = slice(n_fit, len(rec))
     for ax, o in zip(axes[:, 0], outs):
-        ax.plot(t[sl], rec[o][sl], color="0.6", lw=1.6, label="measured")
-        ax.plot(t[sl], nom[o][sl], color="C0", lw=0.9, label="nominal")
+        unit, scale = signal_unit(o, diag.model)
+        ax.plot(t[sl], rec[o][sl] * scale, color="0.6", lw=1.6, label="measured")
+        ax.plot(t[sl], nom[o][sl] * scale, color="C0", lw=0.9, label="nominal")
         if diag.causes:
-            ax.plot(t[sl], fin[o][sl], color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
-        ax.set_ylabel(f"{o} [{SIGNAL_UNITS.get(o, '-')}]")
+            ax.plot(t[sl], fin[o][sl] * scale, color="C3", lw=0.9, ls="--", label="extended: " + "+".join(diag.causes))
+        ax.set_ylabel(label(o, unit))
     axes[0, 0].legend(fontsize=7, ncol=3)
     axes[0, 0].set_title("Held-out part: measured vs nominal vs extended")
     axes[-1, 0].set_xlabel("t [s]")
@@ -205,11 +205,12 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     # residuals before and after
     fig, axes = plt.subplots(len(outs), 1, figsize=(9, 2.4 * len(outs) + 0.6), squeeze=False, sharex=True)
     for ax, o in zip(axes[:, 0], outs):
-        ax.plot(t, rec[o] - nom[o], color="C0", lw=0.6, label="nominal")
+        unit, scale = signal_unit(o, diag.model)
+        ax.plot(t, (rec[o] - nom[o]) * scale, color="C0", lw=0.6, label="nominal")
         if diag.causes:
-            ax.plot(t, rec[o] - fin[o], color="C3", lw=0.6, label="extended")
+            ax.plot(t, (rec[o] - fin[o]) * scale, color="C3", lw=0.6, label="extended")
         ax.axvline(t[n_fit], color="k", lw=0.8, ls=":")
-        ax.set_ylabel(f"residual {o} [{SIGNAL_UNITS.get(o, '-')}]")
+        ax.set_ylabel(label(f"residual {o}", unit))
     axes[0, 0].legend(fontsize=7)
     axes[0, 0].set_title("Residuals before and after (dotted: start of the held-out part)")
     axes[-1, 0].set_xlabel("t [s]")
@@ -219,42 +220,12 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     plt.close(fig)
     paths.append(p)
     # each effect's own signature: residual before vs the regime variable, and the effect's contribution
-    reg = regime_signals(diag.model, rec, nom)
-    steps: list[tuple[int, str]] = []
-    for i in range(1, len(diag.path)):
-        new = [c for c in diag.causes if c not in diag.path[i - 1].effects and c in diag.path[i].effects]
-        if diag.path[i].timing != diag.path[i - 1].timing:
-            new.append(next((c for c in diag.causes if c in TIMING_EFFECTS), CONTROLLER_RATE))
-        steps.extend((i, c) for c in new)
-    for i, c in steps:
-        before = diag.path[i - 1].predicted[0]
-        after = diag.path[i].predicted[0]
-        var = SIGNATURE_AXIS.get(c, "velocity")
-        xv = reg.get(var, reg["velocity"])
-        # (residual before, the effect's contribution, noise level) per signal shown
-        shown = {o: (rec[o] - before[o], after[o] - before[o], NOMINAL_NOISE.get(o, 1.0)) for o in outs}
-        if {"pA", "pB"} <= set(outs):
-            area = diag.final.params["A"]
-            dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
-            shown["force [N]"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
-                                  area * math.sqrt(2.0) * NOMINAL_NOISE["pA"])
-        if c in FORCE_EFFECTS and "force [N]" in shown:
-            o = "force [N]"
-        else:
-            o = max(shown, key=lambda k: float(np.std(shown[k][1])) / shown[k][2])
-        res_o, contrib, _ = shown[o]
-        fig, ax = plt.subplots(figsize=(7, 4))
-        ax.plot(xv, res_o, ",", color="0.7", label="residual before (samples)")
-        bx, by = _binned(xv, res_o)
-        ax.plot(bx, by, "o", color="C0", ms=3, label="residual before (binned mean)")
-        cx, cy = _binned(xv, contrib)
-        ax.plot(cx, cy, "-", color="C3", label=f"{c} (extended - before)")
-        ax.set_xlabel(var)
-        ax.set_ylabel(f"residual {o}")
-        ax.set_title(f"Signature of {c}")
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        p = os.path.join(out_dir, f"diagnose_signature_{c}.png")
+    from twin.reports.diagnose import signature_data
+    from twin.reports.views import signature_figure
+
+    for sig in signature_data(diag):
+        fig = signature_figure(sig)
+        p = os.path.join(out_dir, f"diagnose_signature_{sig['cause']}.png")
         fig.savefig(p, dpi=100)
         plt.close(fig)
         paths.append(p)
@@ -267,11 +238,13 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
                                  squeeze=False)
         for row, o in enumerate(outs):
             r = an.residuals[o]
+            unit, sc = signal_unit(o, diag.model)
             for col, k in enumerate(keys):
+                k_unit, k_sc = signal_unit(_AXIS_SIGNAL.get(k, k), diag.model)
                 bx, by = _binned(fin_reg[k], r)
-                axes[row, col].plot(bx, by, "o-", ms=2, color="C2")
-                axes[row, col].set_xlabel(k, fontsize=8)
-                axes[row, col].set_ylabel(f"mean residual {o}", fontsize=8)
+                axes[row, col].plot(bx * k_sc, by * sc, "o-", ms=2, color="C2")
+                axes[row, col].set_xlabel(label(k, k_unit), fontsize=8)
+                axes[row, col].set_ylabel(label(f"mean residual {o}", unit), fontsize=8)
             ax = axes[row, -1]
             ax.bar(np.arange(1, an.max_lag + 1), an.acf[o][1:], color="C1")
             ax.axhline(an.acf_band, color="k", ls="--", lw=0.7)

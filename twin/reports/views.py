@@ -48,13 +48,21 @@ def plt():
     return pyplot
 
 
+#: the zoom beside the whole record: 5 % of it, at least ZOOM_MIN_S and at most ZOOM_MAX_S, so that a long
+#: record's response (a solid band at full length) shows its samples and cycles (a servo-hydraulic rig's
+#: dynamics of 10-100 Hz make 5-50 cycles in 0.5 s)
+ZOOM_MIN_S, ZOOM_MAX_S = 0.2, 0.5
+
+
 def _zoom_window(t: np.ndarray, err: np.ndarray) -> slice:
-    """A window of about 5 % of the record (0.2 s at least) centred where ``|err|`` is largest."""
+    """A short window (``ZOOM_MIN_S`` … ``ZOOM_MAX_S``, 5 % of the record in between) centred where ``|err|``
+    is largest."""
     n = t.size
     if n < 50:
         return slice(0, n)
     dt = float(np.median(np.diff(t))) if n > 1 else 1.0
-    w = int(min(n, max(0.2 / max(dt, 1e-12), 0.05 * n)))
+    w = int(min(n, max(ZOOM_MIN_S / max(dt, 1e-12), min(0.05 * n, ZOOM_MAX_S / max(dt, 1e-12)))))
+    w = max(w, min(n, 20))
     smooth = np.convolve(np.abs(np.nan_to_num(err)), np.ones(max(w // 4, 1)), mode="same")
     c = int(np.argmax(smooth))
     a = max(0, min(c - w // 2, n - w))
@@ -69,6 +77,7 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
     first model's residual is drawn under the response (and the others' too).
     """
     pl = plt()
+    zooms: list[tuple[float, float]] = []
     with pl.rc_context(RC):
         n = len(outputs)
         fig = pl.figure(figsize=(10.5, 3.6 * n + (0.35 if title else 0.0)))
@@ -79,6 +88,7 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
             y = np.asarray(o["measured"]) * sc
             sims = [(lbl, np.asarray(s) * sc) for lbl, s in o["models"]]
             zoom = _zoom_window(t, y - sims[0][1]) if sims else slice(0, t.size)
+            zooms.append((float(t[zoom][0]), float(t[zoom][-1])))
             gs = outer[i].subgridspec(2, 2, width_ratios=[3, 2], height_ratios=[3, 1.25], hspace=0.1, wspace=0.18)
             for col, sl in ((0, slice(0, t.size)), (1, zoom)):
                 ax = fig.add_subplot(gs[0, col])
@@ -108,7 +118,16 @@ def compare_figure(t: np.ndarray, outputs: Sequence[dict], title: str = ""):
             fig.suptitle(title, x=0.01, ha="left", fontsize=10)
         fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.45 / fig.get_figheight() - (0.25 / fig.get_figheight() if title else 0),
                             bottom=0.5 / fig.get_figheight())
+    fig.zooms = zooms  # (first, last) time of each output's zoom, s
     return fig
+
+
+def zoom_text(fig) -> str:
+    """What a compare figure's zoom panels show, for its caption: ``t = 12.30 … 12.80 s`` per output."""
+    spans = sorted(set(getattr(fig, "zooms", [])))
+    if not spans:
+        return ""
+    return "; ".join(f"t = {a:.2f} … {b:.2f} s ({b - a:.2f} s)" for a, b in spans)
 
 
 def resid_figure(residuals: Mapping[str, np.ndarray], inputs: Mapping[str, np.ndarray], dt: float,
@@ -257,3 +276,123 @@ def _limits(ax, t: np.ndarray, p: dict) -> None:
     else:
         pad = 0.08 * (hi - lo) if hi > lo else 0.05 * abs(hi) or 1.0
         ax.set_ylim(lo - pad, hi + pad)
+
+
+def error_figure(t: np.ndarray, outputs: Sequence[dict], t_split: float | None = None):
+    """The simulation error per output with its noise band: the whole record beside a zoom.
+
+    ``outputs``: dicts with ``name``, ``unit`` (display), ``scale`` (SI to display), ``errors``: a list of
+    ``(label, SI array)`` (measured − simulated) and ``noise`` (the noise std, SI): the band ``±1.96 σ`` holds
+    95 % of a white noise's samples, so an error that leaves it for long is the model's, not the sensor's.
+    ``t_split``: the start of the held-out part (a dotted line).
+    """
+    pl = plt()
+    zooms: list[tuple[float, float]] = []
+    with pl.rc_context(RC):
+        n = len(outputs)
+        fig, axes = pl.subplots(n, 2, figsize=(10.5, 2.3 * n + 0.8), squeeze=False,
+                                gridspec_kw={"width_ratios": [3, 2]})
+        colours = [BLUE, ORANGE, PURPLE, GREEN]
+        for i, o in enumerate(outputs):
+            sc = o["scale"]
+            errs = [(lbl, np.asarray(e, float) * sc) for lbl, e in o["errors"]]
+            band = Z95 * float(o["noise"]) * sc
+            zoom = _zoom_window(t, errs[0][1]) if errs else slice(0, t.size)
+            zooms.append((float(t[zoom][0]), float(t[zoom][-1])))
+            for col, sl in ((0, slice(0, t.size)), (1, zoom)):
+                ax = axes[i, col]
+                ax.axhspan(-band, band, color=CYAN, alpha=0.25, lw=0, label="noise band ±1.96 σ (95 %)")
+                for k, (lbl, e) in enumerate(errs):
+                    ax.plot(t[sl], e[sl], color=colours[k % 4], lw=0.8 if col == 0 else 1.0,
+                            ls="-" if k == 0 else "--", label=lbl)
+                ax.axhline(0.0, color="#4d4d4d", lw=0.6)
+                if t_split is not None and t[sl][0] <= t_split <= t[sl][-1]:
+                    ax.axvline(t_split, color="k", lw=0.8, ls=":", label="held-out part starts")
+                if col == 0:
+                    ax.set_ylabel(label(f"error of {o['name']}", o["unit"]))
+                    ax.axvspan(t[zoom][0], t[zoom][-1], color=YELLOW, alpha=0.15, lw=0)
+                    inside = [100.0 * float(np.mean(np.abs(e) <= band)) for _, e in errs]
+                    ax.set_title(f"{o['name']}: simulation error, "
+                                 + ", ".join(f"{lbl} {p:.0f} % inside the band" for (lbl, _), p in zip(errs, inside)),
+                                 loc="left")
+                    if i == 0:
+                        ax.legend(loc="upper right", ncol=2 + len(errs))
+                else:
+                    ax.set_title(f"zoom: {t[zoom][0]:.2f} … {t[zoom][-1]:.2f} s (largest error)", loc="left")
+                ax.set_xlabel("t [s]")
+        fig.tight_layout()
+    fig.zooms = zooms
+    return fig
+
+
+def binned_means(x: np.ndarray, y: np.ndarray, n: int = 25, min_count: int = 5):
+    """Quantile bins of ``x``: (bin centre, mean of ``y``, standard error of that mean) per bin."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, n + 1)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
+    cx, cy, se = [], [], []
+    for j in range(max(edges.size - 1, 1)):
+        m = idx == j
+        k = int(m.sum())
+        if k >= min_count:
+            cx.append(float(np.mean(x[m])))
+            cy.append(float(np.mean(y[m])))
+            se.append(float(np.std(y[m], ddof=1) / math.sqrt(k)))
+    return np.array(cx), np.array(cy), np.array(se)
+
+
+def signature_figure(sig: Mapping):
+    """One cause's signature: the residual before the cause was added against its regime variable (binned
+    means with their standard errors, the samples faint behind) and the cause's own contribution.
+
+    ``sig``: ``cause``, ``axis`` and ``axis_unit``/``axis_scale``, ``signal``, ``unit``/``scale``, ``x``,
+    ``residual``, ``contribution`` (SI arrays).  The vertical scale is the binned curves', not the raw
+    samples' (the noise would flatten the signature); a signature within the bins' own scatter is said so
+    in the title (``sig["flat"]``, see :func:`signature_flatness`).
+    """
+    pl = plt()
+    xs, ys = float(sig["axis_scale"]), float(sig["scale"])
+    x = np.asarray(sig["x"], float) * xs
+    r = np.asarray(sig["residual"], float) * ys
+    c = np.asarray(sig["contribution"], float) * ys
+    bx, by, bse = binned_means(x, r)
+    cx, cy, _ = binned_means(x, c)
+    with pl.rc_context(RC):
+        fig, ax = pl.subplots(figsize=(7.5, 3.6))
+        every = max(1, x.size // 4000)
+        ax.plot(x[::every], r[::every], ".", color="#c8c8c8", ms=1.5, zorder=0, label="residual before (samples)")
+        ax.errorbar(bx, by, yerr=Z95 * bse, fmt="o", color=BLUE, ms=3, capsize=2, lw=0.8, zorder=2,
+                    label="residual before: bin mean ±1.96 s.e.")
+        ax.plot(cx, cy, "-", color=RED, lw=1.6, zorder=3, label=f"{sig['cause']}: extended − before")
+        vals = np.concatenate([by + Z95 * bse, by - Z95 * bse, cy, [0.0]])  # zero in view: a shift shows
+        vals = vals[np.isfinite(vals)]
+        if vals.size:
+            lo, hi = float(vals.min()), float(vals.max())
+            pad = 0.15 * (hi - lo) if hi > lo else max(abs(hi), 1e-12)
+            ax.set_ylim(lo - pad, hi + pad)
+        ax.axhline(0.0, color="#4d4d4d", lw=0.6)
+        ax.set_xlabel(label(sig["axis"], sig["axis_unit"]))
+        ax.set_ylabel(label(f"residual of {sig['signal']}", sig["unit"]))
+        title = f"Signature of {sig['cause']} against {sig['axis']}"
+        if sig.get("flat"):
+            title += " (flat: within the bins' scatter)"
+        ax.set_title(title, loc="left")
+        ax.legend(loc="best", fontsize=7)
+        fig.tight_layout()
+    return fig
+
+
+def signature_flatness(x: np.ndarray, contribution: np.ndarray, residual: np.ndarray) -> tuple[bool, float, float]:
+    """(flat, span of the contribution's bin means and zero, median standard error of the residual's bin
+    means): the signature is flat in this view when the cause changes the binned output (a shape or a shift
+    from zero) by less than twice the scatter of a bin mean of the residual (what a bin of noise would show)."""
+    _, cy, _ = binned_means(x, contribution)
+    _, _, se = binned_means(x, residual)
+    span = float(np.ptp(np.append(cy, 0.0)))
+    scatter = float(np.median(se)) if se.size else 0.0
+    return bool(span < 2.0 * scatter), span, scatter
