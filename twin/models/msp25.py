@@ -50,7 +50,7 @@ import numba as nb
 import numpy as np
 
 from twin.errors import DataError
-from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec, Tracking
 from twin.models import intersample as _intersample_src
@@ -221,9 +221,26 @@ def _bulk(p, B, eps):
     return 1.0 / (1.0 / B + air / (KAPPA_AIR * pe))
 
 
+@nb.njit(cache=True, inline="always")
+def fast_tanh(x):
+    """tanh through one exp (libm's tanh costs about 100 ns between 1 and 19); equal to 1e-15."""
+    a = abs(x)
+    if a > 19.1:
+        return math.copysign(1.0, x)
+    if a < 0.02:  # series: 1 - 2/(e^2a + 1) loses digits near zero
+        a2 = a * a
+        return x * (1.0 - a2 * (1.0 / 3.0 - a2 * (2.0 / 15.0 - a2 * (17.0 / 315.0))))
+    t = 1.0 - 2.0 / (math.exp(2.0 * a) + 1.0)
+    return math.copysign(t, x)
+
+
 @nb.njit(cache=True)
 def deriv(xs, vs, pA, pB, x, v, u, p):
-    """Right-hand side of one state (scalars in, tuple of six derivatives out)."""
+    """Right-hand side of one state (scalars in, tuple of six derivatives out).
+
+    The one definition of the rig's physics: the filter's side-by-side form (:mod:`twin.models.msp25_lanes`)
+    computes, with every effect neutral, the same operations in the same order (``tests/test_models.py`` checks
+    it bit for bit), so the reciprocals ``1 / vref`` and ``1 / m`` are multiplied, not divided by."""
     rho = p[I_RHO]
     A = p[I_A]
     V0 = p[I_V0]
@@ -288,9 +305,9 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         r = abs(v) / p[I_VSTR]
         dl = p[I_DSTR]
         ff = ff + fb * math.exp(-(r * r if dl == 2.0 else r ** dl))
-    Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
+    Ffr = ff * fast_tanh(v * (1.0 / p[I_VREF])) + p[I_CVISC] * v
     # pA A - pB AB, written so that a symmetric cylinder (AB = A) gives the same numbers as (pA - pB) A
-    dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
+    dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) * (1.0 / p[I_M])
     return dxs, dvs, dpA, dpB, v, dv
 
 
@@ -603,10 +620,35 @@ class MSP25(Model):
     CLOSED_LOOP = True
     TRACKABLE = True
     substeps = 3
+    #: the online filter: spool in mm and 0.1 m/s, pressures in MPa, rod in mm and 0.1 m/s; x, pA, pB measured
+    FILTER = FilterSpec(
+        functions="twin.models.msp25_lanes",
+        state_scale=(1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1),
+        measures={"x": 4, "pA": 2, "pB": 3},
+        q_state=(1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7),
+        prior_state=(0.01, 0.01, 0.1, 0.1, 0.01, 0.01),
+        noise={"x": 2e-6, "pA": 2e4, "pB": 2e4},
+        excite=(2e-3, 0.5, 2e4),  # rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
+        feedback="x",
+    )
     #: initial-state quantities: rod position and velocity, pressure difference or each chamber, spool
     INIT = ("x0", "dp0", "v0", "pA0", "pB0", "u0")
     #: the ones a fit may estimate per record
     INIT_FREE = ("x0", "dp0", "v0")
+
+    def filter_map(self, ps) -> FilterMap:
+        """Re-initialised at mid pressure with the spool where the drive holds it; the stroke and the supply
+        bound the readings; rod motion and the piston's pressure difference excite the parameters."""
+        pmid = 0.5 * (ps["pP"] + ps["pT"])
+        rest = np.zeros(NS)
+        rest[2] = rest[3] = pmid
+        exc = np.zeros((3, NS))
+        exc[0, 5] = 1.0             # rod_motion: |v|
+        exc[2, 2], exc[2, 3] = 1.0, -1.0  # pressure_difference: |pA - pB|
+        return FilterMap(rest=rest, input_state=0, input_gain=ps["Ke"] * ps["Ksp"], demand_gain=ps["KP"],
+                         ranges={"x": (-ps["stroke"], ps["stroke"]), "pA": (ps["pT"] - 2e6, ps["pP"] + 5e6),
+                                 "pB": (ps["pT"] - 2e6, ps["pP"] + 5e6)},
+                         centres={"x": 0.0, "pA": pmid, "pB": pmid}, excitation=exc)
 
     def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
         """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""
