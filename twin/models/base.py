@@ -291,6 +291,11 @@ class Model(abc.ABC):
     ) -> SimResult:
         """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``."""
 
+    def controller_response(self, ps: ParameterSet, q: np.ndarray, dt: float) -> np.ndarray | None:
+        """The digital controller's response from the position error to the command at ``q = 1 - z^-1`` (its
+        backward-difference operator on the unit circle), for a closed-loop model; ``None``: no controller."""
+        return None
+
     def effect_typicals(self, ps: ParameterSet, signals: Mapping[str, np.ndarray],
                         predicted: Mapping[str, np.ndarray], dt: float) -> dict[str, tuple[float, ...]]:
         """Each effect's typical size on this record given the fitted nominal model ``ps`` and its

@@ -650,6 +650,10 @@ class MSP25(Model):
                                  "pB": (ps["pT"] - 2e6, ps["pP"] + 5e6)},
                          centres={"x": 0.0, "pA": pmid, "pB": pmid}, excitation=exc)
 
+    def controller_response(self, ps, q, dt):
+        """The digital PID's response ``KP + KI dt / q + KD q / dt``."""
+        return ps["KP"] + ps["KI"] * dt / q + ps["KD"] * q / dt
+
     def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
         """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""
         lo, hi = super().tracking_bounds(ps, name)
