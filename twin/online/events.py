@@ -36,6 +36,7 @@ from typing import Any, ClassVar, Self
 
 from replay import jsonio
 from twin.errors import DataError
+from twin.models import DEFAULT_MODEL
 from datetime import UTC
 
 __all__ = [
@@ -175,7 +176,7 @@ def _as_mapping(data: Any, cls_name: str) -> Mapping[str, Any]:
     return data
 
 
-def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = True) -> str:
+def format_alarm(event: AlarmEvent, *, model: str = DEFAULT_MODEL, wall_clock: bool = True) -> str:
     """One line a person reads: values in the parameter's display unit (``43 Hz``, ``0.0033 mm^2``).
 
     The machine outputs (JSON, MCAP, Zenoh) stay SI; this is the one formatter of

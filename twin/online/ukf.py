@@ -203,13 +203,15 @@ def kernel_for(model):
     source = _kernel_source(mod_name)
     digest = hashlib.sha256(source.encode())
     online = Path(__file__).parent
-    models = Path(fmod.__file__).parent  # type: ignore[arg-type]
+    models = Path(str(fmod.__file__)).parent
     for f in sorted(online.glob("ukf_*.py")) + sorted(models.glob("*.py")):
         digest.update(f.read_bytes())
     tag = "".join(c if c.isalnum() else "_" for c in mod_name)
     name = f"ukf_kernel_{tag}_{digest.hexdigest()[:16]}"
     path = _kernel_dir() / f"{name}.py"
     if not path.exists():
+        for stale in path.parent.glob(f"ukf_kernel_{tag}_*.py"):  # compiled from sources that changed since
+            stale.unlink(missing_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
         tmp.write_text(source)
         os.replace(tmp, path)

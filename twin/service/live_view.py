@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
 from twin.reports.units import Shown, signal_unit
+from twin.models import DEFAULT_MODEL
 from twin.service.publisher import Publisher
 
 if TYPE_CHECKING:
@@ -203,12 +204,12 @@ class LiveView:
     :param port: TCP port (0: any free port, see :attr:`port`).
     :param bands: ``{rig: {parameter: (lo, hi)}}`` or ``{rig: {parameter: twin.online.baseline.Baseline}}`` in SI:
         the healthy bands drawn with the estimates (an alarm's band updates them too).
-    :param model: the rigs' model (display units of its parameters), default ``msp25``.
+    :param model: the rigs' model (display units of its parameters), default :data:`twin.models.DEFAULT_MODEL`.
     :param signal_rate_hz: most signal messages per second and rig (the rest are decimated away).
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, *, bands: Mapping | None = None,
-                 model: str = "msp25", signal_rate_hz: float = 100.0, name: str = "fpdd-twin") -> None:
+                 model: str = DEFAULT_MODEL, signal_rate_hz: float = 100.0, name: str = "fpdd-twin") -> None:
         import foxglove
 
         self.model = model
@@ -530,7 +531,7 @@ def _plot(title: str, series: list[tuple[str, str, str]], *, ylabel: str = "") -
             "sidebarDimension": 240, **({"yAxisLabel": ylabel} if ylabel else {})}
 
 
-def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAMPLE_RIG) -> dict:
+def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str = EXAMPLE_RIG) -> dict:
     """The Foxglove layout of the live view (``deploy/foxglove-layout.json``): per parameter its estimate,
     95 % interval and healthy band over time (the ``display`` numbers of each parameter, in the display units
     of ``twin params``, the unit in the title: ``wn [Hz]``, ``CdAleak [mm²]``); the time
@@ -583,7 +584,7 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAM
             "layout": layout}
 
 
-def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = "msp25") -> str:
+def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = DEFAULT_MODEL) -> str:
     """Write :func:`foxglove_layout` as JSON (``python -m twin.service.live_view --layout deploy/foxglove-layout.json``)."""
     with open(path, "w", encoding="utf-8") as f:
         json.dump(foxglove_layout(model=model, rig=rig), f, indent=2, ensure_ascii=False)
