@@ -189,6 +189,20 @@ def _kernel_dir() -> Path:
     return there
 
 
+def _sources_of(fmod) -> list[Path]:
+    """The source files whose compiled code ``fmod``'s functions inline: its own and those of the modules it
+    imported, or imported functions from (the rig model, intersample rules, ...)."""
+    files = {str(fmod.__file__)}
+    for v in vars(fmod).values():
+        name = getattr(v, "__name__", None) if isinstance(v, type(sys)) else \
+            getattr(getattr(v, "py_func", v), "__module__", None)
+        mod = sys.modules.get(name) if isinstance(name, str) else None
+        f = getattr(mod, "__file__", None)
+        if f and name is not None and name.split(".")[0] == fmod.__name__.split(".")[0]:
+            files.add(str(f))
+    return [Path(f) for f in sorted(files)]
+
+
 def kernel_for(model):
     """``model``'s compiled filter kernel ``run(setup, carry, block, closed, ticks, mode, out) -> int``.
 
@@ -203,8 +217,7 @@ def kernel_for(model):
     source = _kernel_source(mod_name)
     digest = hashlib.sha256(source.encode())
     online = Path(__file__).parent
-    models = Path(str(fmod.__file__)).parent
-    for f in sorted(online.glob("ukf_*.py")) + sorted(models.glob("*.py")):
+    for f in sorted(online.glob("ukf_*.py")) + _sources_of(fmod):
         digest.update(f.read_bytes())
     tag = "".join(c if c.isalnum() else "_" for c in mod_name)
     name = f"ukf_kernel_{tag}_{digest.hexdigest()[:16]}"
