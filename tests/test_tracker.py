@@ -216,3 +216,36 @@ def test_default_sigma_weights_are_filterpys_merwe_points():
         np.testing.assert_array_equal(ours_.Wm, theirs.Wm)
         np.testing.assert_array_equal(ours_.Wc, theirs.Wc)
         assert spread(ours_) == pytest.approx(a * a * (n + kap), rel=1e-12)
+
+
+def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
+    """The oil warms 20 K (bulk modulus -12 %, leakage +15 %: kB_T 0.006/K, b_visc ln(1.15)/20 K) and logs T_oil
+    at the HPU's 10 Hz: the model carries both at the logged temperature, the tracked CdAleak (at T_ref) holds
+    still and no alarm is raised; read without T_oil the same record moves the leakage estimate further."""
+    b_visc = float(np.log(1.15) / 20.0)
+    ps = M.MODEL.params(b_visc=b_visc)
+    _, xr = excite(M.MODEL, 200.0, 1e-3, seed=1010)
+    t_ref = ps["T_ref"]
+    rec, P = simulate_wear(ps, xr, 1e-3, [Drift("T_oil", (t_ref + 20.0) / t_ref, 10.0, 190.0)], noise=NOISE,
+                           seed=1010)
+    bulk = P[:, M.I_BULK] * (1 - P[:, M.I_KBT] * (P[:, M.I_TOIL] - P[:, M.I_TREF]))
+    assert bulk[-1] / bulk[0] == pytest.approx(0.88, rel=1e-6)
+    s = rec.to_samples()
+    t_oil = np.full(len(s), np.nan)
+    t_oil[::100] = P[::100, M.I_TOIL]  # the HPU status at 10 Hz: fresh every 100th sample, NaN between
+    logged = Samples(s.t_ns, {**s.signals, "T_oil": t_oil})
+    j = M.PHENOMENOLOGICAL.index("CdAleak")
+    moved = {}
+    for name, samples in (("logged", logged), ("unlogged", s)):
+        tr = OnlineTracker(params={"b_visc": b_visc})
+        dm = DriftMonitor("rig", BASE)
+        out = tr.process(samples)
+        events = dm.update_block(tr.tracked, out.t_ns, out.t_ns * 1e-9, out.estimates, out.log_std, out.frozen,
+                                 out.hold, out.guard)
+        late = out.estimates[-20000:, j]
+        moved[name] = float(np.max(np.abs(np.log(late / ps["CdAleak"]))))
+        if name == "logged":
+            assert [e for e in events if e.level == "alarm"] == []
+            assert abs(np.log(np.median(late) / ps["CdAleak"])) < 3 * np.median(out.log_std[-20000:, j]) + 0.05
+            assert tr.pvec[M.I_TOIL] == pytest.approx(P[-100, M.I_TOIL])
+    assert moved["unlogged"] > moved["logged"], moved

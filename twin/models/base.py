@@ -134,6 +134,8 @@ class FilterSpec:
     after a re-initialisation).  ``noise``: nominal sensor noise, standard deviation in SI per output.
     ``excite``: the excitation thresholds of :data:`twin.params.EXCITATION`'s channels, SI.
     ``feedback``: the output a closed loop's controller reads (``None``: no controller).
+    ``exogenous``: logged signals that set a parameter sample by sample (signal -> parameter, e.g. the oil
+    temperature ``T_oil``); the last fresh value holds between a slow signal's samples.
     """
 
     functions: str
@@ -144,6 +146,7 @@ class FilterSpec:
     noise: Mapping[str, float]
     excite: tuple[float, float, float]
     feedback: str | None = None
+    exogenous: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)

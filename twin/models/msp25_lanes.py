@@ -53,6 +53,13 @@ def lanes_applicable(p):
 
 
 @nb.njit(cache=True, inline="always")
+def _leak_factor(p):
+    """The leakage factor at the oil's temperature (deriv's ``lf``)."""
+    dT = p[M.I_TOIL] - p[M.I_TREF]
+    return math.exp(p[M.I_BVISC] * dT) if dT != 0.0 else 1.0
+
+
+@nb.njit(cache=True, inline="always")
 def _consts(p, c):
     """The constants of the right-hand side with every effect neutral (the products :func:`deriv` forms)."""
     wn = p[M.I_WN]
@@ -63,9 +70,9 @@ def _consts(p, c):
     c[4] = p[M.I_PP]
     c[5] = p[M.I_PT]
     c[6] = p[M.I_DPL] * p[M.I_DPL]
-    c[7] = p[M.I_CDALEAK] * math.sqrt(2.0 / p[M.I_RHO])
+    c[7] = p[M.I_CDALEAK] * _leak_factor(p) * math.sqrt(2.0 / p[M.I_RHO])
     c[8] = p[M.I_DPLL] * p[M.I_DPLL]
-    c[9] = p[M.I_BULK]
+    c[9] = p[M.I_BULK] * (1.0 - p[M.I_KBT] * (p[M.I_TOIL] - p[M.I_TREF]))
     c[10] = p[M.I_A]
     c[11] = p[M.I_V0]
     c[12] = 1.0 / p[M.I_M]
@@ -180,6 +187,7 @@ def lanes(S, TH, m, p, idx, wnd, mode, dt, nsub, W):
         for ln in range(LANES):
             W[(W_C + i) * LANES + ln] = c[i]
     s2r = math.sqrt(2.0 / p[M.I_RHO])
+    lf = _leak_factor(p)
     for ln in range(LANES):
         r = ln if ln < m else 0
         for j in range(p_count):
@@ -188,7 +196,7 @@ def lanes(S, TH, m, p, idx, wnd, mode, dt, nsub, W):
         W[W_C * LANES + ln] = wn * wn
         W[(W_C + 1) * LANES + ln] = 2.0 * p[M.I_ZETA] * wn
         W[(W_C + 3) * LANES + ln] = p[M.I_CD] * p[M.I_B] * s2r
-        W[(W_C + 7) * LANES + ln] = p[M.I_CDALEAK] * s2r
+        W[(W_C + 7) * LANES + ln] = p[M.I_CDALEAK] * lf * s2r
         W[(W_C + 13) * LANES + ln] = p[M.I_FFRIC]
         for i in range(6):
             W[(W_A + i) * LANES + ln] = S[r, i]

@@ -275,7 +275,9 @@ class OnlineTracker:
             out_hi=np.array([self.ranges[o][1] for o in self.outputs], dtype=float),
             out_centre=np.array([fmap.centres[o] / self.scale[self.meas_index[o]] for o in self.outputs]),
             excitation=np.ascontiguousarray(fmap.excitation, dtype=float), lanes=int(fns.LANES),
-            lane_work=int(fns.LANE_WORK))
+            lane_work=int(fns.LANE_WORK),
+            exo_idx=np.array([self.model.kernel_index(p) for p in spec.exogenous.values()], dtype=np.int64))
+        self.exogenous = dict(spec.exogenous)  # logged signal -> parameter it sets sample by sample (T_oil)
 
     def _setup(self) -> tuple:
         """The kernel's :data:`twin.online.ukf.Setup` record for the current settings."""
@@ -392,6 +394,12 @@ class OnlineTracker:
         Z[~np.isfinite(Z)] = np.nan
         U = np.where(np.isfinite(U), U, np.nan)
         XREF = np.where(np.isfinite(XREF), XREF, np.nan)
+        EXO = np.full((T, len(self.exogenous)), np.nan)
+        for j, (name, par) in enumerate(self.exogenous.items()):
+            if name in sig:  # the logged value where it is fresh and physical (a slow signal's NaNs: held)
+                spec = self.ps.spec(par)
+                v = np.asarray(sig[name], dtype=float)
+                EXO[:, j] = np.where(np.isfinite(v) & (v >= spec.lo) & (v <= spec.hi), v, np.nan)
         n, p, m = self.n, len(self.tracked), len(self.outputs)
         X = np.empty((T, n))
         Pd = np.empty((T, n))
@@ -406,11 +414,15 @@ class OnlineTracker:
         noise = np.empty((T, m))
         used = np.empty((T, m), dtype=np.bool_)
         q_param = self.q_rate ** 2
-        bad = self._run_kernel(ukf.Block(U, XREF, Z, DT), closed, ticks, mode,
+        bad = self._run_kernel(ukf.Block(U, XREF, Z, DT, EXO), closed, ticks, mode,
                                ukf.Out(X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used))
         if bad >= 0:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
                               "has no checkpoint to go back to: state or covariance not finite")
+        for j, i in enumerate(self._setup_args["exo_idx"]):  # the next block starts from the last fresh value
+            fresh = np.flatnonzero(np.isfinite(EXO[:, j]))
+            if fresh.size:
+                self.pvec[i] = EXO[fresh[-1], j]
         self.samples += T
         counts = np.bincount(st, minlength=len(ukf.STATUS))
         for c in np.flatnonzero(counts):

@@ -127,11 +127,13 @@ Setup = collections.namedtuple("Setup", (
     "out_centre",   # [q] scaled: each output's centre
     "excitation",   # [3, ns] weights of the excitation channels on the states (SI)
     "lanes", "lane_work",  # sizes of the model's side-by-side integration (0: none)
+    "exo_idx",      # [e] int: the parameters set sample by sample by the block's exogenous signals (EXO)
 ))
 #: what carries over from block to block (the filter's state), updated in place
 Carry = collections.namedtuple("Carry", ("x", "P", "fs", "ch", "x_ck", "P_ck"))
-#: one block of samples: logged drive, demand, scaled measurements [T, q], seconds since the previous sample
-Block = collections.namedtuple("Block", ("U", "XREF", "Z", "DT"))
+#: one block of samples: logged drive, demand, scaled measurements [T, q], seconds since the previous sample, and
+#: the exogenous signals [T, e] (SI, NaN where not fresh) that set the parameters ``Setup.exo_idx``
+Block = collections.namedtuple("Block", ("U", "XREF", "Z", "DT", "EXO"))
 #: per-sample outputs, written in place
 Out = collections.namedtuple("Out", ("X", "Pd", "nis", "ll", "status", "innov", "S", "frozen", "guard", "sensors",
                                      "noise", "used"))

@@ -124,9 +124,13 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
     unit_like = np.zeros(q, dtype=np.bool_)
     inn2 = np.empty(q)
     sd2 = np.empty(q)
+    EXO, exo_idx = block.EXO, setup.exo_idx
     for k in range(T):
         dtk = DT[k]
         status = ST_OK
+        for j in range(exo_idx.shape[0]):  # an exogenous input (the oil's temperature) sets its parameter
+            if math.isfinite(EXO[k, j]):
+                pw[exo_idx[j]] = EXO[k, j]
         # ---- the drive at this sample
         if closed:
             a_now = XREF[k]
