@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -268,7 +269,7 @@ class OnlineTracker:
         self._pending: Samples | None = None
         self._started = False
         self.closed_fast = True
-        self._setup_args = dict(
+        self._setup_args: dict[str, Any] = dict(
             mia=self.meas_idx, pvec=self.pvec, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
             prior_mod=self.prior_model, Wm=self.Wm, Wc=self.Wc, lam=float(self.lam), floor=self.floor,
             gate=float(self.gate), max_gated=self.max_gated, chan=self.chan, tau_excite=float(self.tau_excite),
@@ -282,6 +283,7 @@ class OnlineTracker:
             lane_work=int(fns.LANE_WORK),
             exo_idx=np.array([self.model.kernel_index(p) for p in spec.exogenous.values()], dtype=np.int64))
         self.exogenous = dict(spec.exogenous)  # logged signal -> parameter it sets sample by sample (T_oil)
+        self.exo_idx: np.ndarray = self._setup_args["exo_idx"]
 
     def _setup(self) -> tuple:
         """The kernel's :data:`twin.online.ukf.Setup` record for the current settings."""
@@ -423,7 +425,7 @@ class OnlineTracker:
         if bad >= 0:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
                               "has no checkpoint to go back to: state or covariance not finite")
-        for j, i in enumerate(self._setup_args["exo_idx"]):  # the next block starts from the last fresh value
+        for j, i in enumerate(self.exo_idx):  # the next block starts from the last fresh value
             fresh = np.flatnonzero(np.isfinite(EXO[:, j]))
             if fresh.size:
                 self.pvec[i] = EXO[fresh[-1], j]
