@@ -21,7 +21,7 @@ stall force in the model's :meth:`~twin.models.base.Model.tracking_bounds`).  Ev
 of the rig comes from the model too (:attr:`~twin.models.base.Model.FILTER`, :meth:`~twin.models.base.Model.
 filter_map`): state scales, measurement map, process and prior noise, excitation thresholds, physical ranges.
 
-A logged exogenous signal the model declares (``FILTER.exogenous``: the MSP25's oil temperature ``T_oil``) sets
+A logged exogenous signal the model declares (``FILTER.exogenous``, e.g. an oil temperature ``T_oil``) sets
 its parameter sample by sample where it is fresh and physical; the last fresh value holds between a slow
 signal's samples and into the next block.
 
