@@ -247,5 +247,5 @@ def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
         if name == "logged":
             assert [e for e in events if e.level == "alarm"] == []
             assert abs(np.log(np.median(late) / ps["CdAleak"])) < 3 * np.median(out.log_std[-20000:, j]) + 0.05
-            assert tr.pvec[M.I_TOIL] == pytest.approx(P[-100, M.I_TOIL])
+            assert tr.exo_last[0] == pytest.approx(P[-100, M.I_TOIL])
     assert moved["unlogged"] > moved["logged"], moved

@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+import types
 
 import numpy as np
 
@@ -269,8 +269,8 @@ class OnlineTracker:
         self._pending: Samples | None = None
         self._started = False
         self.closed_fast = True
-        self._setup_args: dict[str, Any] = dict(
-            mia=self.meas_idx, pvec=self.pvec, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
+        self._setup_args = types.SimpleNamespace(  # constant: what the kernel's Setup takes of the configuration
+            mia=self.meas_idx, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
             prior_mod=self.prior_model, Wm=self.Wm, Wc=self.Wc, lam=float(self.lam), floor=self.floor,
             gate=float(self.gate), max_gated=self.max_gated, chan=self.chan, tau_excite=float(self.tau_excite),
             rest=np.asarray(fmap.rest, dtype=float), input_state=int(fmap.input_state),
@@ -283,13 +283,19 @@ class OnlineTracker:
             lane_work=int(fns.LANE_WORK),
             exo_idx=np.array([self.model.kernel_index(p) for p in spec.exogenous.values()], dtype=np.int64))
         self.exogenous = dict(spec.exogenous)  # logged signal -> parameter it sets sample by sample (T_oil)
-        self.exo_idx: np.ndarray = self._setup_args["exo_idx"]
+        self.exo_idx: np.ndarray = self._setup_args.exo_idx
+        self.exo_last = np.full(self.exo_idx.size, np.nan)  # the last fresh value of each exogenous signal
 
     def _setup(self) -> tuple:
         """The kernel's :data:`twin.online.ukf.Setup` record for the current settings."""
         assert self.dt is not None
+        pvec = self.pvec
+        if np.isfinite(self.exo_last).any():  # the rig's vector at the last fresh exogenous values (T_oil)
+            pvec = pvec.copy()
+            ok = np.isfinite(self.exo_last)
+            pvec[self.exo_idx[ok]] = self.exo_last[ok]
         return ukf.Setup(dt0=float(self.dt), nsub=self.substeps, q_state=self.q_state, q_param=self.q_rate ** 2,
-                         thresh=self.excite_thresh, cfg=self.cfg, **self._setup_args)
+                         thresh=self.excite_thresh, cfg=self.cfg, pvec=pvec, **vars(self._setup_args))
 
     # --- coordinates ---------------------------------------------------------------------
     def _z_of(self, j: int, value: float) -> float:
@@ -425,10 +431,10 @@ class OnlineTracker:
         if bad >= 0:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
                               "has no checkpoint to go back to: state or covariance not finite")
-        for j, i in enumerate(self.exo_idx):  # the next block starts from the last fresh value
+        for j in range(self.exo_idx.size):  # the next block starts from the last fresh value
             fresh = np.flatnonzero(np.isfinite(EXO[:, j]))
             if fresh.size:
-                self.pvec[i] = EXO[fresh[-1], j]
+                self.exo_last[j] = EXO[fresh[-1], j]
         self.samples += T
         counts = np.bincount(st, minlength=len(ukf.STATUS))
         for c in np.flatnonzero(counts):
@@ -492,7 +498,7 @@ class OnlineTracker:
 
     # --- checkpoints ---------------------------------------------------------------------
     STATE_VERSION = 1
-    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held")
+    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last")
 
     def state(self) -> dict:
         """What the filter's future output depends on beyond its construction, as plain data (numbers,
@@ -524,6 +530,8 @@ class OnlineTracker:
         for k in self._STATE_ARRAYS:
             a = state.get(k.lstrip("_"))
             ref = getattr(self, k)
+            if k == "exo_last" and a is None:  # a state written before exogenous inputs: none seen yet
+                a = np.full(ref.shape, np.nan)
             if not isinstance(a, np.ndarray) or a.shape != ref.shape:
                 raise fail(f"{k.lstrip('_')} is not an array of shape {ref.shape}")
             arrays[k] = np.array(a, dtype=float)
