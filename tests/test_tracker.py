@@ -249,3 +249,44 @@ def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
             assert abs(np.log(np.median(late) / ps["CdAleak"])) < 3 * np.median(out.log_std[-20000:, j]) + 0.05
             assert tr.exo_last[0] == pytest.approx(P[-100, M.I_TOIL])
     assert moved["unlogged"] > moved["logged"], moved
+
+
+def test_a_warming_oil_on_the_reference_simulator_raises_no_leakage_alarm(reference_records):
+    """The independent reference simulator's leakage rises 15 % over 100 s as its oil warms; its bulk modulus has
+    no temperature law, so this rig states kB_T = 0, and the leakage law b_visc = ln(1.15) / 20 K.  T_oil, computed
+    with that law from the reference's leakage trajectory, is logged at 10 Hz.  The tracker, started at Table 9
+    (the truth is drawn 3-10 % away), tracks CdAleak at T_ref: it stays at the drawn value within its
+    uncertainty and the drift test, bands centred on the truth, raises nothing."""
+    from reference import msp25_spec
+    from reference.tables import draw_truth
+    from tests.track_reference import to_samples
+    from twin.online.baseline import Baseline
+
+    seed = 1012
+    b_visc = float(np.log(1.15) / 20.0)
+    truth = draw_truth(seed, 0.1, "msp25")
+    leak0 = truth["CdAleak"]
+    tv = {"CdAleak": {"kind": "ramp", "t0": 10.0, "t1": 110.0, "start": leak0, "end": 1.15 * leak0}}
+    rec = reference_records([msp25_spec(seed, duration=120.0, truth=truth, time_varying=tv)])[0]
+    s = to_samples(rec)
+    leak = np.asarray(rec.hidden["CdAleak"], float)
+    t_oil = np.full(len(s), np.nan)
+    t_oil[::100] = M.NOMINAL["T_ref"] + np.log(leak[::100] / leak0) / b_visc
+    s = Samples(s.t_ns, {**s.signals, "T_oil": t_oil})
+    base = {n: Baseline(truth[n], truth[n] * b.lo / b.value, truth[n] * b.hi / b.value) for n, b in BASE.items()}
+    tr = OnlineTracker(params={"b_visc": b_visc, "kB_T": 0.0})
+    dm = DriftMonitor("rig", base)
+    events = []
+    for i in range(0, len(s), 10000):
+        out = tr.process(s.slice(i, i + 10000))
+        events += dm.update_block(tr.tracked, out.t_ns, (out.t_ns - s.t_ns[0]) * 1e-9, out.estimates, out.log_std,
+                                  out.frozen, out.hold, out.guard)
+    assert [(e.parameter, e.level) for e in events if e.level == "alarm"] == []
+    j = tr.tracked.index("CdAleak")
+    logged = float(np.log(np.median(out.estimates[-5000:, j]) / leak0))
+    assert abs(logged) < 3 * out.log_std[-1, j] + 0.03, logged
+    # read without T_oil, the estimate follows the warm oil's leakage instead (the tracker before the input)
+    plain = OnlineTracker(params={"b_visc": b_visc, "kB_T": 0.0}).process(Samples(s.t_ns, {
+        k: v for k, v in s.signals.items() if k != "T_oil"}))
+    unlogged = float(np.log(np.median(plain.estimates[-5000:, j]) / leak0))
+    assert unlogged - logged > 0.5 * np.log(1.15), (logged, unlogged)
