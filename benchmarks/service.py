@@ -21,7 +21,7 @@
     (block by block: filter, drift test, estimates, statuses, checkpoints,
     the batch to the bus) and the service's side of the bus (Zenoh puts on a
     real session), in this process without pacing, split in the same run into
-    the compiled call (``twin.online.ukf.run_kernel``, timed where the tracker makes
+    the compiled call (``OnlineTracker._run_kernel``, timed where the tracker makes
     it), the tracker's Python around it and the service's Python; the round
     least disturbed by the machine's other work is kept. Also the filter alone
     (``OnlineTracker.process``) on the same blocks.
@@ -315,7 +315,6 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
     import zenoh
 
     from replay.factory import open_source
-    from twin.online import ukf
     from fpdd.zenohconf import zenoh_config
     from twin.service.bus import StoreHistory
     from twin.online.commission import tracker_for
@@ -328,12 +327,12 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
 
     clock = time.process_time
     spent = {"kernel": 0.0, "tracker": 0.0}
-    kernel = ukf.run_kernel
+    kernel = OnlineTracker._run_kernel
 
-    def timed_kernel(*args):  # the compiled call, timed where the tracker makes it
+    def timed_kernel(self, *args):  # the compiled call, timed where the tracker makes it
         t0 = clock()
         try:
-            return kernel(*args)
+            return kernel(self, *args)
         finally:
             spent["kernel"] += clock() - t0
 
@@ -375,7 +374,7 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
                 runner._open()
                 assert runner.twin is not None  # made by _open
                 spent["kernel"] = spent["tracker"] = 0.0
-                ukf.run_kernel = timed_kernel  # type: ignore[assignment]
+                OnlineTracker._run_kernel = timed_kernel  # type: ignore[method-assign]
                 OnlineTracker.process = timed_process  # type: ignore[method-assign]
                 t0 = clock()
                 try:
@@ -393,7 +392,7 @@ def overhead(seconds: float, block_ms: float, rounds: int = 3, profile: str = ""
                                     front.handle(msg[1], msg[2])
                     total = clock() - t0
                 finally:
-                    ukf.run_kernel = kernel
+                    OnlineTracker._run_kernel = kernel  # type: ignore[method-assign]
                     OnlineTracker.process = process  # type: ignore[method-assign]
                 front.close()
                 history.close()

@@ -17,10 +17,11 @@ checks and online noise learning on (the production settings):
 
 Targets: <= 20 us per sample on one core, >= 100 rigs at 1 kHz on 2 cores.
 
-``--against REV``: the kernel (``twin/online/ukf.py``) of git revision ``REV`` loaded
-as a separate module and timed against the current one on the same record,
-interleaved, ``--repeats`` times each (medians), with the largest difference
-of their estimates: a before/after comparison on a shared, noisy machine.
+Before/after (always, and alone with ``--against-before``): the kernel as it was before the model interface
+(``benchmarks/_ukf_before.py``: 47 positional arrays, the rig model built in) timed against the current
+per-model kernel on the same record, interleaved, ``--repeats`` times each (medians, CPU time), with the
+largest relative difference of their estimates: a ratio measured in the same run on a shared, noisy machine.
+Target (issue 20): the current kernel <= 12 us per sample.
 
 Accuracy (``--accuracy``, needs the repository's ``tests/reference``
 simulator; records are cached, see ``tests/track_reference.py``): false
@@ -36,22 +37,20 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import importlib.util
 import os
-import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 
 def _record(duration_s: float, seed: int = 0):
-    from twin.models import msp25 as M
+    from twin.models import DEFAULT_MODEL, get_model
     from twin.models.simulate import default_noise, excite, measure
 
-    name, xr = excite(M.MODEL, duration_s, 1e-3, seed=seed)
-    return measure(M.MODEL, M.MODEL.params(), name, xr, 1e-3, noise=default_noise(M.MODEL), seed=seed)
+    model = get_model(DEFAULT_MODEL)
+    name, xr = excite(model, duration_s, 1e-3, seed=seed)
+    return measure(model, model.params(), name, xr, 1e-3, noise=default_noise(model), seed=seed)
 
 
 def _stock_filter(tr, rec, n_samples: int):
@@ -146,56 +145,53 @@ def run(quick: bool = False) -> dict:
     }
 
 
-def _kernel_at(rev: str):
-    """The UKF kernel as it was at git revision ``rev`` (``twin/online/ukf.py``, or ``twin/ukf.py`` before the
-    layers had folders), imported as its own module."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    for where in ("twin/online/ukf.py", "twin/ukf.py"):
-        src = subprocess.run(["git", "show", f"{rev}:{where}"], cwd=root, capture_output=True, text=True)
-        if src.returncode == 0:
-            break
-    if src.returncode != 0:
-        raise SystemExit(f"--against {rev}: {src.stderr.strip() or 'git show failed'}")
-    folder = os.path.join(tempfile.gettempdir(), "twin_bench_kernels")
-    os.makedirs(folder, exist_ok=True)
-    name = "ukf_" + "".join(c if c.isalnum() else "_" for c in rev)
-    path = os.path.join(folder, name + ".py")
-    with open(path, "w") as f:
-        f.write(src.stdout)
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def _before_tracker_class():
+    """An :class:`~twin.online.tracker.OnlineTracker` whose compiled call is the kernel of
+    ``benchmarks/_ukf_before.py`` (the same filter before the model interface), given the arrays it took."""
+    from benchmarks import _ukf_before as old
+    from twin.online import ukf
+    from twin.online.tracker import OnlineTracker
+
+    class BeforeTracker(OnlineTracker):
+        def _run_kernel(self, block, closed, ticks, mode, out):
+            g = self.guard_settings
+            stroke, (pmin, pmax) = self.ranges["x"][1], self.ranges["pA"]
+            cfg = np.array([float(g[k]) for k in ukf.CFG_NAMES if k != "warm_s"]
+                           + [stroke, pmin, pmax, float(g["warm_s"])])
+            setup = self._setup()
+            return old.run_kernel(
+                self.x, self.P, self.fs, self.ch, self.x_ck, self.P_ck, block.U, block.XREF, block.Z, block.DT,
+                self.meas_idx, closed, ticks, mode, self.dt, self.pvec, self.idx, self.lo_log, self.width,
+                self.scale, self.substeps, self.q_state, setup.q_param, self.prior_model, self.Wm, self.Wc,
+                self.lam, self.floor, self.gate, self.max_gated, self.chan, self.excite_thresh, self.tau_excite,
+                self.fb_col, cfg, *out)
+
+    return BeforeTracker
 
 
-def against(rev: str, repeats: int = 3, duration: float = 20.0) -> dict:
-    """Current kernel against the kernel of ``rev``, same record, interleaved; CPU us per sample (medians)."""
-    from twin.online import tracker as T
+def against_before(repeats: int = 3, duration: float = 20.0) -> dict:
+    """The current kernel against the one before the model interface, same record, interleaved; CPU us per sample
+    (medians) and the largest relative difference of the estimates."""
+    from twin.online.tracker import OnlineTracker
 
-    mine, old = T.ukf, _kernel_at(rev)
+    Before = _before_tracker_class()
     s = _record(duration).to_samples()
-
-    def once(kernel):
-        T.ukf = kernel  # the tracker calls its module's kernel: swap it for this run only
-        try:
-            T.OnlineTracker().process(s.slice(0, 20))  # compile / load outside the clock
-            tr = T.OnlineTracker()
-            c0 = time.process_time()
-            out = tr.process(s)
-            return (time.process_time() - c0) / len(s) * 1e6, out.estimates
-        finally:
-            T.ukf = mine
-
-    times: dict[str, list[float]] = {"current": [], rev: []}
+    kinds = {"current": OnlineTracker, "before": Before}
+    for cls in kinds.values():
+        cls().process(s.slice(0, 20))  # compile / load outside the clock
+    times: dict[str, list[float]] = {k: [] for k in kinds}
     est = {}
     for _ in range(repeats):
-        for key, kernel in (("current", mine), (rev, old)):
-            t, est[key] = once(kernel)
-            times[key].append(t)
+        for key, cls in kinds.items():
+            tr = cls()
+            c0 = time.process_time()
+            out = tr.process(s)
+            times[key].append((time.process_time() - c0) / len(s) * 1e6)
+            est[key] = out.estimates
     med = {k: float(np.median(v)) for k, v in times.items()}
-    return {"rev": rev, "cpu_us_per_sample": times, "median": med, "speedup": med[rev] / med["current"],
-            "max_rel_estimate_difference": float(np.max(np.abs(est["current"] / est[rev] - 1.0))),
+    return {"cpu_us_per_sample": times, "median": med, "speedup": med["before"] / med["current"],
+            "max_rel_estimate_difference": float(np.max(np.abs(est["current"] / est["before"] - 1.0))),
+            "target_current<=12us": med["current"] <= 12.0,
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
@@ -236,10 +232,11 @@ def _track_reference(rec, controller, base, chunk=5000):
 
 
 def accuracy(duration: float = 600.0, fault_duration: float = 20.0) -> dict:
+    from twin.models import DEFAULT_MODEL
     from twin.online.baseline import Baseline, default_baseline
 
     ref = _reference()
-    nominal = default_baseline("msp25")
+    nominal = default_baseline(DEFAULT_MODEL)
     out: dict = {"healthy": [], "faults": {}}
     hours = 0.0
     n_alarms = 0
@@ -287,25 +284,31 @@ def accuracy(duration: float = 600.0, fault_duration: float = 20.0) -> dict:
     return out
 
 
+def _print_before(a: dict) -> None:
+    for k, v in a["cpu_us_per_sample"].items():
+        print(f"{k:>8s} kernel: median {a['median'][k]:6.2f} us/sample CPU (runs: {', '.join(f'{t:.2f}' for t in v)})")
+    print(f"current / before: {1.0 / a['speedup']:.3f} (speed-up {a['speedup']:.2f}x); largest relative difference of "
+          f"the estimates {a['max_rel_estimate_difference']:.1e}; current <= 12 us/sample: "
+          f"{'OK' if a['target_current<=12us'] else 'MISSED'} (load average {a['load_average_1min']})")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.tracker", description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter records")
     ap.add_argument("--accuracy", action="store_true", help="false alarms, coverage and delays on the reference "
                                                             "simulator's records (long; cached)")
     ap.add_argument("--seconds", type=float, default=600.0, help="length of each healthy record (--accuracy)")
-    ap.add_argument("--against", metavar="REV", help="time the kernel of git revision REV against the current one")
-    ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (--against)")
+    ap.add_argument("--against-before", action="store_true",
+                    help="only time the current kernel against the one before the model interface")
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (before/after)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    if args.against:
-        a = against(args.against, args.repeats, 10.0 if args.quick else 20.0)
+    if args.against_before:
+        a = against_before(args.repeats, 10.0 if args.quick else 20.0)
         if args.json:
             print(json.dumps(a, indent=2))
             return 0
-        for k, v in a["cpu_us_per_sample"].items():
-            print(f"{k:>12s}: median {a['median'][k]:6.2f} us/sample CPU (runs: {', '.join(f'{t:.2f}' for t in v)})")
-        print(f"speed-up {a['speedup']:.2f}x over {a['rev']}; largest relative difference of the estimates "
-              f"{a['max_rel_estimate_difference']:.1e} (load average {a['load_average_1min']})")
+        _print_before(a)
         return 0
     if args.accuracy:
         r = accuracy(args.seconds)
@@ -327,9 +330,11 @@ def main(argv=None) -> int:
                   f"{f['wrong_parameter_events']}")
         return 0
     r = run(args.quick)
+    r["before_after"] = against_before(args.repeats, 10.0 if args.quick else 20.0)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
+    _print_before(r["before_after"])
     print(f"ours : {r['ours_cpu_us_per_sample']:8.1f} us/sample CPU ({r['ours_us_per_sample']:.1f} wall), "
           f"{r['ours_realtime_factor']:8.1f}x real time (guard, sensor checks, noise learning on)")
     print(f"stock: {r['stock_cpu_us_per_sample']:8.1f} us/sample CPU ({r['stock_us_per_sample']:.1f} wall), "

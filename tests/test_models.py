@@ -228,3 +228,43 @@ def test_a_kernel_cache_is_dropped_when_a_module_it_inlines_changed(tmp_path):
     dep.write_text("I_A = 6\n")  # the layout the kernel inlined moved
     assert keep_fresh(str(mod), str(dep)) is True
     assert [p.name for p in cache.iterdir() if p.suffix in (".nbi", ".nbc")] == ["other.step-3.py311.nbi"]
+
+
+@pytest.mark.parametrize("mode,t_oil", [(0, None), (1, None), (2, None), (0, 333.15), (2, 298.15)])
+def test_the_filters_lanes_are_the_models_one_definition_bit_for_bit(mode, t_oil):
+    """The rig's physics is written once (``deriv``); the batched form calls it, and the filter's side-by-side
+    lanes (every effect neutral) compute the same operations in the same order: each lane, with its own valve and
+    leak parameters, is the model's ``advance`` of its point, bit for bit."""
+    from twin.models import msp25_lanes as F
+
+    rng = np.random.default_rng(1100 + mode)
+    ps = M.MODEL.params() if t_oil is None else M.MODEL.params(T_oil=t_oil)  # the oil's temperature off T_ref
+    idx = np.array([M.MODEL.kernel_index(n) for n in F.LANE_PARAMS], dtype=np.int64)
+    p = M.MODEL.vector(ps)
+    assert F.lanes_applicable(p) and not F.lanes_applicable(M.MODEL.vector(M.MODEL.params(("viscous_friction",))))
+    S = np.column_stack([rng.normal(0, 3e-4, F.LANES), rng.normal(0, 0.05, F.LANES), rng.uniform(2e6, 26e6, F.LANES),
+                         rng.uniform(2e6, 26e6, F.LANES), rng.normal(0, 0.02, F.LANES), rng.normal(0, 0.05, F.LANES)])
+    TH = p[idx] * np.exp(rng.normal(0, 0.3, size=(F.LANES, idx.size)))
+    wnd = rng.normal(0, 1, size=4)
+    got = S.copy()
+    F.lanes(got, TH, F.LANES, p.copy(), idx, wnd, mode, 1e-3, 3, np.empty(F.LANE_WORK))
+    for ln in range(F.LANES):
+        q = p.copy()
+        q[idx] = TH[ln]
+        one = np.empty(M.NS)
+        M.advance(S[ln].copy(), 1, wnd, False, 1, mode, q, 1e-3, 3, 0.0, np.zeros(M.N_CTRL), one)
+        np.testing.assert_array_equal(got[ln], one)
+        np.testing.assert_array_equal(M.rhs_batch(S[ln:ln + 1], wnd[1:2], q[None])[0],
+                                      np.array(M.deriv(*S[ln], wnd[1], q)))
+
+
+def test_records_without_an_oil_temperature_are_unchanged_bit_for_bit():
+    """At T_oil = T_ref (the default) the temperature factors are exactly one: the same numbers as without the
+    temperature law; a warmer oil softens the oil column and leaks more."""
+    _, xr = excite(M.MODEL, 1.0, 1e-3, seed=1101)
+    base = M.MODEL.simulate(M.MODEL.params(), "x_ref", xr, 1e-3)
+    off = M.MODEL.simulate(M.MODEL.params(kB_T=0.0, b_visc=0.0), "x_ref", xr, 1e-3)
+    for o in ("x", "pA", "pB"):
+        np.testing.assert_array_equal(base.outputs[o], off.outputs[o])
+    warm = M.MODEL.simulate(M.MODEL.params(T_oil=333.15), "x_ref", xr, 1e-3)
+    assert not np.array_equal(warm.outputs["pA"], base.outputs["pA"])

@@ -217,3 +217,77 @@ def test_default_sigma_weights_are_filterpys_merwe_points():
         np.testing.assert_array_equal(ours_.Wm, theirs.Wm)
         np.testing.assert_array_equal(ours_.Wc, theirs.Wc)
         assert spread(ours_) == pytest.approx(a * a * (n + kap), rel=1e-12)
+
+
+def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
+    """The oil warms 20 K (bulk modulus -12 %, leakage +15 %: kB_T 0.006/K, b_visc ln(1.15)/20 K) and logs T_oil
+    at the HPU's 10 Hz: the model carries both at the logged temperature, the tracked CdAleak (at T_ref) holds
+    still and no alarm is raised; read without T_oil the same record moves the leakage estimate further."""
+    b_visc = float(np.log(1.15) / 20.0)
+    ps = M.MODEL.params(b_visc=b_visc)
+    _, xr = excite(M.MODEL, 200.0, 1e-3, seed=1010)
+    t_ref = ps["T_ref"]
+    rec, P = simulate_wear(ps, xr, 1e-3, [Drift("T_oil", (t_ref + 20.0) / t_ref, 10.0, 190.0)], noise=NOISE,
+                           seed=1010)
+    bulk = P[:, M.I_BULK] * (1 - P[:, M.I_KBT] * (P[:, M.I_TOIL] - P[:, M.I_TREF]))
+    assert bulk[-1] / bulk[0] == pytest.approx(0.88, rel=1e-6)
+    s = rec.to_samples()
+    t_oil = np.full(len(s), np.nan)
+    t_oil[::100] = P[::100, M.I_TOIL]  # the HPU status at 10 Hz: fresh every 100th sample, NaN between
+    logged = Samples(s.t_ns, {**s.signals, "T_oil": t_oil})
+    j = M.PHENOMENOLOGICAL.index("CdAleak")
+    moved = {}
+    for name, samples in (("logged", logged), ("unlogged", s)):
+        tr = OnlineTracker(params={"b_visc": b_visc})
+        dm = DriftMonitor("rig", BASE)
+        out = tr.process(samples)
+        events = dm.update_block(tr.tracked, out.t_ns, out.t_ns * 1e-9, out.estimates, out.log_std, out.frozen,
+                                 out.hold, out.guard)
+        late = out.estimates[-20000:, j]
+        moved[name] = float(np.max(np.abs(np.log(late / ps["CdAleak"]))))
+        if name == "logged":
+            assert [e for e in events if e.level == "alarm"] == []
+            assert abs(np.log(np.median(late) / ps["CdAleak"])) < 3 * np.median(out.log_std[-20000:, j]) + 0.05
+            assert tr.exo_last[0] == pytest.approx(P[-100, M.I_TOIL])
+    assert moved["unlogged"] > moved["logged"], moved
+
+
+def test_a_warming_oil_on_the_reference_simulator_raises_no_leakage_alarm(reference_records):
+    """The independent reference simulator's leakage rises 15 % over 100 s as its oil warms; its bulk modulus has
+    no temperature law, so this rig states kB_T = 0, and the leakage law b_visc = ln(1.15) / 20 K.  T_oil, computed
+    with that law from the reference's leakage trajectory, is logged at 10 Hz.  The tracker, started at Table 9
+    (the truth is drawn 3-10 % away), tracks CdAleak at T_ref: it stays at the drawn value within its
+    uncertainty and the drift test, bands centred on the truth, raises nothing."""
+    from reference import msp25_spec
+    from reference.tables import draw_truth
+    from tests.track_reference import to_samples
+    from twin.online.baseline import Baseline
+
+    seed = 1012
+    b_visc = float(np.log(1.15) / 20.0)
+    truth = draw_truth(seed, 0.1, "msp25")
+    leak0 = truth["CdAleak"]
+    tv = {"CdAleak": {"kind": "ramp", "t0": 10.0, "t1": 110.0, "start": leak0, "end": 1.15 * leak0}}
+    rec = reference_records([msp25_spec(seed, duration=120.0, truth=truth, time_varying=tv)])[0]
+    s = to_samples(rec)
+    leak = np.asarray(rec.hidden["CdAleak"], float)
+    t_oil = np.full(len(s), np.nan)
+    t_oil[::100] = M.NOMINAL["T_ref"] + np.log(leak[::100] / leak0) / b_visc
+    s = Samples(s.t_ns, {**s.signals, "T_oil": t_oil})
+    base = {n: Baseline(truth[n], truth[n] * b.lo / b.value, truth[n] * b.hi / b.value) for n, b in BASE.items()}
+    tr = OnlineTracker(params={"b_visc": b_visc, "kB_T": 0.0})
+    dm = DriftMonitor("rig", base)
+    events = []
+    for i in range(0, len(s), 10000):
+        out = tr.process(s.slice(i, i + 10000))
+        events += dm.update_block(tr.tracked, out.t_ns, (out.t_ns - s.t_ns[0]) * 1e-9, out.estimates, out.log_std,
+                                  out.frozen, out.hold, out.guard)
+    assert [(e.parameter, e.level) for e in events if e.level == "alarm"] == []
+    j = tr.tracked.index("CdAleak")
+    logged = float(np.log(np.median(out.estimates[-5000:, j]) / leak0))
+    assert abs(logged) < 3 * out.log_std[-1, j] + 0.03, logged
+    # read without T_oil, the estimate follows the warm oil's leakage instead (the tracker before the input)
+    plain = OnlineTracker(params={"b_visc": b_visc, "kB_T": 0.0}).process(Samples(s.t_ns, {
+        k: v for k, v in s.signals.items() if k != "T_oil"}))
+    unlogged = float(np.log(np.median(plain.estimates[-5000:, j]) / leak0))
+    assert unlogged - logged > 0.5 * np.log(1.15), (logged, unlogged)

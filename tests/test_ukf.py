@@ -71,7 +71,7 @@ def test_same_as_filterpy_on_a_single_rod_cylinder():
     s = _samples(0.3, 23, **SINGLE_ROD)
     assert np.mean(s.signals["pB"]) > 1.5 * np.mean(s.signals["pA"])
     tr, out, expected = _compare(s, excite=(0.0, 0.0, 0.0), gate_p=1e-300, params=SINGLE_ROD)
-    assert ukf.lean_applicable(tr.pvec) and tr.pvec[M.I_AB] == SINGLE_ROD["AB"]
+    assert ukf.functions_of(tr.model).lanes_applicable(tr.pvec) and tr.pvec[M.I_AB] == SINGLE_ROD["AB"]
 
 
 def test_same_as_filterpy_with_coloured_noise_states_and_a_linear_input():
@@ -225,29 +225,46 @@ def test_sigma_point_weights_are_filterpys_with_a_small_alpha():
 
 
 @pytest.mark.parametrize("mode,params", [(0, {}), (1, {}), (2, {}), (0, SINGLE_ROD), (2, SINGLE_ROD)])
-def test_sigma_points_propagated_together_are_the_single_point_step_exactly(mode, params):
-    """The lean path integrates the sigma points side by side (vectorised lanes): per point the same numbers as
-    fx_into, bit for bit, on both sides of the valve's null and with a noise state in the last coordinates;
-    a symmetric and a single-rod cylinder."""
+def test_sigma_points_propagated_together_are_the_models_step_exactly(mode, params):
+    """The model's lanes integrate the sigma points side by side (vectorised): per point the same numbers as the
+    model's own one-point ``advance`` (its right-hand side ``deriv``), bit for bit, on both sides of the valve's
+    null and with a noise state in the last coordinates; a symmetric and a single-rod cylinder."""
+    from twin.online.ukf_predict import _lanes, fx_into
+
     tr = OnlineTracker(params=params)
-    n, nm = tr.n, tr.nmod
+    F = ukf.functions_of(tr.model)
+    fns = (F.advance, F.lanes_applicable, F.lanes)
+    n, nm, ns = tr.n, tr.nmod, tr.ns
     rng = np.random.default_rng(31 + mode)
     x = np.concatenate([[0.01, 0.0, 11.0, 9.0, 2.0, 0.5], np.zeros(len(tr.tracked)), np.zeros(n - nm)])
     sig = x + rng.normal(size=(2 * n + 1, n)) * np.concatenate([[0.05, 0.5, 2.0, 2.0, 1.0, 1.0],
                                                                 np.full(len(tr.tracked), 0.3), np.full(n - nm, 0.1)])
     assert (sig[:, 0] < 0).any() and (sig[:, 0] > 0).any()
     wnd = np.array([0.1, 0.2, 0.5, 0.5])
-    rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm] + [0] * (ukf.LANES - 2 * nm - 1))
+    rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm])
     m = 2 * nm + 1
-    ctrl = np.zeros(ukf.N_K)
-    ctrl[ukf.K_FLAG] = 1.0
-    assert ukf.lean_applicable(tr.pvec)
+    assert F.lanes_applicable(tr.pvec) and m <= F.LANES
     sf = np.full((2 * n + 1, n), np.nan)
-    ukf._lean_sigmas(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
-                     np.empty(ukf.N_W * ukf.LANES), np.empty(ukf.N_LEAN), nm)
+    _lanes(*fns, sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2, nm,
+           np.empty((F.LANES, ns)), np.empty((F.LANES, len(tr.tracked))), np.empty(F.LANE_WORK))
     for r in rows[:m]:
         one = np.empty(n)
-        ukf.fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
-                    0.0, ctrl.copy(), np.empty(6), np.empty(6), one, nm)
+        fx_into(*fns, sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+                0.0, np.zeros(F.N_CTRL), F.N_CTRL, np.empty(ns), np.empty(ns), one, nm)
         np.testing.assert_array_equal(sf[r, :nm], one[:nm])
     assert np.isnan(sf[nm + 1:n + 1]).all()  # the points along noise states are not integrated
+
+
+def test_the_kernel_is_loaded_from_numbas_cache_in_a_fresh_process():
+    """The per-model kernel is a generated module whose compiled code numba caches: a second process loads it."""
+    import subprocess
+    import sys
+
+    code = ("from twin.online.tracker import OnlineTracker; from twin.online import ukf; import numpy as np;"
+            "from replay.base import Samples;"
+            "tr = OnlineTracker(dt=1e-3); t = np.arange(5, dtype=np.int64) * 1000000;"
+            "tr.process(Samples(t, {'u': np.zeros(5), 'x': np.zeros(5), 'pA': np.full(5, 14e6), 'pB': np.full(5, 14e6)}));"
+            "k = ukf.kernel_for(tr.model); print(sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()))")
+    OnlineTracker()  # this process has compiled (or loaded) it: the cache is written
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
+    assert out.stdout.split() == ["1", "0"], out.stdout + out.stderr

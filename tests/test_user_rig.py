@@ -180,22 +180,25 @@ def test_jittered_csv_fits_tracks_and_reads_consistently(pid_record, tmp_path, c
     capsys.readouterr()
 
 
-def test_tracker_lean_step_with_two_areas_is_the_model_right_hand_side():
-    """The tracker's lean right-hand side writes the two-area physics again: the same numbers as the model's."""
-    from twin.online import ukf
+def test_tracker_lanes_with_two_areas_are_the_model_right_hand_side():
+    """The tracker's side-by-side lanes compute the two-area physics with the model's own operations: each lane is
+    the model's step, bit for bit."""
+    from twin.models import msp25_lanes as F
 
     rng = np.random.default_rng(1006)
     for ab, v0b in ((0.0, 0.0), (960e-6, 300e-6)):
         p = RIG.vector(RIG.params(AB=ab, V0B=v0b))
-        c = np.empty(ukf.N_LEAN)
-        ukf._lean_consts(p, c)
-        for _ in range(20):
-            s = np.array([rng.normal(0, 2e-4), rng.normal(0, 0.05), rng.uniform(2e6, 26e6),
-                          rng.uniform(2e6, 26e6), rng.normal(0, 0.02), rng.normal(0, 0.05)])
-            u = rng.normal(0, 1)
-            a = np.array(M.deriv(*s, u, p))
-            b = np.array(ukf._lean_deriv(*s, u, c))
-            np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9)
+        S = np.array([[rng.normal(0, 2e-4), rng.normal(0, 0.05), rng.uniform(2e6, 26e6), rng.uniform(2e6, 26e6),
+                       rng.normal(0, 0.02), rng.normal(0, 0.05)] for _ in range(F.LANES)])
+        u = rng.normal(0, 1, size=4)
+        idx = np.array([RIG.kernel_index("Ffric")], dtype=np.int64)
+        TH = np.full((F.LANES, 1), p[idx[0]])
+        got = S.copy()
+        F.lanes(got, TH, F.LANES, p.copy(), idx, u, 0, 1e-3, 2, np.empty(F.LANE_WORK))
+        for ln in range(F.LANES):
+            one = np.empty(6)
+            M.step(S[ln], u[1], p, 1e-3, 2, one)
+            np.testing.assert_array_equal(got[ln], one)
 
 
 def test_tracker_driven_by_the_demand_runs_the_rigs_filtered_pid():

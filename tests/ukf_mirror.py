@@ -1,7 +1,7 @@
 """filterpy's UnscentedKalmanFilter beside the compiled tracker, following the tracker's per-sample decisions.
 
 filterpy does the unscented predict (its sigma points, weights, ``fx`` through
-the model's own :func:`twin.models.msp25.advance` via :func:`twin.online.ukf.fx_one`)
+the model's own ``advance`` via :func:`twin.online.ukf.fx_one`)
 and the update; from the tracker's output this mirror takes only *which*
 decisions were made on each sample (outputs used, gated, parameters frozen),
 never the numbers.  A frozen parameter gets no gain (Schmidt consider update,
@@ -28,10 +28,10 @@ def mirror(tr, samples, out) -> np.ndarray:
     ticks = tr.timing.ticks(tr.dt)
     mode = tr.timing.intersample_code(tr.dt)
     u = np.asarray(samples.signals["u"], float)
-    Z = np.stack([np.asarray(samples.signals[o], float) / tr.scale[ukf.MEAS_INDEX[o]] for o in tr.outputs], axis=1)
+    Z = np.stack([np.asarray(samples.signals[o], float) / tr.scale[tr.meas_index[o]] for o in tr.outputs], axis=1)
 
     def fx(x, dt, u_before, u_prev, u_now):
-        return ukf.fx_one(x, u_prev, u_now, tr.pvec, tr.idx, tr.lo_log, tr.width, tr.scale, dt, tr.substeps, a,
+        return ukf.fx_one(tr.model, x, u_prev, u_now, tr.pvec, tr.idx, tr.lo_log, tr.width, tr.scale, dt, tr.substeps, a,
                           False, ticks, mode, u_before)
 
     # filterpy's own sigma points: the tracker's object when it was given one (Julier's), else Merwe's from the
@@ -61,7 +61,7 @@ def mirror(tr, samples, out) -> np.ndarray:
             def hx(x, idx_m=idx_m, idx_e=idx_e):
                 return x[idx_m] + x[idx_e]
 
-            frozen = np.flatnonzero(out.frozen[k]) + 6
+            frozen = np.flatnonzero(out.frozen[k]) + tr.ns
             if frozen.size == 0:
                 f.update(Z[k, use], R=np.diag(R[use]), hx=hx)
             else:  # consider update on filterpy's sigma-point statistics

@@ -12,6 +12,7 @@ import dataclasses
 import numpy as np
 
 from fpdd.errors import DataError
+from twin.models import DEFAULT_MODEL
 
 
 @dataclasses.dataclass
@@ -137,7 +138,7 @@ def signal_specs(model: str):
     return SIGNALS
 
 
-def check_signals(path: str, names, model: str = "msp25", needed=()) -> None:
+def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=()) -> None:
     """Refuse (:class:`DataError`, one line) a record without a signal its command needs.
 
     Needed: a drive of ``model`` (any of its inputs), at least one of its outputs, and
@@ -184,7 +185,7 @@ def check_signals(path: str, names, model: str = "msp25", needed=()) -> None:
     raise DataError(f"{path}: {'; '.join(parts)}; the record has {', '.join(names) or 'no signals'}{hint}")
 
 
-def load_records(path: str, name: str | None = None, model: str = "msp25", reports: list | None = None, *,
+def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL, reports: list | None = None, *,
                  map=None, **options) -> list[Record]:  # noqa: A002
     """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``.
 

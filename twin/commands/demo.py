@@ -38,15 +38,16 @@ def free_port() -> int:
 
 
 def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float):
-    from twin.models import msp25 as M
+    from twin.models import DEFAULT_MODEL, get_model
     from twin.models.scenario import Drift, simulate_wear
     from fpdd.units import NOMINAL_NOISE
     from twin.models.simulate import excite
 
-    name, xr = excite(M.MODEL, duration_s, 1e-3, seed=seed)
+    model = get_model(DEFAULT_MODEL)
+    name, xr = excite(model, duration_s, 1e-3, seed=seed)
     drift = Drift("CdAleak", factor, t_start, t_end, "ramp")
     noise = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
-    rec, P = simulate_wear(M.MODEL.params(), xr, 1e-3, [drift], noise=noise, seed=seed, name="demo-rig")
+    rec, P = simulate_wear(model.params(), xr, 1e-3, [drift], noise=noise, seed=seed, name="demo-rig")
     return rec, P, drift
 
 def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.0, seed: int = 0,
@@ -59,7 +60,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     from fpdd.zenohconf import zenoh_config
     from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig, ServiceConfig
-    from twin.models import msp25 as M
+    from twin.models import DEFAULT_MODEL, get_model
     from twin.service.serve import serve
 
     os.makedirs(out_dir, exist_ok=True)
@@ -75,9 +76,9 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
         sink.write(rec.to_samples())
     say(f"2/5 logged {len(rec)} samples to {log_path}")
 
-    baseline = default_baseline("msp25")
-    rig = RigConfig(name=rig_name, model="msp25", source=log_path, dbc=None, speed=speed,
-                    track=tuple(M.PHENOMENOLOGICAL), params={}, baseline=baseline)
+    baseline = default_baseline(DEFAULT_MODEL)
+    rig = RigConfig(name=rig_name, model=DEFAULT_MODEL, source=log_path, dbc=None, speed=speed,
+                    track=tuple(get_model(DEFAULT_MODEL).PHENOMENOLOGICAL), params={}, baseline=baseline)
     cfg = ServiceConfig(path="<demo>", zenoh_mode="peer", listen=(), connect=(),
                         journal_dir=os.path.join(out_dir, "journal"), out_dir=out_dir, estimate_every=50,
                         rigs=(rig,))
@@ -117,7 +118,7 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
         f"the subscriber received {len(received)}")
     paths = report(out_dir, rec, P, twin, drift, baseline)
     say(f"5/5 report: {paths['html']}")
-    t_cross = drift.crossing(M.NOMINAL["CdAleak"], baseline["CdAleak"].lo, baseline["CdAleak"].hi, rec.t_s)
+    t_cross = drift.crossing(get_model(DEFAULT_MODEL).NOMINAL["CdAleak"], baseline["CdAleak"].lo, baseline["CdAleak"].hi, rec.t_s)
     first = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "alarm"), None)
     summary = {
         "rig": rig_name, "samples": stats[rig_name].samples, "duration_s": duration_s, "speed": speed,

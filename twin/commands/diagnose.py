@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from fpdd import jsonio
-from twin.models import MODELS
+from twin.models import DEFAULT_MODEL, MODELS
 from replay.options import EXIT_LOSS
 from twin.commands.common import add_map_argument, add_timing_arguments, dump, loss_lines, source_options, timing_of
 from twin.commands.common import kv as _kv
@@ -18,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
-    p.add_argument("--model", default="msp25", choices=MODELS)
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS)
     p.add_argument("--outputs", help="outputs used, e.g. x or x,pA,pB (default: all present)")
     p.add_argument("--free", help="nominal free parameters (default: the phenomenological ones)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,...")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from twin.models import MODELS
+from twin.models import DEFAULT_MODEL, MODELS
 from replay.options import EXIT_LOSS
 from twin.commands.common import (add_map_argument, add_timing_arguments, load_params_file, loss_lines,
                                   source_options, timing_of)
@@ -21,7 +21,7 @@ def add_arguments(p) -> None:
 
     p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
-    p.add_argument("--model", default="msp25", choices=MODELS)
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS)
     p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
     p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
     p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from twin.models import MODELS
+from twin.models import DEFAULT_MODEL, MODELS
 from twin.commands.common import dump as _dump
 from twin.commands.common import names as _names
 
@@ -10,7 +10,7 @@ HELP = "list a model's parameters, units, bounds and effects"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--model", default="msp25", choices=MODELS)
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS)
     p.add_argument("--effects", help="comma-separated effects to switch on")
     p.add_argument("--json", action="store_true")
 

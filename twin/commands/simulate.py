@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from twin.models import MODELS
+from twin.models import DEFAULT_MODEL, MODELS
 from twin.commands.common import add_timing_arguments, timing_of
 from twin.commands.common import dump as _dump
 from twin.commands.common import kv as _kv
@@ -14,7 +14,7 @@ HELP = "simulate an identification experiment and write CSV or MCAP"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--model", default="msp25", choices=MODELS)
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS)
     p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FILE",
                    help="output file (.csv or .mcap)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")

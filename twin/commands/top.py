@@ -35,7 +35,7 @@ from typing import Any
 
 from fpdd.argtypes import positive_seconds
 from fpdd import jsonio
-from twin.models import MODELS
+from twin.models import DEFAULT_MODEL, MODELS
 from twin.reports.units import Shown, pretty_unit
 
 LEVEL_STYLE = {"alarm": "bold red", "warning": "bold yellow", "ok": "green"}
@@ -55,8 +55,8 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=("peer", "client"), default=None,
                    help="Zenoh session mode (default: the --zenoh-config file's, else peer)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 configuration (TLS, credentials)")
-    p.add_argument("--model", default="msp25", choices=MODELS,
-                   help="the rigs' model, for display units (default msp25)")
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS,
+                   help=f"the rigs' model, for display units (default {DEFAULT_MODEL})")
     p.add_argument("--wait", dest="wait", type=positive_seconds, default=10.0, metavar="S",
                    help="give up (exit status 2) when no twin answers within S seconds (default 10; as in "
                    "twin alarms)")
@@ -69,7 +69,7 @@ def add_top_arguments(p: argparse.ArgumentParser) -> None:
 class TopState:
     """The latest estimate, status and alarm of each rig (thread-safe; callbacks of Zenoh write here)."""
 
-    def __init__(self, model: str = "msp25", stale_s: float | None = None) -> None:
+    def __init__(self, model: str = DEFAULT_MODEL, stale_s: float | None = None) -> None:
         from twin.service.rig import STATUS_S
 
         self.model = model

@@ -10,6 +10,7 @@ from replay.options import EXIT_LOSS
 from twin.commands.common import (add_map_argument, add_timing_arguments, dump, kv, loss_lines, names, source_options,
                                   timing_of)
 from twin.online.events import format_alarm
+from twin.models import DEFAULT_MODEL
 from twin.service.track import track
 
 
@@ -50,8 +51,8 @@ def _check_rig_log(path: str) -> None:
     if "y" in header and not {"x", "pA", "pB"} & set(header):
         from fpdd.errors import DataError
 
-        raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the msp25 "
-                        "rig model (it needs u or x_ref and at least one of x, pA, pB)")
+        raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the "
+                        f"{DEFAULT_MODEL} rig model (it needs u or x_ref and at least one of x, pA, pB)")
 
 
 def _read(path: str, opts: dict, reports: list):
@@ -60,14 +61,14 @@ def _read(path: str, opts: dict, reports: list):
     from twin.record import check_signals
 
     with open_source(path, **opts) as src:
-        check_signals(path, src.signals, "msp25")
+        check_signals(path, src.signals, DEFAULT_MODEL)
         reports.append(src.report)
         yield from src.chunks(10000)
 
 
 def run(args) -> int:
     from twin.service.config import load_config
-    from twin.models import get_model
+    from twin.models import DEFAULT_MODEL, get_model
     from twin.reports.plots import parameter_trends
 
     _check_rig_log(args.log)
@@ -89,9 +90,9 @@ def run(args) -> int:
         from twin.online.commission import load_fit, tracker_params
 
         commission = load_fit(args.params)
-        tracker_params(commission, tracked or get_model("msp25").PHENOMENOLOGICAL)  # refuses effects
+        tracker_params(commission, tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL)  # refuses effects
     if args.set:
-        model = get_model("msp25")
+        model = get_model(DEFAULT_MODEL)
         over = kv(args.set)
         model.params((), **over)  # checks names and ranges
         params.update(over)

@@ -304,10 +304,11 @@ class _Problem:
             n = len(rec)
             w = np.pi * np.arange(n // 2 + 1) / (n // 2)  # rfft frequencies, rad per sample
             band = w >= LOOP_NOISE_BAND * np.pi
-            if "u" in rec and "u" in pr:
+            q = 1.0 - np.exp(-1j * w[band])
+            ctrl = self.model.controller_response(self.base, q, rec.dt)  # None: the model has no digital controller
+            if "u" in rec and "u" in pr and ctrl is not None:
                 e = np.asarray(rec["u"] - pr["u"], dtype=np.float64)
-                q = 1.0 - np.exp(-1j * w[band])
-                gain = np.abs(self.base["KP"] + self.base["KI"] * rec.dt / q + self.base["KD"] * q / rec.dt)
+                gain = np.abs(ctrl)
             else:
                 e = np.asarray(rec["x"] - pr["x"], dtype=np.float64)
                 gain = np.ones(int(band.sum()))

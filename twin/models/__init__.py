@@ -12,9 +12,11 @@ import importlib
 from fpdd.errors import ParameterError
 from twin.models.base import Model, SimResult
 
-#: model name -> module defining ``MODEL`` (the registry)
+#: model name -> module defining ``MODEL`` (the registry; :func:`register` adds one)
 REGISTRY = {"msp25": "twin.models.msp25", "oscillator": "twin.models.oscillator"}
 MODELS = tuple(REGISTRY)
+#: the model a command, a rig or a tracker runs when none is named
+DEFAULT_MODEL = "msp25"
 
 
 def get_model(name: str) -> Model:
@@ -24,9 +26,18 @@ def get_model(name: str) -> Model:
     return importlib.import_module(REGISTRY[name]).MODEL
 
 
+def register(name: str, module: str) -> None:
+    """Add the model ``MODEL`` of ``module`` to the registry as ``name`` (a module importable by that name)."""
+    global MODELS
+    if not name.isidentifier():
+        raise ParameterError(f"model name {name!r} must be an identifier")
+    REGISTRY[name] = module
+    MODELS = tuple(REGISTRY)
+
+
 def trackable_models() -> tuple[str, ...]:
     """The models the online twin runs (``twin track``, ``twin serve``)."""
     return tuple(n for n in MODELS if get_model(n).TRACKABLE)
 
 
-__all__ = ["Model", "SimResult", "get_model", "MODELS", "REGISTRY", "trackable_models"]
+__all__ = ["DEFAULT_MODEL", "Model", "SimResult", "get_model", "MODELS", "REGISTRY", "register", "trackable_models"]

@@ -122,6 +122,55 @@ class Timing:
 DEFAULT_TIMING = Timing()
 
 
+@dataclasses.dataclass(frozen=True)
+class FilterSpec:
+    """What the online filter needs of a model besides its parameters (a trackable model declares one).
+
+    ``functions``: the module of the model's compiled filter interface (``advance``, ``N_CTRL``, ``LANES``,
+    ``LANE_WORK``, ``lanes_applicable``, ``lanes``; see ``twin/models/msp25_lanes.py``).  ``state_scale``: SI per
+    filter unit of each state (a well-conditioned covariance).  ``measures``: the measurement map, each measured
+    output and the state it reads (``z = state + sensor noise``).  ``q_state``: process noise of the scaled states
+    (variance per sample at the log's rate).  ``prior_state``: prior standard deviation of the scaled states (and
+    after a re-initialisation).  ``noise``: nominal sensor noise, standard deviation in SI per output.
+    ``excite``: the excitation thresholds of :data:`twin.params.EXCITATION`'s channels, SI.
+    ``feedback``: the output a closed loop's controller reads (``None``: no controller).
+    ``exogenous``: logged signals that set a parameter sample by sample (signal -> parameter, e.g. the oil
+    temperature ``T_oil``); the last fresh value holds between a slow signal's samples.
+    """
+
+    functions: str
+    state_scale: tuple[float, ...]
+    measures: Mapping[str, int]
+    q_state: tuple[float, ...]
+    prior_state: tuple[float, ...]
+    noise: Mapping[str, float]
+    excite: tuple[float, float, float]
+    feedback: str | None = None
+    exogenous: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterMap:
+    """The rig-specific numbers of a model's filter for one parameter set (:meth:`Model.filter_map`), SI.
+
+    ``rest``: the model states a re-initialised filter starts from before the measured ones are read in.
+    ``input_state``, ``input_gain``: the state that follows the drive statically (``gain x u``; -1: none).
+    ``demand_gain``: the drive per unit of demand error a closed loop's controller applies (the excitation of
+    the command when only the demand is logged).  ``ranges``: each output's physical range (outside it, a reading
+    is a wrong unit or a broken sensor).  ``centres``: each output's centre (a clipped reading sits at its largest
+    excursion from it).  ``excitation [3, n_states]``: each excitation channel's weights on the states, the
+    channel reads ``|weights . states|`` (a zero row: the channel is the drive's rate).
+    """
+
+    rest: np.ndarray
+    input_state: int
+    input_gain: float
+    demand_gain: float
+    ranges: Mapping[str, tuple[float, float]]
+    centres: Mapping[str, float]
+    excitation: np.ndarray
+
+
 class Model(abc.ABC):
     """Base class of the first-principle models (one instance per model kind)."""
 
@@ -140,6 +189,12 @@ class Model(abc.ABC):
     CLOSED_LOOP: bool = False     # has a controller: driven by a demand (x_ref) as well as open loop
     TRACKABLE: bool = False       # the online twin's compiled filter runs this model (twin track / serve)
     NOISE_FROM_DATA: bool = False  # outputs in the record's own units: residual weights follow the record
+    FILTER: FilterSpec | None = None  # what the online filter needs (a trackable model has one)
+
+    # --- the online filter ----------------------------------------------------------------
+    def filter_map(self, ps: ParameterSet) -> FilterMap:
+        """The filter's rig-specific numbers for ``ps`` (a trackable model overrides this)."""
+        raise ParameterError(f"the online twin does not run the {self.name} model")
 
     # --- parameters -----------------------------------------------------------------
     def tracking(self, name: str) -> Tracking:
@@ -238,6 +293,11 @@ class Model(abc.ABC):
         timing: Timing | None = None,
     ) -> SimResult:
         """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``."""
+
+    def controller_response(self, ps: ParameterSet, q: np.ndarray, dt: float) -> np.ndarray | None:
+        """The digital controller's response from the position error to the command at ``q = 1 - z^-1`` (its
+        backward-difference operator on the unit circle), for a closed-loop model; ``None``: no controller."""
+        return None
 
     def effect_typicals(self, ps: ParameterSet, signals: Mapping[str, np.ndarray],
                         predicted: Mapping[str, np.ndarray], dt: float) -> dict[str, tuple[float, ...]]:

@@ -50,7 +50,7 @@ import numba as nb
 import numpy as np
 
 from fpdd.errors import DataError
-from twin.models.base import DEFAULT_TIMING, Model, SimResult, check_drive, start_of
+from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
 from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec, Tracking
 from twin.models import intersample as _intersample_src
@@ -112,6 +112,11 @@ BASE = (
     ParamSpec("Kff", "V s/m", 0.0, 1e4, PH, "velocity feed-forward gain on the demand's rate"),
     ParamSpec("u_max", "V", 1e-3, 1e3, PH, "controller output limit (+/-)"),
     ParamSpec("Kdp", "V/Pa", 0.0, 1e-3, PH, "pressure (delta-P) feedback gain on pA - pB AB/A", "V/MPa", 1e6),
+    # the oil's temperature: an input (a record's logged T_oil) that scales the bulk modulus and the leakage
+    ParamSpec("T_oil", "K", 233.15, 423.15, PH, "oil temperature (a record's logged T_oil; default T_ref)"),
+    ParamSpec("T_ref", "K", 233.15, 423.15, PH, "oil temperature at which Bulk, CdAleak and K_lam hold"),
+    ParamSpec("kB_T", "1/K", 0.0, 0.05, PH, "bulk modulus fall per kelvin above T_ref (fraction of Bulk)"),
+    ParamSpec("b_visc", "1/K", 0.0, 0.2, PH, "leakage rise exp(b_visc (T_oil - T_ref)) (oil viscosity falling)"),
 )
 
 NOMINAL = {
@@ -121,6 +126,8 @@ NOMINAL = {
     # paper Table 9 (the reference set)
     "Ffric": 50.0, "CdAleak": 3.2863e-9, "Cd": 0.2191, "zeta": 0.3701, "wn": TWO_PI * 43.0,
     "AB": 0.0, "V0B": 0.0, "Tf": 0.0, "D_meas": 0.0, "Kff": 0.0, "u_max": 10.0, "Kdp": 0.0,
+    # mineral oil (ISO VG 46) about 40 degC: bulk modulus -0.6 %/K, viscosity exp(-0.03 (T - T_ref))
+    "T_oil": 313.15, "T_ref": 313.15, "kB_T": 0.006, "b_visc": 0.03,
 }
 PHENOMENOLOGICAL = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
 
@@ -190,9 +197,11 @@ KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.value
 NP = len(KERNEL_NAMES)
 (I_KP, I_KI, I_KD, I_RHO, I_V0, I_A, I_M, I_BULK, I_VREF, I_KE, I_KSP, I_B, I_PP, I_PT, I_DPL, I_DPLL,
  I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_AB, I_V0B, I_TF, I_DMEAS, I_KFF, I_UMAX, I_KDP,
+ I_TOIL, I_TREF, I_KBT, I_BVISC,
  I_CVISC, I_FBRK, I_VSTR, I_DSTR, I_KLAM, I_XSDB, I_XSBIAS,
  I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP) = range(NP)
-assert NP == 47 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+assert NP == 51 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+assert KERNEL_NAMES[I_TOIL] == "T_oil" and KERNEL_NAMES[I_BVISC] == "b_visc"
 assert KERNEL_NAMES[I_KSUP2] == "K_sup2" and KERNEL_NAMES[I_TAUP] == "tau_p" and KERNEL_NAMES[I_KDP] == "Kdp"
 
 #: the largest mean friction a working actuator shows, as a fraction of its stall force pP A (a physical bound:
@@ -221,9 +230,26 @@ def _bulk(p, B, eps):
     return 1.0 / (1.0 / B + air / (KAPPA_AIR * pe))
 
 
+@nb.njit(cache=True, inline="always")
+def fast_tanh(x):
+    """tanh through one exp (libm's tanh costs about 100 ns between 1 and 19); equal to 1e-15."""
+    a = abs(x)
+    if a > 19.1:
+        return math.copysign(1.0, x)
+    if a < 0.02:  # series: 1 - 2/(e^2a + 1) loses digits near zero
+        a2 = a * a
+        return x * (1.0 - a2 * (1.0 / 3.0 - a2 * (2.0 / 15.0 - a2 * (17.0 / 315.0))))
+    t = 1.0 - 2.0 / (math.exp(2.0 * a) + 1.0)
+    return math.copysign(t, x)
+
+
 @nb.njit(cache=True)
 def deriv(xs, vs, pA, pB, x, v, u, p):
-    """Right-hand side of one state (scalars in, tuple of six derivatives out)."""
+    """Right-hand side of one state (scalars in, tuple of six derivatives out).
+
+    The one definition of the rig's physics: the filter's side-by-side form (:mod:`twin.models.msp25_lanes`)
+    computes, with every effect neutral, the same operations in the same order (``tests/test_models.py`` checks
+    it bit for bit), so the reciprocals ``1 / vref`` and ``1 / m`` are multiplied, not divided by."""
     rho = p[I_RHO]
     A = p[I_A]
     V0 = p[I_V0]
@@ -271,7 +297,10 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
             else:
                 qPB = -g * o * _sqrt_reg(pPe - pB, dpl)
     dpAB = pA - pB
-    qAB = p[I_CDALEAK] * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, p[I_DPLL]) + p[I_KLAM] * dpAB
+    # the oil's temperature: bulk modulus and leakage at T_oil (factors exactly 1 at T_ref)
+    dT = p[I_TOIL] - p[I_TREF]
+    lf = math.exp(p[I_BVISC] * dT) if dT != 0.0 else 1.0
+    qAB = p[I_CDALEAK] * lf * math.sqrt(2.0 / rho) * _sqrt_reg(dpAB, p[I_DPLL]) + p[I_KLAM] * lf * dpAB
     qA = qPA - qAT - qAB
     qB = qPB - qBT + qAB
     AB = p[I_AB] if p[I_AB] > 0.0 else A
@@ -279,8 +308,9 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     VA = max(V0 + A * x, 1e-3 * V0)
     VB = max(V0B - AB * x, 1e-3 * V0B)
     eps = p[I_EPS]
-    dpA = _bulk(pA, p[I_BULK], eps) * (qA - A * v) / VA
-    dpB = _bulk(pB, p[I_BULK], eps) * (qB + AB * v) / VB
+    Bt = p[I_BULK] * (1.0 - p[I_KBT] * dT)
+    dpA = _bulk(pA, Bt, eps) * (qA - A * v) / VA
+    dpB = _bulk(pB, Bt, eps) * (qB + AB * v) / VB
     # rod (eq. 11-12) with the friction extensions
     ff = p[I_FFRIC]
     fb = p[I_FBRK]
@@ -288,9 +318,9 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         r = abs(v) / p[I_VSTR]
         dl = p[I_DSTR]
         ff = ff + fb * math.exp(-(r * r if dl == 2.0 else r ** dl))
-    Ffr = ff * math.tanh(v / p[I_VREF]) + p[I_CVISC] * v
+    Ffr = ff * fast_tanh(v * (1.0 / p[I_VREF])) + p[I_CVISC] * v
     # pA A - pB AB, written so that a symmetric cylinder (AB = A) gives the same numbers as (pA - pB) A
-    dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) / p[I_M]
+    dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) * (1.0 / p[I_M])
     return dxs, dvs, dpA, dpB, v, dv
 
 
@@ -603,10 +633,40 @@ class MSP25(Model):
     CLOSED_LOOP = True
     TRACKABLE = True
     substeps = 3
+    #: the online filter: spool in mm and 0.1 m/s, pressures in MPa, rod in mm and 0.1 m/s; x, pA, pB measured
+    FILTER = FilterSpec(
+        functions="twin.models.msp25_lanes",
+        state_scale=(1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1),
+        measures={"x": 4, "pA": 2, "pB": 3},
+        q_state=(1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7),
+        prior_state=(0.01, 0.01, 0.1, 0.1, 0.01, 0.01),
+        noise={"x": 2e-6, "pA": 2e4, "pB": 2e4},
+        excite=(2e-3, 0.5, 2e4),  # rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
+        feedback="x",
+        exogenous={"T_oil": "T_oil"},
+    )
     #: initial-state quantities: rod position and velocity, pressure difference or each chamber, spool
     INIT = ("x0", "dp0", "v0", "pA0", "pB0", "u0")
     #: the ones a fit may estimate per record
     INIT_FREE = ("x0", "dp0", "v0")
+
+    def filter_map(self, ps) -> FilterMap:
+        """Re-initialised at mid pressure with the spool where the drive holds it; the stroke and the supply
+        bound the readings; rod motion and the piston's pressure difference excite the parameters."""
+        pmid = 0.5 * (ps["pP"] + ps["pT"])
+        rest = np.zeros(NS)
+        rest[2] = rest[3] = pmid
+        exc = np.zeros((3, NS))
+        exc[0, 5] = 1.0             # rod_motion: |v|
+        exc[2, 2], exc[2, 3] = 1.0, -1.0  # pressure_difference: |pA - pB|
+        return FilterMap(rest=rest, input_state=0, input_gain=ps["Ke"] * ps["Ksp"], demand_gain=ps["KP"],
+                         ranges={"x": (-ps["stroke"], ps["stroke"]), "pA": (ps["pT"] - 2e6, ps["pP"] + 5e6),
+                                 "pB": (ps["pT"] - 2e6, ps["pP"] + 5e6)},
+                         centres={"x": 0.0, "pA": pmid, "pB": pmid}, excitation=exc)
+
+    def controller_response(self, ps, q, dt):
+        """The digital PID's response ``KP + KI dt / q + KD q / dt``."""
+        return ps["KP"] + ps["KI"] * dt / q + ps["KD"] * q / dt
 
     def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
         """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""

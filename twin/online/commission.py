@@ -27,7 +27,7 @@ from typing import Any
 from collections.abc import Mapping, Sequence
 
 from fpdd.errors import ConfigError, ParameterError
-from twin.models import MODELS, get_model, trackable_models
+from twin.models import DEFAULT_MODEL, MODELS, get_model, trackable_models
 from twin.models.base import Timing
 
 NOISE_KEYS = ("x", "pA", "pB")
@@ -43,7 +43,7 @@ class Commission:
     timing: Timing | None
     effects: tuple[str, ...] = ()
     source: str = ""
-    model: str = "msp25"
+    model: str = DEFAULT_MODEL
 
     def baseline(self, names: Sequence[str], rel_band: Mapping[str, float] | None = None, k_sigma: float = 3.0):
         """Healthy bands of ``names`` centred on the fitted (or known) values."""
@@ -78,7 +78,7 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     """A :class:`Commission` from the JSON document of ``twin fit --save``."""
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{source}: expected a JSON object written by twin fit --save")
-    model = doc.get("model", "msp25")
+    model = doc.get("model", DEFAULT_MODEL)
     if model not in MODELS or not get_model(model).TRACKABLE:
         raise ConfigError(f"{source}: model: a fit of {model!r}; the online twin runs "
                           f"{', '.join(trackable_models())}")
@@ -104,7 +104,7 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
             if n in std_in and std_in[n] is not None:
                 fitted[n] = (val, _number(source, f"std.{n}", std_in[n]))
         if n not in known:
-            raise ConfigError(f"{source}: params.{n}: the msp25 has no parameter {n!r}")
+            raise ConfigError(f"{source}: params.{n}: the {model} model has no parameter {n!r}")
         params[n] = val
     noise = {}
     for k, v in (doc.get("noise") or {}).items():
@@ -216,7 +216,7 @@ class Window:
 
 
 def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | None = None,
-               timing: Timing | None = None, rig: str = "") -> tuple[dict | None, str]:
+               timing: Timing | None = None, rig: str = "", model_name: str = DEFAULT_MODEL) -> tuple[dict | None, str]:
     """The commissioning fit of a rig's first samples: ``(document, "")`` or ``(None, why it cannot be used)``.
 
     The document is what ``twin fit --save`` writes (``model, effects, params,
@@ -248,7 +248,7 @@ def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | No
                           f"{seconds:.1f} s (at least {MIN_STROKE_M * 1e3:g} mm needed; run the rig's "
                           "identification demand while it commissions)")
     rec = Record(dt, sig, f"commissioning {rig}".strip())
-    model = get_model("msp25")
+    model = get_model(model_name)
     try:
         base = model.params((), **dict(params or {}))
         res = fit(model, [rec], tuple(tracked), base=base, timing=timing)
@@ -270,14 +270,14 @@ def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | No
 
 
 def commission_from_samples(samples, seconds: float, tracked: Sequence[str], params: Mapping[str, float] | None = None,
-                            timing: Timing | None = None) -> Commission:
+                            timing: Timing | None = None, model: str = DEFAULT_MODEL) -> Commission:
     """Fit the free parameters on the first ``seconds`` of ``samples`` (the rig's first minutes in service).
 
     :raises ConfigError: the window cannot commission the rig (:func:`fit_window` says why).
     """
     w = Window(seconds)
     w.add(samples)
-    doc, problem = fit_window(w.samples(), tracked, params, timing)
+    doc, problem = fit_window(w.samples(), tracked, params, timing, model_name=model)
     if doc is None:
         raise ConfigError(f"commission_s = {seconds:g}: {problem}")
     return from_dict(doc, "commissioning fit")
@@ -293,7 +293,7 @@ def apply_commission(rig, com: Commission):
 
 def describe(c: Commission, names: Sequence[str]) -> str:
     """One line: the fitted values with their standard errors and the noise levels, in display units."""
-    ps = get_model("msp25").params()
+    ps = get_model(c.model).params()
     parts = []
     for n in names:
         if n in c.fitted:
@@ -336,8 +336,8 @@ def tracker_for(rig, dt: float | None = None, start: Mapping[str, float] | None 
     if tracked:
         kw["tracked"] = tracked
     try:
-        return OnlineTracker(getattr(rig, "model", "msp25"), start={**st, **dict(start or {})} or None, **kw)
+        return OnlineTracker(getattr(rig, "model", DEFAULT_MODEL), start={**st, **dict(start or {})} or None, **kw)
     except ParameterError:
         if not start:
             raise
-        return OnlineTracker(getattr(rig, "model", "msp25"), **kw)
+        return OnlineTracker(getattr(rig, "model", DEFAULT_MODEL), **kw)

@@ -59,7 +59,7 @@ from collections.abc import Mapping, Sequence
 import numba as nb
 import numpy as np
 
-from twin.models import get_model
+from twin.models import DEFAULT_MODEL, get_model
 from twin.online.baseline import Baseline
 from twin.online.events import ALARM_LEVELS, AlarmEvent
 
@@ -88,7 +88,7 @@ class DriftMonitor:
     def __init__(self, rig: str, baseline: Mapping[str, Baseline], kappa: float = 1.0, h_warn: float = 4.0,
                  h_alarm: float = 10.0, rate_hz: float = 20.0, hold_s: float = 1.0, resolve: float = 0.5,
                  settle_s: float = 2.0, drift_rate: Mapping[str, float] | None = None,
-                 max_ess_factor: float = 1000.0, model: str = "msp25"):
+                 max_ess_factor: float = 1000.0, model: str = DEFAULT_MODEL):
         m = get_model(model)
         self.rig = rig
         self.kappa, self.h_warn, self.h_alarm = kappa, h_warn, h_alarm

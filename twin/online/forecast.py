@@ -84,6 +84,7 @@ from typing import Any
 import numpy as np
 
 from twin.online.baseline import Baseline
+from twin.models import DEFAULT_MODEL
 from twin.online.events import AlarmEvent
 
 #: Default forecast horizon [s] (``forecast_horizon_s`` per rig, ``twin track --forecast-horizon``).
@@ -140,7 +141,7 @@ class ForecastMonitor:
     def __init__(self, rig: str, baseline: Mapping[str, Baseline], horizon_s: float = DEFAULT_HORIZON_S,
                  step_s: float = 1.0, p_early: float = 0.9, p_clear: float = 0.5, clear_s: float = 60.0,
                  settle_s: float = 30.0, min_span_s: float = 60.0, evidence: float = 10.0, resolve: float = 0.5,
-                 max_points: int = 1800, reach: float = 1.0, model: str = "msp25"):
+                 max_points: int = 1800, reach: float = 1.0, model: str = DEFAULT_MODEL):
         if not (horizon_s > 0 and math.isfinite(horizon_s)):
             raise ValueError(f"forecast horizon must be a positive number of seconds, got {horizon_s!r}")
         self.rig = rig

@@ -16,22 +16,17 @@ states from the measurement after a gap longer than ``gap_max`` seconds.
 
 The tracked parameters move between physical bounds with a random walk whose
 intensity is the expected drift rate of each parameter; both are declared
-beside the parameter's spec in the model (:class:`twin.params.Tracking`, for the
-MSP25 in ``twin/models/msp25.py``; the stall-force cap is
-:meth:`MSP25.tracking_bounds`):
+beside the parameter's spec in the model (:class:`twin.params.Tracking`; physical caps such as a
+stall force in the model's :meth:`~twin.models.base.Model.tracking_bounds`).  Everything else the filter needs
+of the rig comes from the model too (:attr:`~twin.models.base.Model.FILTER`, :meth:`~twin.models.base.Model.
+filter_map`): state scales, measurement map, process and prior noise, excitation thresholds, physical ranges.
 
-=========  ==========================  =====================================================
-parameter  bounds (x the rig's value)  expected drift (log units per sqrt(s)) and why
-=========  ==========================  =====================================================
-Ffric      1/20 .. 40, <= pP A         0.3: seals pinch and lubrication fails within a second
-CdAleak    1/100 .. 1000               0.15: a seal wears through in seconds to minutes
-Cd         1/4 .. 4, <= 1              0.01: port erosion and silting are slow
-zeta       1/5 .. 5                    0.01: valve damping follows oil temperature and wear
-wn         1/3 .. 3                    0.01: a valve's first stage degrades over minutes
-=========  ==========================  =====================================================
+A logged exogenous signal the model declares (``FILTER.exogenous``, e.g. an oil temperature ``T_oil``) sets
+its parameter sample by sample where it is fresh and physical; the last fresh value holds between a slow
+signal's samples and into the next block.
 
 Sensor noise is a property of the rig: ``noise=`` (standard deviations, SI),
-else the commissioning fit's residual RMS, else :data:`fpdd.units.NOMINAL_NOISE`; the
+else the commissioning fit's residual RMS, else the model's nominal (``FILTER.noise``); the
 filter learns it online (and its colour) from the innovations unless
 ``adapt_noise=False``.
 """
@@ -41,27 +36,19 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
+import types
 
 import numpy as np
 
 from replay.base import Samples
 from twin.online import chi2, sigma, ukf
-from fpdd.units import NOMINAL_NOISE
 from fpdd.errors import DataError, FilterError, ParameterError
-from twin.models import get_model, trackable_models
-from twin.models import msp25 as M
+from twin.models import DEFAULT_MODEL, get_model, trackable_models
 from twin.models.base import Timing
 from twin.params import EXCITATION
 
-#: nominal sensor noise (standard deviation, SI) when neither the rig nor a commissioning fit says
-#: per-step process noise of the scaled model states (filter units, variance per sample at 1 kHz)
-DEFAULT_Q_STATE = np.array([1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7])
 #: prior standard deviation of the parameters (log units): +-50 % starting errors are inside 1 sigma
 DEFAULT_PRIOR_STD = 0.7
-#: excitation thresholds: rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
-DEFAULT_EXCITE = (2e-3, 0.5, 2e4)
-#: prior standard deviation of the scaled model states (and after a re-initialisation)
-PRIOR_MODEL = np.array([0.01, 0.01, 0.1, 0.1, 0.01, 0.01])
 #: guard, noise-learning and sensor-fault settings (see twin.online.ukf); override with ``guard={...}``
 DEFAULT_GUARD = {
     "nis_clip": 10.0,       # a sample's NIS per measurement counts at most this much in the guard's average
@@ -86,10 +73,8 @@ DEFAULT_GUARD = {
     "a_max": 0.99,          # largest AR(1) coefficient of the noise
     "warm_s": 1.0,          # s at the start during which the guard's averages fill
 }
-_GUARD_ORDER = ("nis_clip", "nis_hi", "rho_hi", "tau_guard", "div_nis", "tau_div", "settle_s", "checkpoint_s",
-                "inflate", "gap_max", "tau_noise", "adapt", "noisy_factor", "outlier_nu", "offset_n", "stuck_n",
-                "clear_n", "z_pin", "sig_lo", "sig_hi", "a_max", "stroke", "pmin", "pmax", "warm_s")
-assert len(_GUARD_ORDER) == ukf.N_CFG
+_GUARD_ORDER = ukf.CFG_NAMES
+assert set(_GUARD_ORDER) == set(DEFAULT_GUARD)
 
 
 _STATUS_NAMES = np.array(ukf.STATUS)
@@ -108,7 +93,7 @@ class TrackBlock:
     status: np.ndarray          # [T] status names (twin.online.ukf.STATUS)
     frozen: np.ndarray          # [T, p] bool
     innovation: np.ndarray      # [T, m] SI
-    states: np.ndarray          # [T, 6] SI
+    states: np.ndarray          # [T, ns] SI (the model's states)
     guard: np.ndarray | None = None    # [T] guard names (twin.online.ukf.GUARD); 'consistent' when the evidence counts
     sensors: np.ndarray | None = None  # [T, m] sensor status names (twin.online.ukf.SENSOR)
     noise: np.ndarray | None = None    # [T, m] learnt noise standard deviation (SI)
@@ -139,9 +124,11 @@ class TrackBlock:
 class OnlineTracker:
     """Augmented-state UKF of one rig; see the module docstring.
 
-    ``params``: known parameter overrides (the rig configuration); ``start``:
+    ``model``: the rig model's name (default :data:`twin.models.DEFAULT_MODEL`);
+    ``params``: known parameter overrides (the rig configuration); ``tracked``: the parameters to track
+    (default: the model's phenomenological ones); ``start``:
     starting values of the tracked parameters (default: the configuration's);
-    ``outputs``: which of x, pA, pB to use when present; ``noise``: sensor noise
+    ``outputs``: which of the model's measured outputs to use when present (default: all); ``noise``: sensor noise
     standard deviations (SI) per output; ``timing``: the loop's
     :class:`~twin.models.base.Timing` (or its spelling ``"continuous"``,
     ``"digital:5000"``); ``guard``: overrides of :data:`DEFAULT_GUARD`.
@@ -150,29 +137,31 @@ class OnlineTracker:
     ``JulierSigmaPoints`` are taken as they are).
     """
 
-    def __init__(self, model: str = "msp25", params: Mapping[str, float] | None = None,
-                 tracked: Sequence[str] = M.PHENOMENOLOGICAL, dt: float | None = None,
-                 start: Mapping[str, float] | None = None, outputs: Sequence[str] = ("x", "pA", "pB"),
+    def __init__(self, model: str = DEFAULT_MODEL, params: Mapping[str, float] | None = None,
+                 tracked: Sequence[str] | None = None, dt: float | None = None,
+                 start: Mapping[str, float] | None = None, outputs: Sequence[str] | None = None,
                  q_rate: Mapping[str, float] | None = None, q_state: np.ndarray | None = None,
                  prior_std: float = DEFAULT_PRIOR_STD, alpha: float = 0.3, beta: float = 2.0,
-                 kappa: float = 0.0, points=None, substeps: int = 2, excite: Sequence[float] = DEFAULT_EXCITE,
+                 kappa: float = 0.0, points=None, substeps: int = 2, excite: Sequence[float] | None = None,
                  tau_excite: float = 0.5, gate_p: float = 1e-9, max_gated: int = 5,
                  noise: Mapping[str, float] | None = None, timing=None, adapt_noise: bool = True,
                  guard: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
                  noise_colour: Mapping[str, float] | None = None):
         self.model = get_model(model)
-        if not self.model.TRACKABLE:
+        if not self.model.TRACKABLE or self.model.FILTER is None:
             raise ParameterError(f"the online twin does not run the {model} model; it runs: "
                                  f"{', '.join(trackable_models())}")
+        spec = self.model.FILTER
         self.ps = self.model.params((), **dict(params or {}))
-        self.tracked = tuple(tracked)
+        self.tracked = tuple(self.model.PHENOMENOLOGICAL if tracked is None else tracked)
         bad = [t for t in self.tracked if t not in self.model.trackable]
         if bad or not self.tracked:
             raise ParameterError(f"cannot track {bad or 'nothing'}; trackable: {', '.join(self.model.trackable)}")
-        self.outputs = tuple(o for o in outputs)
+        self.outputs = tuple(spec.measures if outputs is None else outputs)
+        self.meas_index = dict(spec.measures)  # the model's measurement map: output -> state
         for o in self.outputs:
-            if o not in ukf.MEAS_INDEX:
-                raise ParameterError(f"unknown measurement {o!r}; known: x, pA, pB")
+            if o not in self.meas_index:
+                raise ParameterError(f"unknown measurement {o!r}; known: {', '.join(self.meas_index)}")
         self.units = tuple(self.ps.spec(t).unit for t in self.tracked)
         self.displays = tuple((self.ps.spec(t).display_unit or self.ps.spec(t).unit, float(self.ps.spec(t).display_scale))
                               for t in self.tracked)  # (display unit, scale) of each: value shown = SI x scale
@@ -199,12 +188,13 @@ class OnlineTracker:
         self.width = np.array([math.log(bnd[t][1] / bnd[t][0]) for t in self.tracked])
         self.idx = np.array([self.model.kernel_index(t) for t in self.tracked], dtype=np.int64)
         self.pvec = self.model.vector(self.ps)
-        self.scale = ukf.STATE_SCALE.copy()
+        self.scale = np.array(spec.state_scale, dtype=float)
+        self.ns = ns = self.scale.size
         self.dt = dt
         self.substeps = int(substeps)
         p, q = len(self.tracked), len(self.outputs)
-        self.nmod = 6 + p
-        self.n = n = 6 + p + q
+        self.nmod = ns + p
+        self.n = n = ns + p + q
         self.alpha, self.beta, self.kappa = alpha, beta, kappa
         self.points = points if points is not None else sigma.MerweWeights(n, alpha=alpha, beta=beta, kappa=kappa)
         try:
@@ -214,16 +204,17 @@ class OnlineTracker:
                                  f"with n, Wm and Wc, as filterpy's MerweScaledSigmaPoints ({e})") from None
         if self.points.n != n:
             raise ParameterError(f"sigma points for n={self.points.n}, the filter has n={n} states "
-                                 f"(6 model states, {p} parameters, {q} sensor-noise states)")
+                                 f"({ns} model states, {p} parameters, {q} sensor-noise states)")
         self.lam = spread - n
         self.Wm = np.ascontiguousarray(self.points.Wm, dtype=float)
         self.Wc = np.ascontiguousarray(self.points.Wc, dtype=float)
         rates = {**{t: self.model.tracking(t).drift_rate for t in self.tracked}, **dict(q_rate or {})}
         self.q_rate = np.array([rates[t] for t in self.tracked], dtype=float)
-        self.q_state = np.array(DEFAULT_Q_STATE if q_state is None else q_state, dtype=float)
-        self.meas_idx = np.array([ukf.MEAS_INDEX[o] for o in self.outputs], dtype=np.int64)
-        self.x_col = self.outputs.index("x") if "x" in self.outputs else -1
-        noise = {**NOMINAL_NOISE, **dict(noise or {})}
+        self.q_state = np.array(spec.q_state if q_state is None else q_state, dtype=float)
+        self.meas_idx = np.array([self.meas_index[o] for o in self.outputs], dtype=np.int64)
+        fb = spec.feedback
+        self.fb_col = self.outputs.index(fb) if fb in self.outputs else -1
+        noise = {**spec.noise, **dict(noise or {})}
         for o in self.outputs:
             v = noise[o]
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -231,7 +222,7 @@ class OnlineTracker:
         self.noise_nominal = {o: float(noise[o]) for o in self.outputs}
         self.chan = np.array([EXCITATION.index(self.model.tracking(t).excited_by) for t in self.tracked],
                              dtype=np.int64)
-        self.excite_thresh = np.array(excite, dtype=float)
+        self.excite_thresh = np.array(spec.excite if excite is None else excite, dtype=float)
         self.tau_excite = tau_excite
         self.gate = chi2.isf(gate_p, len(self.outputs))
         self.max_gated = int(max_gated)
@@ -239,20 +230,22 @@ class OnlineTracker:
         unknown = set(g) - set(_GUARD_ORDER)
         if unknown:
             raise ParameterError(f"unknown guard setting(s) {sorted(unknown)}; known: {', '.join(DEFAULT_GUARD)}")
-        g.setdefault("stroke", float(self.ps["stroke"]))
-        g.setdefault("pmin", float(self.ps["pT"]) - 2e6)
-        g.setdefault("pmax", float(self.ps["pP"]) + 5e6)
         self.guard_settings = g
         self.cfg = np.array([float(g[k]) for k in _GUARD_ORDER])
+        fmap = self.model.filter_map(self.ps)
+        self.ranges = {o: fmap.ranges[o] for o in self.outputs}
+        self.prior_model = np.array(spec.prior_state, dtype=float)
+        fns = ukf.functions_of(self.model)
+        ukf.kernel_for(self.model)  # generated (and loaded from numba's cache) here, not on the first block
         # state
         s0 = self.model.initial_state(self.pvec[None])[0] / self.scale
         z0 = np.array([self._z_of(j, start[t]) for j, t in enumerate(self.tracked)])
         self.x = np.concatenate([s0, z0, np.zeros(q)])
         zstd = np.array([prior_std / ukf.dlog_dz(z0[j], self.width[j]) for j in range(p)])
-        sig = np.array([self.noise_nominal[o] / self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
-        self.P = np.diag(np.concatenate([PRIOR_MODEL, zstd, sig]) ** 2)
-        self.floor = np.concatenate([np.full(6, 1e-12), np.full(p, 1e-10), (1e-3 * sig) ** 2])
-        self.fs = np.zeros(ukf.N_FS)
+        sig = np.array([self.noise_nominal[o] / self.scale[self.meas_index[o]] for o in self.outputs])
+        self.P = np.diag(np.concatenate([self.prior_model, zstd, sig]) ** 2)
+        self.floor = np.concatenate([np.full(ns, 1e-12), np.full(p, 1e-10), (1e-3 * sig) ** 2])
+        self.fs = np.zeros(ukf.n_fs(self.model))
         self.fs[ukf.F_NIS_EMA] = 1.0
         self.fs[ukf.F_NIS_FAST] = 1.0
         self.fs[ukf.F_U1] = np.nan
@@ -276,6 +269,33 @@ class OnlineTracker:
         self._pending: Samples | None = None
         self._started = False
         self.closed_fast = True
+        self._setup_args = types.SimpleNamespace(  # constant: what the kernel's Setup takes of the configuration
+            mia=self.meas_idx, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
+            prior_mod=self.prior_model, Wm=self.Wm, Wc=self.Wc, lam=float(self.lam), floor=self.floor,
+            gate=float(self.gate), max_gated=self.max_gated, chan=self.chan, tau_excite=float(self.tau_excite),
+            rest=np.asarray(fmap.rest, dtype=float), input_state=int(fmap.input_state),
+            input_gain=float(fmap.input_gain), demand_gain=float(fmap.demand_gain),
+            fb_state=int(spec.measures[fb]) if fb is not None else -1, fb_col=self.fb_col,
+            out_lo=np.array([self.ranges[o][0] for o in self.outputs], dtype=float),
+            out_hi=np.array([self.ranges[o][1] for o in self.outputs], dtype=float),
+            out_centre=np.array([fmap.centres[o] / self.scale[self.meas_index[o]] for o in self.outputs]),
+            excitation=np.ascontiguousarray(fmap.excitation, dtype=float), lanes=int(fns.LANES),
+            lane_work=int(fns.LANE_WORK),
+            exo_idx=np.array([self.model.kernel_index(p) for p in spec.exogenous.values()], dtype=np.int64))
+        self.exogenous = dict(spec.exogenous)  # logged signal -> parameter it sets sample by sample (T_oil)
+        self.exo_idx: np.ndarray = self._setup_args.exo_idx
+        self.exo_last = np.full(self.exo_idx.size, np.nan)  # the last fresh value of each exogenous signal
+
+    def _setup(self) -> tuple:
+        """The kernel's :data:`twin.online.ukf.Setup` record for the current settings."""
+        assert self.dt is not None
+        pvec = self.pvec
+        if np.isfinite(self.exo_last).any():  # the rig's vector at the last fresh exogenous values (T_oil)
+            pvec = pvec.copy()
+            ok = np.isfinite(self.exo_last)
+            pvec[self.exo_idx[ok]] = self.exo_last[ok]
+        return ukf.Setup(dt0=float(self.dt), nsub=self.substeps, q_state=self.q_state, q_param=self.q_rate ** 2,
+                         thresh=self.excite_thresh, cfg=self.cfg, pvec=pvec, **vars(self._setup_args))
 
     # --- coordinates ---------------------------------------------------------------------
     def _z_of(self, j: int, value: float) -> float:
@@ -297,15 +317,16 @@ class OnlineTracker:
         P = self.P if P is None else P
         assert self.dt is not None, "the sample time is not known yet"
         n, nm = self.n, self.nmod
+        ns = self.ns
         Q = np.zeros((n, n))
-        Q[np.arange(6), np.arange(6)] = self.q_state * dt / self.dt
+        Q[np.arange(ns), np.arange(ns)] = self.q_state * dt / self.dt
         for j in range(len(self.tracked)):
-            g = 1.0 / max(float(ukf.dlog_dz(x[6 + j], self.width[j])), 1e-12)
+            g = 1.0 / max(float(ukf.dlog_dz(x[ns + j], self.width[j])), 1e-12)
             add = self.q_rate[j] ** 2 * dt * g * g
             cap = ukf.PARAM_STD_CAP ** 2 * g * g
-            if P[6 + j, 6 + j] + add > cap:
-                add = max(0.0, cap - P[6 + j, 6 + j])
-            Q[6 + j, 6 + j] = add
+            if P[ns + j, ns + j] + add > cap:
+                add = max(0.0, cap - P[ns + j, ns + j])
+            Q[ns + j, ns + j] = add
         for j in range(len(self.outputs)):
             a = self.ch[j, ukf.H_A]
             Q[nm + j, nm + j] = self.ch[j, ukf.H_SIG] ** 2 * (1 - a * a)
@@ -316,7 +337,7 @@ class OnlineTracker:
         return self.ch[:, ukf.H_R_FLOOR].copy()
 
     def _start_from_data(self, samples: Samples) -> None:
-        """The measured state at the first sample (rod position, chamber pressures) instead of rest."""
+        """The measured state at the first sample (the model's measured outputs) instead of rest."""
         sig = samples.signals
         assert self.dt is not None  # process() learns it first
         self.model.check_record(self.ps, sig, "the tracked signals")
@@ -325,18 +346,18 @@ class OnlineTracker:
                                                  and np.all(np.isfinite(v[:8]))}, self.dt)
         else:
             init = {f"{k}0": float(sig[k][0]) for k in self.outputs if k in sig and np.isfinite(sig[k][0])}
-        for key, i in (("x0", 4), ("pA0", 2), ("pB0", 3)):
+        for o, i in self.meas_index.items():
+            key = f"{o}0"
             if key in init and np.isfinite(init[key]):
                 v = init[key]
-                if i == 4 and abs(v) > self.ps["stroke"]:
-                    continue
-                if i != 4 and not (self.cfg[ukf.C_PMIN] < v < self.cfg[ukf.C_PMAX]):
+                lo, hi = self.model.filter_map(self.ps).ranges[o]
+                if not lo <= v <= hi:
                     continue
                 self.x[i] = v / self.scale[i]
         self.x_ck = self.x.copy()
 
     def process(self, samples) -> TrackBlock:
-        """Filter a block of samples (signals in SI; ``u`` or ``x_ref`` drive, x/pA/pB measure)."""
+        """Filter a block of samples (signals in SI; the model's drive and demand, its measured outputs)."""
         T = len(samples)
         sig = samples.signals
         if "u" not in sig and "x_ref" not in sig:
@@ -381,10 +402,16 @@ class OnlineTracker:
         XREF = np.ascontiguousarray(sig.get("x_ref", nan), dtype=float)
         Z = np.empty((T, len(self.outputs)))
         for a, o in enumerate(self.outputs):
-            Z[:, a] = np.asarray(sig[o], dtype=float) / self.scale[ukf.MEAS_INDEX[o]] if o in sig else np.nan
+            Z[:, a] = np.asarray(sig[o], dtype=float) / self.scale[self.meas_index[o]] if o in sig else np.nan
         Z[~np.isfinite(Z)] = np.nan
         U = np.where(np.isfinite(U), U, np.nan)
         XREF = np.where(np.isfinite(XREF), XREF, np.nan)
+        EXO = np.full((T, len(self.exogenous)), np.nan)
+        for j, (name, par) in enumerate(self.exogenous.items()):
+            if name in sig:  # the logged value where it is fresh and physical (a slow signal's NaNs: held)
+                spec = self.ps.spec(par)
+                v = np.asarray(sig[name], dtype=float)
+                EXO[:, j] = np.where(np.isfinite(v) & (v >= spec.lo) & (v <= spec.hi), v, np.nan)
         n, p, m = self.n, len(self.tracked), len(self.outputs)
         X = np.empty((T, n))
         Pd = np.empty((T, n))
@@ -399,21 +426,22 @@ class OnlineTracker:
         noise = np.empty((T, m))
         used = np.empty((T, m), dtype=np.bool_)
         q_param = self.q_rate ** 2
-        bad = ukf.run_kernel(
-            self.x, self.P, self.fs, self.ch, self.x_ck, self.P_ck, U, XREF, Z, DT, self.meas_idx, closed, ticks,
-            mode, self.dt, self.pvec, self.idx, self.lo_log, self.width, self.scale, self.substeps, self.q_state,
-            q_param, PRIOR_MODEL, self.Wm, self.Wc, self.lam, self.floor, self.gate, self.max_gated, self.chan,
-            self.excite_thresh, self.tau_excite, self.x_col, self.cfg,
-            X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used)
+        bad = self._run_kernel(ukf.Block(U, XREF, Z, DT, EXO), closed, ticks, mode,
+                               ukf.Out(X, Pd, nis, ll, st, innov, Sd, frozen, guard, sens, noise, used))
         if bad >= 0:
             raise FilterError(f"the filter diverged at sample {self.samples + bad} (t_ns={int(t_ns[bad])}) and "
                               "has no checkpoint to go back to: state or covariance not finite")
+        for j in range(self.exo_idx.size):  # the next block starts from the last fresh value
+            fresh = np.flatnonzero(np.isfinite(EXO[:, j]))
+            if fresh.size:
+                self.exo_last[j] = EXO[fresh[-1], j]
         self.samples += T
         counts = np.bincount(st, minlength=len(ukf.STATUS))
         for c in np.flatnonzero(counts):
             self.counters[ukf.STATUS[c]] += int(counts[c])
-        z = X[:, 6:6 + p]
-        dz = np.sqrt(np.maximum(Pd[:, 6:6 + p], 0.0))
+        ns = self.ns
+        z = X[:, ns:ns + p]
+        dz = np.sqrt(np.maximum(Pd[:, ns:ns + p], 0.0))
         est = self.values_of(z)
         log_std = dz * self.dlog_dz(z)
         held = np.empty_like(log_std)
@@ -422,19 +450,25 @@ class OnlineTracker:
         ukf.held_variance(np.ascontiguousarray(log_std * log_std), DT, q_param, ukf.PARAM_STD_CAP ** 2, self._held,
                           held)
         held_log_std = np.sqrt(held)
-        states = X[:, :6] * self.scale
-        msc = np.array([self.scale[ukf.MEAS_INDEX[o]] for o in self.outputs])
+        states = X[:, :ns] * self.scale
+        msc = np.array([self.scale[self.meas_index[o]] for o in self.outputs])
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
                           status=_STATUS_NAMES[st], frozen=frozen, innovation=innov * msc, states=states,
                           guard=_GUARD_NAMES[guard], sensors=_SENSOR_NAMES[sens],
                           noise=noise * msc, outputs=self.outputs, used=used, held_stds=est * held_log_std,
                           held_log_std=held_log_std)
 
+    def _run_kernel(self, block, closed: bool, ticks: int, mode: int, out) -> int:
+        """The model's compiled kernel over one block (:func:`twin.online.ukf.kernel_for`)."""
+        kernel = ukf.kernel_for(self.model)
+        return kernel(self._setup(), ukf.Carry(self.x, self.P, self.fs, self.ch, self.x_ck, self.P_ck), block, closed,
+                      ticks, mode, out)
+
     def _empty(self) -> TrackBlock:
         p, m = len(self.tracked), len(self.outputs)
         z = np.zeros((0, p))
         return TrackBlock(np.zeros(0, np.int64), z, z, z, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U19"),
-                          np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, 6)),
+                          np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, self.ns)),
                           np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs,
                           np.zeros((0, m), bool), z, z)
 
@@ -442,8 +476,8 @@ class OnlineTracker:
         """Current (value, std) of every tracked parameter (SI); the std of the published intervals (the error's
         if the parameter has held still, :func:`twin.online.ukf.held_variance`), the filter's before any sample."""
         p = len(self.tracked)
-        z = self.x[6:6 + p]
-        s = np.sqrt(np.maximum(np.diag(self.P)[6:6 + p], 0.0)) * self.dlog_dz(z)
+        z = self.x[self.ns:self.ns + p]
+        s = np.sqrt(np.maximum(np.diag(self.P)[self.ns:self.ns + p], 0.0)) * self.dlog_dz(z)
         held = getattr(self, "_held", None)
         if held is not None:
             s = np.where(np.isfinite(held[0]), np.sqrt(np.maximum(held[0], 0.0)), s)
@@ -454,7 +488,7 @@ class OnlineTracker:
         """Learnt sensor noise per output: standard deviation (SI), AR(1) coefficient, nominal."""
         out = {}
         for j, o in enumerate(self.outputs):
-            sc = self.scale[ukf.MEAS_INDEX[o]]
+            sc = self.scale[self.meas_index[o]]
             out[o] = {"std": float(self.ch[j, ukf.H_SIG] * sc), "ar1": float(self.ch[j, ukf.H_A]),
                       "nominal": float(self.ch[j, ukf.H_SIG_NOM] * sc)}
         return out
@@ -464,7 +498,7 @@ class OnlineTracker:
 
     # --- checkpoints ---------------------------------------------------------------------
     STATE_VERSION = 1
-    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held")
+    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last")
 
     def state(self) -> dict:
         """What the filter's future output depends on beyond its construction, as plain data (numbers,
@@ -496,6 +530,8 @@ class OnlineTracker:
         for k in self._STATE_ARRAYS:
             a = state.get(k.lstrip("_"))
             ref = getattr(self, k)
+            if k == "exo_last" and a is None:  # a state written before exogenous inputs: none seen yet
+                a = np.full(ref.shape, np.nan)
             if not isinstance(a, np.ndarray) or a.shape != ref.shape:
                 raise fail(f"{k.lstrip('_')} is not an array of shape {ref.shape}")
             arrays[k] = np.array(a, dtype=float)
@@ -541,8 +577,8 @@ class OnlineTracker:
                 f"timing={self.timing.label}, samples={self.samples})")
 
 
-def fmt_estimate(name: str, value: float, std: float) -> str:
-    spec = M.MODEL.params().spec(name)
+def fmt_estimate(name: str, value: float, std: float, model: str = DEFAULT_MODEL) -> str:
+    spec = get_model(model).params().spec(name)
     return f"{name} = {spec.show(value)} +- {spec.show(std)}" if math.isfinite(std) else f"{name} = {spec.show(value)}"
 
 

@@ -109,18 +109,18 @@ def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
     """Estimates with +-2 sigma (log-normal), the healthy band, alarm events and optionally the truth
     (kernel vectors ``truth [T, NP]`` at ``t_truth``) of a :class:`twin.service.rig.RigTwin`."""
     plt = _plt()
-    from twin.models import msp25 as M
+    model = twin.tracker.model
 
     hist = twin.history_arrays()
     names = twin.tracker.tracked
     fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.0 * len(names) + 0.8), sharex=True, squeeze=False)
     for ax, j, name in zip(axes[:, 0], range(len(names)), names):
-        spec = M.MODEL.params().spec(name)
+        spec = model.params().spec(name)
         sc = spec.display_scale
         b = baseline[name]
         ax.axhspan(b.lo * sc, b.hi * sc, color="C2", alpha=0.12, label="healthy band")
         if truth is not None:
-            ax.plot(t_truth, truth[:, M.MODEL.kernel_index(name)] * sc, color="0.3", lw=1.0, ls="--", label="truth")
+            ax.plot(t_truth, truth[:, model.kernel_index(name)] * sc, color="0.3", lw=1.0, ls="--", label="truth")
         if hist["t_s"].size:
             v = hist["values"][:, j] * sc
             rel = hist["stds"][:, j] / np.maximum(hist["values"][:, j], 1e-300)  # std of log(theta)
@@ -129,7 +129,7 @@ def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
                             label="±2σ")
             settled = hist["t_s"] > 2.0
             if settled.any():  # scale to the settled estimates, the band and the truth, not the start
-                true_max = np.max(truth[:, M.MODEL.kernel_index(name)]) * sc if truth is not None else 0.0
+                true_max = np.max(truth[:, model.kernel_index(name)]) * sc if truth is not None else 0.0
                 top = max(np.max(v[settled]), b.hi * sc, true_max)
                 bot = min(np.min(v[settled]), b.lo * sc)
                 if name == "CdAleak":

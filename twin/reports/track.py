@@ -8,6 +8,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from twin.reports import page as P
+from twin.models import DEFAULT_MODEL
 from twin.reports import views
 from twin.reports.units import Shown, fmt
 
@@ -53,7 +54,7 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
     that ``twin.service.track.track`` returns (converted with :func:`track_summary`).
     """
     s = track if isinstance(track, Mapping) else track_summary(track, log)
-    model = s.get("model", "msp25")
+    model = s.get("model", DEFAULT_MODEL)
     alarms = list(s.get("alarms") or [])
     status = dict(s.get("status") or {})
     facts = {"rig": s.get("rig", "rig"), "log": s.get("log", ""), "samples": str(s.get("samples", "")),

@@ -62,6 +62,7 @@ import tomllib
 from typing import TYPE_CHECKING, Any
 
 from fpdd.errors import ConfigError, ParameterError
+from twin.models import DEFAULT_MODEL
 from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
 from twin.models import MODELS, get_model, trackable_models
@@ -416,7 +417,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     seen.add(name)
     where = f"{path}: rig {name!r}"
     _check_keys(r, RIG_KEYS, where)
-    model_name = _get(r, "model", str, where, "msp25")
+    model_name = _get(r, "model", str, where, DEFAULT_MODEL)
     if model_name not in MODELS or not get_model(model_name).TRACKABLE:
         raise ConfigError(f"{where}.model: {model_name!r} is not a model the online twin runs; it runs "
                           f"{', '.join(trackable_models())}")

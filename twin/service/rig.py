@@ -275,7 +275,7 @@ class RigTwin(Sink):
         if com is not None:
             self.rig = apply_commission(self.rig, com)
             self.tracker = tracker_for(self.rig)
-            self.drift = DriftMonitor(self.rig.name, self.rig.baseline)
+            self.drift = DriftMonitor(self.rig.name, self.rig.baseline, model=self.rig.model)
             for ev in self.forecast.reset(why="re-commissioned"):
                 self._alarm(ev)
             self.forecast = _forecast_monitor(self.rig)

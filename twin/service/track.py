@@ -113,20 +113,20 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     from replay.mcapio import McapSink
     from twin.online.baseline import default_baseline
     from twin.service.config import RigConfig
-    from twin.models import msp25 as M
+    from twin.models import DEFAULT_MODEL, get_model
     from twin.service.rig import RigTwin
 
     from twin.online.commission import Commission, load_fit, tracker_for
 
-    tracked = tuple(tracked or M.PHENOMENOLOGICAL)
+    tracked = tuple(tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL)
     if isinstance(commission, (str, os.PathLike)):
         commission = load_fit(os.fspath(commission))
-    base = default_baseline("msp25", params, tracked)
+    base = default_baseline(DEFAULT_MODEL, params, tracked)
     if isinstance(commission, Commission):
         base.update(commission.baseline(tracked))
     base.update(baseline or {})
     where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else f"<{type(source).__name__}>"
-    rig = RigConfig(rig_name, "msp25", where, dbc, 0.0, tracked, dict(params or {}), base,
+    rig = RigConfig(rig_name, DEFAULT_MODEL, where, dbc, 0.0, tracked, dict(params or {}), base,
                     forecast_horizon_s=3600.0 if forecast_horizon_s is None else float(forecast_horizon_s))
     rec = None
     if out_dir:
@@ -136,7 +136,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
     if noise or timing is not None or commission is not None:
         # the rig configuration plus what the command line adds
-        r = SimpleNamespace(model="msp25", params=dict(params or {}), track=tracked,
+        r = SimpleNamespace(model=DEFAULT_MODEL, params=dict(params or {}), track=tracked,
                             noise=dict(noise or {}), timing=timing, commission=commission)
         twin.tracker = tracker_for(r)
     reports: list = []

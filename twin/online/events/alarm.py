@@ -7,6 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar, Self
 
+from twin.models import DEFAULT_MODEL
 from fpdd.errors import DataError
 from datetime import UTC
 from twin.online.events.schema import (ALARM_KINDS, EVENT_LEVELS, INT64_MAX, NAME_PATTERN, RIG_PATTERN, FromJson,
@@ -179,7 +180,7 @@ class AlarmEvent(FromJson):
         return AlarmIdentity(self.rig, self.parameter, self.level, self.kind, self.t_ns)
 
 
-def format_alarm(event: AlarmEvent, *, model: str = "msp25", wall_clock: bool = True) -> str:
+def format_alarm(event: AlarmEvent, *, model: str = DEFAULT_MODEL, wall_clock: bool = True) -> str:
     """One line a person reads: values in the parameter's display unit (``43 Hz``, ``0.0033 mm^2``).
 
     The machine outputs (JSON, MCAP, Zenoh) stay SI; this is the one formatter of

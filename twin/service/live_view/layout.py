@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from twin.models import DEFAULT_MODEL
 from twin.reports.units import Shown
 
 from twin.service.live_view.messages import EXAMPLE_RIG
@@ -20,7 +21,7 @@ def _plot(title: str, series: list[tuple[str, str, str]], *, ylabel: str = "") -
             "sidebarDimension": 240, **({"yAxisLabel": ylabel} if ylabel else {})}
 
 
-def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAMPLE_RIG) -> dict:
+def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str = EXAMPLE_RIG) -> dict:
     """The Foxglove layout of the live view (``deploy/foxglove-layout.json``): per parameter its estimate,
     95 % interval and healthy band over time (the ``display`` numbers of each parameter, in the display units
     of ``twin params``, the unit in the title: ``wn [Hz]``, ``CdAleak [mm²]``); the time
@@ -73,7 +74,7 @@ def foxglove_layout(parameters=PARAMETERS, model: str = "msp25", rig: str = EXAM
             "layout": layout}
 
 
-def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = "msp25") -> str:
+def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = DEFAULT_MODEL) -> str:
     """Write :func:`foxglove_layout` as JSON (``python -m twin.service.live_view --layout deploy/foxglove-layout.json``)."""
     with open(path, "w", encoding="utf-8") as f:
         json.dump(foxglove_layout(model=model, rig=rig), f, indent=2, ensure_ascii=False)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
 from twin.reports.units import signal_unit
+from twin.models import DEFAULT_MODEL
 from twin.service.publisher import Publisher
 
 if TYPE_CHECKING:
@@ -34,12 +35,12 @@ class LiveView:
     :param port: TCP port (0: any free port, see :attr:`port`).
     :param bands: ``{rig: {parameter: (lo, hi)}}`` or ``{rig: {parameter: twin.online.baseline.Baseline}}`` in SI:
         the healthy bands drawn with the estimates (an alarm's band updates them too).
-    :param model: the rigs' model (display units of its parameters), default ``msp25``.
+    :param model: the rigs' model (display units of its parameters), default :data:`twin.models.DEFAULT_MODEL`.
     :param signal_rate_hz: most signal messages per second and rig (the rest are decimated away).
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, *, bands: Mapping | None = None,
-                 model: str = "msp25", signal_rate_hz: float = 100.0, name: str = "fpdd-twin") -> None:
+                 model: str = DEFAULT_MODEL, signal_rate_hz: float = 100.0, name: str = "fpdd-twin") -> None:
         import foxglove
 
         self.model = model

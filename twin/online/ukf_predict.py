@@ -1,0 +1,146 @@
+"""The filter's prediction: the unscented transform of the augmented state through one log interval of the rig
+model (filterpy's ``UnscentedKalmanFilter.predict`` with Merwe's sigma points), compiled.
+
+The model comes as its compiled filter interface ``advance, applicable, lanes_fn`` (its ``advance``,
+``lanes_applicable`` and ``lanes``) (see
+:attr:`twin.models.base.FilterSpec.functions`); these functions take them as their first arguments (three
+dispatchers: a tuple of them would be a first-class function type, which numba does not cache) and are compiled
+into each model's kernel (:func:`twin.online.ukf.kernel_for`), never cached on their own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+from twin.online.ukf_linalg import _chol_lower, _repair, theta_of
+from twin.online.ukf_status import ST_OK, ST_REPAIRED
+
+
+@nb.njit
+def fx_into(advance, applicable, lanes_fn, s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, out,
+            nmod):
+    """One log interval of one augmented state with the drive window ``wnd`` (the drive at samples k-2, k-1, k, k;
+    index 1 is the interval's start).
+
+    Writes the model states and parameters of ``out`` (``nmod`` entries); ``p`` is overwritten at ``idx``; no
+    allocation.  ``ctrl``: the model's controller memory (``nc`` entries) followed, when it is longer, by the rig
+    controller's memory carried from sample to sample (the interval starts from it; else from rest).
+    """
+    ns = scale.shape[0]
+    for j in range(idx.shape[0]):
+        p[idx[j]] = theta_of(s[ns + j], lo_log[j], width[j])
+    for j in range(ns):
+        si[j] = s[j] * scale[j]
+    carried = ctrl.shape[0] >= 2 * nc
+    for j in range(nc):
+        ctrl[j] = ctrl[nc + j] if carried else 0.0
+    advance(si, 1, wnd, closed, ticks, mode, p, h, nsub, xm, ctrl, so)
+    for j in range(ns):
+        out[j] = so[j] / scale[j]
+    for j in range(ns, nmod):
+        out[j] = s[j]
+
+
+@nb.njit
+def _lanes(advance, applicable, lanes_fn, sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W):
+    """The model part of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m``, integrated side by
+    side by the model's ``lanes``; a parameter at the central point's value (a sigma point along another state)
+    reuses its value."""
+    ns = scale.shape[0]
+    p_count = idx.shape[0]
+    s0 = sig[rows[0]]
+    for ln in range(m):
+        s = sig[rows[ln]]
+        for j in range(p_count):
+            zj = s[ns + j]
+            TH[ln, j] = TH[0, j] if ln > 0 and zj == s0[ns + j] else theta_of(zj, lo_log[j], width[j])
+        for i in range(ns):
+            S[ln, i] = s[i] * scale[i]
+    lanes_fn(S, TH, m, pw, idx, wnd, mode, h, nsub, W)
+    for ln in range(m):
+        r = rows[ln]
+        for i in range(ns):
+            sf[r, i] = S[ln, i] / scale[i]
+        for i in range(ns, nmod):
+            sf[r, i] = sig[r, i]
+
+
+@nb.njit
+def _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
+             nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S, TH, rows):
+    """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1.
+
+    ``fast``: the model's lanes apply (open loop, then all sigma points that move the model at once, when they fit
+    in ``S``'s lanes); ``ctrl``: the controller memory (``nc`` entries), the carried memory, and the memory at the
+    interval's end along the central point (written here)."""
+    n = x.shape[0]
+    status = ST_OK
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = (lam + n) * P[i, j]
+    if not _chol_lower(A, L):
+        if not _repair(P, floor):
+            return -1
+        status = ST_REPAIRED
+        for i in range(n):
+            for j in range(n):
+                A[i, j] = (lam + n) * P[i, j]
+        if not _chol_lower(A, L):
+            return -1
+    for i in range(n):
+        sig[0, i] = x[i]
+    for k in range(n):
+        for i in range(n):
+            sig[k + 1, i] = x[i] + L[i, k]
+            sig[n + k + 1, i] = x[i] - L[i, k]
+    if not closed and fast and 2 * nmod + 1 <= S.shape[0]:  # the sigma points that move the model, side by side
+        m = 0
+        for k in range(2 * n + 1):
+            if k == 0 or (k - 1) % n < nmod:
+                rows[m] = k
+                m += 1
+        _lanes(advance, applicable, lanes_fn, sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W)
+    else:
+        fx_into(advance, applicable, lanes_fn, sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so,
+                sf[0], nmod)
+        for j in range(nc):  # the controller's memory at the interval's end, along the central point
+            ctrl[2 * nc + j] = ctrl[j]
+        for k in range(nmod):
+            fx_into(advance, applicable, lanes_fn, sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc,
+                    si, so, sf[k + 1], nmod)
+            fx_into(advance, applicable, lanes_fn, sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl,
+                    nc, si, so, sf[n + k + 1], nmod)
+    for k in range(nmod, n):  # along a noise state only: the model part is the central point's
+        for i in range(nmod):
+            sf[k + 1, i] = sf[0, i]
+            sf[n + k + 1, i] = sf[0, i]
+    for k in range(2 * n + 1):
+        for i in range(nmod, n):
+            sf[k, i] = a_pow[i - nmod] * sig[k, i]
+    for i in range(n):
+        acc = 0.0
+        for k in range(2 * n + 1):
+            acc += Wm[k] * sf[k, i]
+        x[i] = acc
+    for k in range(2 * n + 1):  # deviations from the mean, in place (sig is not needed any more)
+        for i in range(n):
+            sig[k, i] = sf[k, i] - x[i]
+    for i in range(n):
+        for j in range(i, n):
+            P[i, j] = Q[i, j]
+    for k in range(2 * n + 1):
+        w = Wc[k]
+        for i in range(n):
+            a = w * sig[k, i]
+            for j in range(i, n):
+                P[i, j] += a * sig[k, j]
+    for i in range(n):
+        for j in range(i + 1, n):
+            P[j, i] = P[i, j]
+    for i in range(n):
+        if not math.isfinite(x[i]):
+            return -1
+    return status
+
