@@ -70,14 +70,24 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    excess misfit (an effect soaking up a little of an out-of-catalogue error
    is not named) or leave a model that is adequate, and its parameters must
    lie within 10 times the effect's
-   typical deviation from neutral.  Candidates whose screen LM is below a
+   typical deviation from neutral.  The effect is named by its own
+   signature, not by what it removes (:func:`.naming._signature`): the
+   errors it leaves are regressed on its signature led and lagged by 1-16
+   samples; when that is significant, the part explained again counts
+   against its gain (over half of the gain: not named; while the model stays
+   inadequate the share of the excess it removes is taken net of it) - an
+   effect standing in for an error of other dynamics (a transducer's lag
+   taken for a friction) leaves exactly such a misplaced copy of its
+   signature.  Candidates whose screen LM is below a
    tenth of an accepted extension's LR are not fitted.  The lowest AICc
    among accepted ones wins; the screen is
    run again on the extended model (greedy).  When no single effect passes
    but two are significant, the pair is fitted together and judged the same
    way, each significant within the pair.
 8. **Verdict**: ``causes`` are the accepted effects; ``unexplained`` is true
-   when the final model is not adequate (step 4): the residual signature is
+   when the final model is not adequate (step 4): "explained", "partly
+   explained" (named, a significant part left), "unexplained" (no name) or
+   "adequate" (nothing to name); the residual signature is
    shown instead of a forced name.
 
 :func:`diagnose` returns a :class:`Diagnosis`; the command line is
