@@ -9,8 +9,8 @@ Per seed: every in-catalogue effect hidden alone (sizes drawn per seed, truth dr
 digital controller at the log's rate reading the noisy x, white noise), healthy records with white and with
 coloured (AR(1), 5 ms) noise, an analog controller diagnosed with the default timing (expects
 ``controller_rate``) and with ``--controller continuous`` (expects nothing), and the out-of-catalogue
-effects (a mechanical resonance, a friction drifting during the record: expects "unexplained" and no
-name).  A position sensor gain is mimicked by the free Cd (not testable, said so); it is also diagnosed with
+effects (a mechanical resonance, a friction drifting during the record, the logged displacement through a
+first-order lag of 4-10 ms: expects "unexplained" and no name).  A position sensor gain is mimicked by the free Cd (not testable, said so); it is also diagnosed with
 Cd held at a fit of the same rig's healthy record (a commissioning), where it must be named.  A spool
 stroke limit is drawn as a fraction of the peak command the record reaches (``diag_reference``); a seed whose
 valve command still never reaches it is marked "[limit never reached]".  Prints the table and writes every
@@ -24,7 +24,7 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     rows = []
     with ProcessPoolExecutor(args.workers) as ex:
         futs = [ex.submit(run_case, c, args.duration) for c in todo]
-        for f in futs:
+        for f in as_completed(futs):  # each row written as it comes
             r = f.result()
             rows.append(r)
             print(f"{r['case']:<34} seed {r['seed']}: {'+'.join(r['causes']) or 'nothing'}"

@@ -27,7 +27,7 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
                       and all(np.all(np.isfinite(p[o])) for p in st.predicted for o in data.outputs))
     if not t.diverged:
         t.signature = _signature(data, cur, st)
-    _verdict(t, data.alpha, min_share, judge_share=not cur.adequate)
+    _verdict(t, data.alpha, min_share, judge_share=share_rule(data, cur))
     return t
 
 
@@ -95,7 +95,18 @@ def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) ->
     return out
 
 
-def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> None:
+def share_rule(data: _Data, cur: ModelState) -> str:
+    """When an extension of ``cur`` must remove ``min_share`` of its excess misfit: ``"no"`` for an adequate
+    nominal model (the screen found something the adequacy tests did not), ``"unless_adequate"`` while ``cur``
+    is not adequate (an extension that leaves the model adequate is exempt), ``"always"`` for an adequate model
+    that already names something (what is left is a formulation's slight mismatch: a further name must account
+    for most of it, not for a few per cent - a linear droop beside a turbulent line loss)."""
+    if not cur.adequate:
+        return "unless_adequate"
+    return "always" if (cur.effects or cur.timing != data.timing) else "no"
+
+
+def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str) -> None:
     reasons = ["diverged (its simulation of the record is not finite)"] if t.diverged else []
     if not t.p_adjusted < alpha:
         reasons.append(f"LR p_Holm={t.p_adjusted:.3g} >= {alpha:g}")
@@ -117,9 +128,11 @@ def _verdict(t: Trial, alpha: float, min_share: float, judge_share: bool) -> Non
         reasons.append(f"its own signature is misplaced: led or lagged a few samples it explains again "
                        f"{100 * misplaced:.0f} % of its gain in what it leaves (an error of other dynamics)")
     net = t.share * (1.0 - misplaced)
-    if judge_share and not net >= min_share and not t.state.adequate:
+    if judge_share == "unless_adequate" and not net >= min_share and not t.state.adequate:
         reasons.append(f"explains only {100 * net:.0f} % of the excess misfit with its own signature and leaves "
                        "the model inadequate")
+    elif judge_share == "always" and not net >= min_share:
+        reasons.append(f"explains only {100 * net:.0f} % of what the adequate model it extends leaves")
     if not t.state.converged and not reasons:
         pass  # a fit stopped by its evaluation budget can still be better; its figures are what they are
     t.accepted = not reasons

@@ -19,7 +19,7 @@ from twin.estimation.diagnose.data import _Data, holm
 from twin.estimation.diagnose.adequacy import _gain
 from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
 from twin.estimation.diagnose.screen import screen
-from twin.estimation.diagnose.naming import _verdict
+from twin.estimation.diagnose.naming import _verdict, share_rule
 from twin.estimation.diagnose.extend import _fit_state, _try, _try_pair
 from twin.estimation.diagnose.timing import _try_timing
 
@@ -124,7 +124,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         adj = dict(zip([e for e, _ in pool], holm([p for _, p in pool])))
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
-            _verdict(t, alpha, min_share, judge_share=not cur.adequate)
+            _verdict(t, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  {t.effect}: LR={t.lr:.4g} p_Holm={t.p_adjusted:.3g} dAICc={t.delta_aicc:.4g} held-out gain "
                 f"{100 * t.holdout_gain:.2f}% [{100 * t.gain_interval[0]:.2f}, {100 * t.gain_interval[1]:.2f}] "
                 f"share {t.share:.3f} {'accepted' if t.accepted else 'rejected: ' + t.reason}")
@@ -146,7 +146,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             a, b = sig[0], sig[1]
             pair, each = _try_pair(data, cur, a, b, seed, min_share, base)
             pair.p_adjusted = min(1.0, pair.p * len(pool))
-            _verdict(pair, alpha, min_share, judge_share=not cur.adequate)
+            _verdict(pair, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  pair {pair.effect}: LR={pair.lr:.4g} p={pair.p:.3g} dAICc={pair.delta_aicc:.4g} "
                 f"held-out gain {100 * pair.holdout_gain:.2f}% share {pair.share:.3f} "
                 f"each significant: {each} -> {'accepted' if pair.accepted and each else 'rejected'}")
