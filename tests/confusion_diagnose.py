@@ -1,13 +1,16 @@
 """The diagnosis confusion table on the independent reference simulator (``tests/reference``).
 
-``python tests/confusion_diagnose.py --seeds 5 [--workers 2] [--duration 8] [--out FILE.json]``
+``python tests/confusion_diagnose.py --seeds 5 [--first 1000] [--workers 2] [--duration 8] [--out FILE.json]``
+
+Seeds from ``--first`` (default 1000, the verification range; the calibration range is 0-999, where the
+diagnosis's thresholds are tuned: every row carries the adequacy statistics they act on).
 
 Per seed: every in-catalogue effect hidden alone (sizes drawn per seed, truth drawn 3-20 % off Table 9,
 digital controller at the log's rate reading the noisy x, white noise), healthy records with white and with
 coloured (AR(1), 5 ms) noise, an analog controller diagnosed with the default timing (expects
 ``controller_rate``) and with ``--controller continuous`` (expects nothing), and the out-of-catalogue
-effects (a mechanical resonance, a friction drifting during the record: expects "unexplained" and no
-name).  A position sensor gain is mimicked by the free Cd (not testable, said so); it is also diagnosed with
+effects (a mechanical resonance, a friction drifting during the record, the logged displacement through a
+first-order lag of 4-10 ms: expects "unexplained" and no name).  A position sensor gain is mimicked by the free Cd (not testable, said so); it is also diagnosed with
 Cd held at a fit of the same rig's healthy record (a commissioning), where it must be named.  A spool
 stroke limit is drawn as a fraction of the peak command the record reaches (``diag_reference``); a seed whose
 valve command still never reaches it is marked "[limit never reached]".  Prints the table and writes every
@@ -21,7 +24,7 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
@@ -30,9 +33,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from diag_reference import IN_CATALOGUE, OUT_OF_CATALOGUE, reference_record  # noqa: E402
 
 
-def cases(seeds: int) -> list[dict]:
+def cases(seeds: int, first: int = 1000) -> list[dict]:
     out = []
-    for seed in range(seeds):
+    for seed in range(first, first + seeds):
         for e in IN_CATALOGUE:
             out.append({"case": e, "effects": [e], "seed": seed, "expect": [e]})
         # a gain the free Cd mimics is not testable; with Cd held at a value commissioned on the healthy rig
@@ -75,12 +78,32 @@ def run_case(c: dict, duration: float) -> dict:
     else:
         row["correct"] = d.causes == c["expect"] and not d.unexplained
     row["named_exactly"] = c["expect"] != "unexplained" and d.causes == c["expect"]
+    row["verdict"] = d.verdict()
+    row["stats"] = {"nominal": adequacy_stats(d.nominal.adequacy), "final": adequacy_stats(d.final.adequacy),
+                    "noise_raises": [st.noise.raises if st.noise is not None else None for st in d.path],
+                    "trials": [{"effect": t.effect, "share": t.share, "accepted": t.accepted, "reason": t.reason,
+                                "holdout_gain": t.holdout_gain, "p_adjusted": t.p_adjusted,
+                                "signature": t.signature} for ts in d.trials for t in ts]}
     row["not_testable"] = sorted(d.not_testable)
     if "spool_saturation" in c["effects"]:  # does the valve command ever ask for more than the stroke limit?
         known = info["meta"]["known"]
         cmd = float(np.max(np.abs(rec["u"]))) * known["Ke"] * known["Ksp"]
         row["limit_reached"] = bool(cmd > info["truth"]["spool_saturation.xs_max"])
     return row
+
+
+def adequacy_stats(a: dict) -> dict:
+    """The figures the adequacy thresholds act on (calibration data)."""
+    if not a or "whiteness" not in a:
+        return {}
+    out = {"adequate": a.get("adequate"), "n_tests": a.get("n_tests"),
+           "white": {o: {"p": v["p"], "r2_excess": v["r2_excess"], "ar_order": v["ar_order"]}
+                     for o, v in a["whiteness"].items()},
+           "holdout": {k: a["holdout"][k] for k in ("ratio", "p")},
+           "sim": {o: {"ratio": v["ratio"], "p": v["p"]} for o, v in (a.get("simulation_holdout") or {}).items()}}
+    if a.get("exogenous"):
+        out["exo"] = {k: a["exogenous"][k] for k in ("p", "r2_excess")}
+    return out
 
 
 def c_in(r: dict) -> bool:
@@ -109,20 +132,21 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--seeds", type=int, default=5, help="number of seeds")
+    ap.add_argument("--first", type=int, default=1000, help="first seed (>= 1000 verify, 0-999 calibrate)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--duration", type=float, default=8.0)
-    ap.add_argument("--only", help="comma-separated case names")
+    ap.add_argument("--only", help="case names separated by ';'")
     ap.add_argument("--out", default="confusion_diagnose.json")
     args = ap.parse_args(argv)
-    todo = cases(args.seeds)
+    todo = cases(args.seeds, args.first)
     if args.only:
-        keep = set(args.only.split(","))
+        keep = set(args.only.split(";"))
         todo = [c for c in todo if c["case"] in keep]
     rows = []
     with ProcessPoolExecutor(args.workers) as ex:
         futs = [ex.submit(run_case, c, args.duration) for c in todo]
-        for f in futs:
+        for f in as_completed(futs):  # each row written as it comes
             r = f.result()
             rows.append(r)
             print(f"{r['case']:<34} seed {r['seed']}: {'+'.join(r['causes']) or 'nothing'}"

@@ -123,10 +123,12 @@ def test_silverbox_in_volts_names_cubic_stiffness_and_halves_the_test_error(silv
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
-def test_silverbox_rescaled_gives_the_same_verdict(silverbox, scale):
+def test_silverbox_rescaled_gives_the_same_verdict(silverbox, in_volts, scale):
+    """With the record in volts (factor 1), the three factors 1e-3, 1, 1e3: the same verdict, the same names."""
     u, y, n_est = silverbox
     d = _diagnose(u, y, n_est, scale)
     assert "cubic_stiffness" in d.causes, d.text()
+    assert d.verdict() == in_volts.verdict() and d.causes == in_volts.causes, (d.text(), in_volts.text())
     # u and y both scaled by s: m, d, k are unchanged and k3 x^3 scales like u, so k3 scales as 1 / s^2
     k3 = d.effect_params("cubic_stiffness")["k3"]["value"] * scale ** 2
     assert 3.0 < k3 < 5.0, k3

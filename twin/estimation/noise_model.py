@@ -52,6 +52,7 @@ class NoiseModel:
     bic: dict[int, float]  # (unused by the per-output fit)
     orders: dict[str, int] = dataclasses.field(default_factory=dict)   # AR order per output
     aic: dict[str, dict] = dataclasses.field(default_factory=dict)      # AIC per order tried, per output
+    raises: int = 0        # times the orders were raised above AIC's while the errors stayed predictable
 
     @property
     def m(self) -> int:
@@ -87,7 +88,8 @@ class NoiseModel:
         # the colour of each output's residual: its variance over its one-step prediction error variance
         return {"kind": "autoregression of each output's output-error residual (AIC order), innovations "
                         "correlated across outputs",
-                "order": int(self.order), "orders": dict(self.orders), "outputs": list(self.outputs),
+                "order": int(self.order), "orders": dict(self.orders), "raises": int(self.raises),
+                "outputs": list(self.outputs),
                 "innovation_std": dict(zip(self.outputs, sd.round(6).tolist()))}
 
 

@@ -1,0 +1,132 @@
+"""Fitting an extension of the current model: its starts, the fits, a pair of effects."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from twin.estimation.fit import fit
+from twin.models.base import Timing
+from twin.params import ParameterSet
+from twin.estimation.diagnose.constants import FIT_TOL
+from twin.estimation.diagnose.data import ModelState, _Data
+from twin.estimation.diagnose.adequacy import _lr, _state
+from twin.estimation.diagnose.results import ScreenRow, Trial
+from twin.estimation.diagnose.naming import _judge
+
+
+# --- fitting an extension -----------------------------------------------------------------
+def _plausible_start(data: _Data, effect: str, est: Mapping[str, float]) -> dict[str, float]:
+    """The screen's one-step estimate, pulled into [typical/100, 100 typical] of the effect."""
+    E = data.effect(effect)
+    out = {}
+    for s, n, t in zip(E.params, E.neutral, E.typical):
+        v = float(est.get(s.name, t))
+        if n != t and t != 0:
+            mag = abs(v - n)
+            ref = abs(t - n)
+            if not (ref / 100 <= mag <= 100 * ref):
+                v = n + math.copysign(min(max(mag, ref / 100), 100 * ref), v - n if v != n else t - n)
+        lo_in = s.lo + 1e-9 * (abs(s.lo) + 1e-300)
+        hi_in = s.hi - 1e-9 * (abs(s.hi) + 1e-300)
+        out[s.name] = float(np.clip(v, lo_in, hi_in))
+    return out
+
+
+def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapping[str, float],
+               n_starts: int, seed: int, timing: Timing, max_nfev: int = 80) -> ModelState:
+    res = fit(data.model, data.parts, free, base=ps, start=start, outputs=data.outputs, noise=data.sigma,
+              drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
+              max_nfev=max_nfev, timing=timing, tol=FIT_TOL, scales=data.scales())
+    return _state(data, res, free, timing)
+
+
+def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, float]],
+                 timing: Timing) -> list[dict[str, float]]:
+    """Starts sorted by weighted cost on the fitting data, all evaluated in one batch per record."""
+    cost = _fit_costs(data, [ps.update(s) for s in starts], timing)
+    return [dict(starts[i]) for i in np.argsort(cost, kind="stable")]
+
+
+def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> list[float]:
+    """Weighted sums of squares on the fitting data of several parameter sets, one batch per record."""
+    model = data.model
+    P = np.ascontiguousarray(np.array([model.vector(ps) for ps in sets]))
+    cost = np.zeros(len(sets))
+    for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
+        S0 = model.initial_state(P, init)  # each row from its own sensor errors
+        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
+        for o in data.outputs:
+            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
+            cost += np.sum(e * e, axis=1)
+    return [float(c) if math.isfinite(c) else float("inf") for c in cost]
+
+
+def _effect_starts(data: _Data, effect: str, est: Mapping[str, float]) -> list[dict[str, float]]:
+    """The screen's estimate, the typical magnitude and a tenth of it (close to neutral) of ``effect``."""
+    E = data.effect(effect)
+    out = [_plausible_start(data, effect, est), dict(zip(E.names, E.typical))]
+    small = {}
+    for s, n, t in zip(E.params, E.neutral, E.typical):
+        small[s.name] = t if n == t else (n + 0.1 * (t - n) if n < t else min(s.hi, 10.0 * t))
+    out.append(_plausible_start(data, effect, small))
+    return out
+
+
+def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: float,
+         configured: ParameterSet, n_ranked: int = 2) -> Trial:
+    model = data.model
+    E = data.effect(row.effect)
+    free = cur.free + E.names
+    ps = model.params(effects=cur.effects + (row.effect,)).update(cur.params.as_dict())
+    # starts: the effect at the screen's estimate, its typical magnitude and close to neutral; the other
+    # free parameters at the current estimates (which may have bent to mimic the effect) or as configured.
+    # All screened in one batch; the best is refined, the second best too when the first does not pass.
+    base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured}]
+    ranked = _rank_starts(data, ps, [{**b, **e} for b in base_starts
+                                     for e in _effect_starts(data, row.effect, row.estimate)], cur.timing)
+    near = dict(cur.fit.estimate)
+    for s, n, v in zip(E.params, E.neutral, E.typical):
+        near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
+    t: Trial | None = None
+    for attempt, start in enumerate(ranked[:n_ranked] + [near]):
+        if attempt == n_ranked and t is not None and t.state.fit.cost < cur.fit.cost:
+            break
+        st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
+        cand = _judge(data, (row.effect,), cur, st, min_share)
+        if t is None or cand.state.fit.cost < t.state.fit.cost:
+            t = cand
+        if t.accepted:
+            break
+    assert t is not None  # the loop ran at least once (the start near neutral)
+    return t
+
+
+def _try_pair(data: _Data, cur: ModelState, a: Trial, b: Trial, seed: int, min_share: float,
+              configured: ParameterSet) -> tuple[Trial, bool]:
+    """Fit ``cur`` extended by both effects of trials ``a`` and ``b`` (effects recognisable only together:
+    each alone is mimicked by bending the nominal parameters).  Returns the pair's trial (judged against
+    ``cur``) and whether each effect is also significant within the pair."""
+    model = data.model
+    effects = (a.effects[0], b.effects[0])
+    names = cur.free + tuple(n for e in effects for n in model.EFFECTS[e].names)
+    ps = model.params(effects=cur.effects + effects).update(cur.params.as_dict())
+    eff_vals = {n: a.state.fit.estimate[n] for n in model.EFFECTS[effects[0]].names}
+    eff_vals.update({n: b.state.fit.estimate[n] for n in model.EFFECTS[effects[1]].names})
+    typical = {n: v for e in effects for n, v in zip(data.effect(e).names, data.effect(e).typical)}
+    base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured},
+                   {n: a.state.fit.estimate[n] for n in cur.free}, {n: b.state.fit.estimate[n] for n in cur.free}]
+    ranked = _rank_starts(data, ps, [{**bs, **ev} for bs in base_starts for ev in (eff_vals, typical)], cur.timing)
+    best: Trial | None = None
+    for start in ranked[:2]:
+        st = _fit_state(data, ps.update(start), names, start, 1, seed, cur.timing)
+        t = _judge(data, effects, cur, st, min_share)
+        if best is None or t.state.fit.cost < best.state.fit.cost:
+            best = t
+        if best.accepted:
+            break
+    assert best is not None, "no start to refine"
+    each = all(_lr(single.state, best.state, data)[1] < data.alpha for single in (a, b))
+    return best, each

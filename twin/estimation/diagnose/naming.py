@@ -1,0 +1,139 @@
+"""The naming rules: when a fitted extension is accepted, and when its size is implausible."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from twin.models import Model
+from scipy import stats
+
+from twin.estimation.diagnose.constants import PLAUSIBLE, SIGNATURE_SHIFTS, TIMING_EFFECTS
+from twin.estimation.diagnose.data import ModelState, _Data
+from twin.estimation.diagnose.adequacy import _holdout_gain, _innovations, _lr
+from twin.estimation.diagnose.results import Trial
+
+
+def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelState, min_share: float) -> Trial:
+    lr, p, df, d_aicc = _lr(cur, st, data)
+    hg, lo, hi = _holdout_gain(cur, st, data)
+    floor = math.sqrt(2.0 * cur.fit.n_obs)
+    share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
+    t = Trial(effects, st, lr, p, df, d_aicc, hg, (lo, hi), share, p_adjusted=p)
+    t.implausible = _implausible(data, effects, st)
+    t.diverged = not (math.isfinite(st.fit.cost) and math.isfinite(st.wcost)
+                      and all(np.all(np.isfinite(p[o])) for p in st.predicted for o in data.outputs))
+    if not t.diverged:
+        t.signature = _signature(data, cur, st)
+    _verdict(t, data.alpha, min_share, judge_share=share_rule(data, cur))
+    return t
+
+
+def _signature(data: _Data, cur: ModelState, st: ModelState) -> dict:
+    """Is the extension's own signature in the residuals, or does it stand in for an error of other dynamics?
+
+    ``c``: the extension's change of the one-step prediction errors on the fitting data (both under ``cur``'s
+    noise model), ``r``: the errors it leaves.  An effect whose signature is in the residuals leaves errors
+    unrelated to that signature moved in time; an effect that soaks up an error of other dynamics (a
+    transducer's lag taken for a friction) leaves the difference between that error and its own signature,
+    which the signature led and lagged by a few samples (``SIGNATURE_SHIFTS``) explains.  Per output, ``r`` is
+    regressed on the shifted ``c``: ``Q`` (the explained sum of squares over the residual variance) is
+    chi-square(df) when ``r`` is white and independent of them.  ``misplaced``: the explained part beyond
+    chance as a share of what the extension removed (0 when the signature is where the residual has it)."""
+    if cur.noise is None:
+        return {}
+    E0, _ = _innovations(data, cur.noise, cur.predicted)
+    E1, _ = _innovations(data, cur.noise, st.predicted)
+    if not (np.all(np.isfinite(E0)) and np.all(np.isfinite(E1))):
+        return {}
+    C = E0 - E1
+    L = max(SIGNATURE_SHIFTS)
+    n = E1.shape[1]
+    if n <= 20 * L:
+        return {}
+    shifts = [k for k in SIGNATURE_SHIFTS] + [-k for k in SIGNATURE_SHIFTS]
+    q, df, explained = 0.0, 0, 0.0
+    for i in range(E1.shape[0]):
+        c = C[i]
+        if not np.any(c):
+            continue
+        r = E1[i, L:n - L] - np.mean(E1[i, L:n - L])
+        X = np.stack([c[L - k:n - L - k] for k in shifts], axis=1)
+        X = X - X.mean(axis=0)
+        U, sv, _ = np.linalg.svd(X, full_matrices=False)
+        U = U[:, sv > 1e-8 * sv[0]] if sv.size and sv[0] > 0 else U[:, :0]
+        proj = U.T @ r
+        ess = float(proj @ proj)
+        s2 = (float(r @ r) - ess) / max(r.size - U.shape[1], 1)
+        if s2 > 0:
+            q += ess / s2
+            explained += max(ess - U.shape[1] * s2, 0.0)
+        df += U.shape[1]
+    gain = float(np.sum(E0 * E0) - np.sum(E1 * E1))
+    if df == 0:
+        return {}
+    return {"Q": q, "df": df, "p": float(stats.chi2.sf(q, df)), "explained": explained, "gain": gain,
+            "misplaced": explained / gain if gain > 0 else float("inf")}
+
+
+def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) -> list[str]:
+    """Parameters of ``effects`` fitted further from neutral than ``PLAUSIBLE`` times the effect's typical
+    deviation (an out-of-catalogue error soaked up by bending an effect far beyond its physical range); the
+    typical sizes of the records' diagnosis (``data``), or the catalogue's (a model)."""
+    model = data.model if isinstance(data, _Data) else data
+    out = []
+    for e in effects:
+        if e not in model.EFFECTS:
+            continue
+        E = data.effect(e) if isinstance(data, _Data) else model.EFFECTS[e]
+        for s, n, typ in zip(E.params, E.neutral, E.typical):
+            v = st.params[s.name]
+            if typ != n and abs(v - n) > PLAUSIBLE * abs(typ - n):
+                out.append(f"{s.name}={s.show(v)}")
+    return out
+
+
+def share_rule(data: _Data, cur: ModelState) -> str:
+    """When an extension of ``cur`` must remove ``min_share`` of its excess misfit: ``"no"`` for an adequate
+    nominal model (the screen found something the adequacy tests did not), ``"unless_adequate"`` while ``cur``
+    is not adequate (an extension that leaves the model adequate is exempt), ``"always"`` for an adequate model
+    that already names something (what is left is a formulation's slight mismatch: a further name must account
+    for most of it, not for a few per cent - a linear droop beside a turbulent line loss)."""
+    if not cur.adequate:
+        return "unless_adequate"
+    return "always" if (cur.effects or cur.timing != data.timing) else "no"
+
+
+def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str) -> None:
+    reasons = ["diverged (its simulation of the record is not finite)"] if t.diverged else []
+    if not t.p_adjusted < alpha:
+        reasons.append(f"LR p_Holm={t.p_adjusted:.3g} >= {alpha:g}")
+    if not t.delta_aicc < 0:
+        reasons.append("AICc not lower")
+    if not (t.gain_interval[0] > 0):
+        reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not above its bootstrap spread "
+                       f"(interval from {100 * t.gain_interval[0]:.2f} %)")
+    if t.implausible:
+        reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
+    # the effect's own signature must be where the residuals have it: the part of its gain that its signature
+    # moved by a few samples explains again in what it leaves is an error of other dynamics it stands in for
+    sig = t.signature or {}
+    timing = bool(set(t.effects) & set(TIMING_EFFECTS))  # a timing's signature is a shift in time by nature
+    misplaced = 0.0
+    if not timing and sig.get("p", 1.0) < alpha:
+        misplaced = min(max(float(sig.get("misplaced", 0.0)), 0.0), 1.0)
+    if misplaced > 1.0 - min_share:
+        reasons.append(f"its own signature is misplaced: led or lagged a few samples it explains again "
+                       f"{100 * misplaced:.0f} % of its gain in what it leaves (an error of other dynamics)")
+    net = t.share * (1.0 - misplaced)
+    if judge_share == "unless_adequate" and not net >= min_share and not t.state.adequate:
+        reasons.append(f"explains only {100 * net:.0f} % of the excess misfit with its own signature and leaves "
+                       "the model inadequate")
+    elif judge_share == "always" and not net >= min_share:
+        reasons.append(f"explains only {100 * net:.0f} % of what the adequate model it extends leaves")
+    if not t.state.converged and not reasons:
+        pass  # a fit stopped by its evaluation budget can still be better; its figures are what they are
+    t.accepted = not reasons
+    t.reason = "; ".join(reasons)
