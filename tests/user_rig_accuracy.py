@@ -47,6 +47,9 @@ CASES = {
     "pid_filtered": ({"known": PID, "pid": {"Tf": 1e-3}}, {**PID, "Tf": 1e-3}),
     "pid_jitter": ({"known": PID, "pid": {"Tf": 1e-3}, "time_jitter_s": 150e-6}, {**PID, "Tf": 1e-3}),
     "pid_tf_unstated": ({"known": PID, "pid": {"Tf": 1e-3}}, PID),
+    "can_rate": ({"known": PID, "pid": {"Tf": 1e-3}, "signal_rates": {"pA": 500.0, "pB": 500.0},
+                  "time_jitter_s": 150e-6}, {**PID, "Tf": 1e-3}),
+    **{k: ({"demand": {"kind": k}}, {}) for k in ("chirp", "sweep", "blocks", "road")},
 }
 
 

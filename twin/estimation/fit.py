@@ -18,7 +18,9 @@
 * Several records share the parameters; optional initial-state estimation adds
   per-record initial quantities (rod position, pressure difference).
 * Residuals of each output are weighted by its noise level, so x [m] and
-  pressures [Pa] can be fitted together.
+  pressures [Pa] can be fitted together.  A signal logged at its own, slower
+  rate and held onto the grid counts only at its fresh samples
+  (:func:`twin.record.fresh_mask`): a held value is not a measurement.
 * The loop's timing (:class:`~twin.models.base.Timing`: controller rate,
   intersample behaviour of the logged inputs) is a property of the rig that
   every simulation of the fit honours.
@@ -199,6 +201,16 @@ class _Problem:
     base_vec: np.ndarray
     #: per record: the loop noise the simulated controller reads, in antithetic pairs (None: a noise-free loop)
     dither: list[np.ndarray | None] = dataclasses.field(default_factory=list)
+    #: per record and output: 1 at fresh samples, 0 at held ones (None: every sample is a measurement)
+    weights: list[dict[str, np.ndarray | None]] = dataclasses.field(default_factory=list)
+
+    def weight(self, r: int, o: str) -> np.ndarray | None:
+        return self.weights[r].get(o) if self.weights else None
+
+    def n_measured(self) -> int:
+        """The number of residuals that are measurements (held samples weigh nothing)."""
+        return sum(len(rec) if self.weight(r, o) is None else int(np.count_nonzero(self.weight(r, o)))
+                   for r, rec in enumerate(self.records) for o in self.outputs)
 
     @property
     def n_theta(self) -> int:
@@ -248,7 +260,9 @@ class _Problem:
                                  for k in range(Z.shape[0])]) if (self.init_names or self.init_fixed[r]) else None
             sim = self._simulate(r, P, S0)
             for o in self.outputs:
-                parts.append((sim.outputs[o] - rec[o][None, :]) / self.sigma[o])
+                e = (sim.outputs[o] - rec[o][None, :]) / self.sigma[o]
+                w = self.weight(r, o)
+                parts.append(e if w is None else e * w)
         return np.concatenate(parts, axis=1)
 
     def _simulate(self, r: int, P: np.ndarray, S0: np.ndarray | None):
@@ -388,8 +402,13 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     scale = np.array([0.0 if s.log_scaled else scales.get(s.name) or _linear_scale(model, s, base[s.name])
                       for s in specs])
     init_fixed = [dict(i) for i in init]
+    weights = []
+    for r in records:
+        w = {o: r.fresh_of(o) for o in outputs}
+        weights.append({o: m.astype(np.float64) for o, m in w.items() if m is not None})
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
-                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base))
+                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base),
+                    weights=weights)
 
 
 def noise_levels(model: Model, records: Sequence[Record], outputs: Sequence[str],
@@ -575,7 +594,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         starts_info[i]["final_cost"] = float(res.cost)
         if best is None or res.cost < best.cost:
             best = res
-        if best.cost <= 0.75 * R0.shape[1]:  # residuals at the noise floor: other starts cannot do better
+        if best.cost <= 0.75 * prob.n_measured():  # residuals at the noise floor: other starts cannot do better
             break
     if best is None:  # every refinement failed numerically: report the best screened start
         z = Z0[order[0]]
@@ -604,14 +623,14 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
     r = R[0]
     J = ((R[1:] - r) / FD_STEP).T
-    N = r.size
+    N = prob.n_measured()
     p = prob.n_z
     s2 = float(r @ r) / max(N - p, 1)
     g = np.concatenate([prob.dtheta_dz(theta), np.ones(p - prob.n_theta)])
     try:
         H_inv = np.linalg.pinv(J.T @ J)
         cov_white = s2 * H_inv * np.outer(g, g)
-        cov = hac_covariance(J, r, prob.block_sizes(), H_inv) * np.outer(g, g)
+        cov = hac_covariance(J, r, prob.block_sizes(), H_inv, N) * np.outer(g, g)
     except np.linalg.LinAlgError:
         cov_white = cov = np.full((p, p), np.nan)
     ct = cov[: prob.n_theta, : prob.n_theta]
@@ -630,8 +649,10 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     fit_pct, mse, nrmse = {}, {}, {}
     loglik = 0.0
     for o in prob.outputs:
-        y = np.concatenate([rec[o] for rec in prob.records])
-        yh = np.concatenate([pr[o] for pr in pred])
+        keep = [np.ones(len(rec), bool) if prob.weight(i, o) is None else prob.weight(i, o) > 0
+                for i, rec in enumerate(prob.records)]
+        y = np.concatenate([rec[o][k] for rec, k in zip(prob.records, keep)])
+        yh = np.concatenate([pr[o][k] for pr, k in zip(pred, keep)])
         e = y - yh
         m = float(np.mean(e * e))
         den = float(np.linalg.norm(y - y.mean()))
@@ -689,14 +710,15 @@ def _bartlett_lag(g: np.ndarray) -> int:
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
-                   H_inv: np.ndarray) -> np.ndarray:
+                   H_inv: np.ndarray, n_obs: int | None = None) -> np.ndarray:
     """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
 
     ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
     residuals lie output after output; the scores of all outputs at one instant
     are summed (so cross-correlations between outputs count), and their
     autocovariances are summed within each record with Bartlett weights up to
-    an automatic lag.
+    an automatic lag.  ``n_obs``: the number of residuals that are measurements
+    (default all; held samples of a slower signal enter as zero residuals).
     """
     Sm = np.zeros((J.shape[1], J.shape[1]))
     start = 0
@@ -710,6 +732,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int
             C = G[lag:].T @ G[:-lag]
             Sm += w * (C + C.T)
     N, p = J.shape
+    N = N if n_obs is None else n_obs
     cov = H_inv @ Sm @ H_inv * (N / max(N - p, 1))
     return cov
 
