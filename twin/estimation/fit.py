@@ -202,15 +202,19 @@ class _Problem:
     #: per record: the loop noise the simulated controller reads, in antithetic pairs (None: a noise-free loop)
     dither: list[np.ndarray | None] = dataclasses.field(default_factory=list)
     #: per record and output: 1 at fresh samples, 0 at held ones (None: every sample is a measurement)
-    weights: list[dict[str, np.ndarray | None]] = dataclasses.field(default_factory=list)
+    weights: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
 
     def weight(self, r: int, o: str) -> np.ndarray | None:
         return self.weights[r].get(o) if self.weights else None
 
+    def fresh(self, r: int, o: str) -> np.ndarray:
+        """Which samples of output ``o`` of record ``r`` are measurements."""
+        w = self.weight(r, o)
+        return np.ones(len(self.records[r]), bool) if w is None else w > 0
+
     def n_measured(self) -> int:
         """The number of residuals that are measurements (held samples weigh nothing)."""
-        return sum(len(rec) if self.weight(r, o) is None else int(np.count_nonzero(self.weight(r, o)))
-                   for r, rec in enumerate(self.records) for o in self.outputs)
+        return sum(int(np.count_nonzero(self.fresh(r, o))) for r in range(len(self.records)) for o in self.outputs)
 
     @property
     def n_theta(self) -> int:
@@ -649,8 +653,7 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     fit_pct, mse, nrmse = {}, {}, {}
     loglik = 0.0
     for o in prob.outputs:
-        keep = [np.ones(len(rec), bool) if prob.weight(i, o) is None else prob.weight(i, o) > 0
-                for i, rec in enumerate(prob.records)]
+        keep = [prob.fresh(i, o) for i in range(len(prob.records))]
         y = np.concatenate([rec[o][k] for rec, k in zip(prob.records, keep)])
         yh = np.concatenate([pr[o][k] for pr, k in zip(pred, keep)])
         e = y - yh
