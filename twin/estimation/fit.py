@@ -57,7 +57,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 
 from twin.errors import DataError, ParameterError
 from twin.models import Model, get_model
@@ -65,6 +65,11 @@ from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
 from twin.record import Record
 from twin.models.simulate import DEFAULT_NOISE
+from twin.estimation.fit_result import FitResult
+from twin.estimation.fit_stats import hac_covariance, likelihood_ratio
+
+__all__ = ["FitResult", "fit", "hac_covariance", "likelihood_ratio", "make_problem", "noise_levels",
+           "initial_from_data", "resolve_outputs"]
 
 FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
 LOOP_NOISE_BAND = 0.4  # the loop noise's level is read off the residual above this fraction of Nyquist
@@ -75,111 +80,6 @@ RELATIVE_NOISE = 1e-3
 #: a fit whose Fit % of an output is at or below this explains almost nothing of it: converged or not, the
 #: result carries a warning (Fit % = 100 (1 - |e| / |y - mean y|): 10 % leaves 81 % of the variance)
 FIT_WARN_PCT = 10.0
-
-
-@dataclasses.dataclass
-class FitResult:
-    """Outcome of a fit (``scipy.optimize.OptimizeResult`` in spirit)."""
-
-    model: str
-    params: ParameterSet                 # all parameters, free ones at their estimates
-    free: tuple[str, ...]
-    estimate: dict[str, float]
-    std: dict[str, float]                # HAC (sandwich) standard errors
-    corr: np.ndarray
-    outputs: tuple[str, ...]
-    fit_pct: dict[str, float]
-    mse: dict[str, float]
-    nrmse: dict[str, float]
-    loglik: float
-    aic: float
-    aicc: float
-    bic: float
-    fpe: float
-    n_obs: int
-    n_par: int
-    cost: float
-    success: bool
-    status: int
-    message: str
-    nfev: int
-    history: list[dict]
-    starts: list[dict]
-    init: list[dict[str, float]]
-    time_s: float
-    predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
-    std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
-    timing: dict = dataclasses.field(default_factory=dict)
-    #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
-    warnings: list[str] = dataclasses.field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        specs = {s.name: s for s in self.params.specs}
-        return {
-            "model": self.model,
-            "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
-                           "unit": specs[n].unit, "shown": specs[n].show(self.estimate[n])} for n in self.free},
-            "timing": self.timing,
-            "effects": list(self.params.effects),
-            "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
-            "outputs": list(self.outputs),
-            "fit_pct": self.fit_pct, "mse": self.mse, "nrmse": self.nrmse,
-            "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
-            "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
-            "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "starts": self.starts,
-            "history": self.history,
-        }
-
-    def __repr__(self) -> str:
-        """One line: the estimates ± std in display units, Fit % per output, converged or not."""
-        specs = {s.name: s for s in self.params.specs}
-        est = ", ".join(f"{n}={specs[n].show(self.estimate[n])} ± {specs[n].show(self.std[n])}" for n in self.free)
-        fits = ", ".join(f"{k} {self.fit_pct[k]:.1f} %" for k in self.outputs)
-        return (f"FitResult(model={self.model!r}, {est}; Fit: {fits}; "
-                f"{'converged' if self.success else 'NOT converged'}, nfev={self.nfev}, {self.time_s:.2f} s)")
-
-    def saved(self) -> dict:
-        """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
-        fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
-        "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
-        from twin.units import SIGNAL_UNITS
-
-        params: dict[str, dict] = {}
-        for s, v in zip(self.params.specs, self.params.values):
-            params[s.name] = {"value": float(v), "unit": s.unit}
-            if s.name in self.free:
-                params[s.name]["std"] = float(self.std[s.name])
-        return {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
-                "params": params, "timing": self.timing,
-                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
-                          for o in self.outputs}}
-
-    def save(self, path: str) -> str:
-        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
-        from replay import jsonio
-
-        return jsonio.write(path, self.saved())
-
-    def report(self, records, out_dir: str = "fit_report") -> str:
-        """Write the HTML fit report (as ``twin fit --report``) of the ``records`` fitted; returns its path."""
-        from twin.reports import fit_report
-
-        return fit_report(self, records, self.model, out_dir)
-
-    def table(self) -> str:
-        specs = {s.name: s for s in self.params.specs}
-        rows = [f"{'parameter':<10} {'estimate':>16} {'std':>14} {'rel std':>9}"]
-        for n in self.free:
-            v, s = self.estimate[n], self.std[n]
-            rel = abs(s / v) * 100 if v else float("nan")
-            rows.append(f"{n:<10} {specs[n].show(v):>16} {specs[n].show(s):>14} {rel:8.3g}%")
-        rows.append("  ".join(f"Fit({k})={self.fit_pct[k]:.3f}%" for k in self.outputs))
-        rows.append(f"AIC={self.aic:.6g} AICc={self.aicc:.6g} BIC={self.bic:.6g} FPE={self.fpe:.4g} "
-                    f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
-                    f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
-        rows.extend(f"WARNING: {w}" for w in self.warnings)
-        return "\n".join(rows)
 
 
 @dataclasses.dataclass
@@ -684,64 +584,3 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         message=message, nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed,
         predicted=pred, std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict(),
         warnings=warnings)
-
-
-def _bartlett_lag(g: np.ndarray) -> int:
-    """Bartlett bandwidth for the score series ``g [n, p]``: Andrews' (1991) AR(1) plug-in, at least ``sqrt(n)``.
-
-    The floor: the scores of a closed loop are white sensor noise plus the slower response of the loop to the
-    noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks a handful of
-    lags, which on the reference simulator left the friction's standard error 20 % short (lag 9 on 12 000
-    samples; from lag 50 on every parameter's spread matches its standard error)."""
-    n = g.shape[0]
-    num = den = 0.0
-    for a in range(g.shape[1]):
-        x = g[:, a]
-        v = float(x @ x)
-        if v <= 0:
-            continue
-        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
-        if not (math.isfinite(v) and math.isfinite(rho)):  # non-finite scores (a diverged fit): no weight
-            continue
-        s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
-        num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
-        den += s4 / (1 - rho) ** 4
-    floor = math.ceil(math.sqrt(n))
-    if den <= 0:
-        return min(floor, n // 4)
-    return int(min(max(1.1447 * (num / den * n) ** (1 / 3), floor), n // 4))
-
-
-def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
-                   H_inv: np.ndarray, n_obs: int | None = None) -> np.ndarray:
-    """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
-
-    ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
-    residuals lie output after output; the scores of all outputs at one instant
-    are summed (so cross-correlations between outputs count), and their
-    autocovariances are summed within each record with Bartlett weights up to
-    an automatic lag.  ``n_obs``: the number of residuals that are measurements
-    (default all; held samples of a slower signal enter as zero residuals).
-    """
-    Sm = np.zeros((J.shape[1], J.shape[1]))
-    start = 0
-    for m, n in blocks:
-        G = (J[start:start + m * n] * r[start:start + m * n, None]).reshape(m, n, -1).sum(axis=0)
-        start += m * n
-        Sm += G.T @ G
-        L = _bartlett_lag(G)
-        for lag in range(1, L + 1):
-            w = 1.0 - lag / (L + 1.0)
-            C = G[lag:].T @ G[:-lag]
-            Sm += w * (C + C.T)
-    N, p = J.shape
-    N = N if n_obs is None else n_obs
-    cov = H_inv @ Sm @ H_inv * (N / max(N - p, 1))
-    return cov
-
-
-def likelihood_ratio(nested: FitResult, extended: FitResult) -> tuple[float, float, int]:
-    """LR statistic, p-value and degrees of freedom of ``extended`` against ``nested``."""
-    df = extended.n_par - nested.n_par
-    lr = max(0.0, 2.0 * (extended.loglik - nested.loglik))
-    return lr, float(stats.chi2.sf(lr, max(df, 1))), df

@@ -1,0 +1,115 @@
+"""The outcome of a grey-box fit (:func:`twin.estimation.fit.fit`): estimates, standard errors, Fit %,
+information criteria, and its text, JSON, saved form and report."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from twin.params import ParameterSet
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of a fit (``scipy.optimize.OptimizeResult`` in spirit)."""
+
+    model: str
+    params: ParameterSet                 # all parameters, free ones at their estimates
+    free: tuple[str, ...]
+    estimate: dict[str, float]
+    std: dict[str, float]                # HAC (sandwich) standard errors
+    corr: np.ndarray
+    outputs: tuple[str, ...]
+    fit_pct: dict[str, float]
+    mse: dict[str, float]
+    nrmse: dict[str, float]
+    loglik: float
+    aic: float
+    aicc: float
+    bic: float
+    fpe: float
+    n_obs: int
+    n_par: int
+    cost: float
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    history: list[dict]
+    starts: list[dict]
+    init: list[dict[str, float]]
+    time_s: float
+    predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
+    std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
+    timing: dict = dataclasses.field(default_factory=dict)
+    #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
+    warnings: list[str] = dataclasses.field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        specs = {s.name: s for s in self.params.specs}
+        return {
+            "model": self.model,
+            "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
+                           "unit": specs[n].unit, "shown": specs[n].show(self.estimate[n])} for n in self.free},
+            "timing": self.timing,
+            "effects": list(self.params.effects),
+            "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
+            "outputs": list(self.outputs),
+            "fit_pct": self.fit_pct, "mse": self.mse, "nrmse": self.nrmse,
+            "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
+            "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
+            "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
+            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "starts": self.starts,
+            "history": self.history,
+        }
+
+    def __repr__(self) -> str:
+        """One line: the estimates ± std in display units, Fit % per output, converged or not."""
+        specs = {s.name: s for s in self.params.specs}
+        est = ", ".join(f"{n}={specs[n].show(self.estimate[n])} ± {specs[n].show(self.std[n])}" for n in self.free)
+        fits = ", ".join(f"{k} {self.fit_pct[k]:.1f} %" for k in self.outputs)
+        return (f"FitResult(model={self.model!r}, {est}; Fit: {fits}; "
+                f"{'converged' if self.success else 'NOT converged'}, nfev={self.nfev}, {self.time_s:.2f} s)")
+
+    def saved(self) -> dict:
+        """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
+        fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
+        "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
+        from twin.units import SIGNAL_UNITS
+
+        params: dict[str, dict] = {}
+        for s, v in zip(self.params.specs, self.params.values):
+            params[s.name] = {"value": float(v), "unit": s.unit}
+            if s.name in self.free:
+                params[s.name]["std"] = float(self.std[s.name])
+        return {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
+                "params": params, "timing": self.timing,
+                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
+                          for o in self.outputs}}
+
+    def save(self, path: str) -> str:
+        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
+        from replay import jsonio
+
+        return jsonio.write(path, self.saved())
+
+    def report(self, records, out_dir: str = "fit_report") -> str:
+        """Write the HTML fit report (as ``twin fit --report``) of the ``records`` fitted; returns its path."""
+        from twin.reports import fit_report
+
+        return fit_report(self, records, self.model, out_dir)
+
+    def table(self) -> str:
+        specs = {s.name: s for s in self.params.specs}
+        rows = [f"{'parameter':<10} {'estimate':>16} {'std':>14} {'rel std':>9}"]
+        for n in self.free:
+            v, s = self.estimate[n], self.std[n]
+            rel = abs(s / v) * 100 if v else float("nan")
+            rows.append(f"{n:<10} {specs[n].show(v):>16} {specs[n].show(s):>14} {rel:8.3g}%")
+        rows.append("  ".join(f"Fit({k})={self.fit_pct[k]:.3f}%" for k in self.outputs))
+        rows.append(f"AIC={self.aic:.6g} AICc={self.aicc:.6g} BIC={self.bic:.6g} FPE={self.fpe:.4g} "
+                    f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
+                    f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
+        rows.extend(f"WARNING: {w}" for w in self.warnings)
+        return "\n".join(rows)
