@@ -135,6 +135,9 @@ def main(argv=None) -> int:
                     help="also the healthy diagnosis of the first N seeds' records of every case")
     ap.add_argument("--track-s", type=float, default=0.0,
                     help="also healthy tracking of this many seconds per tracking case, and the faults")
+    ap.add_argument("--warming", action="store_true",
+                    help="also 10 min of a healthy rig whose oil warms from 40 to 60 C (bulk modulus -12 %%, "
+                         "leakage +15 %%; T_oil logged at 10 Hz): alarm events counted")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
@@ -162,6 +165,8 @@ def main(argv=None) -> int:
         print("tracking...", file=sys.stderr, flush=True)
         out["tracking"] = [tracked(n, 1000 + i, args.track_s) for i, n in enumerate(TRACK_CASES)]
         out["faults"] = [tracked("can_rate", 1100 + i, 20.0, fault=f) for i, f in enumerate(TRACK_FAULTS)]
+    if args.warming:
+        out.setdefault("tracking", []).append(tracked("warming", 1200, 600.0))
     for c, rs in rows.items():
         d = {"converged": sum(r["success"] for r in rs),
              "max_abs_z": {k: max(abs(r[k]["z"]) for r in rs) for k in FREE},
