@@ -258,6 +258,19 @@ def test_fresh_mask_finds_held_signals_and_leaves_quantised_ones_alone():
     assert fresh_mask(np.zeros(n)) is None  # a constant signal holds nothing
 
 
+def test_a_prediction_is_held_as_the_log_holds_its_signal():
+    from twin.record import as_logged
+
+    rng = np.random.default_rng(1011)
+    k = np.arange(1000)
+    p = rng.normal(0.0, 1.0, 1000)
+    rec = Record(1e-3, {"x": rng.normal(0.0, 1.0, 1000), "pA": p[k - k % 2]})
+    pred = np.arange(2000.0).reshape(2, 1000)
+    np.testing.assert_array_equal(as_logged(rec, "pA", pred), pred[:, k - k % 2])
+    assert as_logged(rec, "x", pred) is pred
+    np.testing.assert_array_equal(as_logged(rec, "pA", pred[:, :7]), pred[:, [0, 0, 2, 2, 4, 4, 6]])
+
+
 @pytest.fixture(scope="module")
 def can_rate_record(reference_records):
     from conftest import msp25_spec

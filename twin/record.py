@@ -127,6 +127,19 @@ def fresh_mask(values) -> np.ndarray | None:
     return np.concatenate([[True], change])
 
 
+def as_logged(record: Record, name: str, predicted: np.ndarray) -> np.ndarray:
+    """A prediction of signal ``name`` as ``record`` logs it: at a held signal's held samples, the prediction
+    at its last fresh sample (the sensor read then, the log repeated it); unchanged for a signal measured on
+    every sample.  ``predicted [..., n]``: the first ``n`` samples of the record."""
+    fresh = record.fresh_of(name)
+    if fresh is None:
+        return predicted
+    n = predicted.shape[-1]
+    k = np.arange(n)
+    last = np.maximum.accumulate(np.where(fresh[:n], k, 0))
+    return predicted[..., last]
+
+
 def grid_steps(d_ns, dt_ns: float):
     """The one rule for time stamps: a step between samples counts as the nearest whole number of sample
     periods ``dt_ns``; what is left over (less than half a period) is time stamp jitter, not time.  Steps of

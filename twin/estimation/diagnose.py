@@ -104,7 +104,7 @@ from twin.estimation.noise_model import ORDERS as NOISE_ORDERS
 from twin.estimation.noise_model import (NoiseModel, bartlett_lag, block_bootstrap, fit_noise_model,
                                          long_run_variance)
 from twin.params import Effect, ParameterSet, check_names
-from twin.record import Record
+from twin.record import Record, as_logged
 from twin.estimation.residuals import ResidualAnalysis, analyse, ljung_box
 from twin.models.simulate import DEFAULT_NOISE  # noqa: F401  (the plots' residual scale)
 
@@ -523,7 +523,7 @@ def _simulate(data: _Data, ps: ParameterSet, timing: Timing) -> list[dict[str, n
     for rec, (name, drive), init in zip(data.records, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)
         sim = model.simulate_batch(P, name, drive, rec.dt, S0, None, timing)
-        d = {o: sim.outputs[o][0] for o in model.OUTPUTS}
+        d = {o: as_logged(rec, o, sim.outputs[o][0]) if o in rec else sim.outputs[o][0] for o in model.OUTPUTS}
         for k, v in sim.inputs.items():
             d[k] = np.asarray(v)[0] if np.ndim(v) == 2 else np.asarray(v)
         for j, k in enumerate(getattr(model, "STATES", ())):  # the states a limit probe needs (LIMITS)
@@ -909,7 +909,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, state.timing)
-        Y = np.stack([sim.outputs[o] / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
+        Y = np.stack([as_logged(rec, o, sim.outputs[o]) / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
         y = np.array([rec[o][:n] / data.sigma[o] for o in data.outputs])
         raw.append(np.concatenate([(y - Y[0])[None], Y[1:] - Y[0]], axis=0))
     nm = _clean_noise_model(data, raw) or state.noise
@@ -1051,7 +1051,7 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
         for o in data.outputs:
-            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
+            e = (as_logged(rec, o, sim.outputs[o]) - rec[o][None, :n]) / data.sigma[o]
             cost += np.sum(e * e, axis=1)
     return [float(c) if math.isfinite(c) else float("inf") for c in cost]
 
