@@ -1,7 +1,9 @@
 """Records of the independent reference simulator (``tests.reference``) for the tracker's tests and figures.
 
 Named scenarios (healthy with nominal, 2x and coloured noise; analog and 5 kHz
-digital controllers; friction steps, valve wn decay, worn seal) built from
+digital controllers; friction steps, valve wn decay, worn seal; the user's rig:
+the demands ``chirp`` (on the analog controller), ``sweep``, ``blocks``, ``road``,
+pressures at 500 Hz with CAN-jittered stamps ``can_rate``, warming oil ``warming``) built from
 ``tests.reference.msp25_spec`` and cached on disk (the simulator takes about
 0.8 s per simulated second): ``$FPDD_REF_CACHE`` or
 ``~/.cache/fpdd-twin/reference``, one ``.npz`` per spec digest.  Nothing here
