@@ -47,6 +47,20 @@ SPECS = {
         "Ffric": {"kind": "step", "t0": 1.0, "before": 60.0, "after": 150.0}}),
     "tv_const60": msp25_spec(5, duration=2.0, noise=None, truth={"Ffric": 60.0}),
     "healthy": msp25_spec(6, duration=1.5, noise=None, demand={"amplitude": 8e-3}),
+    **{f"demand_{k}": msp25_spec(7, duration=3.0, noise=None, demand={"kind": k, "amplitude": 8e-3, "f_hi": 12.0,
+                                                                         "v_max": 0.2})
+       for k in ("chirp", "sweep", "blocks", "road")},
+    "demand_road_other_seed": msp25_spec(8, duration=3.0, noise=None, demand={"kind": "road", "amplitude": 8e-3,
+                                                                              "f_hi": 12.0, "v_max": 0.2}),
+    "rates_all": msp25_spec(9, duration=1.0, temperature={"T": 318.0}),
+    "rates_500": msp25_spec(9, duration=1.0, temperature={"T": 318.0}, signal_rates={"pA": 500, "pB": 250,
+                                                                                       "T_oil": 10}),
+    # oil at T0 + 20 K against Table 8's oil and truth moved by the stated laws: the same rig
+    "warm_oil": msp25_spec(10, duration=1.5, noise=None, temperature={"T": 333.15, "T0": 313.15, "a_bulk": 0.006,
+                                                                      "b_visc": 0.03}),
+    "warm_oil_by_law": msp25_spec(10, duration=1.5, noise=None, known={"B": 1.5e9 * (1 - 0.006 * 20.0)},
+                                  truth={"CdAleak": MSP25_FREE["CdAleak"] * math.exp(0.03 * 20.0)}),
+    "cold_oil": msp25_spec(10, duration=1.5, noise=None),
 }
 EFFECT_SPECS = {name: msp25_spec(6, duration=1.5, noise=None, demand={"amplitude": 8e-3}, effects=[name])
                 for name in MSP25_EFFECTS}
@@ -279,3 +293,55 @@ def test_product_simulator_agrees_on_shared_physics(rec):
     for p in ("pA", "pB"):
         assert _rel_rms(res.outputs[p], r.signals[p]) < 1e-2
     np.testing.assert_allclose(res.outputs["pA"], r.signals["pA"], rtol=1e-4)
+
+
+# --- the test engineer's demands, signals at their own rates, oil temperature ------------------------
+@pytest.mark.parametrize("kind", ["chirp", "sweep", "blocks", "road"])
+def test_demands_stay_within_the_speed_limit_and_the_amplitude(rec, kind):
+    r = rec[f"demand_{kind}"]
+    xr = r.signals["x_ref"]
+    v = np.gradient(xr, r.dt)
+    assert np.max(np.abs(xr)) <= 8e-3 * (1 + 1e-9)
+    assert np.max(np.abs(v)) <= 0.2 * 1.01
+    if kind in ("chirp", "sweep"):  # the speed limit reached at the top of the sweep, not before the low end
+        assert np.max(np.abs(v[r.t > 2.5])) > 0.19
+        assert np.max(np.abs(xr[(r.t > 0.6) & (r.t < 1.0)])) > 7.5e-3
+    assert np.max(np.abs(r.hidden["x"] - xr)) < 4e-3  # the rig follows it
+
+
+def test_block_loading_has_blocks_of_different_amplitudes(rec):
+    r = rec["demand_blocks"]
+    xr = r.signals["x_ref"]
+    peaks = [np.max(np.abs(xr[(r.t >= a) & (r.t < a + 2.0)])) for a in (0.0, 2.0)]
+    assert abs(peaks[0] / peaks[1] - 1) > 0.05
+    i = np.flatnonzero(r.t >= 2.0)[0]
+    assert abs(xr[i]) < 1e-4  # faded to zero between blocks
+
+
+def test_road_load_is_band_limited_and_drawn_per_seed(rec):
+    a, b = rec["demand_road"].signals["x_ref"], rec["demand_road_other_seed"].signals["x_ref"]
+    assert _rel_rms(a, b) > 0.5
+    f = np.fft.rfftfreq(a.size, 1e-3)
+    p = np.abs(np.fft.rfft(a * np.hanning(a.size))) ** 2
+    assert p[f > 15.0].sum() < 1e-3 * p.sum()
+
+
+def test_slow_signals_are_held_onto_the_log_grid(rec):
+    full, slow = rec["rates_all"], rec["rates_500"]
+    for name, every in (("pA", 2), ("pB", 4), ("T_oil", 100)):
+        k = np.arange(full.t.size)
+        fresh = k % every == 0
+        assert np.array_equal(slow.hidden[f"fresh_{name}"] > 0, fresh)
+        np.testing.assert_array_equal(slow.signals[name][fresh], full.signals[name][fresh])  # same draw
+        np.testing.assert_array_equal(slow.signals[name], full.signals[name][k - k % every])  # held
+    np.testing.assert_array_equal(slow.signals["x"], full.signals["x"])
+
+
+def test_warm_oil_follows_the_stated_laws(rec):
+    warm, law, cold = rec["warm_oil"], rec["warm_oil_by_law"], rec["cold_oil"]
+    assert np.all(np.abs(warm.signals["T_oil"] - 333.15) <= 0.05 + 1e-9)  # logged, quantised at 0.1 K
+    assert warm.hidden["B"][0] == pytest.approx(1.5e9 * 0.88)
+    for k in ("x", "pA", "pB"):
+        assert _rel_rms(warm.signals[k], law.signals[k], cold.signals[k]) < 1e-5
+        assert _rel_rms(warm.signals[k], cold.signals[k]) > 100 * _rel_rms(warm.signals[k], law.signals[k],
+                                                                           cold.signals[k])

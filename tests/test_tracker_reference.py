@@ -191,3 +191,25 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
     est = tr.estimate()
     assert dm.ess_factor("CdAleak", est["CdAleak"][1] / est["CdAleak"][0]) > dm.ess_factor(
         "Cd", est["Cd"][1] / est["Cd"][0])  # the slow, weakly identified leakage counts fewer samples
+
+
+USER_RIG = [("chirp", 9), ("can_rate", 10)]
+
+
+@pytest.mark.parametrize("name, seed", USER_RIG, ids=[u[0] for u in USER_RIG])
+def test_users_rig_healthy_raises_nothing(name, seed):
+    """A chirp of 0.1-8 Hz up to the speed limit 0.25 m/s on the analog controller (tracked with the continuous
+    controller and a cubic demand), and pressures at 500 Hz with CAN-jittered stamps: nothing raised."""
+    rec, controller = record(name, seed, 30.0)
+    if name == "chirp":
+        assert np.max(np.abs(np.gradient(rec.hidden["x"], rec.dt))) > 0.2
+    s = to_samples(rec)
+    tr = OnlineTracker(timing=Timing.parse(controller, "cubic" if controller == "continuous" else None))
+    dm, events, outs = _run(s, tr, _commissioned(rec))
+    assert events == [], [(e.t_s, e.parameter, e.level) for e in events]
+    assert _bounded(tr, outs)
+    assert (outs[-1].guard == "consistent").mean() > 0.9
+    if name == "can_rate":  # the held pressures reached the update as missing, the fresh ones were used
+        used = np.concatenate([o.used for o in outs])
+        held = rec.hidden["fresh_pA"] == 0
+        assert not used[held, 1].any() and used[~held, 1].mean() > 0.95

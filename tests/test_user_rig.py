@@ -240,3 +240,76 @@ def test_a_rate_change_is_not_read_as_jitter():
     s = Samples(t.astype(np.int64), {"x": np.zeros(t.size)})
     with pytest.raises(DataError, match="not jitter of a fixed sample rate"):
         records_from_samples(s, "two rates")
+
+
+# --- signals at their own rates -----------------------------------------------------------------------
+def test_fresh_mask_finds_held_signals_and_leaves_quantised_ones_alone():
+    from twin.record import fresh_mask
+
+    rng = np.random.default_rng(1010)
+    n = 4000
+    k = np.arange(n)
+    fast = rng.normal(0.0, 1.0, n)
+    for every in (2, 4, 100):
+        held = fast[k - k % every]
+        m = fresh_mask(held)
+        assert m is not None and np.array_equal(m, k % every == 0)
+    assert fresh_mask(fast) is None
+    # quantised at 1 um with 0.4 um of noise at rest (most samples repeat): measured on every sample all the same
+    q = np.round(rng.normal(0.0, 0.4e-6, n) / 1e-6) * 1e-6
+    assert np.mean(q[1:] == q[:-1]) > 0.5 and fresh_mask(q) is None
+    assert fresh_mask(np.zeros(n)) is None  # a constant signal holds nothing
+
+
+def test_a_prediction_is_held_as_the_log_holds_its_signal():
+    from twin.record import as_logged
+
+    rng = np.random.default_rng(1011)
+    k = np.arange(1000)
+    p = rng.normal(0.0, 1.0, 1000)
+    rec = Record(1e-3, {"x": rng.normal(0.0, 1.0, 1000), "pA": p[k - k % 2]})
+    pred = np.arange(2000.0).reshape(2, 1000)
+    np.testing.assert_array_equal(as_logged(rec, "pA", pred), pred[:, k - k % 2])
+    assert as_logged(rec, "x", pred) is pred
+    np.testing.assert_array_equal(as_logged(rec, "pA", pred[:, :7]), pred[:, [0, 0, 2, 2, 4, 4, 6]])
+
+
+@pytest.fixture(scope="module")
+def can_rate_record(reference_records):
+    from conftest import msp25_spec
+
+    return reference_records([msp25_spec(1008, duration=DURATION, truth="draw", known=PID, pid={"Tf": 1e-3},
+                                         signal_rates={"pA": 500.0, "pB": 500.0}, time_jitter_s=150e-6)])[0]
+
+
+def test_can_rate_pressures_fit_on_their_fresh_samples_only(can_rate_record):
+    ref = can_rate_record
+    s = Samples(np.round(ref.t * 1e9).astype(np.int64), {k: np.asarray(v, float) for k, v in ref.signals.items()})
+    (rec,) = records_from_samples(s, "can")
+    for o in ("pA", "pB"):
+        np.testing.assert_array_equal(rec.fresh_of(o), ref.hidden[f"fresh_{o}"] > 0)
+    assert rec.fresh_of("x") is None
+    res = fit(RIG, rec, FREE, base=RIG.params(**PID, Tf=1e-3), start=off_truth(ref, 1008))
+    assert_within(res, ref, "CAN-rate pressures")
+    assert res.n_obs == len(rec) * 2  # x on every sample, each pressure on every other one
+
+
+def test_tracker_takes_a_held_pressure_as_missing(can_rate_record):
+    from twin.online.tracker import OnlineTracker
+
+    ref = can_rate_record
+    s = Samples(np.round(ref.t * 1e9).astype(np.int64), {k: np.asarray(v, float) for k, v in ref.signals.items()})
+    out = OnlineTracker(params={**PID, "Tf": 1e-3}).process(s)
+    held = ref.hidden["fresh_pA"] == 0
+    j = ["x", "pA", "pB"].index("pA")
+    assert not out.used[held, j].any()
+    assert out.used[~held, j].mean() > 0.95 and out.used[:, 0].mean() > 0.95
+
+
+def test_a_chirp_to_the_speed_limit_fits_within_three_standard_errors(reference_records):
+    from conftest import msp25_spec
+
+    ref = reference_records([msp25_spec(1009, duration=DURATION, truth="draw", demand={"kind": "chirp"})])[0]
+    assert np.max(np.abs(np.gradient(ref.signals["x_ref"], ref.dt))) > 0.2  # it reaches the speed limit
+    res = fit(RIG, product_record(ref), FREE, start=off_truth(ref, 1009))
+    assert_within(res, ref, "chirp")

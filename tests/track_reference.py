@@ -1,7 +1,9 @@
 """Records of the independent reference simulator (``tests.reference``) for the tracker's tests and figures.
 
 Named scenarios (healthy with nominal, 2x and coloured noise; analog and 5 kHz
-digital controllers; friction steps, valve wn decay, worn seal) built from
+digital controllers; friction steps, valve wn decay, worn seal; the user's rig:
+the demands ``chirp`` (on the analog controller), ``sweep``, ``blocks``, ``road``,
+pressures at 500 Hz with CAN-jittered stamps ``can_rate``, warming oil ``warming``) built from
 ``tests.reference.msp25_spec`` and cached on disk (the simulator takes about
 0.8 s per simulated second): ``$FPDD_REF_CACHE`` or
 ``~/.cache/fpdd-twin/reference``, one ``.npz`` per spec digest.  Nothing here
@@ -31,6 +33,10 @@ from reference.tables import MSP25_FREE  # noqa: E402
 TWO_PI = 2.0 * math.pi
 WN = MSP25_FREE["wn"]
 LEAK = MSP25_FREE["CdAleak"]
+
+
+#: healthy scenarios named by their demand kind (tests.reference.msp25.DEMAND_KINDS)
+DEMANDS = ("chirp", "sweep", "blocks", "road")
 
 
 def cache_dir() -> str:
@@ -72,6 +78,21 @@ def scenario(name: str, seed: int = 0, duration: float = 30.0) -> dict[str, Any]
         kw["time_varying"] = {"wn": {"kind": "ramp", "t0": 5.0, "t1": 25.0, "start": WN, "end": TWO_PI * 30.0}}
     elif name == "worn_seal":  # leakage x1 -> x30, linear over 20 s from 5 s
         kw["time_varying"] = {"CdAleak": {"kind": "ramp", "t0": 5.0, "t1": 25.0, "start": LEAK, "end": 30 * LEAK}}
+    elif name in DEMANDS:  # the test engineer's demands, healthy; the chirp on the analog controller
+        kw["truth"] = "draw"
+        kw["demand"] = {"kind": name}
+        if name == "chirp":
+            kw["controller"] = "analog"
+            controller = "continuous"
+    elif name == "can_rate":  # pressures at 500 Hz as the DBC logs them, time stamps with CAN jitter
+        kw["truth"] = "draw"
+        kw["signal_rates"] = {"pA": 500.0, "pB": 500.0}
+        kw["time_jitter_s"] = 150e-6
+    elif name == "warming":  # oil 40 -> 60 C over 10 min: bulk modulus -12 %, leakage +15 %
+        kw["truth"] = "draw"
+        kw["temperature"] = {"T": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": 313.15, "end": 333.15},
+                             "b_visc": math.log(1.15) / 20.0}
+        kw["signal_rates"] = {"T_oil": 10.0}
     else:
         raise ValueError(f"unknown scenario {name!r}")
     return {"spec": kw, "controller": controller}

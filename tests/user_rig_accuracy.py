@@ -1,6 +1,6 @@
 """Five-parameter fits of the user's rig on the independent reference simulator (a measurement, not a test).
 
-    python tests/user_rig_accuracy.py --seeds 3 [--duration 12] [--json]
+    python -m tests.user_rig_accuracy --seeds 3 [--duration 12] [--diagnose] [--track-s 300] [--json]
 
 Cases, per verification seed (1000 + i; truth drawn 3-20 % off Table 9, noise through the loop, starts 10-40 %
 off the truth):
@@ -16,8 +16,17 @@ off the truth):
 * ``pid_tf_unstated``: the ``pid_filtered`` records fitted without the derivative filter stated (``Tf = 0``):
   what the filter is worth.
 
+* ``can_rate``: the PID rig with its pressures logged at 500 Hz as the DBC logs them (held onto the 1 kHz grid
+  of x) and time stamps 0-150 us late;
+* ``chirp``, ``sweep``, ``blocks``, ``road``: the paper's rig under the test engineer's demands (a chirp of
+  0.1-8 Hz and a logarithmic sweep of 0.2-15 Hz at 5 mm up to the speed limit 0.25 m/s, block loading, a
+  road-load profile; :mod:`tests.reference.signals`).
+
 Prints per case and parameter: the largest |z| (error over the fit's standard error) and the largest relative
-error over the seeds.
+error over the seeds.  ``--diagnose``: the healthy diagnosis of each record too (names nothing, not
+"unexplained").  ``--track-s S``: healthy tracking of each tracking case for S seconds (bands centred on the
+truth, as a commissioning fit gives them; alarm events counted), and a worn seal and a friction rise on the
+CAN-rate rig, alarmed on their own parameter.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(1, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the project (tests.*)
 
 from reference import batch, msp25_spec  # noqa: E402
 
@@ -47,6 +57,9 @@ CASES = {
     "pid_filtered": ({"known": PID, "pid": {"Tf": 1e-3}}, {**PID, "Tf": 1e-3}),
     "pid_jitter": ({"known": PID, "pid": {"Tf": 1e-3}, "time_jitter_s": 150e-6}, {**PID, "Tf": 1e-3}),
     "pid_tf_unstated": ({"known": PID, "pid": {"Tf": 1e-3}}, PID),
+    "can_rate": ({"known": PID, "pid": {"Tf": 1e-3}, "signal_rates": {"pA": 500.0, "pB": 500.0},
+                  "time_jitter_s": 150e-6}, {**PID, "Tf": 1e-3}),
+    **{k: ({"demand": {"kind": k}}, {}) for k in ("chirp", "sweep", "blocks", "road")},
 }
 
 
@@ -79,11 +92,52 @@ def one(case: str, ref, seed: int) -> dict:
     return row
 
 
+def diagnosed(case: str, ref, seed: int) -> dict:
+    from twin.estimation.diagnose import diagnose
+
+    rig = get_model("msp25")
+    d = diagnose(rig, product_record(ref, f"{case}{seed}"), base=rig.params(**CASES[case][1]))
+    return {"seed": seed, "causes": list(d.causes), "unexplained": bool(d.unexplained)}
+
+
+#: healthy tracking: scenario of tests/track_reference.py -> the product's known parameters
+TRACK_CASES = {"chirp": {}, "sweep": {}, "blocks": {}, "road": {}, "can_rate": {}}
+#: faults on the CAN-rate rig: scenario -> (parameter that must alarm, alone)
+TRACK_FAULTS = {"worn_seal": "CdAleak", "friction_step": "Ffric"}
+
+
+def tracked(name: str, seed: int, duration: float, fault: str | None = None) -> dict:
+    """Run the tracker over one reference record: alarm events (time, parameter, level)."""
+    from track_reference import scenario, to_samples
+
+    from test_tracker_reference import NOMINAL_BANDS, _commissioned, _run
+    from twin.models.base import Timing
+    from twin.online.tracker import OnlineTracker
+
+    sc = scenario(fault or name, seed, duration)
+    kw = dict(sc["spec"])
+    if fault:  # the fault on the CAN-rate rig: pressures at 500 Hz, time stamps 0-150 us late
+        kw.update(signal_rates={"pA": 500.0, "pB": 500.0}, time_jitter_s=150e-6)
+    (ref,) = batch([msp25_spec(**kw)], workers=1)
+    timing = Timing.parse(sc["controller"], "cubic" if sc["controller"] == "continuous" else None)
+    tr = OnlineTracker(timing=timing, **({"start": {"Ffric": 40.0, "zeta": 0.33}} if fault else {}))
+    _, events, _ = _run(to_samples(ref), tr, NOMINAL_BANDS if fault else _commissioned(ref))
+    return {"scenario": fault or name, "seed": seed, "duration_s": duration,
+            "events": [(round(e.t_s, 3), e.parameter, e.level) for e in events]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--duration", type=float, default=12.0)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--diagnose", type=int, default=0, metavar="N",
+                    help="also the healthy diagnosis of the first N seeds' records of every case")
+    ap.add_argument("--track-s", type=float, default=0.0,
+                    help="also healthy tracking of this many seconds per tracking case, and the faults")
+    ap.add_argument("--warming", action="store_true",
+                    help="also 10 min of a healthy rig whose oil warms from 40 to 60 C (bulk modulus -12 %%, "
+                         "leakage +15 %%; T_oil logged at 10 Hz): alarm events counted")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
@@ -99,7 +153,20 @@ def main(argv=None) -> int:
     for (c, seed, _), ref in zip(specs, refs):
         rows[c].append(one(c, ref, seed))
         print(f"  {c} seed {seed}: fitted", file=sys.stderr, flush=True)
-    out = {"seeds": args.seeds, "duration_s": args.duration, "cases": {}}
+    out: dict = {"seeds": args.seeds, "duration_s": args.duration, "cases": {}}
+    if args.diagnose:
+        out["diagnosis"] = {}
+        for (c, seed, _), ref in zip(specs, refs):
+            if seed >= 1000 + args.diagnose:
+                continue
+            out["diagnosis"].setdefault(c, []).append(diagnosed(c, ref, seed))
+            print(f"  {c} seed {seed}: diagnosed", file=sys.stderr, flush=True)
+    if args.track_s > 0:
+        print("tracking...", file=sys.stderr, flush=True)
+        out["tracking"] = [tracked(n, 1000 + i, args.track_s) for i, n in enumerate(TRACK_CASES)]
+        out["faults"] = [tracked("can_rate", 1100 + i, 20.0, fault=f) for i, f in enumerate(TRACK_FAULTS)]
+    if args.warming:
+        out.setdefault("tracking", []).append(tracked("warming", 1200, 600.0))
     for c, rs in rows.items():
         d = {"converged": sum(r["success"] for r in rs),
              "max_abs_z": {k: max(abs(r[k]["z"]) for r in rs) for k in FREE},
@@ -117,6 +184,16 @@ def main(argv=None) -> int:
         print(f"{c:<14} {d['converged']:>4} {cells}")
         if "refused_by_symmetric_model" in d:
             print(f"{'':<14} the symmetric model refused {d['refused_by_symmetric_model']} of {args.seeds}")
+    for c, rs in out.get("diagnosis", {}).items():
+        named = sum(bool(r["causes"]) for r in rs)
+        unexp = sum(r["unexplained"] for r in rs)
+        print(f"diagnosis {c:<14} named something: {named} of {len(rs)}; unexplained: {unexp} of {len(rs)}")
+    for r in out.get("tracking", []):
+        print(f"tracking {r['scenario']:<10} {r['duration_s']:g} s: {len(r['events'])} alarm event(s) {r['events']}")
+    for r, (f, p) in zip(out.get("faults", []), TRACK_FAULTS.items()):
+        ok = bool(r["events"]) and {e[1] for e in r["events"]} == {p}
+        print(f"fault {f:<14} on the CAN-rate rig: {'alarmed on ' + p + ' alone' if ok else 'NOT as expected'} "
+              f"{r['events'][:4]}")
     return 0
 
 

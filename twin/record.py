@@ -4,6 +4,12 @@ Sources deliver :class:`replay.base.Samples` with integer-nanosecond times;
 :func:`records_from_samples` checks the grid and splits it at gaps (a fit never
 bridges a gap: each piece becomes a record and parameters are shared across
 them).  Inside a record time is float seconds from its first sample.
+
+Signals at their own rates: a reader delivers a signal refreshed more slowly
+than the grid (CAN pressures at 500 Hz on the 1 kHz grid of x, the oil
+temperature at 10 Hz) held, its last value repeated (:mod:`replay.can.decode`).
+:func:`fresh_mask` says which samples are measurements (see there for the one
+rule); fit, noise model and diagnosis weigh only those.
 """
 
 from __future__ import annotations
@@ -23,6 +29,9 @@ class Record:
     signals: dict[str, np.ndarray]
     name: str = "record"
     t0_ns: int = 0
+    #: per signal refreshed more slowly than the grid: True where a sample is fresh (a measurement), False
+    #: where it holds an earlier one; ``None``: read off the values by :func:`fresh_mask` when asked
+    fresh: dict[str, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if not (self.dt > 0 and np.isfinite(self.dt)):
@@ -41,6 +50,16 @@ class Record:
                 raise DataError(f"{self.name}: signal {k!r} has {int(bad.sum())} non-finite values "
                                 f"(first at sample {int(np.flatnonzero(bad)[0])}); clean the record first")
             self.signals[k] = v
+
+    def fresh_of(self, name: str) -> np.ndarray | None:
+        """Which samples of ``name`` are measurements (``None``: all of them); see :func:`fresh_mask`."""
+        if self.fresh is None:
+            self.fresh = {}
+        if name not in self.fresh:
+            m = fresh_mask(self.signals[name])
+            self.fresh[name] = np.ones(0, bool) if m is None else m
+        m = self.fresh[name]
+        return None if m.size == 0 else m
 
     def __len__(self) -> int:
         return 0 if not self.signals else next(iter(self.signals.values())).shape[0]
@@ -66,14 +85,60 @@ class Record:
                             f"the record has {', '.join(self.signals) or 'none'}")
 
     def slice(self, start: int, stop: int) -> Record:
+        fresh = None if self.fresh is None else {k: (v if v.size == 0 else v[start:stop].copy())
+                                                  for k, v in self.fresh.items()}
         return Record(self.dt, {k: v[start:stop].copy() for k, v in self.signals.items()},
-                      f"{self.name}[{start}:{stop}]", self.t0_ns + int(round(start * self.dt * 1e9)))
+                      f"{self.name}[{start}:{stop}]", self.t0_ns + int(round(start * self.dt * 1e9)), fresh)
 
     def to_samples(self):
         from replay.base import Samples
 
         t_ns = self.t0_ns + np.round(np.arange(len(self)) * self.dt * 1e9).astype(np.int64)
         return Samples(t_ns, {k: v.copy() for k, v in self.signals.items()})
+
+
+#: a held signal's runs of one value are this long most often, in this share of its runs at least
+HELD_MIN_RUN = 2
+HELD_MIN_SHARE = 0.5
+
+
+def fresh_mask(values) -> np.ndarray | None:
+    """The one rule for a signal at its own, slower rate held onto the grid: ``True`` where a sample is fresh
+    (a measurement), ``False`` where it repeats the one before it bit for bit; ``None`` when the signal is
+    refreshed on every sample.
+
+    A signal is held when its value changes at a regular spacing of two samples or more: the most common
+    distance between changes of value is at least :data:`HELD_MIN_RUN` samples, in at least
+    :data:`HELD_MIN_SHARE` of them.  A signal measured on every sample changes at every sample, or (quantised,
+    at rest) at geometrically distributed distances whose most common value is one: never held.  A held value
+    is not a measurement; a fresh value that happens to equal the one before is lost with them (one sample).
+    """
+    v = np.asarray(values)
+    if v.size < 8:
+        return None
+    change = v[1:] != v[:-1]
+    idx = np.flatnonzero(change)
+    if idx.size < 4:
+        return None
+    gaps = np.diff(idx)
+    counts = np.bincount(gaps)
+    mode = int(np.argmax(counts))
+    if mode < HELD_MIN_RUN or counts[mode] < HELD_MIN_SHARE * gaps.size:
+        return None
+    return np.concatenate([[True], change])
+
+
+def as_logged(record: Record, name: str, predicted: np.ndarray) -> np.ndarray:
+    """A prediction of signal ``name`` as ``record`` logs it: at a held signal's held samples, the prediction
+    at its last fresh sample (the sensor read then, the log repeated it); unchanged for a signal measured on
+    every sample.  ``predicted [..., n]``: the first ``n`` samples of the record."""
+    fresh = record.fresh_of(name)
+    if fresh is None:
+        return predicted
+    n = predicted.shape[-1]
+    k = np.arange(n)
+    last = np.maximum.accumulate(np.where(fresh[:n], k, 0))
+    return predicted[..., last]
 
 
 def grid_steps(d_ns, dt_ns: float):

@@ -23,8 +23,22 @@ chamber's volume at mid stroke; both default to the piston side's ``A``, ``V0``)
 ``time_jitter_s``: the logged time stamps are late by a uniform draw in [0, jitter]
 (CAN arbitration), the values are still those at the nominal instants.
 
-The demand r(t) is a multisine evaluated analytically (``intersample: analytic``) or
-its log samples held (``zoh``), linearly interpolated (``foh``) or splined (``cubic``).
+The demand r(t) (``demand["kind"]``) is a multisine, a ``chirp`` (linear frequency rise) or ``sweep``
+(logarithmic), both at the rig's speed limit ``v_max`` once the frequency is high enough, ``blocks``
+(block loading: sines of drawn frequencies and amplitudes, block by block) or ``road`` (a road-load
+profile, band-limited random), all drawn from the seed (see :mod:`.signals`), or given samples;
+evaluated analytically (``intersample: analytic``) or its log samples held (``zoh``), linearly
+interpolated (``foh``) or splined (``cubic``).
+
+Signals at their own rates (``signal_rates``, Hz, e.g. ``{"pA": 500, "pB": 500}`` as the DBC logs
+the pressures): a slower signal is sampled at every ``log_rate / rate``-th log instant and held onto
+the log grid in between, as the product's CAN reader delivers it (the latest frame held, nothing
+interpolated); ``hidden["fresh_<name>"]`` marks its fresh samples (1) and held ones (0).
+
+Oil temperature (``temperature``): ``{"T": K or a time variation (step, ramp, exp, table),
+"T0": 313.15, "a_bulk": 0.006, "b_visc": 0.03, "quant": 0.1}``; the bulk modulus and the leakage
+follow it (laws in :mod:`.msp25_rhs`), ``Table 8``'s ``B`` and the truth's ``CdAleak`` hold at
+``T0``; ``T_oil`` is logged (K, quantised at ``quant``; at its own rate when in ``signal_rates``).
 A pre-roll of ``preroll`` seconds on the demand's first value, started from a solved
 equilibrium, precedes the record; logging starts at t = 0.
 """
@@ -44,8 +58,8 @@ from scipy.optimize import root
 from . import msp25_rhs as R
 from .integrate import DRIVERS, METHODS, piece
 from .record import Record
-from .signals import (multisine_table, noise_sequence, pade_delay, poly_table, quantise, sig_eval,
-                      tv_breaks, tv_eval, tv_row, tv_tables)
+from .signals import (blocks_table, chirp_table, multisine_table, noise_sequence, pade_delay, poly_table, quantise,
+                      road_table, sig_eval, tv_breaks, tv_eval, tv_row, tv_tables)
 from .tables import MSP25_FREE, MSP25_KNOWN, draw_effects, draw_truth
 
 CONTROLLERS = ("analog", "digital", "open_loop")
@@ -53,6 +67,19 @@ DEFAULT_NOISE = {"x": 2e-6, "pA": 2e4, "pB": 2e4, "tau": 0.0, "oversample": 1,
                  "quant": {"x": 0.0, "pA": 0.0, "pB": 0.0}}
 DEFAULT_DEMAND = {"kind": "multisine", "amplitude": 5e-3, "f_lo": 0.2, "f_hi": 15.0, "n_lines": 16,
                   "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"}
+#: the test engineer's demands (``sweep_s``, ``None``: the record's duration; ``v_max``: the rig's speed limit, m/s)
+DEMAND_KINDS = {
+    "multisine": DEFAULT_DEMAND,
+    "chirp": {"kind": "chirp", "amplitude": 5e-3, "f_lo": 0.1, "f_hi": 8.0, "v_max": 0.25, "sweep_s": None,
+              "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"},
+    "sweep": {"kind": "sweep", "amplitude": 5e-3, "f_lo": 0.2, "f_hi": 15.0, "v_max": 0.25, "sweep_s": None,
+              "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"},
+    "blocks": {"kind": "blocks", "amplitude": 5e-3, "f_lo": 0.5, "f_hi": 10.0, "v_max": 0.25, "block_s": 2.0,
+               "fade_s": 0.2, "min_fraction": 0.2, "offset": 0.0, "intersample": "analytic"},
+    "road": {"kind": "road", "amplitude": 5e-3, "f_lo": 0.2, "f_hi": 20.0, "n_lines": 200, "v_max": 0.25,
+             "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"},
+}
+TEMPERATURE_DEFAULT = {"T": 313.15, "T0": 313.15, "a_bulk": 0.006, "b_visc": 0.03, "quant": 0.1}
 # absolute tolerances per state (SI): xs vs pA pB x v x2 v2 zi zd z0..z3 pAm pBm
 ATOL = np.array([1e-12, 1e-9, 1.0, 1.0, 1e-11, 1e-9, 1e-11, 1e-9, 1e-12, 1e-11, 1e-11, 1e-11, 1e-11, 1e-11,
                  1.0, 1.0])
@@ -67,7 +94,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
                drive: Mapping | None = None, init=None, rtol: float = 1e-8, atol_scale: float = 1.0,
                max_step: float = 1e-3, method: str = "LSODA", driver: str = "odeint", pade_order: int = 3,
                derivative_filter_s: float = 1e-3, pid: Mapping | None = None,
-               time_jitter_s: float = 0.0) -> dict:
+               time_jitter_s: float = 0.0, signal_rates: Mapping[str, float] | None = None,
+               temperature: Mapping | None = None) -> dict:
     """A complete MSP25 spec (plain dict): every default filled in, truth and effect sizes drawn.
 
     ``truth``: None (Table 9), ``"draw"`` (:func:`draw_truth` with ``spread``) or a dict of free
@@ -143,14 +171,17 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
             raise ValueError("an open-loop drive is sampled: intersample zoh, foh or cubic")
     else:
         drv = None
-        dem = {**DEFAULT_DEMAND, **dict(demand or {})}
+        kind = (demand or {}).get("kind", "multisine")
+        dem = {**DEMAND_KINDS.get(kind, DEFAULT_DEMAND), **dict(demand or {})}
+        if kind in ("chirp", "sweep") and dem["sweep_s"] is None:
+            dem["sweep_s"] = float(duration)
         if dem["kind"] == "samples":
             dem["values"] = np.asarray(dem["values"], float)
             dem.setdefault("intersample", "zoh")
             if dem["values"].shape != (n_log,):
                 raise ValueError(f"demand samples must number {n_log}, got {dem['values'].shape}")
-        elif dem["kind"] != "multisine":
-            raise ValueError(f"demand kind must be multisine or samples, got {dem['kind']!r}")
+        elif dem["kind"] not in DEMAND_KINDS:
+            raise ValueError(f"demand kind must be one of {', '.join(DEMAND_KINDS)} or samples, got {dem['kind']!r}")
         if intersample:
             dem["intersample"] = intersample
         isamp = dem["intersample"]
@@ -172,7 +203,34 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
                    "max_step": float(max_step)},
         "pade_order": int(pade_order), "derivative_filter_s": float(derivative_filter_s),
         "pid": _pid_spec(pid), "time_jitter_s": float(time_jitter_s),
+        "signal_rates": _rates_spec(signal_rates, log_rate_hz), "temperature": _temperature_spec(temperature),
     }
+
+
+def _rates_spec(rates: Mapping[str, float] | None, log_rate_hz: float) -> dict:
+    out = {}
+    for k, v in (rates or {}).items():
+        if k not in ("x", "pA", "pB", "u", "x_ref", "T_oil"):
+            raise ValueError(f"signal_rates: unknown signal {k!r}")
+        ratio = log_rate_hz / float(v)
+        if not (v > 0 and ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
+            raise ValueError(f"signal_rates: {k} at {v} Hz must divide the log rate {log_rate_hz} Hz")
+        out[k] = float(v)
+    return out
+
+
+def _temperature_spec(temp: Mapping | None) -> dict | None:
+    if temp is None:
+        return None
+    unknown = set(temp) - set(TEMPERATURE_DEFAULT)
+    if unknown:
+        raise ValueError(f"temperature: unknown setting(s) {sorted(unknown)}; known: {list(TEMPERATURE_DEFAULT)}")
+    out = {**TEMPERATURE_DEFAULT, **dict(temp)}
+    for k in ("T0", "a_bulk", "b_visc", "quant"):
+        out[k] = float(out[k])
+    if not isinstance(out["T"], Mapping):
+        out["T"] = float(out["T"])
+    return out
 
 
 PID_DEFAULT = {"Tf": 0.0, "d_on": "error", "Kff": 0.0, "u_max": None}
@@ -189,6 +247,26 @@ def _pid_spec(pid: Mapping | None) -> dict:
     out["Tf"], out["Kff"] = float(out["Tf"]), float(out["Kff"])
     out["u_max"] = None if out["u_max"] is None else float(out["u_max"])
     return out
+
+
+def _demand_table(dem: dict, seed: int, duration: float) -> tuple[np.ndarray, np.ndarray]:
+    """The analytic demand of a spec: its signal table (see :mod:`.signals`), drawn from ``seed``."""
+    kind = dem["kind"]
+    if kind == "multisine":
+        return multisine_table(dem["amplitude"], dem["f_lo"], dem["f_hi"], dem["n_lines"], seed, dem["ramp_s"],
+                               dem["offset"])
+    if kind in ("chirp", "sweep"):
+        return chirp_table(dem["amplitude"], dem["f_lo"], dem["f_hi"], dem["sweep_s"], dem["v_max"],
+                           kind == "sweep", dem["ramp_s"], dem["offset"])
+    if kind == "road":
+        return road_table(dem["amplitude"], dem["f_lo"], dem["f_hi"], dem["n_lines"], seed, dem["v_max"], duration,
+                          dem["ramp_s"], dem["offset"])
+    rng = np.random.default_rng([int(seed), 7002])
+    n = int(math.ceil(duration / dem["block_s"])) + 1
+    f = np.exp(rng.uniform(math.log(dem["f_lo"]), math.log(dem["f_hi"]), n))
+    a = dem["amplitude"] * rng.uniform(dem["min_fraction"], 1.0, n)
+    a = np.minimum(a, dem["v_max"] / (2 * math.pi * f))
+    return blocks_table(a, f, dem["block_s"], dem["fade_s"], dem["offset"])
 
 
 # --- set-up -----------------------------------------------------------------------------------
@@ -264,6 +342,14 @@ class _Setup:
             row, desc = tv_row(spec["time_varying"].get(name), spec["truth"][name], tabs, t_lo, spec["duration"])
             rows.append(row)
             self.truth_desc[name] = desc if name in spec["time_varying"] else spec["truth"][name]
+        temp = spec.get("temperature")
+        if temp is not None:
+            row, _ = tv_row(temp["T"], temp["T0"], tabs, t_lo, spec["duration"])
+            self.P[R.TEMP_ON], self.P[R.TREF] = 1.0, temp["T0"]
+            self.P[R.ABULK], self.P[R.BVISC] = temp["a_bulk"], temp["b_visc"]
+            rows.append(row)
+        else:
+            rows.append([0.0, 0.0, 0.0, 0.0, 0.0])
         self.tv, self.tab = tv_tables(rows, tabs)
         ctrl = spec["controller"]
         rng = np.random.default_rng([spec["seed"], 1234])
@@ -274,9 +360,8 @@ class _Setup:
             self.P[R.MODE] = R.M_SIGNAL
         else:
             dem = spec["demand"]
-            if dem["kind"] == "multisine":
-                self.msp, self.msc = multisine_table(dem["amplitude"], dem["f_lo"], dem["f_hi"], dem["n_lines"],
-                                                     spec["seed"], dem["ramp_s"], dem["offset"])
+            if dem["kind"] != "samples":
+                self.msp, self.msc = _demand_table(dem, spec["seed"], spec["duration"])
                 tk = np.arange(self.n_log) * self.dt_log
                 self.x_ref = np.array([sig_eval(self.msp, self.msc, t, -1) for t in tk])
             else:
@@ -588,11 +673,29 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
     else:
         signals = {"x_ref": s.x_ref.copy(), "u": u_log}
     signals.update({"x": x, "pA": pA, "pB": pB})
+    temp = spec.get("temperature")
+    T = None
+    if temp is not None:
+        T = np.array([tv_eval(s.tv, s.tab, R.TV_TEMP, t) for t in tk])
+        signals["T_oil"] = quantise(T, temp["quant"])
+    fresh = {}
+    for name, rate in spec.get("signal_rates", {}).items():  # sampled at its own rate, held onto the log grid
+        if name not in signals:
+            continue
+        every = int(round(spec["log_rate_hz"] / rate))
+        k = np.arange(tk.size)
+        signals[name] = signals[name][k - k % every].copy()
+        fresh[f"fresh_{name}"] = (k % every == 0).astype(float)
     hidden = {"x": states[:, R.S_X].copy(), "v": states[:, R.S_V].copy(), "pA": states[:, R.S_PA].copy(),
               "pB": states[:, R.S_PB].copy(), "xs": states[:, R.S_XS].copy(), "x_sensor": xclean}
     for i, name in enumerate(R.FREE_ORDER):
         if name in spec["time_varying"]:
             hidden[name] = np.array([tv_eval(s.tv, s.tab, i, t) for t in tk])
+    hidden.update(fresh)
+    if T is not None:
+        dT = T - temp["T0"]
+        hidden.update({"T_oil": T, "B": s.P[R.BULK] * (1.0 - temp["a_bulk"] * dT),
+                       "leak_factor": np.exp(temp["b_visc"] * dT)})
     truth = dict(s.truth_desc)
     truth["Fext"] = spec["Fext"]
     for ename, vals in spec["effects"].items():

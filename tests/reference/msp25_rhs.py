@@ -6,6 +6,11 @@ resonance), ``zi`` integral of the control error, ``zd`` low-passed error (analo
 derivative term), ``z0..z3`` Pade delay states, ``pAm, pBm`` the pressure transducers'
 readings (a first-order sensor, when it has a time constant).  Unused states have zero
 derivative.
+
+Oil temperature ``T`` (when ``TEMP_ON``): the oil's bulk modulus falls linearly,
+``B(T) = B0 (1 - a (T - T0))`` (``a`` about 0.006/K for mineral oil), and the leakage flows (the
+orifice and the laminar term together) scale as the inverse of the viscosity,
+``nu(T) = nu0 exp(-b (T - T0))``, so ``q_leak(T) = q_leak(T0) exp(b (T - T0))``.
 """
 
 from __future__ import annotations
@@ -26,10 +31,10 @@ S_PAM, S_PBM = 14, 15
  KP, KI, KD, TD, MODE, UHELD, SEG,
  CVISC, FSTR, VSTR, GLAM, OVERLAP, BIAS, RSUP, KSPEC, GAIN, AIR, XSMAX, M2, K2, C2,
  PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON,
- AREA_B, V0_B, KTURB, TAUP) = range(51)
-NP = 51
-# time-varying free parameters, rows of the TV table
-TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN = range(5)
+ AREA_B, V0_B, KTURB, TAUP, TEMP_ON, TREF, ABULK, BVISC) = range(55)
+NP = 55
+# time-varying free parameters, rows of the TV table; then the oil temperature [K]
+TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN, TV_TEMP = range(6)
 FREE_ORDER = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
 # controller modes
 M_ANALOG, M_HELD, M_SIGNAL = 0, 1, 2
@@ -52,15 +57,15 @@ def _soft_relu(z, w):
 
 
 @nb.njit(cache=True, inline="always")
-def _bulk(p, P):
-    """Effective bulk modulus: oil with isothermal free air (fraction AIR at atmospheric pressure)."""
+def _bulk(p, P, B):
+    """Effective bulk modulus: oil of modulus B with isothermal free air (fraction AIR at atmospheric pressure)."""
     eps = P[AIR]
     if eps <= 0.0:
-        return P[BULK]
+        return B
     p0 = P[PATM]
     pa = max(p + p0, 0.05 * p0)
     r0 = eps / (1.0 - eps)
-    return (1.0 + r0 * p0 / pa) / (1.0 / P[BULK] + r0 * p0 / (pa * pa))
+    return (1.0 + r0 * p0 / pa) / (1.0 / B + r0 * p0 / (pa * pa))
 
 
 @nb.njit(cache=True)
@@ -162,13 +167,18 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
     qA, qB, _ = valve_flows(xs, pA, pB, P, Cd)
     dp = pA - pB
     qL = CdAleak * math.sqrt(2.0 / P[RHO]) * ssqrt(dp, P[DPREG]) + P[GLAM] * dp
+    B = P[BULK]
+    if P[TEMP_ON] > 0.0:  # warm oil: softer, thinner (module docstring)
+        dT = tv_eval(tv, tab, TV_TEMP, t) - P[TREF]
+        B *= 1.0 - P[ABULK] * dT
+        qL *= math.exp(P[BVISC] * dT)
     A = P[AREA]
     Ab = P[AREA_B]  # the rod side's annulus (a single-rod cylinder: smaller than A)
     V0v = P[V0]
     VA = max(V0v + A * x, 1e-3 * V0v)
     VB = max(P[V0_B] - Ab * x, 1e-3 * P[V0_B])
-    out[S_PA] = _bulk(pA, P) * (qA - qL - A * v) / VA
-    out[S_PB] = _bulk(pB, P) * (-qB + qL + Ab * v) / VB
+    out[S_PA] = _bulk(pA, P, B) * (qA - qL - A * v) / VA
+    out[S_PB] = _bulk(pB, P, B) * (-qB + qL + Ab * v) / VB
     # rod: dry (tanh) friction, Stribeck rise, viscous, specimen spring, second mass
     fs = P[FSTR]
     fd = Ffric

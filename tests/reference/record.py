@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-COLUMNS = {"msp25": ("x_ref", "u", "x", "pA", "pB"), "oscillator": ("u", "y")}
+COLUMNS = {"msp25": ("x_ref", "u", "x", "pA", "pB", "T_oil"), "oscillator": ("u", "y")}
 
 
 @dataclasses.dataclass
@@ -34,7 +34,7 @@ class Record:
         return str(self.meta["model"])
 
     def to_csv(self, path: str | os.PathLike) -> None:
-        """Write ``t,x_ref,u,x,pA,pB`` (msp25) or ``t,u,y`` (oscillator), SI, full precision."""
+        """Write ``t,x_ref,u,x,pA,pB[,T_oil]`` (msp25) or ``t,u,y`` (oscillator), SI, full precision."""
         cols = [c for c in COLUMNS[self.model] if c in self.signals]
         data = np.column_stack([self.t] + [self.signals[c] for c in cols])
         np.savetxt(path, data, delimiter=",", header=",".join(["t", *cols]), comments="",

@@ -5,7 +5,18 @@ A sampled signal between its samples is held (``zoh``), linearly interpolated
 of local polynomials ``c0 + c1 s + c2 s^2 + c3 s^3`` (``s`` = time since the
 sample) that the compiled right-hand side evaluates; before the first sample a
 signal keeps its first value, after the last its last value.  A ``multisine``
-is evaluated analytically.
+is evaluated analytically, and so are the test engineer's demands:
+
+* ``chirp``: a sine whose frequency rises linearly, ``f(t) = f0 + (f1 - f0) t / T``, phase
+  ``2 pi (f0 t + (f1 - f0) t^2 / (2 T))``; ``sweep``: the same with a logarithmic rise,
+  ``f(t) = f0 (f1 / f0)^(t / T)``, phase ``2 pi f0 T ((f1 / f0)^(t / T) - 1) / ln(f1 / f0)``.  Both at
+  amplitude ``min(A, v_max / (2 pi f(t)))``: the rod's speed stays at the rig's limit ``v_max`` once the
+  frequency has risen past ``v_max / (2 pi A)``.
+* ``blocks`` (block loading): consecutive blocks of constant-frequency sines of different amplitudes,
+  each faded in and out by a raised cosine (the signal and its rate stay continuous).
+* a road-load profile (band-limited random): a multisine of many lines at random frequencies in the
+  band, random phases, amplitudes falling as ``1/f`` (a road's displacement spectrum), scaled to its peak
+  and to the speed limit.
 """
 
 from __future__ import annotations
@@ -17,7 +28,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 INTERSAMPLE = ("zoh", "foh", "cubic")
-K_ZOH, K_FOH, K_CUBIC, K_MULTISINE = 0, 1, 2, 3
+K_ZOH, K_FOH, K_CUBIC, K_MULTISINE, K_CHIRP, K_BLOCKS = 0, 1, 2, 3, 4, 5
 TV_CONST, TV_STEP, TV_RAMP, TV_EXP, TV_TABLE = 0, 1, 2, 3, 4
 
 
@@ -66,10 +77,94 @@ def multisine_table(amplitude: float, f_lo: float, f_hi: float, n_lines: int, se
     return sigp, sc
 
 
+def chirp_table(amplitude: float, f0: float, f1: float, duration: float, v_max: float, log: bool = False,
+                ramp_s: float = 0.5, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(SIGP, SC)`` of a chirp (linear rise) or sweep (``log``) from ``f0`` to ``f1`` Hz over ``duration`` s,
+    amplitude ``min(amplitude, v_max / (2 pi f))``, raised-cosine ramp-in of ``ramp_s``."""
+    if not (0 < f0 < f1 and duration > 0 and amplitude > 0 and v_max > 0):
+        raise ValueError(f"chirp needs 0 < f_lo < f_hi, duration, amplitude, v_max > 0; got {f0}, {f1}, "
+                         f"{duration}, {amplitude}, {v_max}")
+    sc = np.array([[amplitude, f0, f1, duration], [v_max, 1.0 if log else 0.0, 0.0, 0.0]])
+    sigp = np.array([K_CHIRP, 0.0, 0.0, 2.0, ramp_s, offset])
+    return sigp, sc
+
+
+def blocks_table(amplitudes, freqs, block_s: float, fade_s: float, offset: float = 0.0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``(SIGP, SC)`` of block loading: block ``i`` on ``[i block_s, (i + 1) block_s)`` is
+    ``amplitudes[i] sin(2 pi freqs[i] (t - t_i))`` faded in and out over ``fade_s``."""
+    a = np.asarray(amplitudes, float)
+    f = np.asarray(freqs, float)
+    if a.shape != f.shape or a.ndim != 1 or not a.size or not 0 < 2 * fade_s <= block_s:
+        raise ValueError("blocks: matching amplitudes and frequencies, 0 < 2 fade_s <= block_s")
+    t0 = block_s * np.arange(a.size)
+    sc = np.stack([t0, t0 + block_s, a, f], axis=1)
+    sigp = np.array([K_BLOCKS, 0.0, 0.0, float(a.size), fade_s, offset])
+    return sigp, sc
+
+
+def road_table(amplitude: float, f_lo: float, f_hi: float, n_lines: int, seed: int, v_max: float,
+               duration: float, ramp_s: float = 0.5, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(SIGP, SC)`` of a road-load profile: ``n_lines`` sines at frequencies drawn uniformly in
+    ``[f_lo, f_hi]`` Hz (seeded), amplitudes ~ ``1/f`` times a Rayleigh draw, random phases; scaled so the
+    peak over ``duration`` is ``amplitude`` and the peak speed at most ``v_max``."""
+    rng = np.random.default_rng([int(seed), 7003])
+    f = np.sort(rng.uniform(f_lo, f_hi, n_lines))
+    a = rng.rayleigh(1.0, n_lines) / f
+    ph = rng.uniform(0.0, 2.0 * math.pi, n_lines)
+    tt = np.arange(0.0, max(duration, 1.0), 1e-3)
+    arg = 2 * math.pi * f[:, None] * tt[None, :] + ph[:, None]
+    peak = float(np.max(np.abs((a[:, None] * np.sin(arg)).sum(0))))
+    vpeak = float(np.max(np.abs((2 * math.pi * f[:, None] * a[:, None] * np.cos(arg)).sum(0))))
+    k = min(amplitude / peak, v_max / vpeak)
+    sc = np.zeros((n_lines, 4))
+    sc[:, 0] = a * k
+    sc[:, 1] = f
+    sc[:, 2] = ph
+    sigp = np.array([K_MULTISINE, 0.0, 0.0, n_lines, ramp_s, offset])
+    return sigp, sc
+
+
 @nb.njit(cache=True)
 def sig_eval(sigp, sc, t, seg):
     """Value of a signal table at ``t``; ``seg >= 0`` forces the sample interval (for held inputs)."""
     kind = int(sigp[0])
+    if kind == K_CHIRP:
+        if t <= 0.0:
+            return sigp[5]
+        A = sc[0, 0]
+        f0 = sc[0, 1]
+        f1 = sc[0, 2]
+        T = sc[0, 3]
+        tc = min(t, T)
+        if sc[1, 1] > 0.0:  # logarithmic sweep
+            k = math.log(f1 / f0)
+            f = f0 * math.exp(k * tc / T)
+            ph = 2.0 * math.pi * f0 * T * (math.exp(k * tc / T) - 1.0) / k
+        else:
+            f = f0 + (f1 - f0) * tc / T
+            ph = 2.0 * math.pi * (f0 * tc + 0.5 * (f1 - f0) * tc * tc / T)
+        ph += 2.0 * math.pi * f * (t - tc)  # beyond T: on at the end frequency
+        a = min(A, sc[1, 0] / (2.0 * math.pi * f))
+        v = a * math.sin(ph)
+        ramp = sigp[4]
+        if t < ramp:
+            v *= 0.5 * (1.0 - math.cos(math.pi * t / ramp))
+        return v + sigp[5]
+    if kind == K_BLOCKS:
+        fade = sigp[4]
+        v = 0.0
+        for i in range(sc.shape[0]):
+            ta = sc[i, 0]
+            tb = sc[i, 1]
+            if ta <= t < tb:
+                v = sc[i, 2] * math.sin(2.0 * math.pi * sc[i, 3] * (t - ta))
+                if t - ta < fade:
+                    v *= 0.5 * (1.0 - math.cos(math.pi * (t - ta) / fade))
+                elif tb - t < fade:
+                    v *= 0.5 * (1.0 - math.cos(math.pi * (tb - t) / fade))
+                break
+        return v + sigp[5]
     if kind == K_MULTISINE:
         if t <= 0.0:
             return sigp[5]

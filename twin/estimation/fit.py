@@ -18,7 +18,9 @@
 * Several records share the parameters; optional initial-state estimation adds
   per-record initial quantities (rod position, pressure difference).
 * Residuals of each output are weighted by its noise level, so x [m] and
-  pressures [Pa] can be fitted together.
+  pressures [Pa] can be fitted together.  A signal logged at its own, slower
+  rate and held onto the grid counts only at its fresh samples
+  (:func:`twin.record.fresh_mask`): a held value is not a measurement.
 * The loop's timing (:class:`~twin.models.base.Timing`: controller rate,
   intersample behaviour of the logged inputs) is a property of the rig that
   every simulation of the fit honours.
@@ -55,15 +57,19 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 
 from fpdd.errors import DataError, ParameterError
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
-from twin.estimation.hac import bartlett_lag
 from twin.record import Record
 from fpdd.units import NOMINAL_NOISE
+from twin.estimation.fit_result import FitResult
+from twin.estimation.fit_stats import hac_covariance, likelihood_ratio
+
+__all__ = ["FitResult", "fit", "hac_covariance", "likelihood_ratio", "make_problem", "noise_levels",
+           "initial_from_data", "resolve_outputs"]
 
 FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
 LOOP_NOISE_BAND = 0.4  # the loop noise's level is read off the residual above this fraction of Nyquist
@@ -74,119 +80,6 @@ RELATIVE_NOISE = 1e-3
 #: a fit whose Fit % of an output is at or below this explains almost nothing of it: converged or not, the
 #: result carries a warning (Fit % = 100 (1 - |e| / |y - mean y|): 10 % leaves 81 % of the variance)
 FIT_WARN_PCT = 10.0
-#: SI units of the initial-state quantities (``FitResult.init``)
-INIT_UNITS = {"x0": "m", "v0": "m/s", "dp0": "Pa", "pA0": "Pa", "pB0": "Pa", "u0": "V"}
-
-
-@dataclasses.dataclass
-class FitResult:
-    """Outcome of a fit (``scipy.optimize.OptimizeResult`` in spirit)."""
-
-    model: str
-    params: ParameterSet                 # all parameters, free ones at their estimates
-    free: tuple[str, ...]
-    estimate: dict[str, float]
-    std: dict[str, float]                # HAC (sandwich) standard errors
-    corr: np.ndarray
-    outputs: tuple[str, ...]
-    fit_pct: dict[str, float]
-    mse: dict[str, float]
-    nrmse: dict[str, float]
-    loglik: float
-    aic: float
-    aicc: float
-    bic: float
-    fpe: float
-    n_obs: int
-    n_par: int
-    cost: float
-    success: bool
-    status: int
-    message: str
-    nfev: int
-    history: list[dict]
-    starts: list[dict]
-    init: list[dict[str, float]]
-    time_s: float
-    predicted: list[dict[str, np.ndarray]] = dataclasses.field(repr=False, default_factory=list)
-    std_white: dict[str, float] = dataclasses.field(default_factory=dict)  # s^2 (J'J)^-1, white residuals
-    timing: dict = dataclasses.field(default_factory=dict)
-    #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
-    warnings: list[str] = dataclasses.field(default_factory=list)
-    #: the noise level (SI std) that weighted each output's residuals: the sensor noise the fit assumed
-    noise: dict[str, float] = dataclasses.field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        """Every number in SI with its unit beside it: ``{"value", "unit"}``, a sibling ``"unit"``, or a
-        sibling ``"<key>_unit"`` naming the unit of each entry of ``<key>`` (``mse_unit``, ``theta_unit``)."""
-        from twin.units import SIGNAL_UNITS
-
-        specs = {s.name: s for s in self.params.specs}
-        theta_unit = {n: specs[n].unit for n in self.free}
-        out_unit = {o: SIGNAL_UNITS.get(o, "") for o in self.outputs}
-        init_units = {k: INIT_UNITS.get(k, "") for d in self.init for k in d}
-        return {
-            "model": self.model,
-            "params": {n: {"value": self.estimate[n], "std": self.std[n], "std_white": self.std_white.get(n),
-                           "unit": specs[n].unit, "shown": specs[n].show(self.estimate[n])} for n in self.free},
-            "timing": self.timing,
-            "effects": list(self.params.effects),
-            "corr": {"names": list(self.free), "matrix": np.round(self.corr, 6).tolist()},
-            "outputs": list(self.outputs),
-            "fit_pct": self.fit_pct, "mse": self.mse, "mse_unit": {o: _squared(u) for o, u in out_unit.items()},
-            "nrmse": self.nrmse,
-            "noise_levels": {o: {"value": v, "unit": out_unit.get(o, "")} for o, v in self.noise.items()},
-            "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
-            "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
-            "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "init_unit": init_units,
-            "starts": [dict(d, theta_unit=theta_unit) for d in self.starts],
-            "history": [dict(d, theta_unit=theta_unit) for d in self.history],
-        }
-
-    def __repr__(self) -> str:
-        """One line: the estimates ± std in display units, Fit % per output, converged or not."""
-        specs = {s.name: s for s in self.params.specs}
-        est = ", ".join(f"{n}={specs[n].show(self.estimate[n])} ± {specs[n].show(self.std[n])}" for n in self.free)
-        fits = ", ".join(f"{k} {self.fit_pct[k]:.1f} %" for k in self.outputs)
-        return (f"FitResult(model={self.model!r}, {est}; Fit: {fits}; "
-                f"{'converged' if self.success else 'NOT converged'}, nfev={self.nfev}, {self.time_s:.2f} s)")
-
-    def saved(self) -> dict:
-        """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
-        fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
-        "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
-        from fpdd.units import SIGNAL_UNITS
-
-        params: dict[str, dict] = {}
-        for s, v in zip(self.params.specs, self.params.values):
-            params[s.name] = {"value": float(v), "unit": s.unit}
-            if s.name in self.free:
-                params[s.name]["std"] = float(self.std[s.name])
-        return {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
-                "params": params, "timing": self.timing,
-                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
-                          for o in self.outputs}}
-
-    def save(self, path: str) -> str:
-        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
-        from fpdd import jsonio
-
-        return jsonio.write(path, self.saved())
-
-    def table(self) -> str:
-        specs = {s.name: s for s in self.params.specs}
-        rows = [f"{'parameter':<10} {'estimate':>16} {'std':>14} {'rel std':>9}"]
-        for n in self.free:
-            v, s = self.estimate[n], self.std[n]
-            rel = abs(s / v) * 100 if v else float("nan")
-            rows.append(f"{n:<10} {specs[n].show(v):>16} {specs[n].show(s):>14} {rel:8.3g}%")
-        rows.append("  ".join(f"Fit({k})={self.fit_pct[k]:.3f}%" for k in self.outputs))
-        rows.append(f"AIC={self.aic:.6g} AICc={self.aicc:.6g} BIC={self.bic:.6g} FPE={self.fpe:.4g} "
-                    f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
-                    f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
-        rows.extend(f"WARNING: {w}" for w in self.warnings)
-        return "\n".join(rows)
 
 
 @dataclasses.dataclass
@@ -208,6 +101,20 @@ class _Problem:
     base_vec: np.ndarray
     #: per record: the loop noise the simulated controller reads, in antithetic pairs (None: a noise-free loop)
     dither: list[np.ndarray | None] = dataclasses.field(default_factory=list)
+    #: per record and output: 1 at fresh samples, 0 at held ones (None: every sample is a measurement)
+    weights: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
+
+    def weight(self, r: int, o: str) -> np.ndarray | None:
+        return self.weights[r].get(o) if self.weights else None
+
+    def fresh(self, r: int, o: str) -> np.ndarray:
+        """Which samples of output ``o`` of record ``r`` are measurements."""
+        w = self.weight(r, o)
+        return np.ones(len(self.records[r]), bool) if w is None else w > 0
+
+    def n_measured(self) -> int:
+        """The number of residuals that are measurements (held samples weigh nothing)."""
+        return sum(int(np.count_nonzero(self.fresh(r, o))) for r in range(len(self.records)) for o in self.outputs)
 
     @property
     def n_theta(self) -> int:
@@ -257,7 +164,9 @@ class _Problem:
                                  for k in range(Z.shape[0])]) if (self.init_names or self.init_fixed[r]) else None
             sim = self._simulate(r, P, S0)
             for o in self.outputs:
-                parts.append((sim.outputs[o] - rec[o][None, :]) / self.sigma[o])
+                e = (sim.outputs[o] - rec[o][None, :]) / self.sigma[o]
+                w = self.weight(r, o)
+                parts.append(e if w is None else e * w)
         return np.concatenate(parts, axis=1)
 
     def _simulate(self, r: int, P: np.ndarray, S0: np.ndarray | None):
@@ -398,8 +307,13 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     scale = np.array([0.0 if s.log_scaled else scales.get(s.name) or _linear_scale(model, s, base[s.name])
                       for s in specs])
     init_fixed = [dict(i) for i in init]
+    weights = []
+    for r in records:
+        w = {o: r.fresh_of(o) for o in outputs}
+        weights.append({o: m.astype(np.float64) for o, m in w.items() if m is not None})
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
-                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base))
+                    init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base),
+                    weights=weights)
 
 
 def noise_levels(model: Model, records: Sequence[Record], outputs: Sequence[str],
@@ -585,7 +499,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         starts_info[i]["final_cost"] = float(res.cost)
         if best is None or res.cost < best.cost:
             best = res
-        if best.cost <= 0.75 * R0.shape[1]:  # residuals at the noise floor: other starts cannot do better
+        if best.cost <= 0.75 * prob.n_measured():  # residuals at the noise floor: other starts cannot do better
             break
     if best is None:  # every refinement failed numerically: report the best screened start
         z = Z0[order[0]]
@@ -614,14 +528,14 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
     r = R[0]
     J = ((R[1:] - r) / FD_STEP).T
-    N = r.size
+    N = prob.n_measured()
     p = prob.n_z
     s2 = float(r @ r) / max(N - p, 1)
     g = np.concatenate([prob.dtheta_dz(theta), np.ones(p - prob.n_theta)])
     try:
         H_inv = np.linalg.pinv(J.T @ J)
         cov_white = s2 * H_inv * np.outer(g, g)
-        cov = hac_covariance(J, r, prob.block_sizes(), H_inv) * np.outer(g, g)
+        cov = hac_covariance(J, r, prob.block_sizes(), H_inv, N) * np.outer(g, g)
     except np.linalg.LinAlgError:
         cov_white = cov = np.full((p, p), np.nan)
     ct = cov[: prob.n_theta, : prob.n_theta]
@@ -640,8 +554,9 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
     fit_pct, mse, nrmse = {}, {}, {}
     loglik = 0.0
     for o in prob.outputs:
-        y = np.concatenate([rec[o] for rec in prob.records])
-        yh = np.concatenate([pr[o] for pr in pred])
+        keep = [prob.fresh(i, o) for i in range(len(prob.records))]
+        y = np.concatenate([rec[o][k] for rec, k in zip(prob.records, keep)])
+        yh = np.concatenate([pr[o][k] for pr, k in zip(pred, keep)])
         e = y - yh
         m = float(np.mean(e * e))
         den = float(np.linalg.norm(y - y.mean()))
@@ -670,45 +585,3 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResu
         message=message, nfev=nfev, history=history, starts=starts_info, init=init_list, time_s=elapsed,
         predicted=pred, std_white=dict(zip(prob.free, std_white.tolist())), timing=prob.timing.to_dict(),
         warnings=warnings, noise=dict(prob.sigma))
-
-
-def _squared(unit: str) -> str:
-    """The unit of a mean square: ``m`` -> ``m^2``, ``Pa`` -> ``Pa^2``; dimensionless stays ``""``."""
-    return f"{unit}^2" if unit and unit != "1" else ""
-
-
-def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
-                   H_inv: np.ndarray) -> np.ndarray:
-    """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
-
-    ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
-    residuals lie output after output; the scores of all outputs at one instant
-    are summed (so cross-correlations between outputs count), and their
-    autocovariances are summed within each record with Bartlett weights up to
-    an automatic lag.
-    """
-    Sm = np.zeros((J.shape[1], J.shape[1]))
-    start = 0
-    for m, n in blocks:
-        G = (J[start:start + m * n] * r[start:start + m * n, None]).reshape(m, n, -1).sum(axis=0)
-        start += m * n
-        Sm += G.T @ G
-        # at least sqrt(n): the scores of a closed loop are white sensor noise plus the slower response of the
-        # loop to the noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks
-        # a handful of lags, which on the reference simulator left the friction's standard error 20 % short
-        # (lag 9 on 12 000 samples; from lag 50 on every parameter's spread matches its standard error)
-        L = min(max(bartlett_lag(G), math.ceil(math.sqrt(n))), n // 4)
-        for lag in range(1, L + 1):
-            w = 1.0 - lag / (L + 1.0)
-            C = G[lag:].T @ G[:-lag]
-            Sm += w * (C + C.T)
-    N, p = J.shape
-    cov = H_inv @ Sm @ H_inv * (N / max(N - p, 1))
-    return cov
-
-
-def likelihood_ratio(nested: FitResult, extended: FitResult) -> tuple[float, float, int]:
-    """LR statistic, p-value and degrees of freedom of ``extended`` against ``nested``."""
-    df = extended.n_par - nested.n_par
-    lr = max(0.0, 2.0 * (extended.loglik - nested.loglik))
-    return lr, float(stats.chi2.sf(lr, max(df, 1))), df

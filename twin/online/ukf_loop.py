@@ -246,13 +246,14 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
             # the largest excursion of the signal from its centre lately (a clip sits at it)
             cen = setup.out_centre[j]
             ch[j, H_EXT] = max(abs(zj - cen), ch[j, H_EXT] * (1.0 - max(dtk, dt0) / 30.0))
-            # the same value again: suspect until it moves
+            # the same value again: a held value (a signal at its own, slower rate, twin.record.fresh_mask),
+            # not a measurement; suspect until it moves
             if zj == ch[j, H_LAST_RAW]:
                 ch[j, H_RUN_SAME] += 1.0
             else:
                 ch[j, H_RUN_SAME] = 0.0
             ch[j, H_LAST_RAW] = zj
-            if ch[j, H_RUN_SAME] >= 2.0:
+            if ch[j, H_RUN_SAME] >= 1.0:
                 use[j] = False
         # ---- re-initialise after a long gap (or after an unrepairable prediction)
         if reinit:

@@ -14,7 +14,7 @@ from twin.models import Model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.estimation.noise_model import (NoiseModel)
 from twin.params import Effect, ParameterSet
-from twin.record import Record
+from twin.record import Record, as_logged
 from twin.estimation.residuals import ResidualAnalysis
 from twin.estimation.diagnose.constants import ALPHA, LIMITS
 
@@ -127,7 +127,7 @@ def _simulate(data: _Data, ps: ParameterSet, timing: Timing) -> list[dict[str, n
     for rec, (name, drive), init in zip(data.records, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)
         sim = model.simulate_batch(P, name, drive, rec.dt, S0, None, timing)
-        d = {o: sim.outputs[o][0] for o in model.OUTPUTS}
+        d = {o: as_logged(rec, o, sim.outputs[o][0]) if o in rec else sim.outputs[o][0] for o in model.OUTPUTS}
         for k, v in sim.inputs.items():
             d[k] = np.asarray(v)[0] if np.ndim(v) == 2 else np.asarray(v)
         for j, k in enumerate(getattr(model, "STATES", ())):  # the states a limit probe needs (LIMITS)

@@ -10,6 +10,7 @@ import numpy as np
 from twin.estimation.fit import fit
 from twin.models.base import Timing
 from twin.params import ParameterSet
+from twin.record import as_logged
 from twin.estimation.diagnose.constants import FIT_TOL
 from twin.estimation.diagnose.data import ModelState, _Data
 from twin.estimation.diagnose.adequacy import _lr, _state
@@ -59,7 +60,7 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
         for o in data.outputs:
-            e = (sim.outputs[o] - rec[o][None, :n]) / data.sigma[o]
+            e = (as_logged(rec, o, sim.outputs[o]) - rec[o][None, :n]) / data.sigma[o]
             cost += np.sum(e * e, axis=1)
     return [float(c) if math.isfinite(c) else float("inf") for c in cost]
 

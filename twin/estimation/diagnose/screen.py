@@ -9,6 +9,7 @@ import numpy as np
 from scipy import stats
 
 from twin.models import Model
+from twin.record import as_logged
 from twin.estimation.noise_model import (NoiseModel, fit_noise_model,
                                          long_run_variance)
 from twin.estimation.diagnose.constants import LIMITS, LIMIT_QUANTILES, SECANTS, SECONDARY
@@ -102,7 +103,7 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
         sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, state.timing)
-        Y = np.stack([sim.outputs[o] / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
+        Y = np.stack([as_logged(rec, o, sim.outputs[o]) / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
         y = np.array([rec[o][:n] / data.sigma[o] for o in data.outputs])
         raw.append(np.concatenate([(y - Y[0])[None], Y[1:] - Y[0]], axis=0))
     nm = _clean_noise_model(data, raw) or state.noise
