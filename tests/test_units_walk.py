@@ -42,7 +42,7 @@ UNIT_SUFFIX = re.compile(r"(^|_)(s|ns|ms|us|hz|pct|mm|mpa|v|k|sec|nsec)(_per_[a-
 DIMENSIONLESS = frozenset({
     # counts and indices
     "samples", "n", "n_obs", "n_par", "nfev", "status", "iteration", "start", "seq", "df", "lags", "order",
-    "ar_order", "n_tests", "n_innovations", "records_read", "samples_out", "samples_lost", "seed", "messages",
+    "ar_order", "n_tests", "n_innovations", "raises", "records_read", "samples_out", "samples_lost", "seed", "messages",
     "blocks", "duplicates", "estimates", "statuses", "alarms", "received_by_subscriber", "level", "line",
     "speed", "factor",  # a replay speed (x real time), a drift's factor
     # ratios and relative values
@@ -51,12 +51,14 @@ DIMENSIONLESS = frozenset({
     # statistics, probabilities and noise-normalised figures
     "p", "p_adjusted", "p_effect", "p_min_bonferroni", "alpha", "z", "Q", "lm", "lr", "delta_aicc", "loglik", "aic",
     "aicc", "bic", "fpe", "cost", "final_cost", "weighted_sse", "innovations_ss", "nis", "p_within_horizon",
+    "misplaced",  # the share of an effect's gain its shifted signature explains again
 })
 #: objects whose every number is dimensionless
 DIMENSIONLESS_TREES = frozenset({
     "counters", "orders", "corr", "acf", "holdout_gain_interval", "nrmse", "excess",
     "xcorr",  # cross-correlations of residual and input: coefficients, their band, lags in samples
     "innovation_std",  # of the noise-normalised residuals
+    "signature",  # the naming rule's regression on an effect's shifted signature: sums of noise-normalised squares
 })
 
 
