@@ -243,3 +243,32 @@ def _samples(rec):
 
     t_ns = 1_700_000_000_000_000_000 + np.round(rec.t * 1e9).astype(np.int64)
     return Samples(t_ns, {k: np.asarray(v, float) for k, v in rec.signals.items()})
+
+
+def test_a_recorded_maintenance_is_kept_in_the_state_and_its_log_is_read_once_and_whole(tmp_path):
+    from twin.errors import DataError
+    from twin.service.maintenance import MaintenanceLog, check_request, maintenance_path
+
+    stream = _stream(1005, 600.0, lambda t: 1.0 + 2.5 * t / 700.0)
+    fm = ForecastMonitor("r", BASE)
+    _feed(fm, stream)
+    path = maintenance_path(tmp_path, "r")
+    log = MaintenanceLog(path, "r")
+    ev = log.append(*check_request({"parameters": "CdAleak", "note": "seal replaced"}, ("CdAleak", "wn")))
+    assert ev["seq"] == 1 and ev["parameters"] == ["CdAleak"]
+    with open(path, "ab") as f:  # a line being written by the service, not complete yet
+        f.write(b'{"rig": "r", "seq": 2, "param')
+    reader = MaintenanceLog(path, "r")
+    assert reader.since(0) == [ev]
+    back = fm.reset(ev["parameters"], why=ev["note"], record=ev)
+    assert [(e.level, e.kind) for e in back] == [("ok", "returned")]
+    assert fm.maintenance_seq == 1 and fm.maintained["CdAleak"]["note"] == "seal replaced"
+    assert fm.maintained["CdAleak"]["t"] == pytest.approx(599.95, abs=1.0)
+    again = ForecastMonitor("r", BASE)
+    again.restore(json.loads(json.dumps(fm.state())))
+    assert again.maintenance_seq == 1 and again.maintained == fm.maintained
+    assert reader.since(again.maintenance_seq) == []
+    for bad, field in (({"parameters": []}, "maintenance.parameters"), ({"parameters": ["Q"]}, "'Q' not tracked"),
+                       ({"parameters": ["wn"], "note": "a\nb"}, "maintenance.note"), ([], "JSON object")):
+        with pytest.raises(DataError, match=field):
+            check_request(bad, ("CdAleak", "wn"))
