@@ -275,3 +275,21 @@ def test_a_maintenance_sent_with_twin_maintenance_restarts_the_forecast_and_surv
     serve(cfg2, twins=again)
     assert again["rig-w"].forecast.maintenance_seq == 1 and again["rig-w"].forecast.maintained["CdAleak"]["seq"] == 1
     assert [(a.seq, a.identity) for a in journal()] == [(a.seq, a.identity) for a in first]
+
+
+def test_twin_top_shows_a_parameters_last_maintenance():
+    from rich.console import Console
+
+    from twin.commands.top import TopState, render
+
+    state = TopState()
+    msg = {**_msg(70.0, Ffric=(900.0, 500.0, 3000.0)),
+           "maintenance": {"CdAleak": {"t": 64.0, "seq": 1, "note": "seal replaced", "wall_ns": 1}}}
+    validate(msg, FORECAST_SCHEMA, "forecast")
+    state.put("forecast", msg)
+    snap = state.snapshot()
+    assert snap["r1"]["params"]["CdAleak"]["maintenance"]["seq"] == 1
+    console = Console(width=160, record=True)
+    console.print(render(snap, "test", live=False))
+    text = console.export_text()
+    assert "maintained #1 (seal replaced)" in text and "Ffric" in text
