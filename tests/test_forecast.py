@@ -165,7 +165,8 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     log = tmp_path / "wear.csv"
     wear_record.to_csv(log)
     out = tmp_path / "out"
-    assert cli.main(["track", str(log), "--out", str(out), "--json", "--forecast-horizon", "600"]) == 0
+    assert cli.main(["track", str(log), "--out", str(out), "--json", "--forecast-horizon", "600",
+                     "--maintenance", "CdAleak@200:seal replaced"]) == 0
     doc = json.loads(capsys.readouterr().out)
     fcs = doc["forecasts"]
     assert fcs and all(set(f) == {"parameter", "t", "t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon"}
@@ -193,6 +194,13 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     with open(doc["files"]["report"], encoding="utf-8") as f:
         html = f.read()
     assert "Early warning" in html and "first early alarm" in html
+    # the maintenance recorded at 200 s: the standing early alarm returns naming it, the forecast starts afresh
+    assert doc["maintenance"] == [{"parameters": ["CdAleak"], "t": 200.0, "note": "seal replaced"}]
+    back = [a for a in doc["alarms"] if a["level"] == "ok" and a["kind"] == "returned" and a["parameter"] == "CdAleak"
+            and "maintenance #1: seal replaced" in a["message"]]
+    assert len(back) == 1 and abs(back[0]["t"] - 200.0) <= 1.0
+    assert not [f for f in leak if f["t"] >= 200.0]  # none within the settling time and least span after it
+    assert "maintenance at 200 s: CdAleak (seal replaced)" in html
 
 
 def test_a_rig_restarted_from_an_older_checkpoint_journals_each_early_alarm_once(wear_record, tmp_path):
