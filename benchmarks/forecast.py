@@ -5,9 +5,12 @@ Slow wear of the independent reference simulator (``tests/reference``): leakage
 linearly or exponentially over 10-60 min of record at 1 kHz, default and doubled
 sensor noise, the other parameters drawn within +-10 % of Table 9 (the tracker
 starts at Table 9, away from the truth), the wearing one leaving its default
-healthy band about three quarters into the record; healthy records (drawn truth,
-nominal and doubled noise, a warming oil whose leakage rises 30 % and Cd 3 %
-with a 400 s time constant) for false warnings.
+healthy band about three quarters into the record (10-min records in
+``verify``, 30-60 min in ``long``: slower wear); healthy records (drawn truth,
+nominal and doubled noise, a warming oil whose leakage rises 15 % over the first
+10 min and stays: the leakage part of the oil warming by about 20 K; the bulk
+modulus, which falls with it, is a known constant of the reference simulator and
+cannot vary in a record) for false warnings.
 
 Figures per wear record (``twin.online.forecast`` through the service's
 :class:`twin.service.rig.RigTwin`, exactly as ``twin track`` runs it):

@@ -293,3 +293,13 @@ def test_twin_top_shows_a_parameters_last_maintenance():
     console.print(render(snap, "test", live=False))
     text = console.export_text()
     assert "maintained #1 (seal replaced)" in text and "Ffric" in text
+
+
+def test_twin_maintenance_with_no_twin_to_answer_is_one_line_naming_the_key_and_endpoint(capsys):
+    from twin import cli
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    assert cli.main(["maintenance", "--rig", "r9", "--parameter", "CdAleak", "--connect", endpoint,
+                     "--timeout", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no running twin answered on fpdd/r9/maintenance" in err[0] and endpoint in err[0]

@@ -32,7 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from replay.zenohconf import check_endpoint, open_session, zenoh_config
+    from replay.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
+    from twin.errors import SourceError
     from twin.service.bus import _check_rig
     from twin.service.maintenance import send_maintenance
 
@@ -42,9 +43,13 @@ def run(args) -> int:
     scouting = True if not args.connect and args.zenoh_config is None else None
     config = zenoh_config(mode=args.mode, connect=args.connect, multicast_scouting=scouting,
                           config_file=args.zenoh_config)
+    _, connect = config_endpoints(config)
+    where = ", ".join(connect) if connect else "multicast scouting"
     session = open_session(config, "twin maintenance")
     try:
         ev = send_maintenance(session, args.rig, args.parameter, args.note, timeout=args.timeout)
+    except SourceError as exc:
+        raise SourceError(f"{exc} (via {where})") from None
     finally:
         session.close()
     if args.json:
