@@ -31,7 +31,11 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   positive sequence; for AR(1) errors it is the ``(1 + r)/(1 - r)`` the drift
   test weights its increments by) gives an effective sample size
   ``n_eff = n / tau_int``, and the likelihood is tempered by ``kappa = n_eff / n``: the coefficients' covariance grows by
-  ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.
+  ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.  The filter's own memory is its time constant
+  ``V / q`` (posterior variance over the random walk's rate, log units): 4-5 s for the leakage, under a second
+  for friction and the valve; Geyer's ``tau_int`` of the 1 s bins is about twice it (5-9 bins on the
+  leakage, 1 on friction), as for an Ornstein-Uhlenbeck error, and covers the slower errors the
+  excitation leaves too.
 * **Evidence.** The two models are averaged by their BIC weights (their
   likelihoods compared in the same coordinates, the Jacobian of the change of
   variables included; both have two coefficients), and a forecast exists only
@@ -64,8 +68,10 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   ``p_clear`` (0.5), or no forecast has existed, for ``clear_s`` (60 s):
   hysteresis so a noisy trend does not flap.
 * **Reset** (:meth:`ForecastMonitor.reset`): a re-commissioning or a recorded
-  maintenance event forgets a parameter's history (and returns its ``early``
-  alarm).
+  maintenance event (:mod:`twin.service.maintenance`) forgets a parameter's history (and returns its ``early``
+  alarm); a maintenance is kept per parameter (:attr:`ForecastMonitor.maintained`, in the forecast messages) with
+  the ``seq`` of the last one applied (:attr:`ForecastMonitor.maintenance_seq`, in the state: a restart applies
+  each once).
 
 Per sample the monitor only bins (vectorised over a block); the regression runs
 once per completed bin and parameter on at most ``max_points`` bins (older bins
