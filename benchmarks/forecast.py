@@ -113,7 +113,7 @@ def healthy_spec(kind: str, duration: float, seed: int) -> dict:
 #: wear, the same figures; their simulation takes about a tenth of their duration per record on one core)
 WEAR = {
     "calib": [("leak_lin", "CdAleak", "linear", 600.0, 11, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 13, 2.0),
-              ("fric_exp", "Ffric", "exp", 600.0, 14, 2.0)],
+              ("fric_exp", "Ffric", "exp", 600.0, 14, 2.0), ("wn_exp", "wn", "exp", 900.0, 12, 1.0)],
     "verify": [("leak_lin", "CdAleak", "linear", 600.0, 1001, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 1002, 2.0),
                ("fric_lin", "Ffric", "linear", 600.0, 1003, 2.0), ("fric_exp", "Ffric", "exp", 600.0, 1004, 1.0),
                ("wn_lin", "wn", "linear", 600.0, 1005, 1.0), ("wn_exp", "wn", "exp", 600.0, 1006, 2.0)],
@@ -122,7 +122,7 @@ WEAR = {
 }
 #: (label, kind, duration s, seed)
 HEALTHY = {
-    "calib": [("warming_ramp", "warming_ramp", 1200.0, 22)],
+    "calib": [("warming_ramp", "warming_ramp", 1200.0, 22), ("warming", "warming", 1200.0, 21)],
     "verify": [("plain", "plain", 1200.0, 1011), ("noisy", "noisy", 1200.0, 1012),
                ("warming_ramp", "warming_ramp", 1200.0, 1014)],
     "long": [("warming_ramp", "warming_ramp", 3600.0, 1015)],
