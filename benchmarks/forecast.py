@@ -5,9 +5,12 @@ Slow wear of the independent reference simulator (``tests/reference``): leakage
 linearly or exponentially over 10-60 min of record at 1 kHz, default and doubled
 sensor noise, the other parameters drawn within +-10 % of Table 9 (the tracker
 starts at Table 9, away from the truth), the wearing one leaving its default
-healthy band about three quarters into the record; healthy records (drawn truth,
-nominal and doubled noise, a warming oil whose leakage rises 30 % and Cd 3 %
-with a 400 s time constant) for false warnings.
+healthy band about three quarters into the record (10-min records in
+``verify``, 30-60 min in ``long``: slower wear); healthy records (drawn truth,
+nominal and doubled noise, a warming oil whose leakage rises 15 % over the first
+10 min and stays: the leakage part of the oil warming by about 20 K; the bulk
+modulus, which falls with it, is a known constant of the reference simulator and
+cannot vary in a record) for false warnings.
 
 Figures per wear record (``twin.online.forecast`` through the service's
 :class:`twin.service.rig.RigTwin`, exactly as ``twin track`` runs it):
@@ -84,8 +87,10 @@ def wear_spec(param: str, shape: str, duration: float, seed: int, noise: float =
 
 
 def healthy_spec(kind: str, duration: float, seed: int) -> dict:
-    """A healthy record: ``plain`` (drawn truth), ``noisy`` (doubled sensor noise) or ``warming`` (the oil warms: the
-    leakage rises 30 % and Cd 3 % with a 400 s time constant, all inside their bands)."""
+    """A healthy record: ``plain`` (drawn truth), ``noisy`` (doubled sensor noise), ``warming`` (the oil warms: the
+    leakage rises 30 % and Cd 3 % with a 400 s time constant, all inside their bands) or ``warming_ramp`` (the
+    leakage rises 15 % over the first 10 min and stays: the leakage part of an oil warming by about 20 K; the
+    oil's bulk modulus, which falls with it, is a known constant of the reference simulator)."""
     ref = _reference()
     truth = ref.draw_truth(seed, 0.1, "msp25")
     kw: dict[str, Any] = {}
@@ -96,23 +101,31 @@ def healthy_spec(kind: str, duration: float, seed: int) -> dict:
             "CdAleak": {"kind": "exp", "t0": 0.0, "tau": 400.0, "start": truth["CdAleak"],
                         "end": 1.3 * truth["CdAleak"]},
             "Cd": {"kind": "exp", "t0": 0.0, "tau": 400.0, "start": truth["Cd"], "end": 1.03 * truth["Cd"]}}
+    elif kind == "warming_ramp":
+        kw["time_varying"] = {"CdAleak": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": truth["CdAleak"],
+                                          "end": 1.15 * truth["CdAleak"]}}
     elif kind != "plain":
-        raise ValueError(f"healthy kind must be plain, noisy or warming, got {kind!r}")
+        raise ValueError(f"healthy kind must be plain, noisy, warming or warming_ramp, got {kind!r}")
     return ref.msp25_spec(seed, duration=duration, truth=truth, **kw)
 
 
-#: (label, parameter, shape, duration s, seed, noise factor)
+#: (label, parameter, shape, duration s, seed, noise factor); ``long``: verification records of 30-60 min (slower
+#: wear, the same figures; their simulation takes about a tenth of their duration per record on one core)
 WEAR = {
-    "calib": [("leak_lin", "CdAleak", "linear", 600.0, 11, 1.0), ("wn_exp", "wn", "exp", 900.0, 12, 1.0)],
+    "calib": [("leak_lin", "CdAleak", "linear", 600.0, 11, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 13, 2.0),
+              ("fric_exp", "Ffric", "exp", 600.0, 14, 2.0), ("wn_exp", "wn", "exp", 900.0, 12, 1.0)],
     "verify": [("leak_lin", "CdAleak", "linear", 600.0, 1001, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 1002, 2.0),
                ("fric_lin", "Ffric", "linear", 600.0, 1003, 2.0), ("fric_exp", "Ffric", "exp", 600.0, 1004, 1.0),
                ("wn_lin", "wn", "linear", 600.0, 1005, 1.0), ("wn_exp", "wn", "exp", 600.0, 1006, 2.0)],
+    "long": [("leak_exp", "CdAleak", "exp", 1800.0, 1007, 1.0), ("wn_lin", "wn", "linear", 1800.0, 1008, 2.0),
+             ("fric_lin", "Ffric", "linear", 3600.0, 1009, 1.0)],
 }
 #: (label, kind, duration s, seed)
 HEALTHY = {
-    "calib": [("warming", "warming", 1200.0, 21)],
+    "calib": [("warming_ramp", "warming_ramp", 1200.0, 22), ("warming", "warming", 1200.0, 21)],
     "verify": [("plain", "plain", 1200.0, 1011), ("noisy", "noisy", 1200.0, 1012),
-               ("warming", "warming", 1200.0, 1013)],
+               ("warming_ramp", "warming_ramp", 1200.0, 1014)],
+    "long": [("warming_ramp", "warming_ramp", 3600.0, 1015)],
 }
 
 
@@ -240,7 +253,8 @@ def table(res: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.forecast", description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", choices=sorted(WEAR), default="verify",
-                    help="verify (seeds >= 1000, the README's table) or calib (seeds < 1000)")
+                    help="verify (seeds >= 1000, the README's table), long (seeds >= 1000, 30-60 min records) or "
+                    "calib (seeds < 1000)")
     ap.add_argument("--build", action="store_true", help="only fill the reference cache with the set's records")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     ap.add_argument("--part", choices=("all", "wear", "healthy"), default="all",

@@ -165,7 +165,8 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     log = tmp_path / "wear.csv"
     wear_record.to_csv(log)
     out = tmp_path / "out"
-    assert cli.main(["track", str(log), "--out", str(out), "--json", "--forecast-horizon", "600"]) == 0
+    assert cli.main(["track", str(log), "--out", str(out), "--json", "--forecast-horizon", "600",
+                     "--maintenance", "CdAleak@200:seal replaced"]) == 0
     doc = json.loads(capsys.readouterr().out)
     fcs = doc["forecasts"]
     assert fcs and all(set(f) == {"parameter", "t", "t_exit", "t_exit_lo", "t_exit_hi", "p_within_horizon"}
@@ -193,6 +194,13 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     with open(doc["files"]["report"], encoding="utf-8") as f:
         html = f.read()
     assert "Early warning" in html and "first early alarm" in html
+    # the maintenance recorded at 200 s: the standing early alarm returns naming it, the forecast starts afresh
+    assert doc["maintenance"] == [{"parameters": ["CdAleak"], "t": 200.0, "note": "seal replaced"}]
+    back = [a for a in doc["alarms"] if a["level"] == "ok" and a["kind"] == "returned" and a["parameter"] == "CdAleak"
+            and "maintenance #1: seal replaced" in a["message"]]
+    assert len(back) == 1 and abs(back[0]["t"] - 200.0) <= 1.0
+    assert not [f for f in leak if f["t"] >= 200.0]  # none within the settling time and least span after it
+    assert "maintenance at 200 s: CdAleak (seal replaced)" in html
 
 
 def test_a_rig_restarted_from_an_older_checkpoint_journals_each_early_alarm_once(wear_record, tmp_path):
@@ -243,3 +251,32 @@ def _samples(rec):
 
     t_ns = 1_700_000_000_000_000_000 + np.round(rec.t * 1e9).astype(np.int64)
     return Samples(t_ns, {k: np.asarray(v, float) for k, v in rec.signals.items()})
+
+
+def test_a_recorded_maintenance_is_kept_in_the_state_and_its_log_is_read_once_and_whole(tmp_path):
+    from fpdd.errors import DataError
+    from twin.service.maintenance import MaintenanceLog, check_request, maintenance_path
+
+    stream = _stream(1005, 600.0, lambda t: 1.0 + 2.5 * t / 700.0)
+    fm = ForecastMonitor("r", BASE)
+    _feed(fm, stream)
+    path = maintenance_path(tmp_path, "r")
+    log = MaintenanceLog(path, "r")
+    ev = log.append(*check_request({"parameters": "CdAleak", "note": "seal replaced"}, ("CdAleak", "wn")))
+    assert ev["seq"] == 1 and ev["parameters"] == ["CdAleak"]
+    with open(path, "ab") as f:  # a line being written by the service, not complete yet
+        f.write(b'{"rig": "r", "seq": 2, "param')
+    reader = MaintenanceLog(path, "r")
+    assert reader.since(0) == [ev]
+    back = fm.reset(ev["parameters"], why=ev["note"], record=ev)
+    assert [(e.level, e.kind) for e in back] == [("ok", "returned")]
+    assert fm.maintenance_seq == 1 and fm.maintained["CdAleak"]["note"] == "seal replaced"
+    assert fm.maintained["CdAleak"]["t"] == pytest.approx(599.95, abs=1.0)
+    again = ForecastMonitor("r", BASE)
+    again.restore(json.loads(json.dumps(fm.state())))
+    assert again.maintenance_seq == 1 and again.maintained == fm.maintained
+    assert reader.since(again.maintenance_seq) == []
+    for bad, field in (({"parameters": []}, "maintenance.parameters"), ({"parameters": ["Q"]}, "'Q' not tracked"),
+                       ({"parameters": ["wn"], "note": "a\nb"}, "maintenance.note"), ([], "JSON object")):
+        with pytest.raises(DataError, match=field):
+            check_request(bad, ("CdAleak", "wn"))

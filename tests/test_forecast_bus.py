@@ -179,3 +179,128 @@ def _messages(twin) -> list[dict]:
     from twin.online.forecast import forecast_message
 
     return forecast_message(twin.rig.name, list(twin.forecasts), twin.forecast.horizon_s)
+
+
+def test_a_maintenance_sent_with_twin_maintenance_restarts_the_forecast_and_survives_a_restart(wear_log, tmp_path,
+                                                                                              capsys):
+    """``twin maintenance`` over a real loopback session to the real service: the event is recorded (its reply),
+    the rig's standing early alarm returns naming it, the leakage's forecast starts afresh, the latest forecast
+    says it was maintained; a refused event is one line. A second run of the service on the same journal resumes
+    from the checkpoint without applying it again."""
+    from twin import cli
+    from twin.service.maintenance import maintenance_path
+    from twin.service.store import Store
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [endpoint]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "workers": 0},
+        "rig": [{"name": "rig-w", "source": str(wear_log), "speed": 6.0, "forecast_horizon_s": 600.0},
+                {"name": "idle", "source": "zenoh://fpdd/idle/samples"}],
+    }, str(tmp_path / "rigs.toml"))
+    stop = threading.Event()
+    twins: dict = {}
+    alarms: queue.Queue = queue.Queue()
+    statuses: queue.Queue = queue.Queue()
+    forecasts: queue.Queue = queue.Queue()
+    th = threading.Thread(target=serve, args=(cfg, stop), kwargs={"twins": twins})
+    with zenoh.open(zenoh_config("peer", connect=[endpoint])) as session:
+        subs = [session.declare_subscriber("fpdd/rig-w/alarm", lambda s: alarms.put(json.loads(s.payload.to_string()))),
+                session.declare_subscriber("fpdd/rig-w/status", lambda s: statuses.put(
+                    json.loads(s.payload.to_string()))),
+                session.declare_subscriber("fpdd/rig-w/forecast", lambda s: forecasts.put(
+                    json.loads(s.payload.to_string())))]
+        th.start()
+        try:
+            while True:  # the early alarm of the wearing seal
+                a = alarms.get(timeout=600.0)
+                if a["level"] == "early":
+                    break
+            capsys.readouterr()
+            assert cli.main(["maintenance", "--rig", "rig-w", "--parameter", "Wn", "--connect", endpoint,
+                             "--timeout", "10"]) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "'Wn' not tracked" in err[0] and "Traceback" not in err[0]
+            assert cli.main(["maintenance", "--rig", "rig-w", "--parameter", "CdAleak", "--note", "seal replaced",
+                             "--connect", endpoint, "--json"]) == 0
+            ev = json.loads(capsys.readouterr().out)
+            assert ev["rig"] == "rig-w" and ev["seq"] == 1 and ev["parameters"] == ["CdAleak"]
+            assert ev["note"] == "seal replaced" and isinstance(ev["wall_ns"], int)
+            while True:  # the early alarm returns, naming the maintenance
+                a = alarms.get(timeout=WAIT_S)
+                if a["parameter"] == "CdAleak" and a["kind"] == "returned" and "maintenance" in a["message"]:
+                    break
+            assert a["level"] == "ok" and "seal replaced" in a["message"]
+            deadline = time.monotonic() + 240.0
+            while True:
+                st = statuses.get(timeout=max(0.1, deadline - time.monotonic()))
+                if st["state"] in ("finished", "failed"):
+                    break
+            assert st["state"] == "finished", st["message"]
+            latest = fetch_forecasts(session, "rig-w", timeout=5.0)
+        finally:
+            for s in subs:
+                s.undeclare()
+            stop.set()
+            th.join(timeout=60.0)
+    assert not th.is_alive()
+    twin = twins["rig-w"]
+    m = twin.forecast.maintained["CdAleak"]
+    assert m["seq"] == 1 and m["note"] == "seal replaced" and twin.forecast.maintenance_seq == 1
+    # the forecast started afresh: none of the leakage for the settling time and the least span after it
+    after = [f.t for f in twin.forecasts if f.parameter == "CdAleak" and f.t > m["t"]]
+    assert not after or after[0] >= m["t"] + twin.forecast.settle_s + twin.forecast.min_span_s
+    puts = []
+    while not forecasts.empty():
+        puts.append(forecasts.get())
+    assert any(p.get("maintenance", {}).get("CdAleak", {}).get("seq") == 1 for p in puts)
+    for p in puts:
+        validate(p, FORECAST_SCHEMA, "forecast")
+    assert latest and latest[0]["maintenance"]["CdAleak"]["note"] == "seal replaced"
+    assert len(maintenance_path(tmp_path / "journal", "rig-w").read_text().splitlines()) == 1
+
+    def journal() -> list:
+        with Store(tmp_path / "journal" / "rig-w.db", writer=False) as store:
+            return store.alarms("rig-w")
+
+    first = journal()
+    returned = [a for a in first if a.parameter == "CdAleak" and a.kind == "returned" and "maintenance" in a.message]
+    assert len(returned) == 1
+    # the service again on the same journal: resumed from the checkpoint at the log's end, nothing applied again
+    cfg2 = parse_config({"zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+                         "service": {"journal_dir": str(tmp_path / "journal"), "workers": 0},
+                         "rig": [{"name": "rig-w", "source": str(wear_log), "speed": 0.0,
+                                  "forecast_horizon_s": 600.0}]}, str(tmp_path / "rigs.toml"))
+    again: dict = {}
+    serve(cfg2, twins=again)
+    assert again["rig-w"].forecast.maintenance_seq == 1 and again["rig-w"].forecast.maintained["CdAleak"]["seq"] == 1
+    assert [(a.seq, a.identity) for a in journal()] == [(a.seq, a.identity) for a in first]
+
+
+def test_twin_top_shows_a_parameters_last_maintenance():
+    from rich.console import Console
+
+    from twin.commands.top import TopState, render
+
+    state = TopState()
+    msg = {**_msg(70.0, Ffric=(900.0, 500.0, 3000.0)),
+           "maintenance": {"CdAleak": {"t": 64.0, "seq": 1, "note": "seal replaced", "wall_ns": 1}}}
+    validate(msg, FORECAST_SCHEMA, "forecast")
+    state.put("forecast", msg)
+    snap = state.snapshot()
+    assert snap["r1"]["params"]["CdAleak"]["maintenance"]["seq"] == 1
+    console = Console(width=160, record=True)
+    console.print(render(snap, "test", live=False))
+    text = console.export_text()
+    assert "maintained #1 (seal replaced)" in text and "Ffric" in text
+
+
+def test_twin_maintenance_with_no_twin_to_answer_is_one_line_naming_the_key_and_endpoint(capsys):
+    from twin import cli
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    assert cli.main(["maintenance", "--rig", "r9", "--parameter", "CdAleak", "--connect", endpoint,
+                     "--timeout", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no running twin answered on fpdd/r9/maintenance" in err[0] and endpoint in err[0]

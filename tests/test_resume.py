@@ -133,3 +133,44 @@ def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_
     got = alarms(tmp_path / "journal")
     assert [(a.seq, a.identity, a.estimate, a.statistic) for a in got] == \
            [(a.seq, a.identity, a.estimate, a.statistic) for a in reference]
+
+
+def test_sigkill_right_after_an_early_alarm_then_restart_journals_each_early_alarm_once(tmp_path):
+    """The forecast's early warning resumes like the drift test's alarms: a reference wear record (the leakage
+    leaves its band at 180 s; seed >= 1000), killed right after its first early alarm and once while it resumes,
+    ends with the journal of an uninterrupted run: each early alarm once, none lost, none twice."""
+    from conftest import get_records
+    from replay.base import Samples
+    from reference import draw_truth, msp25_spec
+    from reference.tables import MSP25_FREE
+
+    import numpy as np
+
+    truth = draw_truth(1101, 0.1, "msp25")
+    v0, edge = truth["CdAleak"], 3.0 * MSP25_FREE["CdAleak"]
+    spec = msp25_spec(1101, duration=240.0, truth=truth, time_varying={
+        "CdAleak": {"kind": "ramp", "t0": 0.0, "t1": 240.0, "start": v0, "end": v0 + (edge - v0) * 240.0 / 180.0}})
+    rec = get_records([spec], workers=1)[0]
+    log = tmp_path / "wear.mcap"
+    with McapSink(str(log)) as sink:
+        sink.write(Samples(np.round(rec.t * 1e9).astype(np.int64), {k: np.asarray(v, float)
+                                                                      for k, v in rec.signals.items()}))
+    serve(load_config(str(write_config(tmp_path / "ref.toml", log, tmp_path / "ref", 0.0))))
+    reference = alarms(tmp_path / "ref")
+    assert [a.parameter for a in reference if a.level == "early"] == ["CdAleak"]
+
+    early_line = re.compile(r"^twin serve: rig-k #(\d+) t=\S+ s EARLY")
+    config = write_config(tmp_path / "rigs.toml", log, tmp_path / "journal", 24.0)
+    svc = Service(config)
+    killed_at = int(svc.wait_for(early_line).group(1))
+    svc.kill()  # the early alarm is journaled; the checkpoint may be older: its data are processed again
+    svc = Service(config)
+    svc.wait_for(re.compile(r"^twin serve: rig rig-k: resumed from its checkpoint after \d+ samples"))
+    svc.kill()
+    svc = Service(config)
+    assert svc.finish() == 0, "\n".join(svc.seen)
+    assert not any(early_line.match(line) for line in svc.seen)  # never printed (journaled) again
+    got = alarms(tmp_path / "journal")
+    assert killed_at == next(a.seq for a in reference if a.level == "early")
+    assert [(a.seq, a.identity, a.estimate, a.statistic) for a in got] == \
+           [(a.seq, a.identity, a.estimate, a.statistic) for a in reference]

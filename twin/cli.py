@@ -34,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
              "end-to-end demo: simulate a wearing rig, track it, alarm over Zenoh"),
     "top": ("twin.commands.top", "add_top_arguments", "run_top",
             "live terminal view of the running twins: estimates, statuses, last alarms"),
+    "maintenance": ("twin.commands.maintenance", "add_arguments", "run",
+                    "record a rig's maintenance: the named parameters' forecasts start afresh"),
 }
 
 
@@ -61,7 +63,7 @@ def jit_note(command: str) -> str | None:
     import glob
     import os
 
-    if command in ("params", "alarms", "top", "keys"):
+    if command in ("params", "alarms", "top", "keys", "maintenance"):
         return None
     here = os.path.join(os.path.dirname(__file__), "models", "__pycache__")
     if glob.glob(os.path.join(here, "*.nbi")):

@@ -169,6 +169,8 @@ class TopState:
                 params.setdefault(name, {"status": w})
             for name, f in fcs.items():
                 params.setdefault(name, {"status": ""})["forecast"] = f
+            for name, m in ((r.get("forecast") or {}).get("maintenance") or {}).items():
+                params.setdefault(name, {"status": ""})["maintenance"] = m
             soonest = min((f for f in fcs.values() if f["t_exit"] is not None),
                           key=lambda f: (f["t_exit"], f["parameter"]), default=None)
             presence, age = self.presence(rig, now)
@@ -242,7 +244,9 @@ def render(snap: dict, where: str, live: bool = True):
         soonest = r.get("soonest_exit")
         for name, p in r["params"].items():
             f = p.get("forecast")
+            m = p.get("maintenance")
             exit_text = Text(f["shown"], "bold yellow" if soonest and soonest["parameter"] == name else "") if f \
+                else Text(f"maintained #{m['seq']}" + (f" ({m['note']})" if m.get("note") else ""), "cyan") if m \
                 else Text("")
             if "display_value" not in p:
                 t.add_row(name, "", "", "", Text(p["status"], STATUS_STYLE.get(p["status"], "")), exit_text)

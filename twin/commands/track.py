@@ -35,8 +35,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--forecast-horizon", type=float, metavar="S",
                    help="early warning horizon in seconds: an 'early' alarm when a parameter is forecast to leave its "
                         "band within S s with probability 0.9 (default the rig's forecast_horizon_s, else 3600)")
+    p.add_argument("--maintenance", action="append", default=[], metavar="P[,P2]@SECONDS[:NOTE]",
+                   help="a maintenance recorded in the log: the forecasts of P (and P2) start afresh at SECONDS from "
+                        "the start of the record, e.g. CdAleak@1800:seal replaced (repeatable)")
     add_timing_arguments(p)
     add_map_argument(p)
+
+
+def parse_maintenance(text: str, tracked) -> tuple[float, list[str], str]:
+    """``P[,P2]@SECONDS[:NOTE]`` -> ``(seconds, [P, P2], note)``; ParameterError naming the option."""
+    import math
+    import re
+
+    from fpdd.errors import ParameterError
+
+    m = re.fullmatch(r"\s*([A-Za-z_][A-Za-z0-9_]*(?:\s*,\s*[A-Za-z_][A-Za-z0-9_]*)*)\s*@\s*([^:]+?)\s*(?::(.*))?",
+                     text)
+    t = None
+    if m:
+        try:
+            t = float(m.group(2))
+        except ValueError:
+            t = None
+    if m is None or t is None or not (math.isfinite(t) and t >= 0):
+        raise ParameterError(f"--maintenance: expected PARAMETER[,PARAMETER]@SECONDS[:NOTE] with SECONDS >= 0 from "
+                             f"the start of the record, got {text!r}")
+    ps = [p.strip() for p in m.group(1).split(",")]
+    bad = [p for p in ps if p not in tracked]
+    if bad:
+        raise ParameterError(f"--maintenance: {', '.join(map(repr, bad))} not tracked (tracked: {', '.join(tracked)})")
+    return t, ps, (m.group(3) or "").strip()
 
 
 def _check_rig_log(path: str) -> None:
@@ -110,8 +138,9 @@ def run(args) -> int:
     if args.dbc:
         opts["dbc"] = args.dbc
     reports: list = []
+    maint = [parse_maintenance(m, tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL) for m in args.maintenance]
     twin = track(_read(args.log, opts, reports), args.rig, params, tracked, baseline, args.out, progress=say,
-                 noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon)
+                 noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon, maintenance=maint)
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:
@@ -128,6 +157,7 @@ def run(args) -> int:
         "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
         "forecasts": [f.to_dict() for f in sorted(twin.forecasts, key=lambda f: (f.t, f.parameter))],
         "forecast_horizon_s": twin.forecast.horizon_s,
+        "maintenance": [{"parameters": ps, "t": t, "note": note} for t, ps, note in maint],
         "final": twin.final_estimates(),
         "status": twin.drift.statuses(),
         "counters": twin.tracker.counters,

@@ -31,7 +31,11 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   positive sequence; for AR(1) errors it is the ``(1 + r)/(1 - r)`` the drift
   test weights its increments by) gives an effective sample size
   ``n_eff = n / tau_int``, and the likelihood is tempered by ``kappa = n_eff / n``: the coefficients' covariance grows by
-  ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.
+  ``1 / kappa`` and the degrees of freedom shrink to ``n_eff - 2``.  The filter's own memory is its time constant
+  ``V / q`` (posterior variance over the random walk's rate, log units): 4-5 s for the leakage, under a second
+  for friction and the valve; Geyer's ``tau_int`` of the 1 s bins is about twice it (5-9 bins on the
+  leakage, 1 on friction), as for an Ornstein-Uhlenbeck error, and covers the slower errors the
+  excitation leaves too.
 * **Evidence.** The two models are averaged by their BIC weights (their
   likelihoods compared in the same coordinates, the Jacobian of the change of
   variables included; both have two coefficients), and a forecast exists only
@@ -64,8 +68,10 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   ``p_clear`` (0.5), or no forecast has existed, for ``clear_s`` (60 s):
   hysteresis so a noisy trend does not flap.
 * **Reset** (:meth:`ForecastMonitor.reset`): a re-commissioning or a recorded
-  maintenance event forgets a parameter's history (and returns its ``early``
-  alarm).
+  maintenance event (:mod:`twin.service.maintenance`) forgets a parameter's history (and returns its ``early``
+  alarm); a maintenance is kept per parameter (:attr:`ForecastMonitor.maintained`, in the forecast messages) with
+  the ``seq`` of the last one applied (:attr:`ForecastMonitor.maintenance_seq`, in the state: a restart applies
+  each once).
 
 Per sample the monitor only bins (vectorised over a block); the regression runs
 once per completed bin and parameter on at most ``max_points`` bins (older bins
@@ -91,6 +97,9 @@ from twin.online.events import AlarmEvent
 DEFAULT_HORIZON_S = 3600.0
 #: The exit-time grid: from 0 to this many horizons (beyond: "maybe never").
 GRID_HORIZONS = 1000.0
+#: Points of the exit-time grid (geometric from one bin): 1000 points put neighbours 1.5 % apart, a resolution
+#: finer than any interval the forecast gives (160 points, 10 % apart, widened an interval 60 s ahead by up to 6 s).
+GRID_POINTS = 1000
 _QUANTILES = (0.05, 0.5, 0.95)
 
 
@@ -158,7 +167,11 @@ class ForecastMonitor:
         self._bin = -1  # index of the bin being filled
         self._bin_last: tuple[int, float] | None = None  # (t_ns, t_s) of the last sample of the bin being filled
         self._last_values: tuple[np.ndarray, np.ndarray, list[str]] | None = None  # for the alarms' estimate
-        grid = np.concatenate([[0.0], np.geomspace(self.step_s, GRID_HORIZONS * self.horizon_s, 160)])
+        self.maintenance_seq = 0
+        """``seq`` of the last recorded maintenance event applied (:mod:`twin.service.maintenance`)."""
+        self.maintained: dict[str, dict[str, Any]] = {}
+        """parameter -> its last maintenance: ``t`` (record s), ``seq``, ``note``, ``wall_ns``."""
+        grid = np.concatenate([[0.0], np.geomspace(self.step_s, GRID_HORIZONS * self.horizon_s, GRID_POINTS)])
         self._grid = np.unique(np.append(grid, self.horizon_s))
 
     # -- data in ----------------------------------------------------------------------------------------------
@@ -362,10 +375,20 @@ class ForecastMonitor:
         return q.base.value, 0.0
 
     # -- resets, outputs, checkpoints -----------------------------------------------------------------------------
-    def reset(self, names: Sequence[str] | None = None, why: str = "maintenance") -> list[AlarmEvent]:
+    def reset(self, names: Sequence[str] | None = None, why: str = "maintenance",
+              record: Mapping[str, Any] | None = None) -> list[AlarmEvent]:
         """Forget the history of ``names`` (default all): a re-commissioning or a maintenance event. An ``early``
-        alarm standing on a forgotten history returns (the events are returned)."""
+        alarm standing on a forgotten history returns (the events are returned). ``record``: the recorded
+        maintenance event (``seq``, ``note``, ``wall_ns``), kept per parameter (:attr:`maintained`) and its
+        ``seq`` as :attr:`maintenance_seq`."""
         events = []
+        if record is not None:
+            self.maintenance_seq = max(self.maintenance_seq, int(record.get("seq", 0)))
+            now = self._bin_last[1] if self._bin_last is not None else None
+            for n in (names if names is not None else list(self.params)):
+                if n in self.params:
+                    self.maintained[n] = {"t": now, "seq": int(record.get("seq", 0)),
+                                          "note": str(record.get("note") or ""), "wall_ns": record.get("wall_ns")}
         for n in (names if names is not None else list(self.params)):
             q = self.params.get(n)
             if q is None:
@@ -386,7 +409,8 @@ class ForecastMonitor:
 
     def state(self) -> dict[str, Any]:
         """Plain data (numbers, strings, lists, dicts) from which :meth:`restore` continues exactly."""
-        return {"version": 2, "origin": self._origin, "bin": self._bin,
+        return {"version": 2, "origin": self._origin, "bin": self._bin, "maintenance_seq": self.maintenance_seq,
+                "maintained": {n: dict(m) for n, m in self.maintained.items()},
                 "bin_last": None if self._bin_last is None else list(self._bin_last),
                 "params": {n: {"points": q.pts[:q.n].tolist(), "acc": list(q.acc), "since": q.since,
                                "level": q.level, "clear_since": q.clear_since,
@@ -399,6 +423,8 @@ class ForecastMonitor:
             return
         self._origin = state["origin"]
         self._bin = int(state["bin"])
+        self.maintenance_seq = int(state.get("maintenance_seq", 0))
+        self.maintained = {n: dict(m) for n, m in (state.get("maintained") or {}).items()}
         bl = state["bin_last"]
         self._bin_last = None if bl is None else (int(bl[0]), float(bl[1]))
         for n, d in state["params"].items():
@@ -439,6 +465,16 @@ FORECAST_SCHEMA: dict[str, Any] = {
                          "remaining_hi_s", "edge"]}},
         "units": {"type": "object", "description": "field name -> its unit (s: seconds, 1: a probability)",
                   "additionalProperties": {"type": "string"}},
+        "maintenance": {"type": "object", "description": "parameter name -> its last recorded maintenance (its "
+                        "forecast started afresh then); absent when none was recorded",
+                        "additionalProperties": {
+                            "type": "object",
+                            "properties": {"t": {**_NUM_OR_NULL, "description": "record time it was applied [s]"},
+                                           "seq": {"type": "integer", "description": "the event's number"},
+                                           "note": {"type": "string"},
+                                           "wall_ns": {"type": ["integer", "null"],
+                                                       "description": "when it was recorded [ns]"}},
+                            "required": ["t", "seq", "note"]}},
     },
     "required": ["rig", "t_ns", "t_s", "horizon_s", "forecasts", "units"],
 }
@@ -449,8 +485,11 @@ FORECAST_UNITS = {"t_s": "s", "horizon_s": "s", "t": "s", "t_exit": "s", "t_exit
                   "remaining_s": "s", "remaining_lo_s": "s", "remaining_hi_s": "s", "p_within_horizon": "1"}
 
 
-def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> list[dict[str, Any]]:
-    """The ``/twin/forecast`` (and ``fpdd/<rig>/forecast``) payloads of forecasts: one per instant, SI."""
+def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float,
+                     maintained: Mapping[str, Mapping[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """The ``/twin/forecast`` (and ``fpdd/<rig>/forecast``) payloads of forecasts: one per instant, SI;
+    ``maintained`` (:attr:`ForecastMonitor.maintained`): each parameter's last recorded maintenance, as
+    ``maintenance`` in every message (left out when there is none)."""
     by_t: dict[int, list[Forecast]] = {}
     for f in fcs:
         by_t.setdefault(f.t_ns, []).append(f)
@@ -463,8 +502,16 @@ def forecast_message(rig: str, fcs: Sequence[Forecast], horizon_s: float) -> lis
                                          "p_within_horizon": f.p_within_horizon, "remaining_s": rem(f.t_exit, f.t),
                                          "remaining_lo_s": rem(f.t_exit_lo, f.t),
                                          "remaining_hi_s": rem(f.t_exit_hi, f.t), "edge": f.edge} for f in fs},
-             "units": dict(FORECAST_UNITS)}
+             "units": dict(FORECAST_UNITS), **maintenance_field(maintained)}
             for t_ns, fs in sorted(by_t.items())]
+
+
+def maintenance_field(maintained: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:
+    """``{"maintenance": {parameter: {"t", "seq", "note", "wall_ns"}}}`` of a forecast message, or ``{}``."""
+    if not maintained:
+        return {}
+    return {"maintenance": {n: {"t": m.get("t"), "seq": m.get("seq"), "note": m.get("note", ""),
+                                "wall_ns": m.get("wall_ns")} for n, m in sorted(maintained.items())}}
 
 
 def _expit(z: float) -> float:

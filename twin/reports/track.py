@@ -36,7 +36,19 @@ def track_summary(twin: Any, log: str | None = None) -> dict:
             "alarms": [a.to_dict() for a in twin.alarms], "status": dict(twin.drift.statuses()),
             "final": twin.final_estimates(), "counters": {k: int(v) for k, v in twin.tracker.counters.items()},
             "forecasts": [dict(f.to_dict(), edge=f.edge) for f in sorted(getattr(twin, "forecasts", ()), key=lambda f: (f.t, f.parameter))],
-            "forecast_horizon_s": float(getattr(getattr(twin, "forecast", None), "horizon_s", 3600.0))}
+            "forecast_horizon_s": float(getattr(getattr(twin, "forecast", None), "horizon_s", 3600.0)),
+            "maintenance": _maintenance(getattr(getattr(twin, "forecast", None), "maintained", None) or {})}
+
+
+def _maintenance(maintained: Mapping) -> list[dict]:
+    """Each parameter's last recorded maintenance, grouped by event: ``[{"parameters", "t", "note"}]``."""
+    by: dict[int, dict] = {}
+    for name, m in sorted(maintained.items()):
+        if m.get("t") is None:
+            continue
+        e = by.setdefault(int(m.get("seq", 0)), {"parameters": [], "t": float(m["t"]), "note": m.get("note", "")})
+        e["parameters"].append(name)
+    return [by[k] for k in sorted(by)]
 
 
 def interval95(value: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,6 +190,9 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
             for a in alarms:
                 if a.get("parameter") == r["name"] and a.get("level") == "early":
                     ax2.axvline(a["t_s"], color=views.RED, lw=1.0)
+            for m in s.get("maintenance") or []:
+                if r["name"] in m["parameters"]:
+                    ax2.axvline(m["t"], color=views.GREEN, lw=1.2, ls="-.")
             top = np.nanmax(np.concatenate([med, [horizon / 60.0]]))
             ax2.set_ylim(0, 1.5 * top if np.isfinite(top) else None)
             ax2.set_ylabel(f"{r['name']} exit in [min]")
@@ -189,7 +204,7 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
                           "the forecast at its first early alarm (else the last one before the exit): straight to "
                           "the band's edge at the median exit time, the 90 % interval shaded. Right: the remaining time forecast at each second of the record "
                           "(median, 90 % interval shaded; minutes) against the horizon (dashed), early alarms as "
-                          "vertical lines.")]
+                          "red vertical lines, recorded maintenance as green dash-dot ones.")]
     trows = []
     for name, fs in by.items():
         last = fs[-1]
@@ -206,4 +221,7 @@ def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, a
                       "first forecast": f"{fs[0]['t']:.0f} s",
                       "first early alarm": "none" if first_early is None else f"{first_early:.0f} s"})
     body.append(P.table(trows, text_columns=("parameter",)))
+    for m in s.get("maintenance") or []:  # recorded maintenance: those forecasts started afresh there
+        body.append(P.note(f"maintenance at {m['t']:.0f} s: {', '.join(m['parameters'])}"
+                           + (f" ({m['note']})" if m.get("note") else "") + ": the forecast started afresh"))
     return "\n".join(body)

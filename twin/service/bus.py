@@ -11,6 +11,8 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
     fpdd/<rig>/forecast        put    forecast JSON (``twin.online.forecast.FORECAST_SCHEMA``): when each
                                       parameter leaves its band, on change and every ``FORECAST_S``
                                get    latest forecast (latest-value queryable)
+    fpdd/<rig>/maintenance     get    record a maintenance event (payload {"parameters": [...], "note"}):
+                                      the reply is the event as recorded (:mod:`twin.service.maintenance`)
     fpdd/<rig>/alarm           put    AlarmEvent JSON, live alarms (reliable, blocking, high priority)
     fpdd/<rig>/alarm/history   get    every journaled AlarmEvent of the rig, one reply per alarm,
                                       in seq order; selector parameters (``;``-separated):
@@ -510,7 +512,7 @@ class ForecastGate:
     def changed(old: dict[str, Any], new: dict[str, Any]) -> bool:
         """Whether ``new`` says something ``old`` did not (see the class)."""
         a, b = old.get("forecasts") or {}, new.get("forecasts") or {}
-        if set(a) != set(b):
+        if set(a) != set(b) or old.get("maintenance") != new.get("maintenance"):  # or a maintenance recorded
             return True
         for name, f in b.items():
             g = a[name]

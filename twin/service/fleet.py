@@ -196,6 +196,7 @@ class Fleet:
         inbox: MpQueue[Any] | queue.Queue[Any] = ctx.Queue() if self.remote else queue.Queue()
         stop_pipes: list = []
         threads: list[threading.Thread] = []
+        maint: list = []
         try:
             # Every journal is opened here first: integrity, migration and locks are checked before any rig runs.
             for rig in cfg.rigs:
@@ -209,6 +210,10 @@ class Fleet:
             front = BusFront(self.session, histories, self.on_alarm,
                              {r.name: r.signing_key for r in cfg.rigs if r.signing_key})
             front.replicate = self.replicate
+            if self.session is not None:  # fpdd/<rig>/maintenance: recorded here, applied by each rig's runner
+                from twin.service.maintenance import maintenance_queryables
+
+                maint = maintenance_queryables(self.session, cfg.rigs, cfg.journal_dir)
             for rig in self.local:
                 runner = RigRunner(rig, cfg, journals[rig.name], inbox, self.stop, session=self.session,
                                    keep=self.keep)
@@ -237,6 +242,8 @@ class Fleet:
             for reader, writer in stop_pipes:
                 reader.close()
                 writer.close()
+            for q in maint:
+                q.undeclare()
             if front is not None:
                 front.close()
             for h in histories.values():

@@ -372,10 +372,21 @@ class RigTwin(Sink):
         if self.on_alarm is not None:
             self.on_alarm(ev)
 
-    def maintenance(self, parameters=None, why: str = "maintenance") -> None:
-        """A recorded maintenance event: the forecasts of ``parameters`` (default all) forget their history."""
-        for ev in self.forecast.reset(parameters, why):
+    def maintenance(self, parameters=None, why: str = "maintenance", record: dict | None = None) -> None:
+        """A recorded maintenance event: the forecasts of ``parameters`` (default all) forget their history
+        (``record``: the event of :mod:`twin.service.maintenance`, kept in the forecast's state and messages)."""
+        for ev in self.forecast.reset(parameters, why, record=record):
             self._alarm(ev)
+        if record is not None and self.publisher is not None and self.last_t_ns is not None:
+            from twin.online.forecast import FORECAST_UNITS, forecast_message, maintenance_field
+
+            latest = self.forecast.latest()
+            msgs = forecast_message(self.rig.name, list(latest.values()), self.forecast.horizon_s,
+                                       self.forecast.maintained)
+            t_s = (self.last_t_ns - (self._t0_ns or 0)) * 1e-9
+            self.publisher.publish_forecast(msgs[-1] if msgs else {
+                "rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": t_s, "horizon_s": self.forecast.horizon_s,
+                "forecasts": {}, "units": dict(FORECAST_UNITS), **maintenance_field(self.forecast.maintained)})
 
     def _forecast(self, fcs) -> None:
         """Forecasts of one or more completed bins: kept, recorded (``/twin/forecast``, one message per bin) and
@@ -384,7 +395,7 @@ class RigTwin(Sink):
 
         self.forecasts.extend(fcs)
         self._forecast_shown = True
-        for msg in forecast_message(self.rig.name, fcs, self.forecast.horizon_s):
+        for msg in forecast_message(self.rig.name, fcs, self.forecast.horizon_s, self.forecast.maintained):
             if self.recorder is not None:
                 self.recorder.write_message("/twin/forecast", msg["t_ns"], msg, schema=FORECAST_SCHEMA)
             if self.publisher is not None:
@@ -395,12 +406,13 @@ class RigTwin(Sink):
         value must not keep the last one); the MCAP records forecasts only."""
         self._forecast_shown = False
         if self.publisher is not None and self.last_t_ns is not None:
-            from twin.online.forecast import FORECAST_UNITS
+            from twin.online.forecast import FORECAST_UNITS, maintenance_field
 
             t_s = (self.last_t_ns - (self._t0_ns or 0)) * 1e-9
             self.publisher.publish_forecast({"rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": t_s,
                                              "horizon_s": self.forecast.horizon_s, "forecasts": {},
-                                             "units": dict(FORECAST_UNITS)})
+                                             "units": dict(FORECAST_UNITS),
+                                             **maintenance_field(self.forecast.maintained)})
 
     def _estimate(self, out, t_s, i: int) -> None:
         sd = out.interval_stds[i]

@@ -24,6 +24,7 @@ from twin.service.spawn import FitJob
 
 if TYPE_CHECKING:
     from replay.mcapio import McapSink
+    from twin.service.maintenance import MaintenanceLog
 
 log = logging.getLogger("twin.serve")
 
@@ -70,6 +71,7 @@ class RunnerCore(abc.ABC):
         self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
         self._back_since: float | None = None  # monotonic time of the first block all time_backwards since then
         self.takeover: dict | None = None  # set when this run took the rig over (twin.service.failover)
+        self._maintenance_log: MaintenanceLog | None = None  # the rig's maintenance log, opened on first use
 
     def _set_state(self, state: str, message: str = "") -> None:
         self.summary.state = state
@@ -136,6 +138,7 @@ class RunnerCore(abc.ABC):
         """After each block: health into the status, a checkpoint when due, the batch to the bus."""
         twin = self.twin
         assert twin is not None  # made by _open
+        self._maintenance()
         h = twin.health
         warn = []
         if self._lag is not None:
@@ -168,6 +171,23 @@ class RunnerCore(abc.ABC):
         if time.monotonic() - self._last_cp >= self.cfg.checkpoint_s:
             self._checkpoint()
         self.outbox.flush(force=False)
+
+    def _maintenance(self) -> None:
+        """Apply the recorded maintenance events the twin has not applied yet (a ``stat`` when none is new)."""
+        from twin.service.maintenance import MaintenanceLog, maintenance_path
+
+        twin = self.twin
+        assert twin is not None  # made by _open
+        if self._maintenance_log is None:
+            self._maintenance_log = MaintenanceLog(maintenance_path(self.cfg.journal_dir, self.rig.name),
+                                                   self.rig.name)
+        for ev in self._maintenance_log.since(twin.forecast.maintenance_seq):
+            params = [p for p in ev.get("parameters", []) if p in twin.forecast.params]
+            note = ev.get("note") or ""
+            twin.maintenance(params, why=f"maintenance #{ev['seq']}" + (f": {note}" if note else ""), record=ev)
+            self._notes = (f"maintenance #{ev['seq']} recorded: {', '.join(params)}" + (f" ({note})" if note else "")
+                           + ": forecast started afresh")
+            log.info("rig %s: %s", self.rig.name, self._notes)
 
     # ------------------------------------------------------------------ the parts' own
 

@@ -88,7 +88,7 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
           estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None,
-          forecast_horizon_s: float | None = None):
+          forecast_horizon_s: float | None = None, maintenance=()):
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -101,7 +101,9 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``commission``: a :class:`twin.online.commission.Commission` (or the path of a
     ``twin fit --save`` file): known values, healthy bands around the fitted
     values, noise and timing; ``forecast_horizon_s``: the early warning's horizon
-    (default one hour).  With ``out_dir`` the estimates, alarms and
+    (default one hour); ``maintenance``: recorded maintenance events of the log, ``(t_s, [parameters], note)``
+    with ``t_s`` in seconds from the start of the record (applied before the first sample at or after it, as
+    ``twin maintenance`` is to a running rig).  With ``out_dir`` the estimates, alarms and
     statuses go to ``OUT_DIR/RIG.twin.mcap``, an estimate every ``estimate_every``
     samples.  The twin holds the results:
     ``alarms`` (events with ``t_s`` from the start of the record),
@@ -139,10 +141,30 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         r = SimpleNamespace(model=DEFAULT_MODEL, params=dict(params or {}), track=tracked,
                             noise=dict(noise or {}), timing=timing, commission=commission)
         twin.tracker = tracker_for(r)
+    import numpy as np
+
     reports: list = []
+    pending = sorted((float(t), list(ps), str(note)) for t, ps, note in maintenance)
+    seq = 0
+    t0_ns: int | None = None
     try:
         for block in _from_zero(_blocks(source, chunk, dbc, reports)):
-            twin.write(block)
+            if t0_ns is None and len(block):
+                t0_ns = int(block.t_ns[0])
+            while pending and len(block) and t0_ns is not None:
+                t_m, ps, note = pending[0]
+                k = int(np.searchsorted(block.t_ns, t0_ns + int(round(t_m * 1e9)), side="left"))
+                if k >= len(block):
+                    break
+                if k:
+                    twin.write(block.slice(0, k))
+                    block = block.slice(k, len(block))
+                pending.pop(0)
+                seq += 1
+                twin.maintenance(ps, why=f"maintenance #{seq}" + (f": {note}" if note else ""),
+                                 record={"rig": rig_name, "seq": seq, "parameters": ps, "note": note, "wall_ns": None})
+            if len(block):
+                twin.write(block)
             if progress:
                 progress(f"{twin.stats.samples} samples, {twin.stats.alarms} alarm event(s)")
         twin.close()
