@@ -4,8 +4,8 @@ beside simulation, and several candidate models (or effect sets) fitted on one r
 * :func:`fit_percent`: ``100 (1 - |y - yhat| / |y - mean y|)``, MATLAB's normalised root mean square Fit.
 * :func:`predict`: the ``k``-step-ahead prediction ``yhat(t | t - k)`` of a fitted parameter set on a record,
   with the physical model as the deterministic part and a disturbance model as the rest (MATLAB's
-  ``y = G u + H e``): the simulation error ``e = y - G u`` of each output is an AR process (order by Akaike's
-  criterion, :func:`noise_model`), and ``yhat(t | t - k) = (G u)(t) + ehat(t | t - k)``, the AR model's
+  ``y = G u + H e``): the simulation error ``e = y - G u`` of each output is an AR process (order by Schwarz's
+  Bayesian criterion, :func:`noise_model`), and ``yhat(t | t - k) = (G u)(t) + ehat(t | t - k)``, the AR model's
   ``k``-step prediction from the errors up to ``t - k`` (about their mean).  ``k = inf`` is the simulation.
   A white error (an exact model under white noise) gives a ``k``-step Fit near the simulation's; a slow model error
   is predicted away at small ``k``, which is why a 1-step Fit far above the simulation's tells little about
@@ -33,7 +33,7 @@ from twin.record import Record
 
 #: the horizons (samples) of :func:`fit_by_horizon` by default; ``inf`` is the simulation
 DEFAULT_HORIZONS: tuple[float, ...] = (1, 10, math.inf)
-#: the highest order of the disturbance model (AR) Akaike's criterion chooses among
+#: the highest order of the disturbance model (AR) the Bayesian criterion chooses among
 MAX_AR_ORDER = 30
 
 
@@ -63,8 +63,9 @@ def simulate_record(model: Model | str, params: ParameterSet, record: Record, dr
 
 def noise_model(residuals: Sequence[np.ndarray], max_order: int = MAX_AR_ORDER) -> np.ndarray:
     """The disturbance model of one output: AR coefficients ``a`` (``e(t) = sum a_i e(t - i) + w(t)``) of the
-    simulation residuals of each record, by Yule-Walker (Levinson-Durbin) with the order chosen by Akaike's
-    criterion ``N ln sigma_p^2 + 2 p`` up to ``max_order`` (``[]``: a white residual)."""
+    simulation residuals of each record, by Yule-Walker (Levinson-Durbin) with the order chosen by Schwarz's
+    criterion ``N ln sigma_p^2 + p ln N`` up to ``max_order`` (``[]``: a white residual; BIC, unlike AIC, does
+    not keep spurious lags of a white error as the record grows)."""
     res = [np.asarray(r, dtype=np.float64) - float(np.mean(r)) for r in residuals if len(r) > 1]
     n = sum(r.size for r in res)
     if n < 10:
@@ -83,16 +84,16 @@ def noise_model(residuals: Sequence[np.ndarray], max_order: int = MAX_AR_ORDER) 
     # Levinson-Durbin: every order's coefficients and innovation variance in one pass
     a = np.zeros(0)
     v = acov[0]
-    best, best_aic = a, n * math.log(v)
+    best, best_bic = a, n * math.log(v)
     for p in range(1, order + 1):
         kappa = (acov[p] - float(a @ acov[p - 1:0:-1])) / v if p > 1 else acov[1] / v
         a = np.concatenate([a - kappa * a[::-1], [kappa]])
         v *= 1.0 - kappa * kappa
         if v <= 0:
             break
-        aic = n * math.log(v) + 2 * p
-        if aic < best_aic:
-            best, best_aic = a.copy(), aic
+        bic = n * math.log(v) + p * math.log(n)
+        if bic < best_bic:
+            best, best_bic = a.copy(), bic
     return best
 
 

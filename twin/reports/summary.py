@@ -269,7 +269,7 @@ def add_sections(page, result: Any, records: Sequence, summary: Mapping | None =
     page.add("ahead", "k-step-ahead prediction (compare, k)",
              P.table(krows, text_columns=("output",)) +
              P.note("Fit % of the k-step-ahead prediction ŷ(t | t − k): the simulation plus an AR disturbance "
-                    "model of its error (order by AIC) predicting k samples ahead; k = ∞ is the simulation."))
+                    "model of its error (order by BIC) predicting k samples ahead; k = ∞ is the simulation."))
     b = valve_bode(result)
     if b is not None:
         cap = (f"Identified servo-valve wn²/(s² + 2ζ wn s + wn²): wn = {b['wn'] / (2 * math.pi):.4g} Hz, "
