@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def fit_percent(y: np.ndarray, yh: np.ndarray) -> float:
 def _timing(timing: Timing | Mapping | None) -> Timing | None:
     if timing is None or isinstance(timing, Timing):
         return timing
-    return Timing(**{k: timing.get(k) for k in ("controller", "rate_hz", "intersample") if k in timing})
+    return Timing(str(timing.get("controller") or "digital"), timing.get("rate_hz"), timing.get("intersample"))
 
 
 def simulate_record(model: Model | str, params: ParameterSet, record: Record, drive: str = "auto",
@@ -229,7 +230,7 @@ def compare_models(candidates: Sequence[Candidate], records: Sequence[Record],
     for r in list(records) + list(validation):
         if len(r) < 50:
             raise DataError(f"{r.name}: {len(r)} samples are too few to compare models (at least 50)")
-    rows = []
+    rows: list[dict[str, Any]] = []
     for c in candidates:
         m = get_model(c.model)
         shared = base if base is not None and base.model == c.model else None
@@ -256,7 +257,7 @@ def compare_models(candidates: Sequence[Candidate], records: Sequence[Record],
                      "aic": res.aic, "bic": res.bic, "converged": res.success, "result": res})
     finite = [r for r in rows if math.isfinite(r["bic"])]
     best = min(finite, key=lambda r: r["bic"])["name"] if finite else None
-    for r in rows:
-        r["best"] = r["name"] == best
+    for row in rows:
+        row["best"] = row["name"] == best
     return {"criterion": "BIC", "best": best, "rows": rows, "estimation": [r.name for r in records],
             "validation": [r.name for r in validation]}
