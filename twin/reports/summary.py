@@ -84,10 +84,9 @@ def valve_bode(result: Any, freqs_hz: np.ndarray | None = None, points: int = 30
     commanded spool position) from the fit's ``wn`` and ``zeta``, with the 95 % band of its magnitude and phase
     from the fit's covariance (delta method; a parameter held fixed adds nothing).  ``None`` for a model
     without a valve.  Arrays: ``f_hz``, ``mag_db``, ``phase_deg`` and their ``_lo``/``_hi`` bounds."""
-    try:
-        wn, zeta = float(result.params["wn"]), float(result.params["zeta"])
-    except (KeyError, TypeError):
+    if "wn" not in result.params or "zeta" not in result.params:
         return None
+    wn, zeta = float(result.params["wn"]), float(result.params["zeta"])
     f0 = wn / (2 * math.pi)
     f = np.logspace(math.log10(f0 / 20), math.log10(f0 * 10), points) if freqs_hz is None else np.asarray(freqs_hz)
     w = 2 * math.pi * f
