@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from twin import cli
 from twin.estimation import compare as C
 from twin.estimation.fit import fit
 from twin.models import get_model
@@ -159,21 +158,20 @@ def test_valve_bode_at_resonance_and_its_band_matches_monte_carlo(fitted):
     assert b["bandwidth_hz"] > res.params["wn"] / (2 * math.pi)  # an underdamped valve peaks before -3 dB
 
 
-def test_fit_command_prints_the_summary_and_writes_the_bode_plot(healthy, tmp_path):
+def test_fit_command_prints_the_summary_and_writes_the_bode_plot(healthy, tmp_path, capsys):
     csv = write_csv(healthy, tmp_path / "rig.csv")
-    base = [sys.executable, "-m", "twin.cli", "fit", csv, "--starts", "2", "--seed", "1003", "-q"]
-    done = subprocess.run([*base, "--report", str(tmp_path / "rep")], capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    assert "Free parameters (estimate ± std, HAC):" in done.stdout and "NOTE: Fit(pA)" in done.stdout
+    base = ["-q", "fit", csv, "--starts", "2", "--seed", "1003"]
+    assert cli.main(base) == 0
+    out = capsys.readouterr().out
+    assert "Free parameters (estimate ± std, HAC):" in out and "NOTE: Fit(pA)" in out
+    assert cli.main([*base, "--report", str(tmp_path / "rep"), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)["summary"]
+    assert s["params"]["wn"]["unit"] == "rad/s" and s["valve"]["bandwidth_3db"]["unit"] == "Hz"
+    assert set(s["outputs"]["x"]["fit_pct_ahead"]) == {"1", "10", "inf"}
     html = (tmp_path / "rep" / "fit_report.html").read_text(encoding="utf-8")
     for sid in ("summary", "ahead", "bode"):
         assert f'<section id="{sid}">' in html
     assert "Servo-valve Bode plot" in html and "data:image/png;base64," in html.split('id="bode"')[1]
-    done = subprocess.run([*base, "--json"], capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    s = json.loads(done.stdout)["summary"]
-    assert s["params"]["wn"]["unit"] == "rad/s" and s["valve"]["bandwidth_3db"]["unit"] == "Hz"
-    assert set(s["outputs"]["x"]["fit_pct_ahead"]) == {"1", "10", "inf"}
 
 
 @pytest.fixture(scope="module")
@@ -203,15 +201,13 @@ def test_compare_picks_the_effect_the_rig_has_on_held_out_data(stiff, tmp_path):
         assert "specimen_stiffness (best)" in f.read()
 
 
-def test_fit_compare_command_json_and_bad_candidate(stiff, tmp_path):
+def test_fit_compare_command_json_and_bad_candidate(stiff, tmp_path, capsys):
     csv = write_csv(stiff, tmp_path / "stiff.csv")
-    base = [sys.executable, "-m", "twin.cli", "fit", csv, "--starts", "2", "--seed", "1005", "-q"]
-    done = subprocess.run([*base, "--compare", "none,specimen_stiffness", "--json"], capture_output=True,
-                          text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    d = json.loads(done.stdout)
+    base = ["-q", "fit", csv, "--starts", "2", "--seed", "1005"]
+    assert cli.main([*base, "--compare", "none,specimen_stiffness", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
     assert d["best"] == "specimen_stiffness" and [r["name"] for r in d["rows"]] == ["none", "specimen_stiffness"]
     assert d["rows"][1]["params"]["k_spec"]["unit"] == "N/m"
-    bad = subprocess.run([*base, "--compare", "none,no_such_effect"], capture_output=True, text=True, timeout=600)
-    assert bad.returncode == 2 and "Traceback" not in bad.stderr
-    assert len(bad.stderr.strip().splitlines()) == 1 and "no_such_effect" in bad.stderr
+    assert cli.main([*base, "--compare", "none,no_such_effect"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "no_such_effect" in err
