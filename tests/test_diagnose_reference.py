@@ -57,7 +57,7 @@ KNOWN = {
 MIMICKED = ("position_sensor_gain",)
 
 
-#: the catalogue's effects but one (each diagnosis takes 8-170 s on a quiet 2-core machine): run by CI
+#: the catalogue's effects but one (each diagnosis took 8-170 s in full runs of the suite): run by CI
 #: (``pytest -m slow``); valve_null_bias stays in the default run
 SLOW = tuple(e for e in IN_CATALOGUE if e != "valve_null_bias")
 
