@@ -33,7 +33,8 @@ def test_catalogue_cases_cover_every_effect_of_the_oscillator():
     assert covered == {(OSC.name, e) for e in OSC.EFFECTS}
 
 
-@pytest.mark.parametrize("model, effect, seed, kind, options", CATALOGUE_CASES,
+@pytest.mark.parametrize("model, effect, seed, kind, options",  # the rig's cases are long: CI (-m slow)
+                         [pytest.param(*c, marks=pytest.mark.slow) if c[0] is RIG else c for c in CATALOGUE_CASES],
                          ids=[f"{m.name}-{e}" for m, e, *_ in CATALOGUE_CASES])
 def test_hidden_effect_is_named_recovered_and_pays_off(model, effect, seed, kind, options):
     rec = record(model, (effect,), seed=seed, kind=kind, **options)
@@ -72,8 +73,8 @@ def test_healthy_record_names_nothing(model, seed, kind):
 
 
 @pytest.mark.parametrize("model, effects, seed", [
-    (RIG, ("viscous_friction", "valve_null_bias"), 31),   # found one after the other (greedy)
-    (RIG, ("stribeck_friction", "sensor_delay"), 32),     # only recognisable together (pair step)
+    pytest.param(RIG, ("viscous_friction", "valve_null_bias"), 31, marks=pytest.mark.slow),  # found one after the other (greedy)
+    pytest.param(RIG, ("stribeck_friction", "sensor_delay"), 32, marks=pytest.mark.slow),  # only recognisable together (pair step)
     (OSC, ("coulomb_friction", "input_delay"), 33),
 ], ids=["rig-viscous+bias", "rig-stribeck+delay", "oscillator-coulomb+delay"])
 def test_two_hidden_effects_are_both_named(model, effects, seed):
@@ -129,6 +130,7 @@ def test_oscillator_force_ripple_is_unexplained_not_forced_into_a_name():
     assert d.to_dict()["signature"]["adequacy"]["adequate"] is False
 
 
+@pytest.mark.slow
 def test_cli_json_contract_and_report(tmp_path, capsys):
     path = tmp_path / "rig.csv"
     assert cli.main(["-q", "simulate", "--model", "msp25", "-o", str(path), "--duration", "6",

@@ -53,8 +53,15 @@ KNOWN: dict[str, str] = {}
 MIMICKED = ("position_sensor_gain",)
 
 
-@pytest.mark.parametrize("effect", [pytest.param(e, marks=pytest.mark.xfail(strict=True, reason=KNOWN[e]))
-                                    if e in KNOWN else e for e in IN_CATALOGUE if e not in MIMICKED])
+#: the catalogue's effects but one (each diagnosis took 8-170 s in full runs of the suite): run by CI
+#: (``pytest -m slow``); valve_null_bias stays in the default run
+SLOW = tuple(e for e in IN_CATALOGUE if e != "valve_null_bias")
+
+
+@pytest.mark.parametrize("effect", [pytest.param(e, marks=[*([pytest.mark.xfail(strict=True, reason=KNOWN[e])]
+                                                               if e in KNOWN else []),
+                                                             *([pytest.mark.slow] if e in SLOW else [])])
+                                    for e in IN_CATALOGUE if e not in MIMICKED])
 def test_each_catalogue_effect_is_named_exactly(effect):
     d, info = _diag((effect,), seed=1001)
     assert d.causes == [effect], d.text()
@@ -70,6 +77,7 @@ def test_each_catalogue_effect_is_named_exactly(effect):
             assert v["value"] == pytest.approx(truth, rel=0.35), (name, v, truth)
 
 
+@pytest.mark.slow
 def test_a_position_sensor_gain_is_not_testable_while_cd_is_free_and_named_when_cd_is_commissioned():
     """In the measured displacement a gain g is the nominal rig with Cd x g (bulk modulus and moving mass / g
     leave the hydraulic resonance unchanged): with Cd free the diagnosis says so instead of testing it; with
@@ -104,6 +112,7 @@ def test_healthy_record_with_loop_noise_names_nothing():
     assert d.nominal.noise.orders["x"] > 0
 
 
+@pytest.mark.slow
 def test_a_long_healthy_record_is_adequate_though_its_slight_colour_is_detectable():
     """20 s at 1 kHz: the loop noise a finite autoregression leaves slightly coloured is detectable on this many
     samples (seed 1011: Ljung-Box p 2e-4, under the level on its own), yet predicts a negligible share of the
@@ -118,6 +127,7 @@ def test_a_long_healthy_record_is_adequate_though_its_slight_colour_is_detectabl
     assert d.causes == [] and d.unexplained, d.text()
 
 
+@pytest.mark.slow
 def test_a_long_analog_record_is_named_controller_rate_by_refits_over_the_timings():
     """20 s of an analog loop diagnosed as digital at the log's rate: the nominal estimates bend to the assumed
     timing, so at them the closest alternative (digital at 2x) scores best; its refit alone leaves the drive
@@ -129,6 +139,7 @@ def test_a_long_analog_record_is_named_controller_rate_by_refits_over_the_timing
     assert d.final.adequacy["exogenous"]["r2_excess"] < 0.01
 
 
+@pytest.mark.slow
 def test_a_noise_model_whose_errors_stay_predictable_gets_a_higher_order():
     """8 s, a spool overlap: after the deadband is named, the noise model's prediction errors are not materially
     predictable - AIC's order sufficed, or it was raised along the grid until they were not (a calibration
@@ -146,12 +157,14 @@ def test_a_noise_model_whose_errors_stay_predictable_gets_a_higher_order():
     assert fit_noise_model(B, ("x", "pA"), min_orders={"x": 6}).orders["x"] >= 6
 
 
+@pytest.mark.slow
 def test_healthy_record_with_coloured_noise_names_nothing():
     d, _ = _diag((), seed=1003, tau=0.005)
     assert d.causes == [] and not d.unexplained, d.text()
     assert all(n > 0 for n in d.nominal.noise.orders.values())
 
 
+@pytest.mark.slow
 def test_analog_controller_is_named_controller_rate_and_not_with_the_right_timing():
     d, _ = _diag((), seed=1001, controller="analog")
     assert d.causes == [CONTROLLER_RATE] and not d.unexplained, d.text()
@@ -162,7 +175,8 @@ def test_analog_controller_is_named_controller_rate_and_not_with_the_right_timin
     assert right.causes == [] and not right.unexplained, right.text()
 
 
-@pytest.mark.parametrize("effect", ["mechanical_resonance", "parameter_drift", "x_transducer_lag"])
+@pytest.mark.parametrize("effect", [pytest.param("mechanical_resonance", marks=pytest.mark.slow),
+                                    "parameter_drift", "x_transducer_lag"])
 def test_out_of_catalogue_error_is_unexplained_without_a_name(effect):
     d, _ = _diag((effect,), seed=1001)
     assert d.unexplained and d.causes == [], d.text()
@@ -178,6 +192,7 @@ def test_out_of_catalogue_error_is_unexplained_without_a_name(effect):
         assert fitted and all(not t.accepted for t in fitted)
 
 
+@pytest.mark.slow
 def test_spool_saturation_is_probed_at_levels_the_record_reaches():
     d, info = _diag(("spool_saturation",), seed=1001)
     row = next(r for r in d.screens[0] if r.effect == "spool_saturation")

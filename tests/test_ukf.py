@@ -82,6 +82,7 @@ def test_same_as_filterpy_with_coloured_noise_states_and_a_linear_input():
     assert tr.timing.intersample_code(1e-3) == 2 and np.max(np.abs(expected[-1, 6:11] - expected[0, 6:11])) > 0.05
 
 
+@pytest.mark.slow  # filterpy's Python filter over 20 s of samples; the shorter comparisons above stay
 def test_same_as_filterpy_with_the_production_settings_over_twenty_seconds():
     """Gating, excitation freezing and the consistency guard on (noise learning off): 20 s of a healthy
     record started away from the truth, filterpy following the same decisions, same numbers."""

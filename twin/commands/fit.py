@@ -41,6 +41,9 @@ def add_arguments(p) -> None:
     p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
     add_timing_arguments(p)
     add_map_argument(p)
+    from twin.commands.compare import add_arguments as add_compare_arguments
+
+    add_compare_arguments(p)
     p.add_argument("--json", action="store_true")
 
 
@@ -60,6 +63,10 @@ def run(args) -> int:
     timing = timing_of(args, saved_timing)
     free = _names(args.free) or model.PHENOMENOLOGICAL
     outputs = _names(args.outputs) or None
+    if args.compare:
+        from twin.commands.compare import run_compare
+
+        return run_compare(args, model, records, base, timing, lost)
     res = fit(model, records, free, base=base, start=_kv(args.start), outputs=outputs,
               noise=_kv(args.noise_levels), drive=args.drive, estimate_init=_names(args.estimate_init),
               n_starts=args.starts, seed=args.seed, progress=None if args.json else _progress(args),
@@ -76,8 +83,12 @@ def run(args) -> int:
         report = fit_report(res, records, model, args.report)
     if args.save:
         res.save(args.save)
+    from twin.reports import summary as _summary
+
+    summary = _summary.summarize(res, records, drive=args.drive)
     if args.json:
         d = res.to_dict()
+        d["summary"] = summary
         d["plots"] = plots
         d["records"] = [r.name for r in records]
         d["input_lost"] = lost
@@ -86,6 +97,7 @@ def run(args) -> int:
         _dump(d)
     else:
         print(res.table())
+        print(_summary.text(summary))
         for line in lost:
             print(f"input lost: {line}")
         for p in plots:

@@ -181,6 +181,10 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
     hist = _get(result, "history") or []
     if hist:
         pg.add("convergence", "Convergence", P.figure(_convergence(hist), "Cost of each refined start per iteration."))
+    if not isinstance(result, Mapping) and predicted:  # present-style summary, k-step prediction, valve Bode plot
+        from twin.reports.summary import add_sections
+
+        add_sections(pg, result, records)
     return pg.write(out_dir, filename)
 
 
