@@ -173,7 +173,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     import matplotlib.pyplot as plt
 
     from twin.estimation.residuals import regime_signals
-    from twin.reports.diagnose import _AXIS_SIGNAL
+    from twin.reports.signatures import _AXIS_SIGNAL
     from twin.reports.units import label, signal_unit
 
     os.makedirs(out_dir, exist_ok=True)
@@ -220,7 +220,7 @@ def diagnosis_plots(diag: Diagnosis, out_dir: str) -> list[str]:
     plt.close(fig)
     paths.append(p)
     # each effect's own signature: residual before vs the regime variable, and the effect's contribution
-    from twin.reports.diagnose import signature_data
+    from twin.reports.signatures import signature_data
     from twin.reports.views import signature_figure
 
     for sig in signature_data(diag):

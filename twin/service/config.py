@@ -55,13 +55,13 @@ finite (TOML's ``nan`` and ``inf`` are refused).
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 import os
 import tomllib
 from typing import TYPE_CHECKING, Any
 
 from fpdd.errors import ConfigError, ParameterError
+from twin.service.config_values import _check_keys, _get, _number, suggest
 from twin.models import DEFAULT_MODEL
 from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
@@ -161,49 +161,6 @@ BASELINE_KEYS = ("value", "rel_band", "lo", "hi")
 
 
 # --------------------------------------------------------------------------- validation helpers
-
-_TYPE_TEXT = {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table",
-              bool: "true or false"}
-
-
-def suggest(key: str, known: tuple[str, ...] | list[str]) -> str:
-    """`` (did you mean 'x'?)`` for the closest known key, else the list of known keys."""
-    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else f" (known: {', '.join(known)})"
-
-
-def _check_keys(d: dict, known: tuple[str, ...], where: str) -> None:
-    for key in d:
-        if key not in known:
-            raise ConfigError(f"{where}: unknown key {key!r}{suggest(key, known)}")
-
-
-def _get(d: dict, key: str, typ, where: str, default: Any = ...) -> Any:
-    """``d[key]`` of type ``typ`` (int accepted for float; numbers finite), or ``default``."""
-    if key not in d:
-        if default is ...:
-            raise ConfigError(f"{where}: missing key {key!r}")
-        return default
-    v = d[key]
-    if typ is float and isinstance(v, int) and not isinstance(v, bool):
-        v = float(v)
-    if not isinstance(v, typ) or (typ is int and isinstance(v, bool)):
-        raise ConfigError(f"{where}.{key}: expected {_TYPE_TEXT.get(typ, typ.__name__)}, got {v!r}")
-    if typ is float and not math.isfinite(v):
-        raise ConfigError(f"{where}.{key}: expected a finite number, got {v!r}")
-    return v
-
-
-def _number(d: dict, key: str, where: str, default: Any = ..., *, lo: float | None = None,
-            lo_open: bool = False, what: str = "") -> float:
-    v = _get(d, key, float, where, default)
-    if v is None or lo is None:
-        return v
-    if (lo_open and not v > lo) or (not lo_open and not v >= lo):
-        op = ">" if lo_open else ">="
-        raise ConfigError(f"{where}.{key}: must be {op} {lo:g}{what}, got {v:g}")
-    return v
-
 
 def _si(d: dict, key: str, where: str, pname: str, spec=None, default: Any = ..., positive: bool = False) -> float:
     """``d[key]``: a number (SI) or a string with a unit (``"2000mm^2"``) for parameter ``pname``, in SI; with

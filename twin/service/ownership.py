@@ -25,6 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 from fpdd.errors import ConfigError
+from twin.service.config_values import _check_keys, _get, _number
 from twin.online.events import RIG_PATTERN
 
 log = logging.getLogger("twin.serve")
@@ -73,8 +74,6 @@ def parse_failover(doc: dict, path: str, journal_dir: str) -> FailoverConfig | N
     where = f"{path}: failover"
     if not isinstance(f, dict):
         raise ConfigError(f"{where}: expected a table")
-    from twin.service.config import _check_keys, _get, _number
-
     _check_keys(f, FAILOVER_KEYS, where)
     sid = _get(f, "service_id", str, where, "") or default_service_id(journal_dir)
     if not re.match(RIG_PATTERN, sid) or len(sid) > 64:
