@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.errors import DataError, ParameterError
+from fpdd.errors import DataError, ParameterError
 from twin.models import Model, get_model
 from twin.models.base import Timing
 from twin.params import ParameterSet
