@@ -166,7 +166,7 @@ def test_fit_command_prints_the_summary_and_writes_the_bode_plot(healthy, tmp_pa
     assert "Free parameters (estimate ± std, HAC):" in out and "NOTE: Fit(pA)" in out
     assert cli.main([*base, "--report", str(tmp_path / "rep"), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)["summary"]
-    assert s["params"]["wn"]["unit"] == "rad/s" and s["valve"]["bandwidth_3db"]["unit"] == "Hz"
+    assert s["params"]["wn"]["unit"] == "rad/s" and s["valve"]["bandwidth_3db"]["unit"] == "rad/s"
     assert set(s["outputs"]["x"]["fit_pct_ahead"]) == {"1", "10", "inf"}
     html = (tmp_path / "rep" / "fit_report.html").read_text(encoding="utf-8")
     for sid in ("summary", "ahead", "bode"):

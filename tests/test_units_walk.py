@@ -51,6 +51,7 @@ DIMENSIONLESS = frozenset({
     # statistics, probabilities and noise-normalised figures
     "p", "p_adjusted", "p_effect", "p_min_bonferroni", "alpha", "z", "Q", "lm", "lr", "delta_aicc", "loglik", "aic",
     "aicc", "bic", "fpe", "cost", "final_cost", "weighted_sse", "innovations_ss", "nis", "p_within_horizon",
+    "snr", "error_to_noise",  # a signal's or an error's RMS over the noise's
     "misplaced",  # the share of an effect's gain its shifted signature explains again
 })
 #: objects whose every number is dimensionless
@@ -178,8 +179,9 @@ def bare_si(text: str, where: str, tables: bool = True) -> list[str]:
     unit_next = "|".join(re.escape(u) for u in sorted(units, key=len, reverse=True))
     for name, (_, shown) in _display_units().items():
         sep = "[=:]" if tables else "="  # in a report's table `NAME: x` is a cell under the column NAME
-        for m in re.finditer(rf"(?<![\w/.-]){re.escape(name)}\s*{sep}\s*({NUMBER})(?!\s*(?:{unit_next})(?![\w^]))",
-                             text):
+        # the unit right after the value, or after its standard error (``wn = 43.0 ± 0.1 Hz``)
+        for m in re.finditer(rf"(?<![\w/.-]){re.escape(name)}\s*{sep}\s*({NUMBER})"
+                             rf"(?!(?:\s*±\s*{NUMBER})?\s*(?:{unit_next})(?![\w^]))", text):
             bad.append(f"{where}: {name} without its unit ({shown}): {text[m.start():m.end() + 12]!r}")
         if not tables:
             continue

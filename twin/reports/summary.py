@@ -176,7 +176,8 @@ def summarize(result: Any, records: Sequence, horizons: Sequence[float] = C.DEFA
     b = valve_bode(result)
     if b is not None:
         out["valve"] = {"wn": {"value": b["wn"], "unit": "rad/s"}, "zeta": {"value": b["zeta"], "unit": "1"},
-                        "bandwidth_3db": {"value": b["bandwidth_hz"], "std": b["bandwidth_std_hz"], "unit": "Hz"}}
+                        "bandwidth_3db": {"value": 2 * math.pi * b["bandwidth_hz"],
+                                          "std": 2 * math.pi * b["bandwidth_std_hz"], "unit": "rad/s"}}
     return out
 
 
@@ -206,7 +207,8 @@ def text(summary: Mapping, model: str | None = None) -> str:
     v = summary.get("valve")
     if v:
         lines.append(f"Servo-valve: wn = {v['wn']['value'] / (2 * math.pi):.4g} Hz, zeta = {v['zeta']['value']:.4g}, "
-                     f"-3 dB bandwidth {v['bandwidth_3db']['value']:.4g} ± {v['bandwidth_3db']['std']:.2g} Hz")
+                     f"-3 dB bandwidth {v['bandwidth_3db']['value'] / (2 * math.pi):.4g} ± "
+                     f"{v['bandwidth_3db']['std'] / (2 * math.pi):.2g} Hz")
     lines.extend(f"NOTE: {n}" for n in summary["notes"])
     return "\n".join(lines)
 
