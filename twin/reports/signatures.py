@@ -26,7 +26,7 @@ def signature_data(diagnosis: Any) -> list[dict]:
     is largest against the noise (``signal``, SI arrays with ``unit``/``scale``), and whether it is flat in
     that view (:func:`twin.reports.views.signature_flatness`)."""
     try:
-        from fpdd.units import NOMINAL_NOISE as DEFAULT_NOISE
+        from fpdd.units import NOMINAL_NOISE
         from twin.estimation.diagnose import CONTROLLER_RATE, FORCE_EFFECTS, SIGNATURE_AXIS, TIMING_EFFECTS
         from twin.estimation.residuals import regime_signals
 
@@ -53,12 +53,12 @@ def signature_data(diagnosis: Any) -> list[dict]:
         shown = {}
         for o in outs:
             unit, sc = signal_unit(o, diagnosis.model)
-            shown[o] = (rec[o] - before[o], after[o] - before[o], DEFAULT_NOISE.get(o, 1.0), unit, sc)
+            shown[o] = (rec[o] - before[o], after[o] - before[o], NOMINAL_NOISE.get(o, 1.0), unit, sc)
         if {"pA", "pB"} <= set(outs):
             area = diagnosis.final.params["A"]
             dp = {k: p["pA"] - p["pB"] for k, p in (("rec", rec.signals), ("before", before), ("after", after))}
             shown["force"] = (area * (dp["rec"] - dp["before"]), area * (dp["after"] - dp["before"]),
-                              area * math.sqrt(2.0) * DEFAULT_NOISE["pA"], "N", 1.0)
+                              area * math.sqrt(2.0) * NOMINAL_NOISE["pA"], "N", 1.0)
         if c in FORCE_EFFECTS and "force" in shown:
             o = "force"
         else:
