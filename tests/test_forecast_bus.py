@@ -40,6 +40,16 @@ def _msg(t: float, **fcs: tuple[float | None, float | None, float | None]) -> di
                           for n, (m, lo, hi) in fcs.items()}}
 
 
+def _wait_finished(statuses: queue.Queue, timeout_s: float = 240.0) -> None:
+    """Wait for the rig's status to say finished (or failed), at most ``timeout_s``; assert it finished."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        st = statuses.get(timeout=max(0.1, deadline - time.monotonic()))
+        if st["state"] in ("finished", "failed"):
+            break
+    assert st["state"] == "finished", st["message"]
+
+
 def test_the_gate_puts_changes_at_once_and_the_rest_every_period():
     now = [100.0]
     gate = ForecastGate(clock=lambda: now[0])
@@ -133,12 +143,7 @@ def test_the_service_puts_each_rigs_forecast_and_answers_get_with_the_latest(wea
                     json.loads(s.payload.to_string())))]
         th.start()
         try:
-            deadline = time.monotonic() + 240.0
-            while True:  # the rig finishes its log (the idle rig keeps the service up)
-                st = statuses.get(timeout=max(0.1, deadline - time.monotonic()))
-                if st["state"] in ("finished", "failed"):
-                    break
-            assert st["state"] == "finished", st["message"]
+            _wait_finished(statuses)  # the rig finishes its log (the idle rig keeps the service up)
             latest = fetch_forecasts(session, "*", timeout=5.0)
         finally:
             for s in subs:
@@ -232,12 +237,7 @@ def test_a_maintenance_sent_with_twin_maintenance_restarts_the_forecast_and_surv
                 if a["parameter"] == "CdAleak" and a["kind"] == "returned" and "maintenance" in a["message"]:
                     break
             assert a["level"] == "ok" and "seal replaced" in a["message"]
-            deadline = time.monotonic() + 240.0
-            while True:
-                st = statuses.get(timeout=max(0.1, deadline - time.monotonic()))
-                if st["state"] in ("finished", "failed"):
-                    break
-            assert st["state"] == "finished", st["message"]
+            _wait_finished(statuses)
             latest = fetch_forecasts(session, "rig-w", timeout=5.0)
         finally:
             for s in subs:

@@ -80,11 +80,8 @@ def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
 
     heap: list[tuple[float, int, Any, AlarmJournal]] = []
     for i, rig in enumerate(rigs):
-        try:
-            journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0,
-                                   witnesses=[commission_path(cfg, rig.name)])
-        except TwinError as exc:
-            out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
+        journal = _open_journal(rig, cfg, out)
+        if journal is None:
             continue
         heap.append((-math.inf, i, RigRunner(rig, cfg, journal, out, stop).run_steps(), journal))
     heapq.heapify(heap)
@@ -107,12 +104,19 @@ def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
         heapq.heappush(heap, (nxt, i, steps, journal))
 
 
-def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
+def _open_journal(rig: RigConfig, cfg: ServiceConfig, out) -> AlarmJournal | None:
+    """The rig's alarm journal, or None when it cannot be opened (the rig is then reported failed on ``out``)."""
     try:
-        journal = AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0,
-                               witnesses=[commission_path(cfg, rig.name)])
+        return AlarmJournal(journal_path(cfg, rig.name), lock_wait_s=10.0,
+                            witnesses=[commission_path(cfg, rig.name)])
     except TwinError as exc:
         out.put(("done", rig.name, RigSummary(rig.name, "failed", str(exc))))
+        return None
+
+
+def _run_one(rig: RigConfig, cfg: ServiceConfig, out, stop) -> None:
+    journal = _open_journal(rig, cfg, out)
+    if journal is None:
         return
     with journal:
         RigRunner(rig, cfg, journal, out, stop).run()
