@@ -18,7 +18,8 @@ checks and online noise learning on (the production settings):
 Targets: <= 20 us per sample on one core, >= 100 rigs at 1 kHz on 2 cores.
 
 Before/after (always, and alone with ``--against-before``): the kernel as it was before the model interface
-(``benchmarks/_ukf_before.py``: 47 positional arrays, the rig model built in) timed against the current
+(``twin/online/ukf.py`` of git revision :data:`BEFORE_REV`, read with ``git show`` from the repository this
+benchmark runs in: 47 positional arrays, the rig model built in) timed against the current
 per-model kernel on the same record, interleaved, ``--repeats`` times each (medians, CPU time), with the
 largest relative difference of their estimates: a ratio measured in the same run on a shared, noisy machine.
 Target (issue 20): the current kernel <= 12 us per sample.
@@ -42,6 +43,35 @@ import sys
 import time
 
 import numpy as np
+
+#: the last revision whose filter kernel took 47 positional arrays with the MSP25 built in (before the model
+#: interface): the baseline of the before/after timing
+BEFORE_REV = "2c8e44e"
+
+
+def _kernel_at(rev: str):
+    """``twin/online/ukf.py`` as it was at git revision ``rev``, imported as a module of its own (its source is
+    written to a temporary folder, so numba caches its compiled code there)."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    src = subprocess.run(["git", "show", f"{rev}:twin/online/ukf.py"], cwd=root, capture_output=True, text=True)
+    if src.returncode != 0:
+        raise SystemExit(f"benchmarks.tracker: the kernel of revision {rev} is needed as the baseline and git "
+                         f"could not read it ({src.stderr.strip() or 'git show failed'}); run from a git clone")
+    folder = os.path.join(tempfile.gettempdir(), "twin_bench_kernels")
+    os.makedirs(folder, exist_ok=True)
+    name = "ukf_" + "".join(c if c.isalnum() else "_" for c in rev)
+    path = os.path.join(folder, name + ".py")
+    with open(path, "w") as f:
+        f.write(src.stdout)
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _record(duration_s: float, seed: int = 0):
@@ -147,8 +177,8 @@ def run(quick: bool = False) -> dict:
 
 def _before_tracker_class():
     """An :class:`~twin.online.tracker.OnlineTracker` whose compiled call is the kernel of
-    ``benchmarks/_ukf_before.py`` (the same filter before the model interface), given the arrays it took."""
-    from benchmarks import _ukf_before as old
+    revision :data:`BEFORE_REV` (the same filter before the model interface), given the arrays it took."""
+    old = _kernel_at(BEFORE_REV)
     from twin.online import ukf
     from twin.online.tracker import OnlineTracker
 
