@@ -30,7 +30,7 @@ from twin.models.intersample import input_at
 from twin.models.jitcache import keep_fresh
 from twin.models.msp25 import N_CTRL, advance, fast_tanh  # noqa: F401  (the filter interface)
 
-keep_fresh(__file__, M.__file__, _intersample_src.__file__, _base_src.__file__)
+keep_fresh(__file__, M.__file__, *M.SOURCES, _intersample_src.__file__, _base_src.__file__)
 
 #: the lanes' parameters: each lane recomputes the constants of these only (:func:`lanes`)
 LANE_PARAMS = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
