@@ -149,7 +149,7 @@ def _five_parameter_command() -> dict:
     import tempfile
 
     from twin.estimation.fit import fit
-    from twin.record import load_records
+    from twin.models.records import load_records
 
     with tempfile.TemporaryDirectory() as d:
         path = os.path.join(d, "rig40.csv")

@@ -65,11 +65,18 @@ def _kernel_at(rev: str):
     os.makedirs(folder, exist_ok=True)
     name = "ukf_" + "".join(c if c.isalnum() else "_" for c in rev)
     path = os.path.join(folder, name + ".py")
-    with open(path, "w") as f:
-        f.write(src.stdout)
+    try:
+        with open(path) as f:
+            same = f.read() == src.stdout
+    except OSError:
+        same = False
+    if not same:  # rewritten only when it differs: numba's cache of it stays valid from run to run
+        with open(path, "w") as f:
+            f.write(src.stdout)
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # importable by its name: numba's cached code refers to its module by name
     spec.loader.exec_module(mod)
     return mod
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 import numpy as np
 import pytest
@@ -172,3 +173,42 @@ def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
     assert abs(ffric["value"] - float(rec.truth["Ffric"])) <= 4.0 * ffric["std"] and ffric["unit"] == "N"
     states = [s.state for s in _statuses(tmp_path, "run1")]
     assert "commissioning" in states and states.index("commissioning") < states.index("running")
+
+
+def test_a_rig_of_another_model_commissions_with_its_own_model(tmp_path, monkeypatch):
+    """The commissioning fit runs the model the rig's configuration names, not the default one: a rig of the
+    four-state actuator (``twin/models/actuator2.py``, registered for this test; the fit's own process registers
+    it from the module the service names), its truth away from the model's defaults, is fitted in the fit's
+    spawned process from those defaults, and the document is the actuator's, its estimates on the truth."""
+    import twin.models as registry
+    from twin.models import get_model
+    from twin.models.simulate import measure
+    from twin.service.spawn import FitJob
+
+    monkeypatch.setitem(registry.REGISTRY, "actuator2", "twin.models.actuator2")
+    monkeypatch.setattr(registry, "MODELS", tuple(registry.REGISTRY))
+    model = get_model("actuator2")
+    truth = {"Ffric": 65.0, "Kq": 4.3e-5}
+    rng = np.random.default_rng(1005)
+    t = np.arange(8000) * 1e-3
+    f, ph = rng.uniform(0.2, 6.0, 8), rng.uniform(0, 2 * np.pi, 8)
+    demand = 4e-3 * np.sum(np.sin(2 * np.pi * f[:, None] * t + ph[:, None]), axis=0) / np.sqrt(8)
+    rec = measure(model, model.params(**truth), "x_ref", demand, 1e-3, noise={"x": 2e-6, "pA": 2e4, "pB": 2e4},
+                  seed=1005)
+    cfg = parse_config({
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        "service": {"journal_dir": str(tmp_path / "journal"), "out_dir": str(tmp_path / "run1"), "workers": 0},
+        "rig": [{"name": "rig-a", "model": "actuator2", "source": str(tmp_path / "a.mcap"), "speed": 0.0,
+                 "commission_s": 8.0, "track": list(truth)}],
+    }, str(tmp_path / "rigs.toml"))
+    rig = cfg.rigs[0]
+    assert rig.model == "actuator2" and all(rig.params.get(n, model.NOMINAL[n]) != v for n, v in truth.items())
+    job = FitJob(rig, rec.to_samples())
+    while not job.done():
+        time.sleep(0.05)
+    doc, problem = job.result()
+    assert problem == "" and doc is not None, problem
+    assert doc["model"] == "actuator2" and doc["commissioned"]["rig"] == "rig-a"
+    for n, v in truth.items():
+        p = doc["params"][n]
+        assert abs(p["value"] - v) <= 4.0 * p["std"] and abs(p["value"] / v - 1.0) < 0.05, (n, p)

@@ -172,7 +172,7 @@ def test_cli_save_is_fitresult_save_with_units_and_commissions_track(tmp_path, c
     """``twin fit --save`` writes what ``FitResult.save()`` writes: every value SI with its unit beside, the
     fitted ones with their std; ``twin track --params`` commissions from that file."""
     from twin.models.base import Timing
-    from twin.record import load_records
+    from twin.models.records import load_records
 
     path = tmp_path / "sim.csv"
     assert cli.main(["-q", "simulate", "-o", str(path), "--duration", "3", "--set", "Ffric=80",

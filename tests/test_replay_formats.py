@@ -174,7 +174,7 @@ def _silverbox(name: str = "SNLS80mV.csv.gz") -> Path:
 def test_silverbox_as_published_is_read_with_a_rate(tmp_path: Path) -> None:
     import gzip
 
-    from twin.record import load_records
+    from twin.models.records import load_records
 
     path = _silverbox()
     with gzip.open(path, "rt") as f:
@@ -285,7 +285,7 @@ def test_csv_units_in_the_header_are_read(tmp_path: Path) -> None:
 
 
 def test_csv_unit_check_is_dimensional_per_model(tmp_path: Path) -> None:
-    from twin.record import signal_specs
+    from twin.models.records import signal_specs
 
     path = tmp_path / "volts.csv"
     path.write_text("t,V1,V2\n" + "".join(f"{i / 1000},{0.01 * i},{0.02 * i}\n" for i in range(20)))

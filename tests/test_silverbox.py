@@ -30,7 +30,8 @@ from twin.estimation.fit import fit, initial_from_data
 from twin.estimation.hac import bartlett_lag
 from twin.models import get_model
 from tests.realdata import realdata
-from twin.record import Record, load_records
+from twin.models.records import load_records
+from twin.record import Record
 from twin.reports import diagnose_report
 
 DT = 2.0 ** 14 / 1e7                 # the paper's eq. 12: 610.3515625 Hz

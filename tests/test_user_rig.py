@@ -15,7 +15,8 @@ from fpdd.errors import DataError
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models import msp25 as M
-from twin.record import Record, load_records, records_from_samples
+from twin.models.records import load_records
+from twin.record import Record, records_from_samples
 from replay.base import Samples
 
 RIG = get_model("msp25")

@@ -25,7 +25,7 @@ _EXPORTS = {
     "Timing": "twin.models.base",
     "ParameterSet": "twin.params",
     "Record": "twin.record",
-    "load_records": "twin.record",
+    "load_records": "twin.models.records",
     "excite": "twin.models.simulate",
     "measure": "twin.models.simulate",
     "fit": "twin.estimation.fit",

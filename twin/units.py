@@ -1,4 +1,6 @@
-"""Values with units on the way in, by name: ``wn=43Hz``, ``CdAleak=3.3mm^2``, ``Ffric=50N``, ``x=2um``.
+"""Units by name: values with units on the way in (``wn=43Hz``, ``CdAleak=3.3mm^2``, ``Ffric=50N``, ``x=2um``),
+and the display unit of a parameter or a signal of a model on the way out (:func:`param_spec`, :func:`signal_unit`,
+which the estimation and the reports share).
 
 The unit of a name is looked up among every model's parameters and the rig signals (:func:`known_units`; a
 parameter's display unit: :func:`display_of`); the conversion is
@@ -9,7 +11,10 @@ from __future__ import annotations
 
 import functools
 
-from fpdd.units import SIGNAL_UNITS, text_to_si
+from fpdd.units import SIGNAL_UNITS, display, text_to_si
+
+#: quantities shown beside the logged signals, not logged themselves: (display unit, factor from SI)
+DERIVED_SIGNALS: dict[str, tuple[str, float]] = {"force": display("N"), "v": display("m/s")}
 
 
 @functools.cache
@@ -52,3 +57,35 @@ def to_si(name: str, text: str, unit: str | None = None) -> float:
     except ValueError:  # a value with a unit: the models are asked for the unit of the name only then
         unit = unit or known_units().get(name)
     return text_to_si(name, text, unit)
+
+
+def signal_unit(name: str, model: str | None = None) -> tuple[str, float]:
+    """(display unit, factor from SI) of a logged signal of ``model``'s records
+    (:func:`twin.models.records.signal_specs`: the oscillator's ``u`` is a force in N); SI and factor 1 when
+    unknown."""
+    from twin.models.records import signal_specs
+
+    spec = signal_specs(model or "").get(name)
+    return spec.display if spec is not None else DERIVED_SIGNALS.get(name, ("", 1.0))
+
+
+@functools.cache
+def _specs(model: str) -> dict:
+    from twin.models import get_model
+
+    m = get_model(model)
+    out = {s.name: s for s in m.params().specs}
+    for e in m.EFFECTS.values():
+        for s in e.params:
+            out.setdefault(s.name, s)
+    return out
+
+
+def param_spec(model: str | None, name: str):
+    """The :class:`~twin.params.ParamSpec` of a parameter of ``model`` (effects included), or ``None``."""
+    if not model:
+        return None
+    try:
+        return _specs(model).get(name)
+    except Exception:  # an unknown model name: shown in SI
+        return None

@@ -22,7 +22,7 @@ def run_compare(args, model, records, base, timing, lost) -> int:
     from replay.options import EXIT_LOSS
     from twin.commands.common import dump, names, progress, source_options
     from twin.estimation.compare import Candidate, compare_models
-    from twin.record import load_records
+    from twin.models.records import load_records
     from twin.reports import summary as S
 
     cands = [Candidate.parse(c, model.name) for c in args.compare.split(",") if c.strip()]

@@ -44,7 +44,8 @@ def run(args) -> int:
     from twin.estimation.diagnose import ALPHA, diagnose
     from twin.models import get_model
     from twin.models.base import DEFAULT_TIMING
-    from twin.record import Record, load_records
+    from twin.record import Record
+    from twin.models.records import load_records
 
     model = get_model(args.model)
     records: list[Record] = []

@@ -50,7 +50,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from twin.estimation.fit import fit
     from twin.models import get_model
-    from twin.record import load_records
+    from twin.models.records import load_records
 
     model = get_model(args.model)
     records = []

@@ -84,9 +84,9 @@ def _check_rig_log(path: str) -> None:
 
 
 def _read(path: str, opts: dict, reports: list):
-    """Blocks of the log; its signals checked first (:func:`twin.record.check_signals`), its read report kept."""
+    """Blocks of the log; its signals checked first (:func:`twin.models.records.check_signals`), its read report kept."""
     from replay.factory import open_source
-    from twin.record import check_signals
+    from twin.models.records import check_signals
 
     with open_source(path, **opts) as src:
         check_signals(path, src.signals, DEFAULT_MODEL)

@@ -261,7 +261,7 @@ class ResidualAnalysis:
         }
 
     def text(self) -> str:
-        from twin.reports.units import signal_unit
+        from twin.units import signal_unit
 
         lines = []
         for o in self.outputs:

@@ -30,7 +30,7 @@ from twin.models.intersample import input_at
 from twin.models.jitcache import keep_fresh
 from twin.models.msp25 import N_CTRL, advance, fast_tanh  # noqa: F401  (the filter interface)
 
-keep_fresh(__file__, M.__file__, _intersample_src.__file__, _base_src.__file__)
+keep_fresh(__file__, M.__file__, *M.SOURCES, _intersample_src.__file__, _base_src.__file__)
 
 #: the lanes' parameters: each lane recomputes the constants of these only (:func:`lanes`)
 LANE_PARAMS = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
@@ -184,20 +184,23 @@ def lanes(S, TH, m, p, idx, wnd, mode, dt, nsub, W):
         p[idx[j]] = TH[0, j]
     _consts(p, c)
     for i in range(N_LEAN):
+        ci = c[i]  # read once: c is a view of W, so a read inside the loop is repeated after every store
         for ln in range(LANES):
-            W[(W_C + i) * LANES + ln] = c[i]
+            W[(W_C + i) * LANES + ln] = ci
     s2r = math.sqrt(2.0 / p[M.I_RHO])
     lf = _leak_factor(p)
+    b = p[M.I_B]
     for ln in range(LANES):
         r = ln if ln < m else 0
         for j in range(p_count):
             p[idx[j]] = TH[r, j]
-        wn = p[M.I_WN]
+        # the lane's parameters read before W is written (W might be p for all the compiler knows)
+        wn, zeta, cd, cdl, ff = p[M.I_WN], p[M.I_ZETA], p[M.I_CD], p[M.I_CDALEAK], p[M.I_FFRIC]
         W[W_C * LANES + ln] = wn * wn
-        W[(W_C + 1) * LANES + ln] = 2.0 * p[M.I_ZETA] * wn
-        W[(W_C + 3) * LANES + ln] = p[M.I_CD] * p[M.I_B] * s2r
-        W[(W_C + 7) * LANES + ln] = p[M.I_CDALEAK] * lf * s2r
-        W[(W_C + 13) * LANES + ln] = p[M.I_FFRIC]
+        W[(W_C + 1) * LANES + ln] = 2.0 * zeta * wn
+        W[(W_C + 3) * LANES + ln] = cd * b * s2r
+        W[(W_C + 7) * LANES + ln] = cdl * lf * s2r
+        W[(W_C + 13) * LANES + ln] = ff
         for i in range(6):
             W[(W_A + i) * LANES + ln] = S[r, i]
     _lanes_rk4(W, wnd, mode, dt, nsub)

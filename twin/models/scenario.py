@@ -24,7 +24,7 @@ from twin.models import base as _base_src
 from twin.models.jitcache import keep_fresh
 
 # the machine code cached for this module inlines these modules' compiled code and constants
-keep_fresh(__file__, M.__file__, _intersample_src.__file__, _base_src.__file__)
+keep_fresh(__file__, M.__file__, *M.SOURCES, _intersample_src.__file__, _base_src.__file__)
 
 
 @dataclasses.dataclass(frozen=True)

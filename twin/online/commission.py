@@ -27,7 +27,7 @@ from typing import Any
 from collections.abc import Mapping, Sequence
 
 from fpdd.errors import ConfigError, ParameterError
-from twin.models import DEFAULT_MODEL, MODELS, get_model, trackable_models
+from twin.models import DEFAULT_MODEL, REGISTRY, get_model, trackable_models
 from twin.models.base import Timing
 
 NOISE_KEYS = ("x", "pA", "pB")
@@ -79,7 +79,7 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{source}: expected a JSON object written by twin fit --save")
     model = doc.get("model", DEFAULT_MODEL)
-    if model not in MODELS or not get_model(model).TRACKABLE:
+    if model not in REGISTRY or not get_model(model).TRACKABLE:
         raise ConfigError(f"{source}: model: a fit of {model!r}; the online twin runs "
                           f"{', '.join(trackable_models())}")
     params_in = doc.get("params", {})

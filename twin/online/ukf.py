@@ -193,15 +193,26 @@ def _kernel_dir() -> Path:
 
 def _sources_of(fmod) -> list[Path]:
     """The source files whose compiled code ``fmod``'s functions inline: its own and those of the modules it
-    imported, or imported functions from (the rig model, intersample rules, ...)."""
-    files = {str(fmod.__file__)}
-    for v in vars(fmod).values():
-        name = getattr(v, "__name__", None) if isinstance(v, type(sys)) else \
-            getattr(getattr(v, "py_func", v), "__module__", None)
-        mod = sys.modules.get(name) if isinstance(name, str) else None
+    imported, or imported functions from (the rig model, intersample rules, ...), and theirs in turn (a model in
+    several modules: the right-hand side reads the parameters' module's constants), within ``fmod``'s package."""
+    top = fmod.__name__.split(".")[0]
+    files: set[str] = set()
+    todo = [fmod]
+    seen = {fmod.__name__}
+    while todo:
+        mod = todo.pop()
         f = getattr(mod, "__file__", None)
-        if f and name is not None and name.split(".")[0] == fmod.__name__.split(".")[0]:
+        if f:
             files.add(str(f))
+        for v in vars(mod).values():
+            name = getattr(v, "__name__", None) if isinstance(v, type(sys)) else \
+                getattr(getattr(v, "py_func", v), "__module__", None)
+            if not isinstance(name, str) or name in seen or name.split(".")[0] != top:
+                continue
+            dep = sys.modules.get(name)
+            if dep is not None:
+                seen.add(name)
+                todo.append(dep)
     return [Path(f) for f in sorted(files)]
 
 

@@ -160,10 +160,8 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                     status = ST_GAP
                 dtk = nint * dt0  # time stamps on the nominal grid: the rest of the step is jitter (twin.record)
                 h = dt0
-                # process noise over the whole interval
-                for i in range(n):
-                    for j in range(n):
-                        Q[i, j] = 0.0
+                # process noise over the whole interval: diagonal (its every diagonal entry is set here, and the
+                # entries off it stay the zeros Q starts with)
                 for i in range(ns):
                     Q[i, i] = q_state[i] * dtk / dt0
                 for j in range(p_count):
@@ -191,8 +189,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                     for j in range(q):
                         a_pow[j] = ch[j, H_A]
                     for i in range(n):
-                        for j in range(n):
-                            Q[i, j] /= nint
+                        Q[i, i] /= nint
                     for s_i in range(nint):
                         f0 = s_i / nint
                         f1 = (s_i + 1) / nint

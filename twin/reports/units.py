@@ -8,16 +8,15 @@ unit: never ``[1]``, never ``[-]``.
 
 from __future__ import annotations
 
-import functools
 import math
 
 from fpdd.units import SIGNALS as _SIGNAL_SPECS
-from fpdd.units import display
+from twin.units import DERIVED_SIGNALS, param_spec
+from twin.units import signal_unit as signal_unit  # the display unit of a signal, shared with the estimation
 
 #: signal -> (display unit, factor from SI): the unit people read a rig's signals in (:data:`fpdd.units.DISPLAY`,
 #: a factor only: the oil temperature stays in kelvin, as a degree Celsius needs an offset)
-SIGNALS: dict[str, tuple[str, float]] = {**{n: s.display for n, s in _SIGNAL_SPECS.items()},
-                                         "force": display("N"), "v": display("m/s")}
+SIGNALS: dict[str, tuple[str, float]] = {**{n: s.display for n, s in _SIGNAL_SPECS.items()}, **DERIVED_SIGNALS}
 
 DIMENSIONLESS = ("1", "", "-", None)
 
@@ -34,37 +33,6 @@ def label(name: str, unit: str | None) -> str:
     """An axis label: ``x [mm]``, or just ``zeta`` for a dimensionless quantity."""
     u = pretty_unit(unit)
     return f"{name} [{u}]" if u else name
-
-
-def signal_unit(name: str, model: str | None = None) -> tuple[str, float]:
-    """(display unit, factor from SI) of a logged signal of ``model``'s records (:func:`twin.record.signal_specs`:
-    the oscillator's ``u`` is a force in N); SI and factor 1 when unknown."""
-    from twin.record import signal_specs
-
-    spec = signal_specs(model or "").get(name)
-    return spec.display if spec is not None else SIGNALS.get(name, ("", 1.0))
-
-
-@functools.cache
-def _specs(model: str) -> dict:
-    from twin.models import get_model
-
-    m = get_model(model)
-    out = {s.name: s for s in m.params().specs}
-    for e in m.EFFECTS.values():
-        for s in e.params:
-            out.setdefault(s.name, s)
-    return out
-
-
-def param_spec(model: str | None, name: str):
-    """The :class:`~twin.params.ParamSpec` of a parameter of ``model`` (effects included), or ``None``."""
-    if not model:
-        return None
-    try:
-        return _specs(model).get(name)
-    except Exception:  # an unknown model name: shown in SI
-        return None
 
 
 class Shown:

@@ -65,7 +65,7 @@ from twin.service.config_values import _check_keys, _get, _number, suggest
 from twin.models import DEFAULT_MODEL
 from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
-from twin.models import MODELS, get_model, trackable_models
+from twin.models import REGISTRY, get_model, trackable_models
 from twin.models.base import Timing
 
 #: The shortest commissioning window ``commission_s`` [s].
@@ -375,7 +375,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     where = f"{path}: rig {name!r}"
     _check_keys(r, RIG_KEYS, where)
     model_name = _get(r, "model", str, where, DEFAULT_MODEL)
-    if model_name not in MODELS or not get_model(model_name).TRACKABLE:
+    if model_name not in REGISTRY or not get_model(model_name).TRACKABLE:
         raise ConfigError(f"{where}.model: {model_name!r} is not a model the online twin runs; it runs "
                           f"{', '.join(trackable_models())}")
     model = get_model(model_name)

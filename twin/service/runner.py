@@ -149,7 +149,7 @@ class RigRunner(LiveInput, LiveTime, Commissioner, Checkpoints):
         span = self.cfg.block_s * self.rig.speed if self.rig.speed > 0 else math.inf
         shift: int | None = None
         with src:
-            from twin.record import check_signals
+            from twin.models.records import check_signals
 
             try:
                 check_signals(self.rig.source, src.signals, self.rig.model)

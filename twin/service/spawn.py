@@ -47,14 +47,19 @@ def profiled(target: Callable[..., Any], name: str) -> Callable[..., Any]:
     return run
 
 
-def _fit_job(conn, samples: Samples, tracked: tuple[str, ...], params: dict, timing, rig: str) -> None:
-    """A spawned process: the commissioning fit of one rig's window, its outcome sent on ``conn``."""
+def _fit_job(conn, samples: Samples, tracked: tuple[str, ...], params: dict, timing, rig: str, model: str,
+             module: str) -> None:
+    """A spawned process: the commissioning fit of one rig's window with the rig's own ``model`` (registered here
+    from its ``module`` when the service registered it at run time), its outcome sent on ``conn``."""
     die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from twin.models import REGISTRY, register
     from twin.online.commission import fit_window
 
     try:
-        out = fit_window(samples, tracked, params, timing, rig)
+        if model not in REGISTRY:
+            register(model, module)
+        out = fit_window(samples, tracked, params, timing, rig, model_name=model)
     except Exception as exc:  # noqa: BLE001 - a bug of the fit is a failed commissioning, not a dead rig
         out = (None, f"internal error of the fit {type(exc).__name__}: {exc}")
     conn.send(out)
@@ -62,14 +67,18 @@ def _fit_job(conn, samples: Samples, tracked: tuple[str, ...], params: dict, tim
 
 
 class FitJob:
-    """A rig's commissioning fit in its own spawned process (the other rigs go on meanwhile)."""
+    """A rig's commissioning fit in its own spawned process (the other rigs go on meanwhile), of the rig's own
+    model (``model`` in rigs.toml)."""
 
     def __init__(self, rig: RigConfig, samples: Samples) -> None:
+        from twin.models import REGISTRY
+
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=False)
         timing = rig.timing
         self.proc = ctx.Process(target=_fit_job, args=(child, samples, tuple(rig.track), dict(rig.params), timing,
-                                                       rig.name), name=f"twin-commission-{rig.name}")
+                                                       rig.name, rig.model, REGISTRY[rig.model]),
+                                name=f"twin-commission-{rig.name}")
         self.proc.start()
         child.close()
 

@@ -31,7 +31,7 @@ class ScreenRow:
     def to_dict(self) -> dict:
         """As JSON; the estimate in SI with each parameter's unit in ``estimate_unit``."""
         from twin.models import MODELS
-        from twin.reports.units import param_spec
+        from twin.units import param_spec
 
         d = dataclasses.asdict(self)
         d["estimate_unit"] = {}

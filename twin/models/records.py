@@ -1,0 +1,111 @@
+"""A model's records read from a file: any source ``replay`` knows (CSV, MCAP, CAN logs) read into uniform
+:class:`twin.record.Record` pieces, its signals checked first against what the model needs (:func:`check_signals`:
+a drive among the model's inputs, one of its outputs), in the signal vocabulary of the model's records
+(:func:`signal_specs`).
+"""
+
+from __future__ import annotations
+
+from fpdd.errors import DataError
+from twin.models import DEFAULT_MODEL, get_model
+from twin.record import Record, records_from_samples
+
+
+def signal_specs(model: str):
+    """The signal vocabulary of ``model``'s records: the rig's, except that the
+    oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage; its
+    ``u`` and ``y`` are generic (a circuit's volts are read as volts)."""
+    from fpdd.units import SIGNALS, SignalSpec
+
+    if model == "oscillator":
+        return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input (force, or any quantity)",
+                                           accepts=("*",))}
+    return SIGNALS
+
+
+def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=()) -> None:
+    """Refuse (:class:`DataError`, one line) a record without a signal its command needs.
+
+    Needed: a drive of ``model`` (any of its inputs), at least one of its outputs, and
+    ``needed``. A column that is no signal of ``model`` is "not understood"; one whose name
+    starts with a missing signal's name and a unit (``x[mm]``, ``x_ref (mm)``) is that
+    signal under a name the readers do not know: refused too, with the ``--map`` that reads it.
+    """
+    import re
+
+    m = get_model(model)
+    specs = signal_specs(model)
+    names = tuple(names)
+    have = set(names)
+    foreign = [n for n in names if n not in specs]
+    rig = (*m.INPUTS, *m.OUTPUTS, *[n for n in needed if n not in m.INPUTS + m.OUTPUTS])
+    missing = [n for n in rig if n not in have]
+    lacks = []
+    if not have & set(m.INPUTS):
+        words = {"u": "the controller output 'u'", "x_ref": "the demand 'x_ref'"} if model != "oscillator" else {}
+        drives = sorted(m.INPUTS, key=lambda n: n != "u")
+        lacks.append(f"a drive ({' or '.join(words.get(n, repr(n)) for n in drives)})")
+    if not have & set(m.OUTPUTS):
+        lacks.append(f"a measured output (any of {', '.join(m.OUTPUTS)})")
+    stems = {n: re.split(r"[\[\(\s]", n, maxsplit=1)[0] for n in foreign}
+    mistaken = {n: stem for n, stem in stems.items() if stem in missing}
+    absent = [n for n in missing if n in needed or n in mistaken.values()]
+    if absent:
+        lacks.append(f"signal(s) {', '.join(absent)}")
+    if not lacks:
+        return
+    parts = []
+    if foreign:
+        parts.append(f"column(s) {', '.join(repr(n) for n in foreign)} not understood (no signal of the {model} "
+                     "model)")
+    parts.append(f"missing {' and '.join(lacks)}")
+    hint = ""
+    if mistaken:
+        col, stem = next(iter(mistaken.items()))
+        unit = re.search(r"[\[\(]\s*([^\]\)]+?)\s*[\]\)]", col)
+        hint = f"; map a column with --map NAME=COLUMN[:UNIT], e.g. --map {stem}={col}" + (
+            f":{unit.group(1)}" if unit else "")
+    raise DataError(f"{path}: {'; '.join(parts)}; the record has {', '.join(names) or 'no signals'}{hint}")
+
+
+def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL, reports: list | None = None, *,
+                 map=None, **options) -> list[Record]:  # noqa: A002
+    """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``.
+
+    ``map``: a CSV's columns under other names or units, in the direction of ``--map``: ``{"x": "pos_mm:mm",
+    "t": "time:ms"}``, or ``--map``'s strings (``"x=pos_mm:mm"`` or a list of them). ``dbc=`` (CAN logs) and
+    other keyword options go to the reader.
+
+    Refused (:class:`DataError`): a record without the signals a fit needs (:func:`check_signals`) or
+    without a usable sample. ``reports``: receives the reader's :class:`replay.base.ReadReport` (what
+    was lost on the way: ``report.lossy``, ``report.loss_line()``); without it a loss is logged as a
+    warning (logger ``twin.models.records``), never passed over in silence.
+    """
+    from replay.factory import open_source
+    from replay.quality import QualityOptions
+
+    if map:
+        from replay.csvio import parse_map
+
+        if not str(path).lower().endswith((".csv", ".csv.gz")):
+            raise DataError(f"{path}: map renames CSV columns; this file is not a CSV (its signals are named by "
+                            "its format)")
+        items = [map] if isinstance(map, str) else ([f"{k}={v}" for k, v in map.items()] if isinstance(map, dict)
+                                                     else list(map))
+        options["mapping"] = parse_map(items, option="map")
+
+    if str(path).lower().endswith((".csv", ".csv.gz", ".mcap")) and "quality" not in options:
+        options["quality"] = QualityOptions(specs=signal_specs(model))
+    with open_source(path, **options) as src:
+        check_signals(str(path), src.signals, model)
+        samples = src.read_all()
+        report = src.report
+    if reports is not None:
+        reports.append(report)
+    elif report.lossy:
+        import logging
+
+        logging.getLogger(__name__).warning("%s", report.loss_line())
+    if len(samples) == 0:
+        raise DataError(f"{path}: no usable samples ({report.summary()})")
+    return records_from_samples(samples, name or str(path))
