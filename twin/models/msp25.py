@@ -51,6 +51,7 @@ import numpy as np
 
 from fpdd.errors import DataError
 from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
+from twin.models.effect_scale import msp25_typicals
 from twin.models.intersample import input_at, slope_at
 from twin.params import Effect, ParamSpec, Tracking
 from twin.models import intersample as _intersample_src
@@ -667,6 +668,10 @@ class MSP25(Model):
     def controller_response(self, ps, q, dt):
         """The digital PID's response ``KP + KI dt / q + KD q / dt``."""
         return ps["KP"] + ps["KI"] * dt / q + ps["KD"] * q / dt
+
+    def effect_typicals(self, ps, signals, predicted, dt):
+        """Each effect's typical size from the record and the fitted rig (:mod:`twin.models.effect_scale`)."""
+        return msp25_typicals(EFFECTS, NOMINAL, ps, signals, predicted, dt)
 
     def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
         """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""
