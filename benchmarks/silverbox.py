@@ -69,9 +69,10 @@ def main(argv=None) -> int:
     n_est = int(len(mu) * 0.75)
     n = args.samples or n_est
     model = get_model("oscillator")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(model, Record(DT, {"u": mu[:n], "y": my[:n]}, "silverbox"), free=("m", "d", "k"), seed=1000)
-    elapsed = time.perf_counter() - t0
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     rows = {}
     for label, st in (("linear", d.nominal), ("extended", d.final)):
         rows[label] = {
@@ -84,12 +85,13 @@ def main(argv=None) -> int:
         }
     out = {"samples": n, "scale": args.scale, "verdict": d.verdict(), "causes": d.causes,
            "effects": {c: {k: v["value"] for k, v in d.effect_params(c).items()} for c in d.causes},
-           "nominal": {k: d.nominal.params[k] for k in ("m", "d", "k")}, "rms": rows, "time_s": elapsed}
+           "nominal": {k: d.nominal.params[k] for k in ("m", "d", "k")}, "rms": rows, "time_s": elapsed,
+           "cpu_time_s": cpu, "load_average_1min": load}
     if args.json:
         print(json.dumps(out, indent=1, default=str))
         return 0
     print(f"diagnosis on {n} samples x{args.scale:g}: {d.verdict()}, causes {', '.join(d.causes) or 'none'} "
-          f"({elapsed:.1f} s)")
+          f"({elapsed:.1f} s on the clock, {cpu:.1f} s of processor time, load average {load:.2f})")
     for c, v in out["effects"].items():
         print(f"  {c}: " + ", ".join(f"{k}={x:.6g}" for k, x in v.items()))
     print(f"{'RMS [mV], original units':<28} {'multisine test':>15} {'arrow (full)':>13} {'arrow (no extrap.)':>19}")

@@ -112,6 +112,25 @@ def test_healthy_record_with_loop_noise_names_nothing():
     assert d.nominal.noise.orders["x"] > 0
 
 
+def test_a_rig_of_another_geometry_gets_the_right_name_with_sizes_that_follow_it():
+    """The reference rig with twice the piston area and three times the moving mass (the diagnosis told so by
+    ``--set A=... m=...``): the effect is named, and the catalogue's sizes follow the rig (the flow the record
+    draws doubles with the area, so do the spool opening passing it and the force range; a sample period is a
+    sample period)."""
+    A, m = 2.0 * 1920e-6, 3.0 * 45.0
+    rec, info = reference_record(("valve_null_bias",), seed=1003, duration=DURATION, known={"A": A, "m": m})
+    d = diagnose(RIG, rec, base=RIG.params(A=A, m=m), seed=1003)
+    assert d.causes == ["valve_null_bias"], d.text()
+    truth = abs(info["truth"]["valve_null_bias.offset"])
+    assert abs(d.effect_params("valve_null_bias")["xs_bias"]["value"]) == pytest.approx(truth, rel=0.35)
+    here = RIG.effect_typicals(d.nominal.params, rec.signals, d.nominal.predicted[0], rec.dt)
+    half = RIG.effect_typicals(d.nominal.params.update({"A": 1920e-6}), rec.signals, d.nominal.predicted[0], rec.dt)
+    assert here["valve_null_bias"][0] == pytest.approx(2.0 * half["valve_null_bias"][0], rel=1e-9)
+    assert here["viscous_friction"][0] == pytest.approx(2.0 * half["viscous_friction"][0], rel=1e-9)
+    assert here["supply_line_loss"][0] == pytest.approx(0.25 * half["supply_line_loss"][0], rel=1e-9)
+    assert here["sensor_delay"] == half["sensor_delay"] == pytest.approx((1.5 * rec.dt,))  # 1.5 samples
+
+
 @pytest.mark.slow
 def test_a_long_healthy_record_is_adequate_though_its_slight_colour_is_detectable():
     """20 s at 1 kHz: the loop noise a finite autoregression leaves slightly coloured is detectable on this many

@@ -67,6 +67,7 @@ from twin.record import Record
 from fpdd.units import NOMINAL_NOISE
 from twin.estimation.fit_result import FitResult
 from twin.estimation.fit_stats import hac_covariance, likelihood_ratio
+from twin.estimation.threads import one_blas_thread
 
 __all__ = ["FitResult", "fit", "hac_covariance", "likelihood_ratio", "make_problem", "noise_levels",
            "initial_from_data", "resolve_outputs"]
@@ -406,6 +407,7 @@ def _local_starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int,
     return np.clip(Z, lo_in, hi_in)
 
 
+@one_blas_thread
 def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str],
         base: ParameterSet | None = None, start: Mapping[str, float] | None = None,
         outputs: Sequence[str] | None = None, noise: Mapping[str, float] | None = None,

@@ -55,6 +55,7 @@ import numpy as np
 from fpdd.errors import DataError
 from twin.models import msp25_loop, msp25_params, msp25_rhs
 from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
+from twin.models.effect_scale import msp25_typicals
 from twin.models.msp25_loop import (
     N_CTRL, advance, pid_tick, sensor_lag, simulate_kernel, step_varying,
 )
@@ -122,6 +123,10 @@ class MSP25(Model):
     def controller_response(self, ps, q, dt):
         """The digital PID's response ``KP + KI dt / q + KD q / dt``."""
         return ps["KP"] + ps["KI"] * dt / q + ps["KD"] * q / dt
+
+    def effect_typicals(self, ps, signals, predicted, dt):
+        """Each effect's typical size from the record and the fitted rig (:mod:`twin.models.effect_scale`)."""
+        return msp25_typicals(EFFECTS, NOMINAL, ps, signals, predicted, dt)
 
     def tracking_bounds(self, ps, name: str) -> tuple[float, float]:
         """The tracking range, and physics: friction cannot exceed the actuator's stall force pP A."""

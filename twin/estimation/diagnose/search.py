@@ -10,6 +10,7 @@ import numpy as np
 
 from fpdd.errors import DataError, ParameterError
 from twin.estimation.fit import noise_levels, resolve_outputs
+from twin.estimation.threads import one_blas_thread
 from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, check_names
@@ -25,6 +26,7 @@ from twin.estimation.diagnose.timing import _try_timing
 
 
 # --- the diagnosis ----------------------------------------------------------------------------
+@one_blas_thread
 def diagnose(model: Model | str, records: Sequence[Record] | Record, outputs: Sequence[str] | None = None,
              free: Sequence[str] | None = None, base: ParameterSet | None = None,
              candidates: Sequence[str] | None = None, holdout: float = 0.25, alpha: float = ALPHA,

@@ -1,0 +1,30 @@
+"""An estimation's linear algebra on one BLAS thread (:func:`one_blas_thread`).
+
+The fit and the diagnosis multiply and decompose tall, narrow matrices: a Jacobian of a record's samples by a
+handful of parameters, an autoregression's lagged residuals, the score tests' sensitivities.  Such products are
+bound by memory, not arithmetic, so a second BLAS thread gains little even on an idle machine; on a machine whose
+cores are shared (a service's workers, a test run beside others) OpenBLAS's threads wait for each other at every
+call: the Silverbox's whole estimation part (65 062 samples) took 56.6 s of processor time and 172 s on the clock
+with two threads under a load average of 9.6-13.3, and 17.1 s and 53 s with one, verdict and estimates unchanged
+(``python -m benchmarks.silverbox --samples 0``, README "Speed").  The model kernels' own parallel loop over
+parameter sets (numba) is untouched: its work per thread is a whole simulation.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import TypeVar
+
+from threadpoolctl import threadpool_limits
+
+F = TypeVar("F", bound=Callable)
+
+
+def one_blas_thread(func: F) -> F:
+    """Run ``func`` with every loaded BLAS library (numpy's, scipy's) limited to one thread, restored after."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(limits=1, user_api="blas"):
+            return func(*args, **kwargs)
+    return wrapper  # type: ignore[return-value]
