@@ -28,6 +28,7 @@ from twin.online.baseline import default_baseline
 from net_helpers import free_port
 from twin.online.events import EstimateEvent, StatusEvent, validate
 from twin.service.journal import AlarmJournal
+from twin.reports.units import signal_unit
 from twin.service.live_view import TOPICS, LiveView, foxglove_layout
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -144,8 +145,17 @@ def test_messages_arrive_with_their_schemas(view, tmp_path):
             check(payload, client.channels[topic])
             ts = payload["timestamp"]
             assert ts["sec"] * 1_000_000_000 + ts["nsec"] == log_time  # Foxglove time = the sample's t_ns
-    sig0 = got["/rig/signals"][0][1]
-    assert sig0["rig"] == "rig-1" and sig0["pA_MPa"] == pytest.approx(10.0) and sig0["u_V"] == 0.5
+    sig0 = got["/rig/signals"][0][1]  # SI with the unit named, as in the rig's MCAP; display units under display
+    assert sig0["rig"] == "rig-1" and sig0["pA"] == pytest.approx(10e6) and sig0["u"] == 0.5 and sig0["x"] == 0.0
+    assert sig0["units"] == {"x": "m", "x_ref": "m", "u": "V", "pA": "Pa", "pB": "Pa"}
+    assert sig0["display"]["units"] == {"x": "mm", "x_ref": "mm", "u": "V", "pA": "MPa", "pB": "MPa"}
+    assert sig0["display"]["pA"] == pytest.approx(10.0) and sig0["display"]["pB"] == pytest.approx(9.0)
+    sig5 = got["/rig/signals"][5][1]  # a sample 50 ms in: x = 1 mm sin(50/50)
+    assert sig5["x"] == pytest.approx(1e-3 * np.sin(1.0), rel=1e-12)
+    assert sig5["display"]["x"] == pytest.approx(np.sin(1.0), rel=1e-12)
+    described = json.loads(client.channels["/rig/signals"]["schema"])["properties"]
+    assert described["x"]["description"].endswith(", m") and described["pA"]["description"].endswith(", Pa")
+    assert described["display"]["properties"]["pA"]["description"].endswith(", MPa")
     assert [m["t_s"] for _, m in got["/rig/signals"][:3]] == pytest.approx([0.0, 0.01, 0.02])
     est = got["/twin/estimate"][0][1]["params"]
     assert est["wn"]["value"] == pytest.approx(2 * np.pi * 43.0) and est["wn"]["unit"] == "rad/s"  # SI, unit named
@@ -215,7 +225,10 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
                        ["additionalProperties"]["properties"])
     display_fields = set(json.loads(json.dumps(TOPICS["estimate"][1]))["properties"]["params"]
                          ["additionalProperties"]["properties"]["display"]["properties"])
+    signal_display_fields = set(TOPICS["signals"][1]["properties"]["display"]["properties"])
     paths = [p["value"] for c in shipped["configById"].values() for p in c.get("paths", [])]
+    for name in ("x", "x_ref", "pA", "pB"):  # the rig's signals in display units (mm, MPa), SI in the message
+        assert f"/rig/signals{{rig==$rig}}.display.{name}" in paths
     for name in ("Ffric", "CdAleak", "Cd", "zeta", "wn"):  # in display units, as `twin params` shows them
         for f in ("value", "lo95", "hi95", "band_lo", "band_hi"):
             assert f"/twin/estimate{{rig==$rig}}.params.{name}.display.{f}" in paths
@@ -230,6 +243,7 @@ def test_the_shipped_layout_plots_every_parameter_with_its_band_and_lists_the_al
         assert field[0] in fields[topic] and (field[0] != "params" or field[2] in param_fields), p
         assert field[0] != "params" or field[2] != "display" or field[3] in display_fields, p
         assert field[0] != "forecasts" or field[2] in forecast_fields, p
+        assert topic != "/rig/signals" or (field[0] == "display" and field[1] in signal_display_fields), p
     titles = [c.get("title", "") for c in shipped["configById"].values()]
     assert any("leaves its band" in t and "[s]" in t for t in titles)
     assert {"wn [Hz]", "CdAleak [mm²]", "Ffric [N]", "zeta"} <= set(titles)
@@ -392,7 +406,7 @@ source = "zenoh://fpdd/idle/samples"
         for _, payload in msgs:
             check(payload, client.channels[topic])
     ours = {t: [m for _, m in msgs if m.get("rig", m.get("name")) == "rig-a"] for t, msgs in got.items()}
-    assert ours["/rig/signals"][0]["x_mm"] is not None and ours["/rig/signals"][0]["pA_MPa"] > 0
+    assert ours["/rig/signals"][0]["x"] is not None and ours["/rig/signals"][0]["pA"] > 1e6  # SI: Pa
     for panel in layout["configById"].values():
         paths = [p["value"] for p in panel.get("paths", [])] + ([panel["topicPath"]] if "topicPath" in panel else [])
         for p in paths:
@@ -413,6 +427,12 @@ source = "zenoh://fpdd/idle/samples"
                     assert (value is None) == (si is None), p
                     assert value is None or value == pytest.approx(si * spec.display_scale, rel=1e-12), p
                     assert value is not None or field[3] not in ("value", "lo95", "hi95"), p
+                if topic == "/rig/signals":  # the display unit (the one in the panel's title): SI x its scale
+                    assert field[0] == "display", p
+                    unit, scale = signal_unit(field[1], M.MODEL.name)
+                    assert msg["display"]["units"][field[1]] == unit and f"[{unit}]" in panel["title"], p
+                    assert msg["units"][field[1]] == {"x": "m", "x_ref": "m", "pA": "Pa", "pB": "Pa"}[field[1]]
+                    assert value == pytest.approx(msg[field[1]] * scale, rel=1e-12), p
         if "topicToRender" in panel:
             assert ours[panel["topicToRender"]], panel["topicToRender"]
     assert ours["/twin/alarm"][0]["parameter"] == "Ffric"

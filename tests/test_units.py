@@ -69,7 +69,10 @@ def test_fit_track_and_diagnose_read_foreign_csv_columns_with_map(tmp_path, caps
 
     rec = tmp_path / "r.csv"
     assert cli.main(["-q", "simulate", "-o", str(rec), "--duration", "2", "--seed", "4"]) == 0
-    data = np.genfromtxt(rec, delimiter=",", names=True)
+    header = rec.read_text().splitlines()[0]
+    assert header == "t[s],x_ref[m],u[V],x[m],pA[Pa],pB[Pa]"  # SI, the unit of each column named
+    data = np.genfromtxt(rec, delimiter=",", skip_header=1,
+                         dtype=[(c.split("[")[0], float) for c in header.split(",")])
     foreign = tmp_path / "foreign.csv"
     np.savetxt(foreign, np.column_stack([data["t"], data["x_ref"], data["u"], data["x"] * 1e3, data["pA"],
                                          data["pB"]]),
@@ -107,3 +110,53 @@ def test_a_signal_shown_by_a_factor_is_never_labelled_in_a_unit_with_an_offset()
 
     assert SIGNALS["T_oil"] == ("K", 1.0)
     assert not [n for n, (unit, _) in SIGNALS.items() if unit in ("°C", "degC", "°F", "degF")]
+
+
+def test_simulate_writes_csv_units_that_every_reader_reads_back_to_the_same_numbers(tmp_path, capsys):
+    """``twin simulate``'s CSV names each column's SI unit (``t[s],x[m],pA[Pa]``; the oscillator's ``u[N]``);
+    ``replay info``, ``twin fit`` and ``twin track`` read it to the very numbers of the same record in MCAP and of
+    the same CSV without units in its header."""
+    import numpy as np
+
+    from replay import cli as replay_cli
+    from replay.factory import open_source
+    from twin.record import load_records
+
+    def out_of(rc: int) -> dict:
+        assert rc == 0
+        return json.loads(capsys.readouterr().out)
+
+    paths = {k: str(tmp_path / f"r.{k}") for k in ("csv", "mcap")}
+    for path in paths.values():
+        assert cli.main(["-q", "simulate", "-o", path, "--duration", "1.5", "--seed", "1005",
+                         "--set", "Ffric=80N"]) == 0
+    text = (tmp_path / "r.csv").read_text()
+    assert text.splitlines()[0] == "t[s],x_ref[m],u[V],x[m],pA[Pa],pB[Pa]"
+    paths["plain"] = str(tmp_path / "plain.csv")
+    (tmp_path / "plain.csv").write_text("t,x_ref,u,x,pA,pB\n" + text.split("\n", 1)[1])
+    read = {}
+    for k, path in paths.items():
+        with open_source(path) as src:
+            read[k] = src.read_all()
+    for k in ("csv", "plain"):
+        assert np.array_equal(read[k].t_ns, read["mcap"].t_ns), k
+        for name, v in read["mcap"].signals.items():
+            assert np.array_equal(read[k].signals[name], v), (k, name)
+    assert float(read["csv"].signals["pA"].mean()) > 1e6  # Pa
+    info = {k: out_of(replay_cli.main(["info", "--json", p])) for k, p in paths.items()}
+    assert info["csv"]["ranges"] == info["mcap"]["ranges"] == info["plain"]["ranges"]
+    assert info["csv"]["samples"] == 1500 and info["csv"]["ranges"]["x"]["unit"] == "m"
+    fits = {k: out_of(cli.main(["fit", p, "--free", "Ffric", "--json"]))["params"]["Ffric"] for k, p in paths.items()}
+    assert fits["csv"] == fits["mcap"] == fits["plain"] and fits["csv"]["unit"] == "N"
+    assert abs(fits["csv"]["value"] - 80.0) < 4 * fits["csv"]["std"]
+    tracks = {k: out_of(cli.main(["track", p, "--out", str(tmp_path / f"t-{k}"), "--json"]))["final"]
+              for k, p in paths.items() if k != "plain"}
+    assert tracks["csv"] == tracks["mcap"]
+    # the oscillator's input is a force: its column says N, and its model's reader takes it
+    osc = tmp_path / "osc.csv"
+    assert cli.main(["-q", "simulate", "--model", "oscillator", "-o", str(osc), "--duration", "1",
+                     "--seed", "1006"]) == 0
+    assert osc.read_text().splitlines()[0] == "t[s],u[N],y[m]"
+    (rec,) = load_records(str(osc), model="oscillator")
+    rows = np.loadtxt(osc, delimiter=",", skiprows=1)
+    assert np.array_equal(rec.signals["u"], rows[:, 1]) and np.array_equal(rec.signals["y"], rows[:, 2])

@@ -10,6 +10,8 @@ The rule for a JSON number (:func:`unitless`): it is a physical value with its u
 * its object has a ``"unit"`` key (``{"value", "unit"[, "std"]}``, a row with its unit), or
 * an enclosing object has a sibling ``"<key>_unit"`` of the key that leads to it (``"mse"`` beside
   ``"mse_unit": {"x": "m^2", ...}``), or
+* an enclosing object has a ``"units"`` map naming the key that leads to it (``{"x": 0.001, "pA": 1e7,
+  "units": {"x": "m", "pA": "Pa"}}``, the live view's rig signals), or
 * a key on its path names the unit (``time_s``, ``t_ns``, ``rate_hz``, ``fit_pct``, ``f_lo_hz``);
 
 else it must be a count, a ratio, an index or a statistic, listed by name in :data:`DIMENSIONLESS`.
@@ -98,6 +100,11 @@ def unitless(doc, where: str, described: frozenset = frozenset(), si: bool = Tru
             for depth in range(len(path)):
                 anc, k = parents[depth], path[depth]
                 if isinstance(anc, dict) and isinstance(k, str) and f"{k}_unit" in anc:
+                    return
+                units = anc.get("units") if isinstance(anc, dict) else None
+                if isinstance(units, dict) and isinstance(k, str) and isinstance(units.get(k), str):
+                    if si and units[k] in NOT_SI and "display" not in keys:
+                        bad.append(f"{where}: {'/'.join(str(k) for k in path)} in {units[k]!r}, not SI")
                     return
             text = f"{where}: {'/'.join('#' if isinstance(k, int) else str(k) for k in path)}"
             if not any(b.startswith(text + " = ") for b in bad):  # one line per path (list indices as #)
@@ -438,8 +445,9 @@ def test_every_machine_output_names_the_unit_of_each_physical_value(outputs):
     _, docs, mcaps = outputs
     assert {"fit --json", "fit --save", "diagnose --save", "diagnose --json", "track --json", "paper --json",
             "params --json", "simulate --json", "replay info --json", "serve zenoh"} <= set(docs)
-    # the live view's payloads feed Foxglove's plots: their unit is named (x_mm, pA_MPa), display units allowed
-    bad = [b for name, doc in docs.items() for b in unitless(doc, name, si=not name.startswith("live view"))]
+    # the live view's payloads too: SI with the unit named, display units only under display (what the plots read)
+    assert {"live view /rig/signals", "live view /twin/estimate", "live view /twin/alarm"} <= set(docs)
+    bad = [b for name, doc in docs.items() for b in unitless(doc, name)]
     for name, path in mcaps.items():
         found, topics = mcap_check(path, name)
         assert topics, f"{name}: no JSON message in {path}"
@@ -486,6 +494,12 @@ def test_the_checks_catch_what_they_are_for():
     assert unitless({"wn": {"value": 43.0, "unit": "Hz"}}, "d")  # a machine output is SI
     assert not unitless({"wn": {"value": 270.0, "unit": "rad/s", "display": {"value": 43.0, "unit": "Hz"}}}, "d")
     assert unitless({"params": {"wn": 270.0}}, "d")
+    signals = {"x": 1e-3, "pA": 1e7, "units": {"x": "m", "pA": "Pa"},
+               "display": {"x": 1.0, "pA": 10.0, "units": {"x": "mm", "pA": "MPa"}}}
+    assert not unitless(signals, "d") and not unitless([signals, signals], "d")
+    assert unitless({"x": 1.0, "units": {"x": "mm"}}, "d")  # display units outside display: not SI
+    assert unitless({"x": 1e-3, "pA": 1e7, "units": {"x": "m"}}, "d") == ["d: pA = 10000000.0"]
+    assert unitless({"display": {"x": 1.0}}, "d")  # a display number needs its unit too
     assert bare_si("CdAleak 3.2863e-09", "t") and bare_si("start 0: wn=270.177 cost 3", "t")
     assert bare_si("rms 2.005e+04, noise floor 1.9e+04", "t") and bare_si("wn 270.177 270.17696 4e-06", "t")
     assert bare_si("A = 1.72447e-08 (alarm)", "t") and bare_si("final 3e-09 m^2", "t")

@@ -5,12 +5,13 @@ from __future__ import annotations
 import gzip
 import os
 from typing import IO
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from replay.base import Samples, Sink
 from fpdd.errors import DataError, SourceError
+from fpdd.units import SIGNALS
 from replay.csvio.columns import TIME_COLUMN
 
 
@@ -29,13 +30,19 @@ class CsvSink(Sink):
     in SI with the shortest repr that reads back to the same float64 (``nan``/``inf`` as is).
 
     ``signals``: column order; default: the signals of the first block written.  Every
-    block must carry these signals.  The file is flushed after each :meth:`write`.  A path
-    ending in ``.gz`` is written through gzip.
+    block must carry these signals.  ``units``: signal -> its SI unit, written in the header
+    as the readers understand it (``t[s],x_ref[m],u[V],x[m],pA[Pa],pB[Pa]``,
+    :func:`replay.csvio.columns.split_unit`); a signal it does not name takes its unit from
+    :data:`fpdd.units.SIGNALS` (none for an unknown signal).  Default: no units in the
+    header (every value is SI all the same).  The file is flushed after each :meth:`write`.
+    A path ending in ``.gz`` is written through gzip.
     """
 
-    def __init__(self, path: str | os.PathLike, signals: Sequence[str] | None = None) -> None:
+    def __init__(self, path: str | os.PathLike, signals: Sequence[str] | None = None,
+                 units: Mapping[str, str] | None = None) -> None:
         self.path = str(path)
         self._signals: tuple[str, ...] | None = tuple(signals) if signals is not None else None
+        self._units = dict(units) if units is not None else None
         try:
             self._file: IO[str] = (gzip.open(self.path, "wt", encoding="utf-8", newline="")
                                    if self.path.lower().endswith(".gz") else
@@ -54,7 +61,7 @@ class CsvSink(Sink):
         if TIME_COLUMN in self._signals:
             raise DataError(f"{self.path}: a signal may not be named {TIME_COLUMN!r} (the time column)")
         if not self._header_written:
-            self._file.write(",".join((TIME_COLUMN, *self._signals)) + "\n")
+            self._file.write(self._header() + "\n")
             self._header_written = True
         if not len(samples):
             return
@@ -63,9 +70,16 @@ class CsvSink(Sink):
         self._file.write("\n".join(map(",".join, zip(*cols))) + "\n")
         self._file.flush()
 
+    def _header(self) -> str:
+        assert self._signals is not None
+        if self._units is None:
+            return ",".join((TIME_COLUMN, *self._signals))
+        units = {TIME_COLUMN: "s", **{k: v.unit for k, v in SIGNALS.items()}, **self._units}
+        return ",".join(f"{k}[{units[k]}]" if units.get(k) else k for k in (TIME_COLUMN, *self._signals))
+
     def close(self) -> None:
         if not self._file.closed:
             if not self._header_written and self._signals is not None:
-                self._file.write(",".join((TIME_COLUMN, *self._signals)) + "\n")
+                self._file.write(self._header() + "\n")
             self._file.close()
 

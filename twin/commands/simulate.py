@@ -56,7 +56,14 @@ def run(args) -> int:
     timing = timing_of(args)
     rec = measure(model, ps, name, drive, args.dt, noise=noise, quantisation=_kv(args.quantisation),
                   seed=args.seed, name=args.output, timing=timing)
-    with open_sink(args.output) as sink:
+    from replay import formats
+    from twin.record import signal_specs
+
+    # a CSV names each column's SI unit (t[s], x[m], pA[Pa]; the oscillator's u[N]), as every reader understands
+    csv = formats.lookup(args.output, what="output").suffix == ".csv"
+    specs = signal_specs(model.name)
+    units = {k: specs[k].unit for k in rec.signals if k in specs}
+    with open_sink(args.output, **({"units": units} if csv else {})) as sink:
         sink.write(rec.to_samples())
     from fpdd.units import SIGNAL_UNITS
 

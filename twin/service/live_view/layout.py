@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from twin.models import DEFAULT_MODEL
-from twin.reports.units import Shown
+from twin.reports.units import Shown, pretty_unit, signal_unit
 
 from twin.service.live_view.messages import EXAMPLE_RIG
 
@@ -26,7 +26,8 @@ def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str 
     95 % interval and healthy band over time (the ``display`` numbers of each parameter, in the display units
     of ``twin params``, the unit in the title: ``wn [Hz]``, ``CdAleak [mm²]``); the time
     until each parameter leaves its band with its 90 % interval (``/twin/forecast``, seconds); the rig's
-    position and pressures (display units); the alarms (Log panel) and the last status.
+    position and pressures (the ``display`` numbers of ``/rig/signals``: mm, MPa, the unit in the title; the
+    messages carry SI); the alarms (Log panel) and the last status.
     The variable ``rig`` selects the rig shown (default: the first rig of ``deploy/rigs.example.toml``)."""
     sel = "{rig==$rig}"
     config: dict = {}
@@ -49,11 +50,12 @@ def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str 
                    (f"{fc}.{name}.remaining_lo_s", f"{name} 5 %", c), (f"{fc}.{name}.remaining_hi_s", f"{name} 95 %", c)]
     config["Plot!forecast"] = _plot("time until each parameter leaves its band, median and 90 % interval [s]",
                                     series, ylabel="remaining time [s]")
-    sig = f"/rig/signals{sel}"
-    config["Plot!position"] = _plot("position x, demand x_ref [mm]", [(f"{sig}.x_mm", "x", "#0072BD"),
-                                                                      (f"{sig}.x_ref_mm", "x_ref", "#8c8c8c")])
-    config["Plot!pressures"] = _plot("chamber pressures [MPa]", [(f"{sig}.pA_MPa", "pA", "#D95319"),
-                                                                 (f"{sig}.pB_MPa", "pB", "#7E2F8E")])
+    sig = f"/rig/signals{sel}.display"
+    x_unit, p_unit = (pretty_unit(signal_unit(n, model)[0]) for n in ("x", "pA"))
+    config["Plot!position"] = _plot(f"position x, demand x_ref [{x_unit}]", [(f"{sig}.x", "x", "#0072BD"),
+                                                                            (f"{sig}.x_ref", "x_ref", "#8c8c8c")])
+    config["Plot!pressures"] = _plot(f"chamber pressures [{p_unit}]", [(f"{sig}.pA", "pA", "#D95319"),
+                                                                      (f"{sig}.pB", "pB", "#7E2F8E")])
     config["Log!alarms"] = {"searchTerms": [], "minLogLevel": 1, "topicToRender": "/twin/alarm_log",
                             "nameFilter": {}, "fontSize": 12}
     config["RawMessages!status"] = {"topicPath": f"/twin/status{sel}", "diffEnabled": False, "diffMethod": "custom",

@@ -9,8 +9,11 @@ accepts either name and relays the frames unchanged.  One JSON channel per
 kind of message, each with its JSON schema:
 
 * ``/rig/signals`` (``fpdd.live.Signals``): the rig's signals, decimated to
-  ``signal_rate_hz``, in display units named in the field (``x_mm``,
-  ``x_ref_mm``, ``u_V``, ``pA_MPa``, ``pB_MPa``: whatever the rig logs).
+  ``signal_rate_hz``, as the rig's MCAP carries them: each signal in its SI unit
+  under its own name (``x`` in m, ``pA`` in Pa: whatever the rig logs), the unit
+  in ``units`` and in the channel's schema; the same numbers in the display unit
+  people read under ``display`` (``display.x`` in mm, ``display.pA`` in MPa, the
+  unit in ``display.units``), which the layout's plots read, as for the estimates.
 * ``/twin/estimate`` (``EstimateEvent``): the very message the twin puts on
   Zenoh and in its MCAP (:class:`twin.online.events.EstimateEvent`, SI with the
   unit beside each parameter: ``value``, ``std``, ``lo95``/``hi95``, ``band_lo``/
@@ -47,8 +50,8 @@ a service puts ``signals`` when its ``signals_hz`` is set, as ``twin serve
 
 from __future__ import annotations
 
-
 from replay.mcapio import foxglove_time as mcap_time
+from twin.models import DEFAULT_MODEL
 
 
 SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
@@ -64,13 +67,36 @@ _TIME = {"type": "object", "title": "time", "description": "Foxglove time: secon
 _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}
 
-SIGNALS_SCHEMA: dict = {
-    "title": "fpdd.live.Signals", "type": "object",
-    "description": "Rig signals in display units (field name = signal_unit), decimated for display",
-    "properties": {"timestamp": _TIME, "rig": {"type": "string"}, "t_s": {**_NUM, "description": "s from the start"},
-                   "x_mm": _NUM, "x_ref_mm": _NUM, "u_V": _NUM, "pA_MPa": _NUM, "pB_MPa": _NUM, "y_mm": _NUM},
-    "additionalProperties": _NUM_OR_NULL, "required": ["timestamp", "rig", "t_s"],
-}
+def signals_schema(model: str = DEFAULT_MODEL) -> dict:
+    """The schema of ``/rig/signals`` for ``model``'s records (:func:`twin.record.signal_specs`: the oscillator's
+    ``u`` is a force): every signal in its SI unit, named in ``units`` and in its description; under ``display``
+    the same numbers in the display unit (:func:`twin.reports.units.signal_unit`), named in ``display.units``."""
+    from twin.record import signal_specs
+    from twin.reports.units import signal_unit
+
+    specs = signal_specs(model)
+    si = {n: {**_NUM_OR_NULL, "description": f"{s.meaning}, {s.unit}"} for n, s in specs.items()}
+    shown = {n: {**_NUM_OR_NULL, "description": f"{s.meaning}, {signal_unit(n, model)[0]}"}
+             for n, s in specs.items()}
+    units = {"type": "object", "additionalProperties": {"type": "string"}}
+    return {
+        "title": "fpdd.live.Signals", "type": "object",
+        "description": "Rig signals, decimated for display: each in its SI unit (named in units), and the same "
+                       "numbers in the display unit people read under display (named in display.units)",
+        "properties": {"timestamp": _TIME, "rig": {"type": "string"},
+                       "t_s": {**_NUM, "description": "time from the first sample shown, s"}, **si,
+                       "units": {**units, "description": "signal -> its SI unit (m, V, Pa, ...)"},
+                       "display": {"type": "object", "description": "the signals in display units (SI x the "
+                                   "signal's display scale: x in mm, pressures in MPa); null stays null",
+                                   "properties": {**shown, "units": {**units, "description": "signal -> its "
+                                                                     "display unit (mm, V, MPa, ...)"}},
+                                   "additionalProperties": _NUM_OR_NULL, "required": ["units"]}},
+        "additionalProperties": _NUM_OR_NULL, "required": ["timestamp", "rig", "t_s", "units", "display"],
+    }
+
+
+SIGNALS_SCHEMA: dict = signals_schema()
+"""The schema of ``/rig/signals`` for the default model's records."""
 
 
 def _event_schema(kind: str) -> dict:
@@ -104,10 +130,19 @@ LOG_SCHEMA: dict = {
                    "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}},
     "required": ["timestamp", "level", "message", "name", "file", "line"],
 }
-TOPICS = {"signals": ("/rig/signals", SIGNALS_SCHEMA), "estimate": ("/twin/estimate", ESTIMATE_SCHEMA),
-          "status": ("/twin/status", STATUS_SCHEMA), "forecast": ("/twin/forecast", FORECAST_SCHEMA),
-          "alarm": ("/twin/alarm", ALARM_SCHEMA),
-          "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
+
+
+def topics(model: str = DEFAULT_MODEL) -> dict[str, tuple[str, dict]]:
+    """kind -> (topic, schema) of the live view's channels for ``model``'s rigs (the signals' units are the
+    model's)."""
+    return {"signals": ("/rig/signals", SIGNALS_SCHEMA if model == DEFAULT_MODEL else signals_schema(model)),
+            "estimate": ("/twin/estimate", ESTIMATE_SCHEMA), "status": ("/twin/status", STATUS_SCHEMA),
+            "forecast": ("/twin/forecast", FORECAST_SCHEMA), "alarm": ("/twin/alarm", ALARM_SCHEMA),
+            "alarm_log": ("/twin/alarm_log", LOG_SCHEMA)}
+
+
+TOPICS = topics()
+"""kind -> (topic, schema) of the live view's channels (the default model's)."""
 LOG_LEVEL = {"ok": 2, "warning": 3, "alarm": 4, "early": 3}
 
 
@@ -123,3 +158,33 @@ def estimate_message(ev) -> dict:
     display unit under ``display``) and its Foxglove
     ``timestamp``."""
     return {**ev.to_dict(), "timestamp": foxglove_time(ev.t_ns)}
+
+
+class SignalFields:
+    """How one rig's signals become ``/rig/signals`` messages (:func:`signals_schema`): per signal its SI unit
+    and its display unit and scale, for the signals of a block (``names``) of ``model``'s records."""
+
+    def __init__(self, names, model: str = DEFAULT_MODEL) -> None:
+        from twin.record import signal_specs
+        from twin.reports.units import signal_unit
+
+        specs = signal_specs(model)
+        self.names = tuple(names)
+        self.units = {n: specs[n].unit if n in specs else "" for n in self.names}
+        shown = {n: signal_unit(n, model) for n in self.names}
+        self.display_units = {n: u for n, (u, _) in shown.items()}
+        self.scales = tuple(shown[n][1] for n in self.names)
+
+    def message(self, rig: str, t_ns: int, t_s: float, values) -> dict:
+        """The message of one sample: ``values`` in SI, in the order of :attr:`names` (a non-finite one is
+        ``null``)."""
+        si = [_finite(v) for v in values]
+        shown = {n: None if v is None else v * k for n, v, k in zip(self.names, si, self.scales)}
+        return {"timestamp": foxglove_time(t_ns), "rig": rig, "t_s": t_s, **dict(zip(self.names, si)),
+                "units": dict(self.units), "display": {**shown, "units": dict(self.display_units)}}
+
+
+def _finite(v) -> float | None:
+    import math
+
+    return float(v) if v is not None and math.isfinite(float(v)) else None

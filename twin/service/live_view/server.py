@@ -4,24 +4,19 @@ and the tee that shows what a rig's twin publishes."""
 from __future__ import annotations
 
 import json
-import math
 import threading
 from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
-from twin.reports.units import signal_unit
 from twin.models import DEFAULT_MODEL
 from twin.service.publisher import Publisher
 
 if TYPE_CHECKING:
     from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
     from foxglove.websocket import WebSocketServer
-from twin.service.live_view.messages import LOG_LEVEL, SUBPROTOCOLS, TOPICS, estimate_message, foxglove_time
+from twin.service.live_view.messages import (LOG_LEVEL, SUBPROTOCOLS, SignalFields, estimate_message, foxglove_time,
+                                             topics)
 from twin.service.live_view.signals import signals_from_json, signals_key
-
-
-def _finite(v) -> float | None:
-    return float(v) if v is not None and math.isfinite(float(v)) else None
 
 
 def _as_dict(ev: Any) -> dict:
@@ -46,17 +41,19 @@ class LiveView:
         self.model = model
         self._period_ns = int(1e9 / signal_rate_hz) if signal_rate_hz > 0 else 0
         self._next_ns: dict[str, int] = {}
+        self._fields: dict[str, SignalFields] = {}
         self._bands: dict[str, dict[str, tuple[float | None, float | None, float | None]]] = {}
         for rig, per in (bands or {}).items():
             for p, b in per.items():
                 self.set_band(rig, p, b)
         self._lock = threading.Lock()
         self._subs: list = []
-        self.counts = {k: 0 for k in TOPICS}
+        channels = topics(model)
+        self.counts = {k: 0 for k in channels}
         self._ctx = foxglove.Context()
         self._channels = {k: foxglove.Channel(topic, schema=schema, context=self._ctx)
-                          for k, (topic, schema) in TOPICS.items()}
-        self._subscribed: dict[str, threading.Event] = {topic: threading.Event() for topic, _ in TOPICS.values()}
+                          for k, (topic, schema) in channels.items()}
+        self._subscribed: dict[str, threading.Event] = {topic: threading.Event() for topic, _ in channels.values()}
         self._server: WebSocketServer | None = foxglove.start_server(
             name=name, host="127.0.0.1", port=0, context=self._ctx, server_listener=_listener(self._subscribed))
         try:
@@ -116,13 +113,17 @@ class LiveView:
 
     # ------------------------------------------------------------------ inputs
     def signals(self, rig: str, samples) -> int:
-        """A block of :class:`replay.base.Samples` (SI); returns how many messages it made (decimated)."""
+        """A block of :class:`replay.base.Samples` (SI); returns how many messages it made (decimated): each
+        sample's signals in SI with their units, and in display units under ``display``
+        (:class:`~twin.service.live_view.messages.SignalFields`)."""
         t_ns = samples.t_ns
         if len(t_ns) == 0:
             return 0
         t0 = self._next_ns.setdefault(f"{rig}/t0", int(t_ns[0]))
-        names = [(n, *signal_unit(n, self.model)) for n in samples.signals]
-        fields = [(f"{n}_{u}" if u else n, samples.signals[n], sc) for n, u, sc in names]
+        fields = self._fields.get(rig)
+        if fields is None or fields.names != tuple(samples.signals):
+            fields = self._fields[rig] = SignalFields(samples.signals, self.model)
+        columns = [samples.signals[n] for n in fields.names]
         due = self._next_ns.get(rig, int(t_ns[0]))
         sent = 0
         with self._lock:
@@ -131,10 +132,7 @@ class LiveView:
                 if self._period_ns and t < due:
                     continue
                 due = t + self._period_ns
-                msg = {"timestamp": foxglove_time(t), "rig": rig, "t_s": (t - t0) * 1e-9}
-                for key, arr, sc in fields:
-                    msg[key] = _finite(arr[i] * sc)
-                self._log("signals", msg, t)
+                self._log("signals", fields.message(rig, t, (t - t0) * 1e-9, [c[i] for c in columns]), t)
                 sent += 1
             self._next_ns[rig] = due
         return sent
