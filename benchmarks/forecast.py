@@ -7,10 +7,11 @@ sensor noise, the other parameters drawn within +-10 % of Table 9 (the tracker
 starts at Table 9, away from the truth), the wearing one leaving its default
 healthy band about three quarters into the record (10-min records in
 ``verify``, 30-60 min in ``long``: slower wear); healthy records (drawn truth,
-nominal and doubled noise, a warming oil whose leakage rises 15 % over the first
-10 min and stays: the leakage part of the oil warming by about 20 K; the bulk
-modulus, which falls with it, is a known constant of the reference simulator and
-cannot vary in a record) for false warnings.
+nominal and doubled noise, a warming oil: the reference simulator's oil
+temperature rises 20 K over the first 10 min and stays, its bulk modulus falling
+12 % and its leakage rising 1.82 times by the simulator's own temperature laws,
+the temperature logged as ``T_oil``; ``warming_ramp``/``warming`` are the older
+leakage-only warming records of the calibration set) for false warnings.
 
 Figures per wear record (``twin.online.forecast`` through the service's
 :class:`twin.service.rig.RigTwin`, exactly as ``twin track`` runs it):
@@ -86,6 +87,12 @@ def wear_spec(param: str, shape: str, duration: float, seed: int, noise: float =
     return ref.msp25_spec(seed, duration=duration, truth=truth, time_varying=tv, noise=nz)
 
 
+#: the warming oil of ``warming_oil`` [K]: from the reference simulator's T0 by 20 K over the first 10 min, then
+#: steady: its bulk modulus falls 12 % (0.006/K) and its leakage rises by exp(0.03 x 20) = 1.82 (viscosity), both
+#: by the reference simulator's own temperature laws; the oil's temperature is logged (``T_oil``, as a rig logs it)
+OIL_T0, OIL_DT = 313.15, 20.0
+
+
 def healthy_spec(kind: str, duration: float, seed: int) -> dict:
     """A healthy record: ``plain`` (drawn truth), ``noisy`` (doubled sensor noise), ``warming`` (the oil warms: the
     leakage rises 30 % and Cd 3 % with a 400 s time constant, all inside their bands) or ``warming_ramp`` (the
@@ -104,8 +111,10 @@ def healthy_spec(kind: str, duration: float, seed: int) -> dict:
     elif kind == "warming_ramp":
         kw["time_varying"] = {"CdAleak": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": truth["CdAleak"],
                                           "end": 1.15 * truth["CdAleak"]}}
+    elif kind == "warming_oil":
+        kw["temperature"] = {"T": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": OIL_T0, "end": OIL_T0 + OIL_DT}}
     elif kind != "plain":
-        raise ValueError(f"healthy kind must be plain, noisy, warming or warming_ramp, got {kind!r}")
+        raise ValueError(f"healthy kind must be plain, noisy, warming, warming_ramp or warming_oil, got {kind!r}")
     return ref.msp25_spec(seed, duration=duration, truth=truth, **kw)
 
 
@@ -124,8 +133,8 @@ WEAR = {
 HEALTHY = {
     "calib": [("warming_ramp", "warming_ramp", 1200.0, 22), ("warming", "warming", 1200.0, 21)],
     "verify": [("plain", "plain", 1200.0, 1011), ("noisy", "noisy", 1200.0, 1012),
-               ("warming_ramp", "warming_ramp", 1200.0, 1014)],
-    "long": [("warming_ramp", "warming_ramp", 3600.0, 1015)],
+               ("warming_oil", "warming_oil", 1200.0, 1014)],
+    "long": [("warming_oil", "warming_oil", 3600.0, 1015)],
 }
 
 
@@ -195,10 +204,13 @@ def healthy_figures(rec, twin) -> dict[str, Any]:
             "forecasts": len(twin.forecasts)}
 
 
-def measure(which: str, say=print, part: str = "all") -> dict[str, Any]:
+def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = None) -> dict[str, Any]:
+    """The figures of a set's records (``seeds``: only those of the set's records)."""
     ref = _reference()
     out: dict[str, Any] = {"set": which, "wear": [], "healthy": []}
     for (label, param, shape, dur, seed, nz), spec in zip(WEAR[which] if part != "healthy" else [], specs(which)):
+        if seeds and seed not in seeds:
+            continue
         rec = ref.get_record(spec)
         t = time.perf_counter()
         twin = run_record(rec)
@@ -208,6 +220,8 @@ def measure(which: str, say=print, part: str = "all") -> dict[str, Any]:
         say(json.dumps(r))
     hspecs = specs(which)[len(WEAR[which]):]
     for (label, _, dur, seed), spec in zip(HEALTHY[which] if part != "wear" else [], hspecs):
+        if seeds and seed not in seeds:
+            continue
         rec = ref.get_record(spec)
         twin = run_record(rec)
         r = {"label": label, "duration_s": dur, "seed": seed, **healthy_figures(rec, twin)}
@@ -259,6 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     ap.add_argument("--part", choices=("all", "wear", "healthy"), default="all",
                     help="measure only the wear or the healthy records (two processes; merge with --merge)")
+    ap.add_argument("--seed", type=int, action="append", metavar="N",
+                    help="measure only the set's record of this seed (repeatable; default: all of the set)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="print the table of --json outputs of the parts")
     a = ap.parse_args(argv)
     if a.build:
@@ -273,7 +289,14 @@ def main(argv: list[str] | None = None) -> int:
                          "healthy": [h for p in parts for h in p["healthy"]]})
         print(json.dumps(res, indent=1) if a.json else table(res))
         return 0
-    res = measure(a.set, say=(lambda m: print(m, file=sys.stderr, flush=True)), part=a.part)
+    if a.seed:
+        known = {r[4] for r in WEAR[a.set]} | {r[3] for r in HEALTHY[a.set]}
+        bad = sorted(set(a.seed) - known)
+        if bad:
+            print(f"--seed: {bad[0]} is not a record of the {a.set} set (its seeds: "
+                  f"{', '.join(str(k) for k in sorted(known))})", file=sys.stderr)
+            return 2
+    res = measure(a.set, say=(lambda m: print(m, file=sys.stderr, flush=True)), part=a.part, seeds=a.seed)
     print(json.dumps(res, indent=1) if a.json else table(res))
     return 0
 
