@@ -576,9 +576,11 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
 
 
 @nb.njit(cache=True)
-def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
+def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM, exo_idx, EXO):
     T = drive.shape[0]
     s = s0.copy()
+    if exo_idx.shape[0] > 0:  # logged signals set parameters sample by sample: this record's own vector
+        p = p.copy()
     xhist = np.empty(T)
     ctrl = np.zeros(N_CTRL)
     tau = p[I_TAUX]
@@ -589,6 +591,9 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
         xhist[k] = s[4]
         xm = g * _delayed(xhist, k, tau, dt)
         XM[k] = xm
+        for j in range(exo_idx.shape[0]):  # held over the interval from sample k (NaN: the last value holds)
+            if math.isfinite(EXO[k, j]):
+                p[exo_idx[j]] = EXO[k, j]
         if k + 1 < T:
             U[k] = advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm, ctrl, s)
         elif closed:  # the last sample: the controller's output at t_k, no step
@@ -602,7 +607,7 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
 
 
 @nb.njit(cache=True, parallel=True)
-def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub):
+def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub, exo_idx, EXO):
     """Simulate ``K`` parameter vectors in parallel.
 
     Returns states ``[K, T, 6]``, controller output ``[K, T]`` and measured
@@ -614,7 +619,7 @@ def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub):
     U = np.empty((K, T))
     XM = np.empty((K, T))
     for k in nb.prange(K):
-        _simulate_one(S0[k], P[k], drive, closed, ticks, mode, dt, nsub, S[k], U[k], XM[k])
+        _simulate_one(S0[k], P[k], drive, closed, ticks, mode, dt, nsub, S[k], U[k], XM[k], exo_idx, EXO)
     return S, U, XM
 
 
@@ -771,16 +776,18 @@ class MSP25(Model):
             raise DataError(f"msp25 driven by {drive!r} but the record has only {', '.join(signals)}")
         return drive, np.asarray(signals[drive], dtype=np.float64)
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None,
+                       exogenous=None) -> SimResult:
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"msp25 kernel vectors have {NP} entries, got {P.shape[1]}")
         drive = check_drive(drive_name, drive, dt)
+        exo_idx, EXO = self.exogenous_table(exogenous, drive.shape[0])
         timing = timing or DEFAULT_TIMING
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
         closed = drive_name == "x_ref"
         S, U, XM = simulate_kernel(S0, P, drive, closed, timing.ticks(dt), timing.intersample_code(dt), float(dt),
-                                   int(substeps or self.substeps))
+                                   int(substeps or self.substeps), exo_idx, EXO)
         t = np.arange(drive.shape[0]) * dt
         pA, pB = S[:, :, 2], S[:, :, 3]
         if np.any(P[:, I_TAUP] > 0.0):  # the transducers' first-order lag, on what they measure
