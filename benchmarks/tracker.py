@@ -89,7 +89,7 @@ def _record(duration_s: float, seed: int = 0, user_rig: bool = False):
     name, xr = excite(model, duration_s, 1e-3, seed=seed)
     if not user_rig:
         return measure(model, model.params(), name, xr, 1e-3, noise=default_noise(model), seed=seed)
-    return measure(model, model.params(**USER_RIG), name, xr, 1e-3, noise=default_noise(model), seed=seed,
+    return measure(model, model.params((), **USER_RIG), name, xr, 1e-3, noise=default_noise(model), seed=seed,
                    exogenous={"T_oil": ramp(313.15, 333.15, xr.size)}, exogenous_every=100)
 
 
