@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import re
 
 import numpy as np
 
@@ -181,7 +182,13 @@ def text_to_si(name: str, text: str, unit: str | None) -> float:
 
     ureg = _registry()
     try:
-        q = ureg.Quantity(text.replace("²", "^2").replace("³", "^3").replace("µ", "u"))
+        text = text.replace("²", "^2").replace("³", "^3").replace("µ", "u")
+        m = _NUMBER_UNIT.match(text)
+        if m and unit == "K":  # a temperature: an offset unit (degC, degF) is a number and its unit, never a product
+            u = m.group(2).strip()
+            q = ureg.Quantity(float(m.group(1)), "degC" if u in ("C", "°C") else "degF" if u in ("F", "°F") else u)
+        else:
+            q = ureg.Quantity(text)
         si = ureg.Unit("dimensionless" if unit == "1" else unit)
         if (str(si) == "radian / second" and q.check("1/[time]")
                 and not any(a in str(q.units) for a in ("radian", "revolution", "degree", "turn"))):
@@ -199,6 +206,9 @@ def text_to_si(name: str, text: str, unit: str | None) -> float:
     return value
 
 
+_NUMBER_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*)$")
+
+
 def _example(unit: str) -> str:
     return {"rad/s": "43Hz or 270rad/s", "m^2": "3.3mm^2", "N": "50N", "m": "2um", "Pa": "20kPa",
-            "1": "a plain number"}.get(unit, f"1{unit.replace(' ', '*')}")
+            "K": "313.15K or 40degC", "1": "a plain number"}.get(unit, f"1{unit.replace(' ', '*')}")

@@ -31,8 +31,43 @@ def add_arguments(p) -> None:
                    help="sensor noise: x 2 um, pressures 20 kPa (default) or none")
     p.add_argument("--noise-levels", help="override noise std per signal, NAME=STD,...")
     p.add_argument("--quantisation", help="LSB per signal, NAME=LSB,...")
+    p.add_argument("--temperature", metavar="T[:T_END]",
+                   help="oil temperature, logged as T_oil: a constant (40degC) or a linear ramp over the record "
+                        "(40degC:60degC); with a unit (K, degC, C, degF) or SI (K). The bulk modulus and the "
+                        "leakage follow it (kB_T, b_visc, T_ref; --set)")
+    p.add_argument("--temperature-rate", metavar="HZ", default=None,
+                   help="the rate T_oil is logged at, held between (e.g. 10Hz as the HPU status; default every "
+                        "sample)")
     add_timing_arguments(p)
     p.add_argument("--json", action="store_true")
+
+
+def temperature_of(args, model, n: int):
+    """``({"T_oil": [n] K}, samples per logged refresh)`` of ``--temperature`` (``({}, 1)`` when not given)."""
+    from fpdd.errors import ParameterError
+    from twin.models.simulate import ramp
+    from twin.units import to_si
+
+    if args.temperature is None:
+        if args.temperature_rate is not None:
+            raise ParameterError("--temperature-rate: needs --temperature")
+        return {}, 1
+    if "T_oil" not in ((model.FILTER.exogenous if model.FILTER is not None else {}) or {}):
+        raise ParameterError(f"--temperature: the {model.name} model has no oil temperature")
+    parts = args.temperature.split(":")
+    if len(parts) > 2 or not all(p.strip() for p in parts):
+        raise ParameterError(f"--temperature: expected T or T_START:T_END (e.g. 40degC:60degC), got "
+                             f"{args.temperature!r}")
+    t0 = to_si("--temperature", parts[0], "K")
+    t1 = to_si("--temperature", parts[-1], "K")
+    every = 1
+    if args.temperature_rate is not None:
+        hz = to_si("--temperature-rate", args.temperature_rate, "Hz")
+        if not 0 < hz <= 1.0 / args.dt * (1 + 1e-9):
+            raise ParameterError(f"--temperature-rate: {args.temperature_rate!r} must be above 0 and at most the "
+                                 f"log rate {1.0 / args.dt:g} Hz")
+        every = max(1, round(1.0 / (hz * args.dt)))
+    return {"T_oil": ramp(t0, t1, n)}, every
 
 
 def run(args) -> int:
@@ -54,8 +89,9 @@ def run(args) -> int:
     noise = {} if args.noise == "none" else default_noise(model)
     noise.update(_kv(args.noise_levels))
     timing = timing_of(args)
+    exo, every = temperature_of(args, model, drive.size)
     rec = measure(model, ps, name, drive, args.dt, noise=noise, quantisation=_kv(args.quantisation),
-                  seed=args.seed, name=args.output, timing=timing)
+                  seed=args.seed, name=args.output, timing=timing, exogenous=exo, exogenous_every=every)
     from replay import formats
     from twin.record import signal_specs
 
@@ -73,6 +109,10 @@ def run(args) -> int:
             "effects": list(ps.effects),
             "noise": {k: {"value": float(v), "unit": SIGNAL_UNITS.get(k, "")} for k, v in noise.items()},
             "timing": timing.to_dict()}
+    if exo:
+        t = exo["T_oil"]
+        info["temperature"] = {"start": {"value": float(t[0]), "unit": "K"}, "end": {"value": float(t[-1]), "unit": "K"},
+                               "logged_every": {"value": every * args.dt, "unit": "s"}}
     if args.json:
         _dump(info)
     else:

@@ -59,7 +59,8 @@ def simulate_record(model: Model | str, params: ParameterSet, record: Record, dr
     model = get_model(model) if isinstance(model, str) else model
     name, u = model.drive_signal(record.signals, drive)
     init = dict(init) if init is not None else model.initial_from_data(record.signals, record.dt)
-    return model.simulate(params, name, u, record.dt, init=init, timing=_timing(timing))
+    return model.simulate(params, name, u, record.dt, init=init, timing=_timing(timing),
+                          exogenous=model.exogenous_of(record.signals))
 
 
 def noise_model(residuals: Sequence[np.ndarray], max_order: int = MAX_AR_ORDER) -> np.ndarray:

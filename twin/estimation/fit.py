@@ -104,6 +104,8 @@ class _Problem:
     dither: list[np.ndarray | None] = dataclasses.field(default_factory=list)
     #: per record and output: 1 at fresh samples, 0 at held ones (None: every sample is a measurement)
     weights: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
+    #: per record: its logged signals that set a parameter sample by sample (the oil temperature ``T_oil``)
+    exo: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
 
     def weight(self, r: int, o: str) -> np.ndarray | None:
         return self.weights[r].get(o) if self.weights else None
@@ -177,11 +179,12 @@ class _Problem:
         name, drive = self.drives[r]
         dt = self.records[r].dt
         d = self.dither[r] if self.dither else None
+        exo = self.exo[r] if self.exo else None
         if d is None:
-            return self.model.simulate_batch(P, name, drive, dt, S0, self.substeps, self.timing)
+            return self.model.simulate_batch(P, name, drive, dt, S0, self.substeps, self.timing, exo)
         # the controller's error is demand - (x + n): the noise enters as a demand shifted by -n
-        lo = self.model.simulate_batch(P, name, drive - d, dt, S0, self.substeps, self.timing)
-        hi = self.model.simulate_batch(P, name, drive + d, dt, S0, self.substeps, self.timing)
+        lo = self.model.simulate_batch(P, name, drive - d, dt, S0, self.substeps, self.timing, exo)
+        hi = self.model.simulate_batch(P, name, drive + d, dt, S0, self.substeps, self.timing, exo)
         for o in lo.outputs:
             lo.outputs[o] = 0.5 * (lo.outputs[o] + hi.outputs[o])
         lo.states[...] = 0.5 * (lo.states + hi.states)
@@ -312,9 +315,17 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     for r in records:
         w = {o: r.fresh_of(o) for o in outputs}
         weights.append({o: m.astype(np.float64) for o, m in w.items() if m is not None})
+    exo = [model.exogenous_of(r.signals) for r in records]
+    for r, e in zip(records, exo):
+        for k, v in e.items():
+            model.exogenous_table({k: v}, len(r))  # a value outside its parameter's range: refused here
+        for k in e:
+            par = model.FILTER.exogenous[k] if model.FILTER is not None else k
+            if par in free:
+                raise ParameterError(f"{par} is set sample by sample from {r.name}'s logged {k}: it cannot be free")
     return _Problem(model, base, free, specs, list(records), drives, outputs, sigma, tuple(estimate_init),
                     init_fixed, substeps, timing or DEFAULT_TIMING, kidx, scale, model.vector(base),
-                    weights=weights)
+                    weights=weights, exo=exo)
 
 
 def noise_levels(model: Model, records: Sequence[Record], outputs: Sequence[str],

@@ -233,7 +233,9 @@ class Actuator2(Model):
             raise DataError(f"actuator2 is driven by 'x_ref' or 'u'; the record has {', '.join(signals)}")
         return drive, np.asarray(signals[drive], dtype=np.float64)
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None,
+                       exogenous=None) -> SimResult:
+        self.exogenous_table(exogenous, np.shape(drive)[0])  # reads none: refuses any
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"actuator2 kernel vectors have {NP} entries, got {P.shape[1]}")

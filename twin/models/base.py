@@ -291,8 +291,40 @@ class Model(abc.ABC):
         x0: np.ndarray | None = None,
         substeps: int | None = None,
         timing: Timing | None = None,
+        exogenous: Mapping[str, np.ndarray] | None = None,
     ) -> SimResult:
-        """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``."""
+        """Simulate ``K`` parameter vectors ``P [K, n_p]`` over one driving signal ``[T]``; ``exogenous``: logged
+        signals that set a parameter sample by sample (:meth:`exogenous_of`), ``[T]`` each."""
+
+    def exogenous_of(self, signals: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The logged signals of a record that set a parameter sample by sample (``FILTER.exogenous``, e.g. the
+        oil temperature ``T_oil``): the simulation reads them as the tracker does (the value at a sample holds
+        over the interval after it; a non-finite one leaves the last value)."""
+        names = self.FILTER.exogenous if self.FILTER is not None else {}
+        return {k: np.asarray(signals[k], dtype=np.float64) for k in names if k in signals}
+
+    def exogenous_table(self, exogenous: Mapping[str, np.ndarray] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(kernel indices [e], values [n, e])`` of the exogenous signals for a simulation of ``n`` samples;
+        a value outside its parameter's range is refused in one line (a temperature in degC where K is due)."""
+        declared = self.FILTER.exogenous if self.FILTER is not None else {}
+        names = [k for k in (exogenous or {})]
+        unknown = [k for k in names if k not in declared]
+        if unknown:
+            raise DataError(f"{self.name} reads no exogenous signal {unknown[0]!r} (it reads: "
+                            f"{', '.join(declared) or 'none'})")
+        EXO = np.full((n, len(names)), np.nan)
+        for j, k in enumerate(names):
+            v = np.asarray((exogenous or {})[k], dtype=np.float64)
+            if v.shape != (n,):
+                raise DataError(f"exogenous signal {k!r} must have {n} samples (the drive's), got shape {v.shape}")
+            spec = self.kernel_specs[self.kernel_index(declared[k])]
+            bad = np.isfinite(v) & ((v < spec.lo) | (v > spec.hi))
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise DataError(f"signal {k!r}: {v[i]:g} {spec.unit} at sample {i} is outside {spec.name}'s "
+                                f"range [{spec.lo:g}, {spec.hi:g}] {spec.unit} ({spec.meaning})")
+            EXO[:, j] = v
+        return np.array([self.kernel_index(declared[k]) for k in names], dtype=np.int64), EXO
 
     def controller_response(self, ps: ParameterSet, q: np.ndarray, dt: float) -> np.ndarray | None:
         """The digital controller's response from the position error to the command at ``q = 1 - z^-1`` (its
@@ -324,11 +356,11 @@ class Model(abc.ABC):
 
     def simulate(self, ps: ParameterSet, drive_name: str, drive: np.ndarray, dt: float,
                  init: Mapping[str, float] | None = None, substeps: int | None = None,
-                 timing: Timing | None = None) -> SimResult:
+                 timing: Timing | None = None, exogenous: Mapping[str, np.ndarray] | None = None) -> SimResult:
         """Simulate one parameter set; outputs are ``[T]`` arrays (batch axis removed)."""
         P = self.vector(ps)[None, :]
         x0 = self.initial_state(P, init)
-        res = self.simulate_batch(P, drive_name, np.asarray(drive, float), dt, x0, substeps, timing)
+        res = self.simulate_batch(P, drive_name, np.asarray(drive, float), dt, x0, substeps, timing, exogenous)
         return SimResult(res.t_s, {k: v[0] for k, v in res.outputs.items()}, res.states[0],
                          {k: (v[0] if v.ndim == 2 else v) for k, v in res.inputs.items()})
 

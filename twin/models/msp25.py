@@ -231,16 +231,18 @@ class MSP25(Model):
             raise DataError(f"msp25 driven by {drive!r} but the record has only {', '.join(signals)}")
         return drive, np.asarray(signals[drive], dtype=np.float64)
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None,
+                       exogenous=None) -> SimResult:
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"msp25 kernel vectors have {NP} entries, got {P.shape[1]}")
         drive = check_drive(drive_name, drive, dt)
+        exo_idx, EXO = self.exogenous_table(exogenous, drive.shape[0])
         timing = timing or DEFAULT_TIMING
         S0 = self.initial_state(P) if x0 is None else np.ascontiguousarray(np.atleast_2d(x0), dtype=np.float64)
         closed = drive_name == "x_ref"
         S, U, XM = simulate_kernel(S0, P, drive, closed, timing.ticks(dt), timing.intersample_code(dt), float(dt),
-                                   int(substeps or self.substeps))
+                                   int(substeps or self.substeps), exo_idx, EXO)
         t = np.arange(drive.shape[0]) * dt
         pA, pB = S[:, :, 2], S[:, :, 3]
         if np.any(P[:, I_TAUP] > 0.0):  # the transducers' first-order lag, on what they measure

@@ -221,9 +221,11 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
 
 
 @nb.njit(cache=True)
-def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
+def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM, exo_idx, EXO):
     T = drive.shape[0]
     s = s0.copy()
+    if exo_idx.shape[0] > 0:  # logged signals set parameters sample by sample: this record's own vector
+        p = p.copy()
     xhist = np.empty(T)
     ctrl = np.zeros(N_CTRL)
     tau = p[I_TAUX]
@@ -234,6 +236,9 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
         xhist[k] = s[4]
         xm = g * _delayed(xhist, k, tau, dt)
         XM[k] = xm
+        for j in range(exo_idx.shape[0]):  # held over the interval from sample k (NaN: the last value holds)
+            if math.isfinite(EXO[k, j]):
+                p[exo_idx[j]] = EXO[k, j]
         if k + 1 < T:
             U[k] = advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm, ctrl, s)
         elif closed:  # the last sample: the controller's output at t_k, no step
@@ -247,7 +252,7 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM):
 
 
 @nb.njit(cache=True, parallel=True)
-def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub):
+def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub, exo_idx, EXO):
     """Simulate ``K`` parameter vectors in parallel.
 
     Returns states ``[K, T, 6]``, controller output ``[K, T]`` and measured
@@ -259,7 +264,7 @@ def simulate_kernel(S0, P, drive, closed, ticks, mode, dt, nsub):
     U = np.empty((K, T))
     XM = np.empty((K, T))
     for k in nb.prange(K):
-        _simulate_one(S0[k], P[k], drive, closed, ticks, mode, dt, nsub, S[k], U[k], XM[k])
+        _simulate_one(S0[k], P[k], drive, closed, ticks, mode, dt, nsub, S[k], U[k], XM[k], exo_idx, EXO)
     return S, U, XM
 
 

@@ -233,7 +233,9 @@ class Oscillator(Model):
             return []
         return [out]
 
-    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None) -> SimResult:
+    def simulate_batch(self, P, drive_name, drive, dt, x0=None, substeps=None, timing=None,
+                       exogenous=None) -> SimResult:
+        self.exogenous_table(exogenous, np.shape(drive)[0])  # reads none: refuses any
         P = np.ascontiguousarray(np.atleast_2d(P), dtype=np.float64)
         if P.shape[1] != NP:
             raise DataError(f"oscillator kernel vectors have {NP} entries, got {P.shape[1]}")

@@ -52,17 +52,25 @@ def excite(model: Model | str, duration_s: float = 10.0, dt: float = 1e-3, kind:
 def measure(model: Model, ps: ParameterSet, drive_name: str, drive: np.ndarray, dt: float,
             noise: Mapping[str, float] | None = None, quantisation: Mapping[str, float] | None = None,
             seed: int = 0, init: Mapping[str, float] | None = None, name: str = "simulated",
-            timing: Timing | None = None) -> Record:
+            timing: Timing | None = None, exogenous: Mapping[str, np.ndarray] | None = None,
+            exogenous_every: int = 1) -> Record:
     """Simulate ``ps`` and return what the sensors would log (inputs exact, outputs noisy).
 
     ``noise`` maps signal names to standard deviations (SI); ``quantisation`` maps
     signal names to their least significant bit (SI); both applied to the logged
-    signals with ``np.random.default_rng(seed)``.
+    signals with ``np.random.default_rng(seed)``.  ``exogenous``: signals that set a
+    parameter sample by sample (the oil temperature ``T_oil [T]``, K): the rig runs on
+    them and they are logged, refreshed every ``exogenous_every`` samples and held
+    between (a 10 Hz HPU status on a 1 kHz log: 100), as a CAN log holds them.
     """
-    res = model.simulate(ps, drive_name, drive, dt, init=init, timing=timing)
+    res = model.simulate(ps, drive_name, drive, dt, init=init, timing=timing, exogenous=exogenous)
     sig: dict[str, np.ndarray] = {}
     for k, v in res.inputs.items():
         sig[k] = np.array(v, dtype=np.float64)
+    every = max(1, int(exogenous_every))
+    for k, v in (exogenous or {}).items():
+        v = np.asarray(v, dtype=np.float64)
+        sig[k] = v[(np.arange(v.size) // every) * every]
     for k, v in res.outputs.items():
         sig[k] = np.array(v, dtype=np.float64)
     rng = np.random.default_rng(seed)
@@ -76,9 +84,16 @@ def measure(model: Model, ps: ParameterSet, drive_name: str, drive: np.ndarray, 
             raise DataError(f"quantisation given for {k!r}, which the model does not log ({', '.join(sig)})")
         if lsb > 0:
             sig[k] = np.round(sig[k] / lsb) * lsb
-    order = ["x_ref", "u", "x", "pA", "pB", "y"]
+    order = ["x_ref", "u", "x", "pA", "pB", "y", "T_oil"]
     sig = {k: sig[k] for k in sorted(sig, key=lambda n: order.index(n) if n in order else 99)}
     return Record(dt, sig, name)
+
+
+def ramp(start: float, end: float, n: int) -> np.ndarray:
+    """``n`` samples rising linearly from ``start`` to ``end`` (a trajectory over a record, e.g. a warming oil)."""
+    if n < 1:
+        raise DataError(f"a trajectory needs at least one sample, got {n}")
+    return np.linspace(float(start), float(end), int(n))
 
 
 def default_noise(model: Model) -> dict[str, float]:

@@ -56,11 +56,12 @@ def fit_convergence(result, records, model, out_dir: str) -> list[str]:
     ax.plot(t[:n], rec[out][:n], color="0.6", lw=2.0, label="measured")
     base = result.params
     drive_name, drive = model.drive_signal(rec.signals)
+    exo = {k: v[:n] for k, v in model.exogenous_of(rec.signals).items()}
     for h in picks:
         ps = base.update(h["theta"])
-        sim = model.simulate(ps, drive_name, drive[:n], rec.dt, init=result.init[0])
+        sim = model.simulate(ps, drive_name, drive[:n], rec.dt, init=result.init[0], exogenous=exo)
         ax.plot(t[:n], sim.outputs[out], lw=1.0, label=f"iteration {h['iteration']}")
-    sim = model.simulate(base, drive_name, drive[:n], rec.dt, init=result.init[0])
+    sim = model.simulate(base, drive_name, drive[:n], rec.dt, init=result.init[0], exogenous=exo)
     ax.plot(t[:n], sim.outputs[out], color="k", lw=0.8, ls="--", label="final")
     ax.set_xlabel("t [s]")
     ax.set_ylabel(out)

@@ -126,7 +126,7 @@ def _simulate(data: _Data, ps: ParameterSet, timing: Timing) -> list[dict[str, n
     out = []
     for rec, (name, drive), init in zip(data.records, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)
-        sim = model.simulate_batch(P, name, drive, rec.dt, S0, None, timing)
+        sim = model.simulate_batch(P, name, drive, rec.dt, S0, None, timing, model.exogenous_of(rec.signals))
         d = {o: as_logged(rec, o, sim.outputs[o][0]) if o in rec else sim.outputs[o][0] for o in model.OUTPUTS}
         for k, v in sim.inputs.items():
             d[k] = np.asarray(v)[0] if np.ndim(v) == 2 else np.asarray(v)

@@ -58,7 +58,8 @@ def _fit_costs(data: _Data, sets: Sequence[ParameterSet], timing: Timing) -> lis
     cost = np.zeros(len(sets))
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(sets[0])):
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
-        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing)
+        exo = {k: v[:n] for k, v in model.exogenous_of(rec.signals).items()}
+        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, timing, exo)
         for o in data.outputs:
             e = (as_logged(rec, o, sim.outputs[o]) - rec[o][None, :n]) / data.sigma[o]
             cost += np.sum(e * e, axis=1)

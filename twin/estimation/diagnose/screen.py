@@ -102,7 +102,8 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     raw = []
     for rec, n, (dname, drive), init in zip(data.records, data.n_fit, data.drives(), data.init(ps)):
         S0 = model.initial_state(P, init)  # each row from its own sensor errors
-        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, state.timing)
+        exo = {k: v[:n] for k, v in model.exogenous_of(rec.signals).items()}
+        sim = model.simulate_batch(P, dname, drive[:n], rec.dt, S0, None, state.timing, exo)
         Y = np.stack([as_logged(rec, o, sim.outputs[o]) / data.sigma[o] for o in data.outputs], axis=1)  # [K, m, n]
         y = np.array([rec[o][:n] / data.sigma[o] for o in data.outputs])
         raw.append(np.concatenate([(y - Y[0])[None], Y[1:] - Y[0]], axis=0))
