@@ -93,7 +93,7 @@ def run(args) -> int:
     rec = measure(model, ps, name, drive, args.dt, noise=noise, quantisation=_kv(args.quantisation),
                   seed=args.seed, name=args.output, timing=timing, exogenous=exo, exogenous_every=every)
     from replay import formats
-    from twin.record import signal_specs
+    from twin.models.records import signal_specs
 
     # a CSV names each column's SI unit (t[s], x[m], pA[Pa]; the oscillator's u[N]), as every reader understands
     csv = formats.lookup(args.output, what="output").suffix == ".csv"

@@ -71,7 +71,7 @@ def signals_schema(model: str = DEFAULT_MODEL) -> dict:
     """The schema of ``/rig/signals`` for ``model``'s records (:func:`twin.record.signal_specs`: the oscillator's
     ``u`` is a force): every signal in its SI unit, named in ``units`` and in its description; under ``display``
     the same numbers in the display unit (:func:`twin.reports.units.signal_unit`), named in ``display.units``."""
-    from twin.record import signal_specs
+    from twin.models.records import signal_specs
     from twin.reports.units import signal_unit
 
     specs = signal_specs(model)
@@ -165,7 +165,7 @@ class SignalFields:
     and its display unit and scale, for the signals of a block (``names``) of ``model``'s records."""
 
     def __init__(self, names, model: str = DEFAULT_MODEL) -> None:
-        from twin.record import signal_specs
+        from twin.models.records import signal_specs
         from twin.reports.units import signal_unit
 
         specs = signal_specs(model)
