@@ -14,7 +14,8 @@ from twin import cli
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.simulate import measure, ramp
-from twin.record import Record, load_records
+from twin import load_records
+from twin.record import Record
 
 RIG = get_model("msp25")
 FREE = RIG.PHENOMENOLOGICAL

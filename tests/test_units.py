@@ -120,7 +120,7 @@ def test_simulate_writes_csv_units_that_every_reader_reads_back_to_the_same_numb
 
     from replay import cli as replay_cli
     from replay.factory import open_source
-    from twin.record import load_records
+    from twin import load_records
 
     def out_of(rc: int) -> dict:
         assert rc == 0
