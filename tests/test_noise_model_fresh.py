@@ -33,3 +33,21 @@ def test_a_held_white_signal_is_white_on_its_measurements_and_its_held_copies_ar
     # every sample a measurement: the same noise model and innovations as without masks, exactly
     none = fit_noise_model([B], ("x", "pA"), fresh=[np.ones_like(fresh)])
     assert np.array_equal(none.whiten(B, np.ones_like(fresh)), grid.whiten(B))
+
+
+def test_healthy_can_rate_record_is_diagnosed_on_its_measurements_naming_nothing(reference_records):
+    """The PID rig's pressures at 500 Hz held onto the 1 kHz grid, time stamps 0-150 us late (verification seed
+    1001, 12 s, truth drawn): the healthy diagnosis names nothing and is not "unexplained", and its noise model
+    kept the innovations of the measurements only."""
+    from conftest import msp25_spec
+    from user_rig_accuracy import CASES, product_record
+
+    from twin.estimation.diagnose import diagnose
+    from twin.models import get_model
+
+    spec_kw, known = CASES["can_rate"]
+    (ref,) = reference_records([msp25_spec(1001, duration=12.0, truth="draw", **spec_kw)])
+    rig = get_model("msp25")
+    d = diagnose(rig, product_record(ref, "can_rate1001"), base=rig.params(**known))
+    assert list(d.causes) == [] and not d.unexplained, (d.causes, d.final.adequacy)
+    assert d.final.n_w < 0.6 * 3 * 12000  # about half the grid: the samples where the pressures are measured
