@@ -58,17 +58,56 @@ class NoiseModel:
     def m(self) -> int:
         return len(self.outputs)
 
-    def whiten(self, X: np.ndarray) -> np.ndarray:
+    def whiten(self, X: np.ndarray, fresh: np.ndarray | None = None) -> np.ndarray:
         """Normalised innovations of ``X [..., m, T]`` -> ``[..., m, T - p]`` (the first ``p`` samples are
-        lost: the predictor needs a past)."""
+        lost: the predictor needs a past).
+
+        ``fresh [m, T]``: which samples of each output are measurements (a signal logged at its own, slower rate
+        and held onto the grid: :func:`twin.record.fresh_mask`).  A held output's autoregression runs over its
+        fresh samples only (its lags are its previous measurements), and the innovations keep the samples
+        where every output is a measurement (:meth:`kept`): a held value is never taken for a prediction error,
+        and the counts of the statistics on the innovations are those of measurements, as in the fit."""
         X = np.asarray(X, dtype=float)
         p = self.order
         T = X.shape[-1]
-        E = X[..., p:].copy()
-        for k in range(1, p + 1):
-            # e_t -= A_k r_{t-k}
-            E -= np.einsum("ij,...jt->...it", self.A[k - 1], X[..., p - k: T - k])
-        return np.einsum("ij,...jt->...it", self.chol_inv, E)
+        if fresh is None or bool(np.all(fresh)):
+            E = X[..., p:].copy()
+            for k in range(1, p + 1):
+                # e_t -= A_k r_{t-k}
+                E -= np.einsum("ij,...jt->...it", self.A[k - 1], X[..., p - k: T - k])
+            return np.einsum("ij,...jt->...it", self.chol_inv, E)
+        E = np.zeros(X.shape[:-1] + (max(T - p, 0),))
+        for i in range(self.m):
+            q = int(self.orders.get(self.outputs[i], p)) if self.orders else p
+            a = self.A[:q, i, i]
+            idx = np.flatnonzero(fresh[i])
+            xf = X[..., i, idx]
+            ef = xf[..., q:].copy()
+            for k in range(1, q + 1):
+                ef -= a[k - 1] * xf[..., q - k: idx.size - k]
+            pos = idx[q:]
+            use = pos >= p
+            E[..., i, pos[use] - p] = ef[..., use]
+        keep = self.kept(fresh, T)
+        return np.einsum("ij,...jt->...it", self.chol_inv, E[..., keep])
+
+    def kept(self, fresh: np.ndarray | None, T: int) -> np.ndarray:
+        """``[T - p]`` bool: the samples ``p ... T - 1`` whose innovations :meth:`whiten` keeps under ``fresh``
+        (every output a measurement there, with the past its autoregression needs)."""
+        p = self.order
+        keep = np.ones(max(T - p, 0), dtype=bool)
+        if fresh is None:
+            return keep
+        for i in range(self.m):
+            f = np.asarray(fresh[i], dtype=bool)
+            if f.all():
+                continue
+            q = int(self.orders.get(self.outputs[i], p)) if self.orders else p
+            ok = f.copy()
+            first = np.flatnonzero(f)[:q]  # a measurement without q earlier ones has no prediction
+            ok[first] = False
+            keep &= ok[p:]
+        return keep
 
     def whiten_blocks(self, blocks: Sequence[np.ndarray]) -> np.ndarray:
         """Whitened innovations of several independent records ``[..., m, T_r]``, concatenated in time."""
@@ -136,24 +175,33 @@ def _ar_fit(blocks: Sequence[np.ndarray], orders: Sequence[int]) -> tuple[int, n
 
 
 def fit_noise_model(blocks: Sequence[np.ndarray], outputs: Sequence[str], orders: Sequence[int] = ORDERS,
-                    max_order: int | None = None, min_orders: dict[str, int] | None = None) -> NoiseModel:
+                    max_order: int | None = None, min_orders: dict[str, int] | None = None,
+                    fresh: Sequence[np.ndarray | None] | None = None) -> NoiseModel:
     """A noise model of residual blocks ``[m, T_r]`` (one per record): an autoregression per output (order
-    by AIC, at least ``min_orders[output]`` where given) and the innovations' covariance across outputs."""
+    by AIC, at least ``min_orders[output]`` where given) and the innovations' covariance across outputs.
+    ``fresh``: per block, ``[m, T_r]`` measurements (None: all); a held output's autoregression is fitted
+    over its measurements only (:meth:`NoiseModel.whiten`)."""
     blocks = [np.asarray(b, dtype=float) for b in blocks]
+    fr = list(fresh) if fresh is not None else [None] * len(blocks)
     m = blocks[0].shape[0]
-    T_min = min(b.shape[1] for b in blocks)
+
+    def series(i: int) -> list[np.ndarray]:
+        return [b[i] if f is None else b[i][np.asarray(f[i], dtype=bool)] for b, f in zip(blocks, fr)]
+
+    T_min = min(min(s.size for s in series(i)) for i in range(m))
     cap = max_order if max_order is not None else max(orders)
     cap = min(cap, max(0, T_min // 20))
     cand = [p for p in orders if p <= cap] or [0]
     low = min_orders or {}
-    per = [_ar_fit([b[i] for b in blocks], [p for p in cand if p >= low.get(o, 0)] or [max(cand)])
+    per = [_ar_fit(series(i), [p for p in cand if p >= low.get(o, 0)] or [max(cand)])
            for i, o in enumerate(outputs)]
     p = max(q for q, _, _ in per)
     A = np.zeros((p, m, m))
     for i, (q, c, _) in enumerate(per):
         A[:q, i, i] = c
     nm = NoiseModel(tuple(outputs), p, A, np.eye(m), np.eye(m), {})
-    E = np.concatenate([nm.whiten(b) for b in blocks], axis=1)
+    nm.orders = {o: int(q) for o, (q, _, _) in zip(outputs, per)}
+    E = np.concatenate([nm.whiten(b, f) for b, f in zip(blocks, fr)], axis=1)
     S = E @ E.T / E.shape[1]
     L = np.linalg.cholesky(S)
     nm.sigma = S

@@ -24,12 +24,25 @@ def _innovations(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]])
     """Normalised innovations ``[m, n]`` on the fitting data and on the held-out tails (whole records
     filtered, so the tail's predictor sees the samples before it)."""
     fit_parts, hold_parts = [], []
-    for B, n in zip(_blocks(data, pred, "all"), data.n_fit):
-        E = nm.whiten(B)
-        cut = max(n - nm.order, 0)
+    for r, (B, n) in enumerate(zip(_blocks(data, pred, "all"), data.n_fit)):
+        fresh = data.fresh(r)  # a held sample is not a measurement: its innovation is not kept
+        E = nm.whiten(B, fresh)
+        cut = int(np.count_nonzero(nm.kept(fresh, B.shape[1])[: max(n - nm.order, 0)]))
         fit_parts.append(E[:, :cut])
         hold_parts.append(E[:, cut:])
     return np.concatenate(fit_parts, axis=1), np.concatenate(hold_parts, axis=1)
+
+
+def _kept_order(data: _Data, order: int, i: int, n_kept: int) -> int:
+    """Output ``i``'s autoregression order, counted in the innovations' samples: its own measurements per
+    kept innovation (2 for x when the pressures are held at half its rate) shorten it, so the whiteness test
+    looks at the same time span beyond the model it did on the grid."""
+    fresh = [data.fresh(r, n) for r, n in enumerate(data.n_fit)]
+    if all(f is None for f in fresh):
+        return order  # every sample a measurement: the innovations are the grid's
+    own = sum(int(n if f is None else np.count_nonzero(f[i])) for f, n in zip(fresh, data.n_fit))
+    ratio = own / max(n_kept, 1)
+    return int(math.ceil(order / ratio)) if ratio > 1.0 else order
 
 
 def _whiteness(e: np.ndarray, order: int) -> dict:
@@ -70,7 +83,8 @@ def _simulation_holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
 def _adequacy(data: _Data, nm: NoiseModel, E_fit: np.ndarray, E_hold: np.ndarray, exo: dict | None = None,
               sim: dict | None = None) -> dict:
     """Are the one-step prediction errors white, and no larger on held-out data than on fitting data?"""
-    white = {o: _whiteness(E_fit[i], int(nm.orders.get(o, nm.order))) for i, o in enumerate(data.outputs)}
+    white = {o: _whiteness(E_fit[i], _kept_order(data, int(nm.orders.get(o, nm.order)), i, E_fit.shape[1]))
+             for i, o in enumerate(data.outputs)}
     q_fit = np.sum(E_fit * E_fit, axis=0)
     q_hold = np.sum(E_hold * E_hold, axis=0)
     if q_hold.size > 10:
@@ -109,7 +123,7 @@ def _exogenous(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]]) -
     of an output's innovation variance the drive's history explains."""
     L = EXO_LAGS
     Es, Xs = [], []
-    for rec, n, (_name, drive), p in zip(data.records, data.n_fit, data.drives(), pred):
+    for r, (rec, n, (_name, drive), p) in enumerate(zip(data.records, data.n_fit, data.drives(), pred)):
         start = nm.order + L
         if n - start < 10 * L:
             continue
@@ -122,11 +136,14 @@ def _exogenous(data: _Data, nm: NoiseModel, pred: list[dict[str, np.ndarray]]) -
             d = d / sd
             data.exo_cache[key] = np.stack([d[start - lag: n - lag] for lag in range(L + 1)], axis=1)
         B = np.array([(rec[o][:n] - p[o][:n]) / data.sigma[o] for o in data.outputs])
-        E = nm.whiten(B)[:, start - nm.order:]               # samples start ... n - 1
+        fresh = data.fresh(r, n)
+        kept = nm.kept(fresh, n)                              # samples order ... n - 1 whose innovations count
+        keep = kept[start - nm.order:]                        # of samples start ... n - 1
+        E = nm.whiten(B, fresh)[:, int(np.count_nonzero(kept[: start - nm.order])):]
         if not np.all(np.isfinite(E)):
             return None
         Es.append(E)
-        Xs.append(data.exo_cache[key])
+        Xs.append(data.exo_cache[key][keep])
     if not Es:
         return None
     E = np.concatenate(Es, axis=1)
@@ -149,21 +166,22 @@ def _noise_model(data: _Data, blocks: list[np.ndarray], pred) -> tuple[NoiseMode
     output's autoregression has the order AIC picks, raised (along ``ORDERS``) while its innovations keep a
     significant and material dependence at lags beyond it (Box-Jenkins: a noise model is not done while its
     errors are predictable; AIC alone stops short when many small correlations remain)."""
-    nm = fit_noise_model(blocks, data.outputs)
+    fresh = [data.fresh(r, n) for r, n in enumerate(data.n_fit)]
+    nm = fit_noise_model(blocks, data.outputs, fresh=fresh)
     E_fit, E_hold = _innovations(data, nm, pred)
     nm.raises = 0
     for _ in range(NOISE_RAISE):
         low = {}
         for i, o in enumerate(data.outputs):
             order = int(nm.orders.get(o, nm.order))
-            w = _whiteness(E_fit[i], order)
+            w = _whiteness(E_fit[i], _kept_order(data, order, i, E_fit.shape[1]))
             higher = [p for p in NOISE_ORDERS if p > order]
             if w["p"] * len(data.outputs) < data.alpha and w["material"] and higher:
                 low[o] = higher[0]
         if not low:
             break
         raises = nm.raises + 1
-        nm = fit_noise_model(blocks, data.outputs, min_orders={**nm.orders, **low})
+        nm = fit_noise_model(blocks, data.outputs, min_orders={**nm.orders, **low}, fresh=fresh)
         nm.raises = raises
         E_fit, E_hold = _innovations(data, nm, pred)
     return nm, E_fit, E_hold

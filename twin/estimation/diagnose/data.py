@@ -57,6 +57,17 @@ class _Data:
     def drives(self, records: Sequence[Record] | None = None) -> list[tuple[str, np.ndarray]]:
         return [self.model.drive_signal(r.signals, self.drive) for r in (records or self.records)]
 
+    def fresh(self, r: int, n: int | None = None) -> np.ndarray | None:
+        """``[m, n]`` which samples of each output of record ``r`` (its first ``n``) are measurements; None when
+        every one is (a signal logged at its own rate and held onto the grid: :func:`twin.record.fresh_mask`)."""
+        rec = self.records[r]
+        masks = [rec.fresh_of(o) for o in self.outputs]
+        if all(f is None for f in masks):
+            return None
+        stop = len(rec) if n is None else n
+        return np.array([np.ones(stop, dtype=bool) if f is None else np.asarray(f[:stop], dtype=bool)
+                         for f in masks])
+
     def init(self, ps: ParameterSet) -> list[dict]:
         from twin.estimation.fit import initial_from_data
 

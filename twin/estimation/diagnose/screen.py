@@ -111,8 +111,8 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     assert nm is not None  # the state's model was fitted with its noise model
     _set_noise(data, state, nm)
     R, C = [], []
-    for W in raw:
-        W = nm.whiten(W)  # [K, m, n - p]
+    for r_i, (W, n) in enumerate(zip(raw, data.n_fit)):
+        W = nm.whiten(W, data.fresh(r_i, n))  # [K, m, n - p], the samples where every output is a measurement
         R.append(W[0])
         C.append(W[1:])
     r2 = np.concatenate(R, axis=1)             # [m, n]
@@ -186,7 +186,7 @@ def _clean_noise_model(data: _Data, raw: Sequence[np.ndarray]) -> NoiseModel | N
             beta = np.linalg.solve(G + 1e-10 * np.eye(G.shape[0]), X.T @ r)
             r = r - X @ beta
         cleaned.append(r.reshape(W.shape[1], W.shape[2]))
-    return fit_noise_model(cleaned, data.outputs)
+    return fit_noise_model(cleaned, data.outputs, fresh=[data.fresh(i, n) for i, n in enumerate(data.n_fit)])
 
 
 def _set_noise(data: _Data, state: ModelState, nm: NoiseModel) -> None:
