@@ -55,14 +55,9 @@ their standard deviations (as the drift test, :mod:`twin.online.drift`, is):
   the filter's own bias, which no trend can see, is of that order), and its value
   at the horizon is ``p_within_horizon``.  A quantile beyond the grid's end
   (``1000`` horizons) is ``None``: the trend may never get there.
-* **Discrepancy.** The tracker's estimate differs from the plant's parameter by the residuals the trend sees
-  and by a level bias it cannot see (the twin's model is not the plant: a constant offset is in the
-  intercept, not in the residuals): its standard deviation ``discrepancy`` (0.005 in log units, 0.5 %) is added
-  to the variance of the trend's level at every future time.  Set on the reference simulator's calibration
-  seed 14 (friction wearing exponentially, doubled noise): its friction estimate sat 0.4-1.3 % below the
-  simulator's in 60-s means, 0.75 % on average; without the term the 90 % interval, +-8 s wide in the last
-  minute, held the true exit in 55 % of the last third's forecasts, with it in 99 %.  Near the exit, where the
-  trend's own level is known to a few tenths of a percent, this term sets the interval's width.
+* **Discrepancy.** A level bias of the twin against the plant is in the intercept, not in the residuals, so no
+  trend sees it: its standard deviation ``discrepancy`` (:data:`DISCREPANCY`) is added to the variance of the
+  trend's level at every future time; near the exit it sets the interval's width.
 * **Reach.** ``p_within_horizon`` counts only exits no further ahead than
   ``reach`` (1) times the span of the data the trend was fitted on: a trend is
   not extrapolated beyond the stretch that supports it (a curve that flattens,
@@ -112,7 +107,8 @@ _QUANTILES = (0.05, 0.5, 0.95)
 #: Standard deviation of the twin's level bias against the truth [log units]: the tracker's estimate of a parameter
 #: differs from the plant's by a model-form bias that no trend sees (its residuals cannot: it is in the intercept);
 #: set from the independent reference simulator's calibration seed 14 (friction wearing exponentially, doubled noise),
-#: whose friction estimate sat 0.75 % low on average over the record: 1.645 x 0.005 = 0.8 % within the 90 % interval.
+#: whose friction estimate sat 0.7 % low on average over the record (60-s means up to 1.35 %): 1.645 x 0.005 = 0.8 %
+#: within the 90 % interval.
 DISCREPANCY = 0.005
 
 
