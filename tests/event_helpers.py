@@ -34,7 +34,8 @@ def wear_forecasts(rig: str, seconds: float = 400.0, seed: int = 1201) -> list[d
     import numpy as np
 
     from twin.online.baseline import Baseline
-    from twin.online.forecast import ForecastMonitor, forecast_message
+    from twin.online.forecast import ForecastMonitor
+    from twin.online.events.forecast import forecast_message
 
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, seconds, 0.05)

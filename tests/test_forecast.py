@@ -18,7 +18,8 @@ from mcap.reader import make_reader
 
 from twin import cli
 from twin.online.baseline import Baseline
-from twin.online.forecast import FORECAST_SCHEMA, ForecastMonitor, describe
+from twin.online.forecast import ForecastMonitor
+from twin.online.events.forecast import FORECAST_SCHEMA, describe
 from twin.online.events import AlarmEvent, validate
 
 RATE = 20.0  # samples per second of the synthetic streams
@@ -129,7 +130,7 @@ def test_a_maintenance_reset_forgets_the_history_and_returns_the_early_alarm():
 
 
 def test_the_message_gives_the_median_and_the_interval_in_one_unit():
-    from twin.online.forecast import Forecast
+    from twin.online.events.forecast import Forecast
 
     f = Forecast("CdAleak", 100.0, 0, 100.0 + 366.0, 100.0 + 240.0, 100.0 + 570.0, 0.95, 0.5, 20.0, "high")
     assert describe(f) == "in 6.1 min [4.0, 9.5]"

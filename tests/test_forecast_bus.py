@@ -20,7 +20,7 @@ import zenoh
 from net_helpers import free_port
 from fpdd.zenohconf import zenoh_config
 from twin.online.events import validate
-from twin.online.forecast import FORECAST_SCHEMA, FORECAST_UNITS
+from twin.online.events.forecast import FORECAST_SCHEMA, FORECAST_UNITS
 from twin.service.bus import FORECAST_S, ForecastGate, RigKeys, TwinPublisher
 from twin.service.queries import fetch_forecasts
 from twin.service.config import parse_config
@@ -181,7 +181,7 @@ def test_the_service_puts_each_rigs_forecast_and_answers_get_with_the_latest(wea
 
 def _messages(twin) -> list[dict]:
     """The forecast messages the rig's twin made, as it hands them to its publisher."""
-    from twin.online.forecast import forecast_message
+    from twin.online.events.forecast import forecast_message
 
     return forecast_message(twin.rig.name, list(twin.forecasts), twin.forecast.horizon_s)
 

@@ -194,7 +194,7 @@ def exits(msg: dict | None) -> dict[str, dict]:
     """Per parameter of a forecast message (``fpdd/<rig>/forecast``): its exit time (record seconds, SI), the
     remaining time and its 90 % interval [s], ``p_within_horizon`` and ``shown``, the text a person reads
     (``in 6.1 min [4.0, 9.5]``)."""
-    from twin.online.forecast import Forecast, describe
+    from twin.online.events.forecast import Forecast, describe
 
     if not msg:
         return {}
@@ -269,7 +269,7 @@ def render(snap: dict, where: str, live: bool = True):
 
 
 def _horizon(f: dict) -> str:
-    from twin.online.forecast import fmt_duration
+    from twin.online.events.forecast import fmt_duration
 
     return fmt_duration(f["horizon_s"]) if f.get("horizon_s") else "the horizon"
 
@@ -309,7 +309,7 @@ def run_top(args) -> int:
     from fpdd.zenohconf import check_endpoint, config_endpoints, open_session, zenoh_config
     from fpdd.errors import SourceError
     from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent, validate
-    from twin.online.forecast import FORECAST_SCHEMA
+    from twin.online.events.forecast import FORECAST_SCHEMA
 
     for e in args.connect:
         check_endpoint(e, "--connect")

@@ -188,7 +188,7 @@ def run(args) -> int:
     for n, d in result["final"].items():  # display units, rounded after the conversion (JSON above stays SI)
         sh = Shown(n, spec=specs.spec(n))
         print(f"  {n:8s} {sh.text(d['value'], 5)} +- {sh.text(d['std'], 2)}  [{result['status'][n]}]")
-    from twin.online.forecast import describe
+    from twin.online.events.forecast import describe
 
     for n, f in twin.forecast.latest().items():
         print(f"  {n:8s} leaves its band {describe(f)} (at {f.t:.0f} s of record; P(within "

@@ -139,7 +139,7 @@ def track_report(track: Any, out_dir: str, *, log: str | None = None, title: str
 def _forecast_section(s: Mapping, model: str, rows: list[dict], t: np.ndarray, alarms: list[dict]) -> str:
     """Per parameter with a forecast: its trend with the band and the last forecast's fan, the forecast remaining
     time (median and 90 % interval) over the record; a table of the last forecasts and the first early alarms."""
-    from twin.online.forecast import fmt_duration
+    from twin.online.events.forecast import fmt_duration
 
     fcs = list(s.get("forecasts") or [])
     horizon = float(s.get("forecast_horizon_s") or 3600.0)

@@ -8,7 +8,7 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
                                get    latest EstimateEvent (latest-value queryable)
     fpdd/<rig>/status          put    StatusEvent JSON, on change and periodically
                                get    latest StatusEvent (latest-value queryable)
-    fpdd/<rig>/forecast        put    forecast JSON (``twin.online.forecast.FORECAST_SCHEMA``): when each
+    fpdd/<rig>/forecast        put    forecast JSON (``twin.online.events.forecast.FORECAST_SCHEMA``): when each
                                       parameter leaves its band, on change and every ``FORECAST_S``
                                get    latest forecast (latest-value queryable)
     fpdd/<rig>/maintenance     get    record a maintenance event (payload {"parameters": [...], "note"}):
@@ -21,7 +21,7 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
 
 Payloads are UTF-8 JSON (encoding ``application/json``) following the schemas in
 :mod:`twin.online.events` (``AlarmEvent.SCHEMA``, ``EstimateEvent.SCHEMA``,
-``StatusEvent.SCHEMA``) and :data:`twin.online.forecast.FORECAST_SCHEMA`. Every alarm carries ``seq``, a per-rig number 1, 2,
+``StatusEvent.SCHEMA``) and :data:`twin.online.events.forecast.FORECAST_SCHEMA`. Every alarm carries ``seq``, a per-rig number 1, 2,
 3, ... without gaps, assigned by the durable journal (:mod:`twin.service.journal`).
 
 Delivery guarantees and how they are obtained:
@@ -415,11 +415,11 @@ class TwinPublisher(_Declarations, Publisher):
         return True
 
     def publish_forecast(self, message: dict) -> None:
-        """A rig's forecast message (:func:`twin.online.forecast.forecast_message`): :meth:`put_forecast`."""
+        """A rig's forecast message (:func:`twin.online.events.forecast.forecast_message`): :meth:`put_forecast`."""
         self.put_forecast(message)
 
     def put_forecast(self, msg: dict[str, Any]) -> bool:
-        """A rig's forecast message (:func:`twin.online.forecast.forecast_message`, one per second of record):
+        """A rig's forecast message (:func:`twin.online.events.forecast.forecast_message`, one per second of record):
         kept as the latest value (``get``), put on ``fpdd/<rig>/forecast`` when :class:`ForecastGate` says so
         (on change, else every :data:`FORECAST_S`).
 

@@ -55,7 +55,7 @@ class Outbox(Publisher):
         return True
 
     def publish_forecast(self, message: dict) -> None:
-        """A forecast message (:func:`twin.online.forecast.forecast_message`): relayed to the service's
+        """A forecast message (:func:`twin.online.events.forecast.forecast_message`): relayed to the service's
         :meth:`twin.service.bus.TwinPublisher.publish_forecast` (which decides when it goes on the bus)."""
         self._batch.append(("forecast", message))
 

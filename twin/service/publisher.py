@@ -39,7 +39,7 @@ class Publisher(Protocol):
         ...
 
     def publish_forecast(self, message: dict) -> None:
-        """Publish one forecast message (:func:`twin.online.forecast.forecast_message`; default: not published)."""
+        """Publish one forecast message (:func:`twin.online.events.forecast.forecast_message`; default: not published)."""
         return None
 
     def status_counters(self) -> dict[str, int]:

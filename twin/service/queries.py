@@ -21,9 +21,9 @@ log = logging.getLogger(__name__)
 
 def fetch_forecasts(session: zenoh.Session, rig: str = "*", *, timeout: float = 5.0) -> list[dict[str, Any]]:
     """The latest forecast message of each matching running twin (a plain ``get`` on ``fpdd/<rig>/forecast``),
-    sorted by rig; a reply that does not follow :data:`twin.online.forecast.FORECAST_SCHEMA` is left out (logged).
+    sorted by rig; a reply that does not follow :data:`twin.online.events.forecast.FORECAST_SCHEMA` is left out (logged).
     """
-    from twin.online.forecast import FORECAST_SCHEMA
+    from twin.online.events.forecast import FORECAST_SCHEMA
 
     out = []
     for reply in session.get(RigKeys(rig).forecast, target=zenoh.QueryTarget.ALL, timeout=timeout):

@@ -37,7 +37,7 @@ import numpy as np
 from replay.base import ReadReport, Samples, Sink
 from twin.service.config import RigConfig
 from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
-from twin.online.forecast import FORECAST_SCHEMA
+from twin.online.events.forecast import FORECAST_SCHEMA
 from twin.service.publisher import Publisher
 
 log = logging.getLogger(__name__)
@@ -378,7 +378,7 @@ class RigTwin(Sink):
         for ev in self.forecast.reset(parameters, why, record=record):
             self._alarm(ev)
         if record is not None and self.publisher is not None and self.last_t_ns is not None:
-            from twin.online.forecast import FORECAST_UNITS, forecast_message, maintenance_field
+            from twin.online.events.forecast import FORECAST_UNITS, forecast_message, maintenance_field
 
             latest = self.forecast.latest()
             msgs = forecast_message(self.rig.name, list(latest.values()), self.forecast.horizon_s,
@@ -391,7 +391,7 @@ class RigTwin(Sink):
     def _forecast(self, fcs) -> None:
         """Forecasts of one or more completed bins: kept, recorded (``/twin/forecast``, one message per bin) and
         handed to the publisher's ``publish_forecast`` (a no-op where the publisher has no forecast key)."""
-        from twin.online.forecast import forecast_message
+        from twin.online.events.forecast import forecast_message
 
         self.forecasts.extend(fcs)
         self._forecast_shown = True
@@ -406,7 +406,7 @@ class RigTwin(Sink):
         value must not keep the last one); the MCAP records forecasts only."""
         self._forecast_shown = False
         if self.publisher is not None and self.last_t_ns is not None:
-            from twin.online.forecast import FORECAST_UNITS, maintenance_field
+            from twin.online.events.forecast import FORECAST_UNITS, maintenance_field
 
             t_s = (self.last_t_ns - (self._t0_ns or 0)) * 1e-9
             self.publisher.publish_forecast({"rig": self.rig.name, "t_ns": self.last_t_ns, "t_s": t_s,

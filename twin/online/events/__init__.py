@@ -1,4 +1,4 @@
-"""Events the twin publishes: alarms, estimates and service status (:mod:`~twin.online.events.schema` what they
+"""Events the twin publishes: alarms, estimates, forecasts and service status (:mod:`~twin.online.events.schema` what they
 share, :mod:`~twin.online.events.alarm`, :mod:`~twin.online.events.estimate`, :mod:`~twin.online.events.status`)."""
 
 from twin.online.events.schema import (ALARM_KINDS, ALARM_LEVELS, EVENT_LEVELS, RIG_PATTERN, SERVICE_STATES,

@@ -115,7 +115,7 @@ ALARM_SCHEMA: dict = _event_schema("AlarmEvent")
 
 def _forecast_schema() -> dict:
     from replay.mcapio import with_time_schema
-    from twin.online.forecast import FORECAST_SCHEMA
+    from twin.online.events.forecast import FORECAST_SCHEMA
 
     return dict(with_time_schema(FORECAST_SCHEMA))
 

@@ -159,10 +159,10 @@ class LiveView:
             self._log("status", {**e.to_dict(), "timestamp": foxglove_time(e.t_ns)}, e.t_ns)
 
     def forecast(self, msg: Mapping) -> None:
-        """A forecast message (:func:`twin.online.forecast.forecast_message`, as on Zenoh and in the MCAP) with
+        """A forecast message (:func:`twin.online.events.forecast.forecast_message`, as on Zenoh and in the MCAP) with
         its Foxglove ``timestamp``; one that does not follow its schema raises :class:`fpdd.errors.DataError`."""
         from twin.online.events import validate
-        from twin.online.forecast import FORECAST_SCHEMA as SCHEMA
+        from twin.online.events.forecast import FORECAST_SCHEMA as SCHEMA
 
         d = dict(msg)
         validate(d, SCHEMA, "forecast")
