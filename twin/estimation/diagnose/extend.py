@@ -103,9 +103,9 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
         if t.accepted:
             break
     assert t is not None  # the loop ran at least once (the start near neutral)
-    if not t.state.converged and math.isfinite(t.state.fit.cost):
-        # stopped by its evaluation budget: continued once from where it stopped, so that the verdict on the
-        # model it leaves reads an estimate, not the round-off of the path that was cut short (a Stribeck
+    if t.accepted and not t.state.converged and math.isfinite(t.state.fit.cost):
+        # accepted, stopped by its evaluation budget: continued once from where it stopped, so that the verdict
+        # on the model it leaves reads an estimate, not the round-off of the path that was cut short (a Stribeck
         # curve's refit on seed 1001 stopped at LR 4175 or 4177 with one or two BLAS threads, one side of
         # WHITE_R2 or the other)
         start = dict(t.state.fit.estimate)
