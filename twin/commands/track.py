@@ -76,7 +76,10 @@ def _check_rig_log(path: str) -> None:
             header = [c.strip() for c in f.readline().split(",")]
     except OSError:
         return  # the reader names the problem
-    if "y" in header and not {"x", "pA", "pB"} & set(header):
+    from replay.csvio.columns import split_unit
+
+    names = {split_unit(c)[0] for c in header}  # y[m], u[N]: the names without their units
+    if "y" in names and not {"x", "pA", "pB"} & names:
         from fpdd.errors import DataError
 
         raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the "
