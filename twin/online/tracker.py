@@ -41,7 +41,7 @@ import types
 import numpy as np
 
 from replay.base import Samples
-from twin.online import chi2, sigma, ukf
+from twin.online import chi2, sigma, split, ukf
 from fpdd.errors import DataError, FilterError, ParameterError
 from twin.models import DEFAULT_MODEL, get_model, trackable_models
 from twin.models.base import Timing
@@ -224,6 +224,9 @@ class OnlineTracker:
                              dtype=np.int64)
         self.excite_thresh = np.array(spec.excite if excite is None else excite, dtype=float)
         self.tau_excite = tau_excite
+        lag = spec.second_order  # a lag whose two parameters the drift test holds while not told apart
+        self.lag = (lag[0], self.tracked.index(lag[1]), self.tracked.index(lag[2])) if (
+            lag is not None and lag[1] in self.tracked and lag[2] in self.tracked) else None
         self.gate = chi2.isf(gate_p, len(self.outputs))
         self.max_gated = int(max_gated)
         g = {**DEFAULT_GUARD, **{"adapt": 1.0 if adapt_noise else 0.0}, **dict(guard or {})}
@@ -265,6 +268,7 @@ class OnlineTracker:
         self.samples = 0
         self.counters = {s: 0 for s in ukf.STATUS}
         self._held = np.full((2, p), np.nan)  # (E, V) of the last sample for ukf.held_variance
+        self._split = np.full(3, np.nan)  # the lag's averages carried for twin.online.split
         self._last_t_ns: int | None = None
         self._pending: Samples | None = None
         self._started = False
@@ -451,6 +455,12 @@ class OnlineTracker:
                           held)
         held_log_std = np.sqrt(held)
         states = X[:, :ns] * self.scale
+        if self.lag is not None:  # zeta and wn not told apart by the recent motion: the drift test holds them
+            iv, jz, jw = self.lag
+            un = split.unsplit(states[:, iv], DT, est[:, jz], est[:, jw], min(1.0, self.dt / self.tau_excite),
+                               self._split)
+            frozen[:, jz] |= un
+            frozen[:, jw] |= un
         msc = np.array([self.scale[self.meas_index[o]] for o in self.outputs])
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
                           status=_STATUS_NAMES[st], frozen=frozen, innovation=innov * msc, states=states,
@@ -498,7 +508,7 @@ class OnlineTracker:
 
     # --- checkpoints ---------------------------------------------------------------------
     STATE_VERSION = 1
-    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last")
+    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last", "_split")
 
     def state(self) -> dict:
         """What the filter's future output depends on beyond its construction, as plain data (numbers,
@@ -530,7 +540,7 @@ class OnlineTracker:
         for k in self._STATE_ARRAYS:
             a = state.get(k.lstrip("_"))
             ref = getattr(self, k)
-            if k == "exo_last" and a is None:  # a state written before exogenous inputs: none seen yet
+            if k in ("exo_last", "_split") and a is None:  # a state written before these: none seen yet
                 a = np.full(ref.shape, np.nan)
             if not isinstance(a, np.ndarray) or a.shape != ref.shape:
                 raise fail(f"{k.lstrip('_')} is not an array of shape {ref.shape}")

@@ -1,0 +1,56 @@
+"""Whether the recent motion tells a second-order lag's damping ratio from its natural frequency.
+
+A lag ``xs'' / wn^2 + (2 zeta / wn) xs' + xs = K u`` (the servo valve's spool) driven well below its band
+answers with ``xs ~ K u - (2 zeta / wn) K u'``: the data then fix the ratio ``zeta / wn`` alone, and any small
+error of the model elsewhere moves the estimate along the direction they do not fix (zeta and wn up or down
+together) while the innovations stay consistent.  The two are told apart by the lag's inertia term
+``xs'' / wn^2``, whose size against the damping term ``2 zeta xs' / wn`` is ``w / (2 zeta wn)`` for motion at
+``w`` rad/s.  This module measures the recent motion's frequency from the filter's own lag states,
+``w_eff = <|vs'|> / <|vs|>`` (exponential averages, the excitation's time constant), and says the pair is not
+separately identifiable while ``w_eff < split_ratio * 2 zeta wn``: the tracker then marks both as frozen for
+the drift test (:class:`twin.online.drift.DriftMonitor` holds their statistics), so a wander along the
+unidentified direction never becomes an alarm.  The filter's estimates are not changed.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+#: the inertia term's smallest share of the damping term (``w_eff / (2 zeta wn)``) at which zeta and wn count
+#: as separately identified (README, "Tuned constants")
+SPLIT_RATIO = 0.25
+
+
+@nb.njit(cache=True)
+def _unsplit(vs, dt, zeta, wn, alpha, ratio, carry, out):  # pragma: no cover - compiled
+    """Per sample: True where ``w_eff < ratio * 2 zeta wn``. ``carry``: [<|a|>, <|v|>, last vs] (NaN: none)."""
+    a_m, v_m, last = carry[0], carry[1], carry[2]
+    for k in range(vs.shape[0]):
+        v = vs[k]
+        h = dt[k]
+        if not np.isfinite(v):
+            out[k] = True
+            continue
+        if np.isfinite(last) and np.isfinite(h) and h > 0.0:
+            acc = abs(v - last) / h
+            a_m = acc if not np.isfinite(a_m) else a_m + alpha * (acc - a_m)
+            v_m = abs(v) if not np.isfinite(v_m) else v_m + alpha * (abs(v) - v_m)
+        last = v
+        bar = ratio * 2.0 * zeta[k] * wn[k]
+        out[k] = not (np.isfinite(a_m) and np.isfinite(v_m) and v_m > 0.0 and a_m >= bar * v_m)
+    carry[0], carry[1], carry[2] = a_m, v_m, last
+
+
+def unsplit(vs: np.ndarray, dt: np.ndarray, zeta: np.ndarray, wn: np.ndarray, alpha: float, carry: np.ndarray,
+            ratio: float = SPLIT_RATIO) -> np.ndarray:
+    """[T] bool: the lag's damping ratio and natural frequency are not told apart at these samples.
+
+    ``vs``: the lag's rate state (SI); ``dt``: seconds since the previous sample; ``zeta``, ``wn``: the current
+    estimates; ``alpha``: the averages' weight per sample; ``carry``: 3 floats carried from block to block
+    (updated in place; NaN at the start)."""
+    out = np.empty(vs.shape[0], dtype=np.bool_)
+    _unsplit(np.ascontiguousarray(vs, dtype=float), np.ascontiguousarray(dt, dtype=float),
+             np.ascontiguousarray(zeta, dtype=float), np.ascontiguousarray(wn, dtype=float), float(alpha),
+             float(ratio), carry, out)
+    return out
