@@ -227,6 +227,7 @@ class OnlineTracker:
         lag = spec.second_order  # a lag whose two parameters the drift test holds while not told apart
         self.lag = (lag[0], self.tracked.index(lag[1]), self.tracked.index(lag[2])) if (
             lag is not None and lag[1] in self.tracked and lag[2] in self.tracked) else None
+        self.split_ratio = split.SPLIT_RATIO
         self.gate = chi2.isf(gate_p, len(self.outputs))
         self.max_gated = int(max_gated)
         g = {**DEFAULT_GUARD, **{"adapt": 1.0 if adapt_noise else 0.0}, **dict(guard or {})}
@@ -458,7 +459,7 @@ class OnlineTracker:
         if self.lag is not None:  # zeta and wn not told apart by the recent motion: the drift test holds them
             iv, jz, jw = self.lag
             un = split.unsplit(states[:, iv], DT, est[:, jz], est[:, jw], min(1.0, self.dt / self.tau_excite),
-                               self._split)
+                               self._split, self.split_ratio)
             frozen[:, jz] |= un
             frozen[:, jw] |= un
         msc = np.array([self.scale[self.meas_index[o]] for o in self.outputs])
