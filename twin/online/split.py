@@ -14,6 +14,8 @@ unidentified direction never becomes an alarm.  The filter's estimates are not c
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -42,12 +44,41 @@ def _unsplit(vs, dt, zeta, wn, alpha, ratio, carry, out):  # pragma: no cover - 
     carry[0], carry[1], carry[2] = a_m, v_m, last
 
 
+@nb.njit(cache=True)
+def _lag_rate(u, dt, zeta, wn, carry, out):  # pragma: no cover - compiled
+    """The rate of a unit lag with the rig's zeta and wn driven by ``u`` (semi-implicit Euler per sample;
+    ``carry``: [position, rate], NaN: start at rest on the first finite ``u``)."""
+    y, v = carry[0], carry[1]
+    for k in range(u.shape[0]):
+        h = dt[k]
+        if np.isfinite(u[k]):
+            if not np.isfinite(y):
+                y, v = u[k], 0.0
+            elif np.isfinite(h) and h > 0.0:
+                n = max(1, int(math.ceil(h * wn / 0.25)))  # steps of at most a quarter of 1/wn: stable, smooth
+                s = h / n
+                for _ in range(n):
+                    v += s * (wn * wn * (u[k] - y) - 2.0 * zeta * wn * v)
+                    y += s * v
+        out[k] = v if np.isfinite(y) else np.nan
+    carry[0], carry[1] = y, v
+
+
+def lag_rate(u: np.ndarray, dt: np.ndarray, zeta: float, wn: float, carry: np.ndarray) -> np.ndarray:
+    """[T] the rate of a lag with the rig's ``zeta`` and ``wn`` driven by the logged command ``u`` (what the
+    command asks of the valve, free of the filter's own estimates); ``carry``: 2 floats (NaN at the start)."""
+    out = np.empty(u.shape[0])
+    _lag_rate(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(dt, dtype=float), float(zeta), float(wn),
+              carry, out)
+    return out
+
+
 def unsplit(vs: np.ndarray, dt: np.ndarray, zeta: np.ndarray, wn: np.ndarray, alpha: float, carry: np.ndarray,
             ratio: float = SPLIT_RATIO) -> np.ndarray:
     """[T] bool: the lag's damping ratio and natural frequency are not told apart at these samples.
 
-    ``vs``: the lag's rate state (SI); ``dt``: seconds since the previous sample; ``zeta``, ``wn``: the current
-    estimates; ``alpha``: the averages' weight per sample; ``carry``: 3 floats carried from block to block
+    ``vs``: the lag's rate state (SI); ``dt``: seconds since the previous sample; ``zeta``, ``wn``: the rig's
+    values (the configured or commissioned ones: an estimate wandering down would lower its own bar); ``alpha``: the averages' weight per sample; ``carry``: 3 floats carried from block to block
     (updated in place; NaN at the start)."""
     out = np.empty(vs.shape[0], dtype=np.bool_)
     _unsplit(np.ascontiguousarray(vs, dtype=float), np.ascontiguousarray(dt, dtype=float),

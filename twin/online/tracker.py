@@ -269,7 +269,7 @@ class OnlineTracker:
         self.samples = 0
         self.counters = {s: 0 for s in ukf.STATUS}
         self._held = np.full((2, p), np.nan)  # (E, V) of the last sample for ukf.held_variance
-        self._split = np.full(3, np.nan)  # the lag's averages carried for twin.online.split
+        self._split = np.full(5, np.nan)  # the lag's averages and its rate filter (twin.online.split)
         self._last_t_ns: int | None = None
         self._pending: Samples | None = None
         self._started = False
@@ -458,8 +458,10 @@ class OnlineTracker:
         states = X[:, :ns] * self.scale
         if self.lag is not None:  # zeta and wn not told apart by the recent motion: the drift test holds them
             iv, jz, jw = self.lag
-            un = split.unsplit(states[:, iv], DT, est[:, jz], est[:, jw], min(1.0, self.dt / self.tau_excite),
-                               self._split, self.split_ratio)
+            zw = float(self.ps[self.tracked[jz]]), float(self.ps[self.tracked[jw]])  # the rig's, not the wander's
+            rate = split.lag_rate(U, DT, *zw, self._split[3:]) if np.isfinite(U).any() else states[:, iv]
+            un = split.unsplit(rate, DT, np.full(T, zw[0]), np.full(T, zw[1]), min(1.0, self.dt / self.tau_excite),
+                               self._split[:3], self.split_ratio)
             frozen[:, jz] |= un
             frozen[:, jw] |= un
         msc = np.array([self.scale[self.meas_index[o]] for o in self.outputs])
