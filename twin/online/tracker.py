@@ -91,7 +91,7 @@ class TrackBlock:
     nis: np.ndarray             # [T]
     loglik: np.ndarray          # [T]
     status: np.ndarray          # [T] status names (twin.online.ukf.STATUS)
-    frozen: np.ndarray          # [T, p] bool
+    frozen: np.ndarray          # [T, p] bool: no excitation, or zeta/wn not told apart (twin.online.split)
     innovation: np.ndarray      # [T, m] SI
     states: np.ndarray          # [T, ns] SI (the model's states)
     guard: np.ndarray | None = None    # [T] guard names (twin.online.ukf.GUARD); 'consistent' when the evidence counts
