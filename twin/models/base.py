@@ -136,6 +136,9 @@ class FilterSpec:
     ``feedback``: the output a closed loop's controller reads (``None``: no controller).
     ``exogenous``: logged signals that set a parameter sample by sample (signal -> parameter, e.g. the oil
     temperature ``T_oil``); the last fresh value holds between a slow signal's samples.
+    ``second_order``: a second-order lag among the states (its rate state's index, its damping-ratio and its
+    natural-frequency parameter): the drift test holds the two while the recent motion does not tell them apart
+    (:mod:`twin.online.split`); ``None``: none.
     """
 
     functions: str
@@ -147,6 +150,7 @@ class FilterSpec:
     excite: tuple[float, float, float]
     feedback: str | None = None
     exogenous: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    second_order: tuple[int, str, str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -100,6 +100,7 @@ class MSP25(Model):
         excite=(2e-3, 0.5, 2e4),  # rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
         feedback="x",
         exogenous={"T_oil": "T_oil"},
+        second_order=(1, "zeta", "wn"),  # the spool: its speed vs, its damping ratio and natural frequency
     )
     #: initial-state quantities: rod position and velocity, pressure difference or each chamber, spool
     INIT = ("x0", "dp0", "v0", "pA0", "pB0", "u0")

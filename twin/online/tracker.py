@@ -41,7 +41,7 @@ import types
 import numpy as np
 
 from replay.base import Samples
-from twin.online import chi2, sigma, ukf
+from twin.online import chi2, sigma, split, ukf
 from fpdd.errors import DataError, FilterError, ParameterError
 from twin.models import DEFAULT_MODEL, get_model, trackable_models
 from twin.models.base import Timing
@@ -91,7 +91,7 @@ class TrackBlock:
     nis: np.ndarray             # [T]
     loglik: np.ndarray          # [T]
     status: np.ndarray          # [T] status names (twin.online.ukf.STATUS)
-    frozen: np.ndarray          # [T, p] bool
+    frozen: np.ndarray          # [T, p] bool: no excitation, or zeta/wn not told apart (twin.online.split)
     innovation: np.ndarray      # [T, m] SI
     states: np.ndarray          # [T, ns] SI (the model's states)
     guard: np.ndarray | None = None    # [T] guard names (twin.online.ukf.GUARD); 'consistent' when the evidence counts
@@ -224,6 +224,10 @@ class OnlineTracker:
                              dtype=np.int64)
         self.excite_thresh = np.array(spec.excite if excite is None else excite, dtype=float)
         self.tau_excite = tau_excite
+        lag = spec.second_order  # a lag whose two parameters the drift test holds while not told apart
+        self.lag = (lag[0], self.tracked.index(lag[1]), self.tracked.index(lag[2])) if (
+            lag is not None and lag[1] in self.tracked and lag[2] in self.tracked) else None
+        self.split_ratio = split.SPLIT_RATIO
         self.gate = chi2.isf(gate_p, len(self.outputs))
         self.max_gated = int(max_gated)
         g = {**DEFAULT_GUARD, **{"adapt": 1.0 if adapt_noise else 0.0}, **dict(guard or {})}
@@ -265,6 +269,7 @@ class OnlineTracker:
         self.samples = 0
         self.counters = {s: 0 for s in ukf.STATUS}
         self._held = np.full((2, p), np.nan)  # (E, V) of the last sample for ukf.held_variance
+        self._split = np.full(5, np.nan)  # the lag's averages and its rate filter (twin.online.split)
         self._last_t_ns: int | None = None
         self._pending: Samples | None = None
         self._started = False
@@ -451,6 +456,14 @@ class OnlineTracker:
                           held)
         held_log_std = np.sqrt(held)
         states = X[:, :ns] * self.scale
+        if self.lag is not None:  # zeta and wn not told apart by the recent motion: the drift test holds them
+            iv, jz, jw = self.lag
+            zw = float(self.ps[self.tracked[jz]]), float(self.ps[self.tracked[jw]])  # the rig's, not the wander's
+            rate = split.lag_rate(U, DT, *zw, self._split[3:]) if np.isfinite(U).any() else states[:, iv]
+            un = split.unsplit(rate, DT, np.full(T, zw[0]), np.full(T, zw[1]), min(1.0, self.dt / self.tau_excite),
+                               self._split[:3], self.split_ratio)
+            frozen[:, jz] |= un
+            frozen[:, jw] |= un
         msc = np.array([self.scale[self.meas_index[o]] for o in self.outputs])
         return TrackBlock(t_ns=t_ns, estimates=est, stds=est * log_std, log_std=log_std, nis=nis, loglik=ll,
                           status=_STATUS_NAMES[st], frozen=frozen, innovation=innov * msc, states=states,
@@ -498,7 +511,7 @@ class OnlineTracker:
 
     # --- checkpoints ---------------------------------------------------------------------
     STATE_VERSION = 1
-    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last")
+    _STATE_ARRAYS = ("x", "P", "fs", "ch", "x_ck", "P_ck", "_held", "exo_last", "_split")
 
     def state(self) -> dict:
         """What the filter's future output depends on beyond its construction, as plain data (numbers,
@@ -530,7 +543,7 @@ class OnlineTracker:
         for k in self._STATE_ARRAYS:
             a = state.get(k.lstrip("_"))
             ref = getattr(self, k)
-            if k == "exo_last" and a is None:  # a state written before exogenous inputs: none seen yet
+            if k in ("exo_last", "_split") and a is None:  # a state written before these: none seen yet
                 a = np.full(ref.shape, np.nan)
             if not isinstance(a, np.ndarray) or a.shape != ref.shape:
                 raise fail(f"{k.lstrip('_')} is not an array of shape {ref.shape}")
