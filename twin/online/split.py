@@ -22,6 +22,9 @@ import numpy as np
 #: the inertia term's smallest share of the damping term (``w_eff / (2 zeta wn)``) at which zeta and wn count
 #: as separately identified (README, "Tuned constants")
 SPLIT_RATIO = 0.25
+#: envelope time constants ``1 / (zeta wn)`` after which the lag has settled onto its input (e^-20: exactly, in
+#: double precision); a longer gap between samples restarts it there instead of stepping through the gap
+SETTLED = 20.0
 
 
 @nb.njit(cache=True)
@@ -53,6 +56,8 @@ def _lag_rate(u, dt, zeta, wn, carry, out):  # pragma: no cover - compiled
         h = dt[k]
         if np.isfinite(u[k]):
             if not np.isfinite(y):
+                y, v = u[k], 0.0
+            elif np.isfinite(h) and h * zeta * wn > SETTLED:  # a gap (a time jump, a pause): it has settled
                 y, v = u[k], 0.0
             elif np.isfinite(h) and h > 0.0:
                 n = max(1, int(math.ceil(h * wn / 0.25)))  # steps of at most a quarter of 1/wn: stable, smooth
