@@ -61,7 +61,7 @@ def mirror(tr, samples, out) -> np.ndarray:
             def hx(x, idx_m=idx_m, idx_e=idx_e):
                 return x[idx_m] + x[idx_e]
 
-            frozen = np.flatnonzero(out.frozen[k]) + tr.ns
+            frozen = np.flatnonzero(out.kernel_frozen[k]) + tr.ns  # the filter's own freeze, not the drift test's
             if frozen.size == 0:
                 f.update(Z[k, use], R=np.diag(R[use]), hx=hx)
             else:  # consider update on filterpy's sigma-point statistics

@@ -55,9 +55,7 @@ def _lag_rate(u, dt, zeta, wn, carry, out):  # pragma: no cover - compiled
     for k in range(u.shape[0]):
         h = dt[k]
         if np.isfinite(u[k]):
-            if not np.isfinite(y):
-                y, v = u[k], 0.0
-            elif np.isfinite(h) and h * zeta * wn > SETTLED:  # a gap (a time jump, a pause): it has settled
+            if not np.isfinite(y) or (np.isfinite(h) and h * zeta * wn > SETTLED):  # first, or after a gap: settled
                 y, v = u[k], 0.0
             elif np.isfinite(h) and h > 0.0:
                 n = max(1, int(math.ceil(h * wn / 0.25)))  # steps of at most a quarter of 1/wn: stable, smooth

@@ -101,6 +101,8 @@ class TrackBlock:
     used: np.ndarray | None = None     # [T, m] bool: the output entered the update (finite, no sensor fault, not suspect)
     held_stds: np.ndarray | None = None     # [T, p] SI: std of the estimate's error if the parameter has held still
     held_log_std: np.ndarray | None = None  # [T, p] the same, relative (see twin.online.ukf.held_variance)
+    kernel_frozen: np.ndarray | None = None  # [T, p] bool: the filter's own freeze (no excitation: no gain); `frozen`
+    #                                         adds what the drift test holds besides (zeta/wn not told apart)
 
     @property
     def interval_stds(self) -> np.ndarray:
@@ -456,6 +458,7 @@ class OnlineTracker:
                           held)
         held_log_std = np.sqrt(held)
         states = X[:, :ns] * self.scale
+        kernel_frozen = frozen.copy()
         if self.lag is not None:  # zeta and wn not told apart by the recent motion: the drift test holds them
             iv, jz, jw = self.lag
             zw = float(self.ps[self.tracked[jz]]), float(self.ps[self.tracked[jw]])  # the rig's, not the wander's
@@ -469,7 +472,7 @@ class OnlineTracker:
                           status=_STATUS_NAMES[st], frozen=frozen, innovation=innov * msc, states=states,
                           guard=_GUARD_NAMES[guard], sensors=_SENSOR_NAMES[sens],
                           noise=noise * msc, outputs=self.outputs, used=used, held_stds=est * held_log_std,
-                          held_log_std=held_log_std)
+                          held_log_std=held_log_std, kernel_frozen=kernel_frozen)
 
     def _run_kernel(self, block, closed: bool, ticks: int, mode: int, out) -> int:
         """The model's compiled kernel over one block (:func:`twin.online.ukf.kernel_for`)."""
@@ -483,7 +486,7 @@ class OnlineTracker:
         return TrackBlock(np.zeros(0, np.int64), z, z, z, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U19"),
                           np.zeros((0, p), bool), np.zeros((0, m)), np.zeros((0, self.ns)),
                           np.zeros(0, dtype="<U19"), np.zeros((0, m), dtype="<U10"), np.zeros((0, m)), self.outputs,
-                          np.zeros((0, m), bool), z, z)
+                          np.zeros((0, m), bool), z, z, np.zeros((0, p), bool))
 
     def estimate(self) -> dict[str, tuple[float, float]]:
         """Current (value, std) of every tracked parameter (SI); the std of the published intervals (the error's
