@@ -53,7 +53,7 @@ def test_healthy_chirp_below_the_valves_band_raises_no_zeta_or_wn_alarm():
 def test_split_measure_follows_the_motions_frequency():
     dt = 1e-3
     t = np.arange(20000) * dt
-    zeta, wn = np.full(t.size, 0.4), np.full(t.size, 250.0)
+    zeta, wn = 0.4, 250.0
     for f, held in ((2.0, True), (20.0, False)):  # 0.25 * 2 zeta wn = 50 rad/s = 8 Hz
         vs = np.sin(2 * np.pi * f * t)
         out = split.unsplit(vs, np.full(t.size, dt), zeta, wn, dt / 0.5, np.full(3, np.nan))

@@ -28,8 +28,9 @@ SETTLED = 20.0
 
 
 @nb.njit(cache=True)
-def _unsplit(vs, dt, zeta, wn, alpha, ratio, carry, out):  # pragma: no cover - compiled
-    """Per sample: True where ``w_eff < ratio * 2 zeta wn``. ``carry``: [<|a|>, <|v|>, last vs] (NaN: none)."""
+def _unsplit(vs, dt, bar, alpha, carry, out):  # pragma: no cover - compiled
+    """Per sample: True where ``w_eff < bar`` (``bar = ratio * 2 zeta wn``). ``carry``: [<|a|>, <|v|>, last vs]
+    (NaN: none)."""
     a_m, v_m, last = carry[0], carry[1], carry[2]
     for k in range(vs.shape[0]):
         v = vs[k]
@@ -42,7 +43,6 @@ def _unsplit(vs, dt, zeta, wn, alpha, ratio, carry, out):  # pragma: no cover - 
             a_m = acc if not np.isfinite(a_m) else a_m + alpha * (acc - a_m)
             v_m = abs(v) if not np.isfinite(v_m) else v_m + alpha * (abs(v) - v_m)
         last = v
-        bar = ratio * 2.0 * zeta[k] * wn[k]
         out[k] = not (np.isfinite(a_m) and np.isfinite(v_m) and v_m > 0.0 and a_m >= bar * v_m)
     carry[0], carry[1], carry[2] = a_m, v_m, last
 
@@ -76,7 +76,7 @@ def lag_rate(u: np.ndarray, dt: np.ndarray, zeta: float, wn: float, carry: np.nd
     return out
 
 
-def unsplit(vs: np.ndarray, dt: np.ndarray, zeta: np.ndarray, wn: np.ndarray, alpha: float, carry: np.ndarray,
+def unsplit(vs: np.ndarray, dt: np.ndarray, zeta: float, wn: float, alpha: float, carry: np.ndarray,
             ratio: float = SPLIT_RATIO) -> np.ndarray:
     """[T] bool: the lag's damping ratio and natural frequency are not told apart at these samples.
 
@@ -85,6 +85,5 @@ def unsplit(vs: np.ndarray, dt: np.ndarray, zeta: np.ndarray, wn: np.ndarray, al
     (updated in place; NaN at the start)."""
     out = np.empty(vs.shape[0], dtype=np.bool_)
     _unsplit(np.ascontiguousarray(vs, dtype=float), np.ascontiguousarray(dt, dtype=float),
-             np.ascontiguousarray(zeta, dtype=float), np.ascontiguousarray(wn, dtype=float), float(alpha),
-             float(ratio), carry, out)
+             float(ratio) * 2.0 * float(zeta) * float(wn), float(alpha), carry, out)
     return out

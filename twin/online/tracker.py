@@ -463,7 +463,7 @@ class OnlineTracker:
             iv, jz, jw = self.lag
             zw = float(self.ps[self.tracked[jz]]), float(self.ps[self.tracked[jw]])  # the rig's, not the wander's
             rate = split.lag_rate(U, DT, *zw, self._split[3:]) if np.isfinite(U).any() else states[:, iv]
-            un = split.unsplit(rate, DT, np.full(T, zw[0]), np.full(T, zw[1]), min(1.0, self.dt / self.tau_excite),
+            un = split.unsplit(rate, DT, *zw, min(1.0, self.dt / self.tau_excite),
                                self._split[:3], self.split_ratio)
             frozen[:, jz] |= un
             frozen[:, jw] |= un
