@@ -68,7 +68,7 @@ def jit_note(command: str) -> str | None:
     here = os.path.join(os.path.dirname(__file__), "models", "__pycache__")
     if glob.glob(os.path.join(here, "*.nbi")):
         return None
-    return ("twin: first run: compiling the models (about a minute, once; later runs load them from the "
+    return ("twin: first run: compiling the models (about half a minute, once; later runs load them from the "
             "cache)")
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba as nb
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def input_at(a, k, f, mode):
     """A sampled input between samples ``k`` and ``k+1`` at fraction ``f`` in [0, 1].
 
@@ -34,7 +34,7 @@ def input_at(a, k, f, mode):
             + (3.0 * f2 - 2.0 * f3) * a[k1] + (f3 - f2) * m1)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def slope_at(a, k, f, mode, dt):
     """Time derivative of :func:`input_at` [unit/s]."""
     if mode == 0:

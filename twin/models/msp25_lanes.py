@@ -52,14 +52,14 @@ def lanes_applicable(p):
             and p[M.I_EPS] == 0.0 and p[M.I_XSMAX] >= 1.0 and p[M.I_KXM] == 1.0 and p[M.I_KSUP2] == 0.0)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _leak_factor(p):
     """The leakage factor at the oil's temperature (deriv's ``lf``)."""
     dT = p[M.I_TOIL] - p[M.I_TREF]
     return math.exp(p[M.I_BVISC] * dT) if dT != 0.0 else 1.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _consts(p, c):
     """The constants of the right-hand side with every effect neutral (the products :func:`deriv` forms)."""
     wn = p[M.I_WN]
@@ -127,7 +127,7 @@ def _lanes_deriv(W, u):
                                     - W[(W_C + 15) * LANES + ln]) * W[(W_C + 12) * LANES + ln]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _stage_inputs(wnd, f0, fh, mode):
     """The logged input at an RK4 substep's start, middle and end (window ``wnd``, index 1 = this sample;
     ``f0``, ``fh``: the substep's start and length as fractions of the sample interval)."""

@@ -31,7 +31,7 @@ from twin.models.msp25_rhs import (
 keep_fresh(__file__, _rhs_src.__file__, _params_src.__file__, _intersample_src.__file__, _base_src.__file__)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _delayed(hist, k, tau, dt):
     """Linear interpolation of the sampled history ``hist[:k+1]`` at ``t_k - tau``."""
     if tau <= 0.0:
@@ -50,7 +50,7 @@ def _delayed(hist, k, tau, dt):
 N_CTRL = 5
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _shape_output(u, rdot, pa, pb, p):
     """The PID output ``u`` with velocity feed-forward of the demand's rate ``rdot``, pressure feedback of the
     measured ``pa``, ``pb`` (the load pressure pA - pB AB/A) and the output limit."""
@@ -67,7 +67,7 @@ def _shape_output(u, rdot, pa, pb, p):
     return u
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def pid_tick(r, rdot, xm, pa, pb, h, p, ctrl):
     """One tick of the digital controller (period ``h``): output ``u`` [V] from the demand ``r``, its rate
     ``rdot``, the measured displacement ``xm`` and chamber pressures ``pa``, ``pb``; ``ctrl`` (:data:`N_CTRL`)
@@ -92,7 +92,7 @@ def pid_tick(r, rdot, xm, pa, pb, h, p, ctrl):
     return _shape_output(u, rdot, pa, pb, p)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _d_signal(a4, a5, k, f, drive, mode, p, dt):
     """A continuous controller's measured displacement, error, demand rate, the signal its derivative acts on
     and that signal's rate."""
@@ -105,7 +105,7 @@ def _d_signal(a4, a5, k, f, drive, mode, p, dt):
     return xm, e, rdot, e, rdot - g * a5
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _u_stage(a2, a3, a4, a5, k, f, drive, closed, mode, p, integ, dflt, dt):
     """Controller output at a stage of a continuous loop (closed) or an interpolated logged input (open).
     ``dflt``: the derivative filter's state (the filtered signal) when ``Tf > 0``."""

@@ -24,13 +24,13 @@ from twin.models.msp25_params import (
 keep_fresh(__file__, _params_src.__file__)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _sqrt_reg(dp, dpl):
     """sgn(dp) sqrt(|dp|) regularised in a laminar band dpl."""
     return dp / math.sqrt(math.sqrt(dp * dp + dpl * dpl))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _bulk(p, B, eps):
     if eps <= 0.0:
         return B
@@ -39,7 +39,7 @@ def _bulk(p, B, eps):
     return 1.0 / (1.0 / B + air / (KAPPA_AIR * pe))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def fast_tanh(x):
     """tanh through one exp (libm's tanh costs about 100 ns between 1 and 19); equal to 1e-15."""
     a = abs(x)
@@ -133,7 +133,7 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     return dxs, dvs, dpA, dpB, v, dv
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h):
     """The RK4 update of the six states from the four stage derivatives (the one copy every RK4 step of the
     rig uses: :func:`step`, :func:`step_varying`, the filter's lean step)."""
@@ -146,7 +146,7 @@ def rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h):
             a5 + c * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5]))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def store6(out, a0, a1, a2, a3, a4, a5):
     out[0] = a0
     out[1] = a1

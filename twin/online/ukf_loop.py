@@ -58,7 +58,7 @@ def _reinit_states(x, P, z, meas_idx, u, setup, ch, nmod, inflate, p_count):
             P[i, j] *= inflate
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _carry_controller(ctrl, fs, closed, ps, nc):
     """After a prediction driven by the demand: the rig controller's memory moves on to the interval's end."""
     if closed and ps >= 0:
