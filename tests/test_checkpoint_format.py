@@ -161,6 +161,7 @@ def _wear_log(path: Path, seed: int) -> None:
         sink.write(rec.to_samples())
 
 
+@pytest.mark.slow
 def test_twin_serve_refuses_a_pickled_checkpoint_or_a_lost_journal_with_one_line(tmp_path: Path) -> None:
     log = tmp_path / "rig.mcap"
     _wear_log(log, 1001)

@@ -76,6 +76,7 @@ def test_params_table_shows_bounds_in_display_units(capsys):
     assert leak[2:5] == ["1e-08", "10", "mm^2"]
 
 
+@pytest.mark.slow
 def test_amplitude_takes_units(tmp_path, capsys):
     """--amplitude 5mm is the same experiment as --amplitude 0.005 (SI); a wrong unit is one line."""
     from twin import cli

@@ -63,6 +63,7 @@ def excited(tmp_path_factory):
     return rec, path
 
 
+@pytest.mark.slow
 def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path, excited):
     rec, log = excited
     twins: dict = {}
@@ -121,6 +122,7 @@ def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path
     assert twins3["rig-c"].rig.baseline == twin.rig.baseline and twins3["rig-c"].stats.samples == 30000
 
 
+@pytest.mark.slow
 def test_a_rig_at_rest_cannot_commission_and_keeps_the_configured_baseline(tmp_path):
     """A demand of 10 um: the position hardly moves; the failure is one status line, the rig is tracked
     against its configured bands (here one set explicitly), nothing is saved, nothing crashes."""
@@ -156,6 +158,7 @@ def test_the_commission_s_flag_commissions_the_rigs_without_a_commissioning(tmp_
         with_commission_s(cfg, 1.0)
 
 
+@pytest.mark.slow
 def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
     """Rigs spread over worker processes: the worker starts the fit's own process (workers are not daemonic
     for that, and die with the service all the same)."""
@@ -175,6 +178,7 @@ def test_a_rig_in_a_worker_process_commissions_too(tmp_path, excited):
     assert "commissioning" in states and states.index("commissioning") < states.index("running")
 
 
+@pytest.mark.slow
 def test_a_rig_of_another_model_commissions_with_its_own_model(tmp_path, monkeypatch):
     """The commissioning fit runs the model the rig's configuration names, not the default one: a rig of the
     four-state actuator (``twin/models/actuator2.py``, registered for this test; the fit's own process registers

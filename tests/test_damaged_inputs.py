@@ -515,6 +515,7 @@ def test_the_corpus_is_large_enough() -> None:
     assert len(CASES) + len(PAYLOADS) + len(CLI) >= 60
 
 
+@pytest.mark.slow
 def test_generated_corpus_is_never_silent(tmp_path: Path) -> None:
     """The generated corpus of ``python -m benchmarks.damage`` (>= 300 damaged inputs of every format): each one
     is refused with one line naming the file, read with its loss reported, or read equal to the undamaged
@@ -623,6 +624,7 @@ def test_damaged_input_on_the_command_line(tmp_path, capsys, make, code, message
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_track_takes_a_huge_time_jump_and_a_pretrigger_record(tmp_path, capsys) -> None:
     """A 1e9 s jump in the middle of a record (the drift test once sized a buffer by the time spanned: 4.37 TiB)
     and a record whose times start at -50 ms (events need ingest times >= 0: shifted to start at 0) both run."""

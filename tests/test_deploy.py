@@ -216,6 +216,7 @@ def readme_section_script(title: str) -> str:
     return "\n".join(re.findall(r"```sh\n(.*?)```", section, re.DOTALL))
 
 
+@pytest.mark.slow
 def test_the_readme_try_it_commands_run_as_written(tmp_path: Path) -> None:
     """Certificates, router, ZENOH_CONFIG=... twin serve, twin alarms --zenoh-config: exactly as documented."""
     script = readme_certificate_script() + readme_section_script("Try it on one machine")

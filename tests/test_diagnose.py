@@ -103,6 +103,7 @@ def test_rig_pressure_sensor_drift_is_unexplained_not_forced_into_a_name():
     assert "UNEXPLAINED" in d.text()
 
 
+@pytest.mark.slow
 def test_a_named_effect_that_leaves_an_error_is_partly_explained():
     """Viscous friction (3x its typical size), and the chamber-A pressure sensor drifting 0.1 MPa during the
     record (outside the catalogue):

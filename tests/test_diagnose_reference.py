@@ -62,6 +62,7 @@ SLOW = tuple(e for e in IN_CATALOGUE if e != "valve_null_bias")
                                                                if e in KNOWN else []),
                                                              *([pytest.mark.slow] if e in SLOW else [])])
                                     for e in IN_CATALOGUE if e not in MIMICKED])
+@pytest.mark.slow
 def test_each_catalogue_effect_is_named_exactly(effect):
     d, info = _diag((effect,), seed=1001)
     assert d.causes == [effect], d.text()
@@ -112,6 +113,7 @@ def test_healthy_record_with_loop_noise_names_nothing():
     assert d.nominal.noise.orders["x"] > 0
 
 
+@pytest.mark.slow
 def test_a_rig_of_another_geometry_gets_the_right_name_with_sizes_that_follow_it():
     """The reference rig with twice the piston area and three times the moving mass (the diagnosis told so by
     ``--set A=... m=...``): the effect is named, and the catalogue's sizes follow the rig (the flow the record
@@ -326,6 +328,7 @@ def test_every_kind_of_result_serialises_to_strict_json(causes, unexplained, con
     assert ("UNEXPLAINED" in v.text()) is unexplained
 
 
+@pytest.mark.slow
 def test_cli_json_save_report_and_timing_flags(tmp_path, capsys):
     rec, _ = reference_record((), seed=1001, duration=DURATION, controller="analog")
     path = tmp_path / "analog.csv"

@@ -60,6 +60,7 @@ def estimate_after_kill(session, owner: Proc, after_s: float) -> float:
         est.close()
 
 
+@pytest.mark.slow
 def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lost_or_repeated(tmp_path, wear):
     log, reference = wear
     rng = np.random.default_rng(1001)
@@ -102,6 +103,7 @@ def test_owner_killed_at_a_random_moment_a_standby_takes_over_and_no_alarm_is_lo
     print(f"took over {took:.2f} s after the kill; {len(reference)} alarms")
 
 
+@pytest.mark.slow
 def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a_preferred_owner_takes_it_back(
         tmp_path, wear):
 
@@ -163,6 +165,7 @@ def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a
           f"between estimates; {len(seqs)} alarms")
 
 
+@pytest.mark.slow
 def test_a_frozen_owner_is_taken_over_at_its_lease_and_when_it_thaws_the_rule_keeps_one_owner(tmp_path, wear):
     """A host that hangs (SIGSTOP) looks like a split network: its tokens go when its lease expires, a standby
     takes the rig; when it comes back both run the rig until they see each other, and the one the rule ranks
@@ -210,6 +213,7 @@ def test_the_lab_configurations_load_and_differ_only_where_a_site_must():
            {k: v for k, v in vars(b.failover).items() if k != "service_id"}
 
 
+@pytest.mark.slow
 def test_the_lab_router_lets_the_twins_of_both_sites_share_a_rig_over_mtls(tmp_path, wear):
     """deploy/lab's router (mTLS, access control) with the two sites' twin certificates: the owner of site A
     runs the rig, site B stands by (replica, tokens, history) and takes the rig over when site A's service

@@ -25,6 +25,7 @@ def _rig_record(seed, duration=6.0, noisy=True, **params):
                    noise=default_noise(RIG) if noisy else None, seed=seed)
 
 
+@pytest.mark.slow
 def test_paper_cases_on_the_products_own_simulator_recover_the_truth():
     """The algebra check (data from the product's own simulator); the accuracy claim is measured on the
     independent reference in test_reference_fit.py."""
@@ -34,6 +35,7 @@ def test_paper_cases_on_the_products_own_simulator_recover_the_truth():
         assert r["error_pct"] <= 0.01, r
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_paper_cases_with_noise_hold_the_truth_within_three_std(seed):
     rows, _ = run_all(noisy=True, seed=seed)
@@ -148,6 +150,7 @@ def test_cli_fit_json_contract(tmp_path, capsys):
     assert (tmp_path / "plots" / "fit_parameter_trends.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_cli_paper_json_contract(capsys):
     assert cli.main(["paper", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
@@ -254,6 +257,7 @@ def _loop_noise_record(sign, scale=2.0, seed=4, duration=6.0):
                          "pA": sim.outputs["pA"][0], "pB": sim.outputs["pB"][0]}, f"loop noise {sign:+d}")
 
 
+@pytest.mark.slow
 def test_loop_noise_dithers_friction_and_the_fit_keeps_that_out_of_the_estimate():
     """The same noise read with both signs: the odd part of the error is the noise's first-order effect,
     the even part its dither of the dry friction, which pulls a fit with a noise-free loop low."""

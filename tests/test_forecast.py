@@ -162,6 +162,7 @@ def wear_record():
     return get_records([spec], workers=1)[0]
 
 
+@pytest.mark.slow
 def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_record, tmp_path, capsys):
     log = tmp_path / "wear.csv"
     wear_record.to_csv(log)
@@ -204,6 +205,7 @@ def test_twin_track_forecasts_a_wearing_seal_before_it_leaves_its_band(wear_reco
     assert "maintenance at 200 s: CdAleak (seal replaced)" in html
 
 
+@pytest.mark.slow
 def test_a_rig_restarted_from_an_older_checkpoint_journals_each_early_alarm_once(wear_record, tmp_path):
     """Checkpoint at 100 s, carry on to 200 s (its alarms journaled), die; restart from the checkpoint and
     finish: the journal holds exactly the alarms of one uninterrupted run, the early one among them."""

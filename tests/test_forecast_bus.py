@@ -122,6 +122,7 @@ def wear_log(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_the_service_puts_each_rigs_forecast_and_answers_get_with_the_latest(wear_log, tmp_path):
     port = free_port()
     cfg = parse_config({
@@ -186,6 +187,7 @@ def _messages(twin) -> list[dict]:
     return forecast_message(twin.rig.name, list(twin.forecasts), twin.forecast.horizon_s)
 
 
+@pytest.mark.slow
 def test_a_maintenance_sent_with_twin_maintenance_restarts_the_forecast_and_survives_a_restart(wear_log, tmp_path,
                                                                                               capsys):
     """``twin maintenance`` over a real loopback session to the real service: the event is recorded (its reply),

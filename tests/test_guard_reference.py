@@ -14,12 +14,14 @@ import numpy as np
 
 from test_tracker_reference import _commissioned, _run
 from track_reference import to_samples
+import pytest
 from twin.online.tracker import OnlineTracker, consistency_note
 
 #: out of the model: the position sensor 3 ms late, first-order pressure transducers of 2 ms
 LATE_SENSORS = {"sensor_delay": {"delay": 3e-3}, "pressure_sensor_lag": {"tau": 2e-3}}
 
 
+@pytest.mark.slow
 def test_a_rig_the_model_cannot_represent_raises_no_alarm_and_says_inconsistent(reference_records):
     from conftest import msp25_spec
 

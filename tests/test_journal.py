@@ -396,6 +396,7 @@ def test_a_full_disk_holds_the_alarm_until_it_is_written(path: Path) -> None:
         assert journal.retry() and [e.seq for e in journal.take_written()] == [2]
 
 
+@pytest.mark.slow
 def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Path) -> None:
     """The disk fills after the first alarm and stays full until the rig stops; a restart on a good disk:
     every alarm of an uninterrupted run reaches the bus exactly once, with its number."""

@@ -17,6 +17,7 @@ from fpdd.zenohconf import zenoh_config
 from twin.models import msp25 as M
 from twin.models.scenario import simulate_wear
 from fpdd.units import NOMINAL_NOISE
+import pytest
 from twin.models.simulate import excite
 from twin.online.events import StatusEvent
 from twin.service.config import parse_config
@@ -119,6 +120,7 @@ def _ahead(block: Samples, ns: int) -> Samples:
     return Samples(block.t_ns + ns, {k: v.copy() for k, v in block.signals.items()})
 
 
+@pytest.mark.slow
 def test_a_block_stamped_an_hour_ahead_costs_only_itself_also_after_a_restart(tmp_path):
     samples = _samples(12.0, seed=1021)
     cfg = _config(tmp_path, free_port())
@@ -174,6 +176,7 @@ def test_a_fresh_rig_whose_first_block_is_from_the_future_is_not_blinded(tmp_pat
     assert summary.stats.estimates == 30
 
 
+@pytest.mark.slow
 def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):
     """A block half the tolerance ahead is processed (a clock glitch below it costs the samples before it)."""
     samples = _samples(4.0, seed=1022)
@@ -209,6 +212,7 @@ def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
     assert summary.time_jump == 0 and summary.time_backwards == 0 and "time_jump" not in status.counters
 
 
+@pytest.mark.slow
 def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
     """A sender whose clock stepped an hour ahead and stays there: after CLOCK_STEP_S (2 s here) of nothing but
     samples from the future its time is adopted (counted), and the rig goes on."""
@@ -230,6 +234,7 @@ def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
     assert summary.samples + summary.time_jump == 6000 and summary.input_gaps == 1
 
 
+@pytest.mark.slow
 def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_path, monkeypatch):
     """A rig controller that restarts its clock an hour back: after CLOCK_STEP_S (2 s here) of nothing but
     samples before the last processed one, its time is adopted; the events' record time t_s runs on."""
@@ -257,6 +262,7 @@ def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_pa
     assert all(b > a for a, b in zip(t_s, t_s[1:])), "the record time runs on across the step"
 
 
+@pytest.mark.slow
 def test_after_a_held_stream_the_lag_is_re_based(tmp_path):
     """A sender that holds its stream for 4 s and goes on where it stopped: the rig waited, it is not behind."""
     samples = _samples(3.0, seed=1023)

@@ -327,6 +327,7 @@ def _field(msg: dict, path: list[str]):
     return msg
 
 
+@pytest.mark.slow
 def test_twin_serve_feeds_every_topic_and_field_of_its_layout_and_stops_cleanly_with_a_client(tmp_path):
     """``twin serve --foxglove 0``: a Foxglove client (documented subprotocol) receives the rig's signals,
     estimates, statuses and alarms, with every field the written layout's panels read, for the layout's rig

@@ -43,6 +43,7 @@ def test_a_service_twin_bounds_its_histories():
     assert twin.forecast.max_points > 0
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_marginal_memory_per_rig_in_one_worker_is_under_the_target(tmp_path: Path):
     seconds = 20.0

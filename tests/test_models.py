@@ -81,6 +81,7 @@ def _reference_msp25(ps, u_samples, dt):
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_rk4_matches_solve_ivp_on_the_rig():
     ps = M.MODEL.params()
     dt = 1e-3

@@ -72,6 +72,7 @@ def test_a_healthy_record_is_diagnosed_healthy_and_a_viscous_friction_is_named(m
     assert sick.causes == ["viscous_friction"], sick.causes
 
 
+@pytest.mark.slow
 def test_tracker_follows_the_new_model_and_its_drift_monitor_alarms_a_worn_seal(model):
     rec = _record(model, 40.0, 1004)
     s = rec.to_samples()

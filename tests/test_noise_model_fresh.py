@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from twin.estimation.noise_model import fit_noise_model
 
@@ -35,6 +36,7 @@ def test_a_held_white_signal_is_white_on_its_measurements_and_its_held_copies_ar
     assert np.array_equal(none.whiten(B, np.ones_like(fresh)), grid.whiten(B))
 
 
+@pytest.mark.slow
 def test_healthy_can_rate_record_is_diagnosed_on_its_measurements_naming_nothing(reference_records):
     """The PID rig's pressures at 500 Hz held onto the 1 kHz grid, time stamps 0-150 us late (verification seed
     1001, 12 s, truth drawn): the healthy diagnosis names nothing and is not "unexplained", and its noise model

@@ -42,6 +42,7 @@ def _z(res, ref):
     return {k: (res.estimate[k] - ref.truth[k]) / res.std[k] for k in FREE}
 
 
+@pytest.mark.slow
 def test_warming_oil_fits_within_three_standard_errors_with_the_logged_temperature_and_is_biased_without(warming):
     sig = {k: np.asarray(v, float) for k, v in warming.signals.items()}
     assert np.ptp(sig["T_oil"]) > 19.0  # the oil warmed

@@ -46,6 +46,7 @@ def paper_record(reference_records):
     return reference_records([msp25_spec(11, duration=10.0, truth="draw", noise=None)])[0]
 
 
+@pytest.mark.slow
 def test_paper_scenarios_a_and_b_on_noise_free_reference_records_within_half_a_percent(paper_record):
     rows = []
     for case in CASES:
@@ -85,6 +86,7 @@ TIMINGS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(TIMINGS))
 def test_five_parameters_with_loop_noise_within_three_standard_errors_under_each_timing(kind, reference_records):
     from conftest import msp25_spec

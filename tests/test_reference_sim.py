@@ -74,6 +74,7 @@ def rec() -> dict[str, Record]:
 
 
 # --- physics sanity ---------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_rig_at_rest_without_leak_keeps_its_pressures(rec):
     r = rec["rest"]
     assert r.meta["equilibrium"] == "rest"

@@ -95,6 +95,7 @@ def osc_fit():
     return model, rec, res
 
 
+@pytest.mark.slow
 def test_fit_report(tmp_path, osc_fit):
     model, rec, res = osc_fit
     path = fit_report(res, [rec], model, str(tmp_path / "fit"))
@@ -106,6 +107,7 @@ def test_fit_report(tmp_path, osc_fit):
     assert "digital" in dom  # the loop timing used
 
 
+@pytest.mark.slow
 def test_fit_report_from_the_command_line(tmp_path, osc_fit):
     from twin import cli
 
@@ -120,6 +122,7 @@ def test_fit_report_from_the_command_line(tmp_path, osc_fit):
     check_page(str(out / "fit_report.html"), tmp_path, ["compare", "resid", "parameters"], "fit")
 
 
+@pytest.mark.slow
 def test_paper_report(tmp_path):
     from twin.estimation.paper import CASES, run_all
 
@@ -136,6 +139,7 @@ def test_paper_report(tmp_path):
     assert 'id="zscores"' not in dom0
 
 
+@pytest.mark.slow
 def test_diagnose_report_from_the_object_and_from_its_json(tmp_path):
     from diag_helpers import OSC, record
     from twin.estimation.diagnose import diagnose
@@ -156,6 +160,7 @@ def test_diagnose_report_from_the_object_and_from_its_json(tmp_path):
     assert Shown("vc", "oscillator").unit == "mm/s" and Shown("vc", "oscillator").text(vc["value"], 6, unit=False) in dom2
 
 
+@pytest.mark.slow
 def test_track_report(tmp_path):
     from twin.online.baseline import Baseline
     from twin.models import msp25 as M
@@ -189,6 +194,7 @@ def test_units_never_label_a_dimensionless_axis_with_1():
 
 
 # --- what a report must explain: low Fit from noise, the error panel, a zoom on long records, signatures --------
+@pytest.mark.slow
 def test_fit_report_explains_a_low_pressure_fit_by_the_noise(tmp_path):
     """A healthy rig's pressure Fit is low because the pressures barely swing under 20 kPa of noise: the report
     says so with the best Fit the noise allows (computed here from the record), and that the fit reached it;
@@ -219,6 +225,7 @@ def test_fit_report_explains_a_low_pressure_fit_by_the_noise(tmp_path):
     assert "MODEL MISSES" in dom2 and "The model misses something in this output" in dom2
 
 
+@pytest.mark.slow
 def test_diagnose_report_has_the_error_panel_and_a_visible_signature_per_cause(tmp_path):
     from diag_helpers import OSC, record
     from twin.estimation.diagnose import diagnose
@@ -254,6 +261,7 @@ def test_diagnose_report_has_the_error_panel_and_a_visible_signature_per_cause(t
     assert efig.axes[0].get_ylabel() == "error of y [mm]" and efig.axes[0].get_xlabel() == "t [s]"
 
 
+@pytest.mark.slow
 def test_a_long_record_is_shown_with_a_short_zoom_beside_it(tmp_path):
     """60 s at 1 kHz is a solid band at full width: the compare and error views show a zoom of at most 0.5 s."""
     from diag_helpers import OSC, record

@@ -100,6 +100,7 @@ def no_service_left_running():
         s.proc.wait(timeout=WAIT_S)
 
 
+@pytest.mark.slow
 def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_uninterrupted_run(tmp_path):
     _, xr = excite(M.MODEL, 16.0, 1e-3, seed=11)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3,
@@ -135,6 +136,7 @@ def test_sigkill_at_several_moments_then_restart_gives_exactly_the_alarms_of_an_
            [(a.seq, a.identity, a.estimate, a.statistic) for a in reference]
 
 
+@pytest.mark.slow
 def test_sigkill_right_after_an_early_alarm_then_restart_journals_each_early_alarm_once(tmp_path):
     """The forecast's early warning resumes like the drift test's alarms: a reference wear record (the leakage
     leaves its band at 180 s; seed >= 1000), killed right after its first early alarm and once while it resumes,

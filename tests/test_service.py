@@ -112,6 +112,7 @@ class StatusWatch:
 IDLE = {"name": "idle", "source": "zenoh://fpdd/idle/samples"}  # a live rig nobody feeds: keeps the service up
 
 
+@pytest.mark.slow
 def test_a_restart_resumes_instead_of_replaying_and_a_late_subscriber_gets_every_alarm(tmp_path):
     log = tmp_path / "rig.mcap"
     _log(log, 12.0, [Drift("Ffric", 3.0, 4.0, shape="step")], seed=3)
@@ -223,6 +224,7 @@ def test_one_process_serves_several_rigs_each_with_its_own_journal(tmp_path):
         assert params == {drifts[0].parameter}, (name, params)
 
 
+@pytest.mark.slow
 def test_worker_processes_run_the_rigs_and_the_bus_answers_from_their_journals(tmp_path):
     """workers = 2: the log rigs run in spawned processes; history queries are answered by the service."""
     logs = {"rig-f": [Drift("Ffric", 3.0, 3.0, shape="step")], "rig-g": [Drift("Ffric", 3.0, 5.0, shape="step")],
@@ -292,6 +294,7 @@ speed = 1.0
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_one_thread_paces_several_logs_in_turn_and_a_restart_resumes_each(tmp_path):
     """run_scheduled (a worker's replayed logs on one thread): the rigs advance together, a stop checkpoints
     each one, and a second run continues every rig from its checkpoint to the end of its log."""

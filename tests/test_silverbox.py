@@ -101,6 +101,7 @@ def in_volts(silverbox):
     return _diagnose(u, y, n_est, 1.0)
 
 
+@pytest.mark.slow
 def test_silverbox_in_volts_names_cubic_stiffness_and_halves_the_test_error(silverbox, in_volts):
     u, y, n_est = silverbox
     d = in_volts

@@ -64,6 +64,7 @@ def test_split_measure_follows_the_motions_frequency():
     ("CdAleak", {"CdAleak": {"kind": "ramp", "t0": 4.0, "t1": 12.0, "start": 3.2863e-9, "end": 3.2863e-8}}, None),
     ("Ffric", {"Ffric": {"kind": "step", "t0": 10.0, "before": 60.0, "after": 150.0}}, 10.0),
 ], ids=["worn_seal_x10", "friction_rise"])
+@pytest.mark.slow
 def test_faults_on_the_chirp_are_still_alarmed_on_their_own_parameter(param, tv, t_cross):
     truth = {"Ffric": 60.0} if param == "Ffric" else {}
     spec = msp25_spec(1005, duration=18.0, controller="analog", demand={"kind": "chirp"}, truth=truth,

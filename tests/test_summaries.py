@@ -158,6 +158,7 @@ def test_valve_bode_at_resonance_and_its_band_matches_monte_carlo(fitted):
     assert b["bandwidth_hz"] > res.params["wn"] / (2 * math.pi)  # an underdamped valve peaks before -3 dB
 
 
+@pytest.mark.slow
 def test_fit_command_prints_the_summary_and_writes_the_bode_plot(healthy, tmp_path, capsys):
     csv = write_csv(healthy, tmp_path / "rig.csv")
     base = ["-q", "fit", csv, "--starts", "2", "--seed", "1003"]

@@ -95,6 +95,7 @@ def test_cli_on_a_csv_log_writes_mcap_png_and_json(friction_step, tmp_path, caps
         assert set(kinds[ch.topic].SCHEMA["required"]) <= set(schema["required"])
 
 
+@pytest.mark.slow
 def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys):
     """An analog-controller rig of the reference simulator with twice the nominal noise, commissioned from a
     fit file (values near the truth, its noise levels, continuous timing): nothing raised, the noise as the

@@ -219,6 +219,7 @@ def test_default_sigma_weights_are_filterpys_merwe_points():
         assert spread(ours_) == pytest.approx(a * a * (n + kap), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
     """The oil warms 20 K (bulk modulus -12 %, leakage +15 %: kB_T 0.006/K, b_visc ln(1.15)/20 K) and logs T_oil
     at the HPU's 10 Hz: the model carries both at the logged temperature, the tracked CdAleak (at T_ref) holds
@@ -252,6 +253,7 @@ def test_a_warming_oil_with_its_temperature_logged_is_not_a_worn_seal():
     assert moved["unlogged"] > moved["logged"], moved
 
 
+@pytest.mark.slow
 def test_a_warming_oil_on_the_reference_simulator_raises_no_leakage_alarm(reference_records):
     """The independent reference simulator's leakage rises 15 % over 100 s as its oil warms; its bulk modulus has
     no temperature law, so this rig states kB_T = 0, and the leakage law b_visc = ln(1.15) / 20 K.  T_oil, computed

@@ -56,6 +56,7 @@ def _bounded(tr, outs):
 HEALTHY = [("healthy", 1001), ("healthy_2x", 1002), ("healthy_ar1", 1003), ("analog", 1004), ("digital5k", 1005)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, seed", HEALTHY, ids=[h[0] for h in HEALTHY])
 def test_healthy_reference_rig_raises_nothing_and_finds_its_truth(name, seed):
     rec, controller = record(name, seed, 30.0)
@@ -90,6 +91,7 @@ FAULTS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, param, t_cross, limit", FAULTS, ids=[f[0] for f in FAULTS])
 def test_reference_fault_is_alarmed_on_the_right_parameter_in_time(name, param, t_cross, limit):
     seed = {"friction_step": 1006, "wn_decay": 1007, "worn_seal": 1008}[name]
@@ -145,6 +147,7 @@ def _faulty(kind: str) -> Samples:
 SENSOR_FAULTS = [("stuck", "x"), ("offset", "pA"), ("clipped", "x"), ("noisy", "x"), ("wrong_unit", "pA")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, output", SENSOR_FAULTS, ids=[f[0] for f in SENSOR_FAULTS])
 def test_sensor_fault_is_named_on_its_signal_and_raises_no_parameter_alarm(kind, output):
     s, base = _faulty(kind)
@@ -197,6 +200,7 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
 USER_RIG = [("chirp", 1009), ("can_rate", 1010)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, seed", USER_RIG, ids=[u[0] for u in USER_RIG])
 def test_users_rig_healthy_raises_nothing(name, seed):
     """A chirp of 0.1-8 Hz up to the speed limit 0.25 m/s on the analog controller (tracked with the continuous

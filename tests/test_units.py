@@ -112,6 +112,7 @@ def test_a_signal_shown_by_a_factor_is_never_labelled_in_a_unit_with_an_offset()
     assert not [n for n, (unit, _) in SIGNALS.items() if unit in ("°C", "degC", "°F", "degF")]
 
 
+@pytest.mark.slow
 def test_simulate_writes_csv_units_that_every_reader_reads_back_to_the_same_numbers(tmp_path, capsys):
     """``twin simulate``'s CSV names each column's SI unit (``t[s],x[m],pA[Pa]``; the oscillator's ``u[N]``);
     ``replay info``, ``twin fit`` and ``twin track`` read it to the very numbers of the same record in MCAP and of

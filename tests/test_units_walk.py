@@ -441,6 +441,7 @@ speed = 2.0
 
 
 # --- the checks ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_every_machine_output_names_the_unit_of_each_physical_value(outputs):
     _, docs, mcaps = outputs
     assert {"fit --json", "fit --save", "diagnose --save", "diagnose --json", "track --json", "paper --json",

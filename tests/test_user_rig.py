@@ -224,6 +224,7 @@ def test_tracker_driven_by_the_demand_runs_the_rigs_filtered_pid():
     assert (out.guard[-5000:] == "consistent").mean() > 0.5
 
 
+@pytest.mark.slow
 def test_a_fit_that_explains_almost_none_of_an_output_is_never_a_plain_success(single_rod):
     """The single-rod record passed off as a symmetric rig under a static load (which the plausibility check
     cannot tell apart): the pressures are not fitted, and the result says so in its message and JSON."""
