@@ -17,7 +17,7 @@ import numpy as np
 from twin.online.ukf_linalg import _all_finite, dlog_dz
 from twin.online.ukf_predict import _predict
 from twin.online.ukf_status import (
-    C_ADAPT, C_A_MAX, C_CK_S, C_CLEAR_N, C_DIV_NIS, C_GAP_MAX, C_INFLATE, C_NIS_CLIP, C_NIS_HI, C_NOISY, C_OFF_N,
+    C_ADAPT, C_A_MAX, C_CENTRAL, C_NSHARE, C_CK_S, C_CLEAR_N, C_DIV_NIS, C_GAP_MAX, C_INFLATE, C_NIS_CLIP, C_NIS_HI, C_NOISY, C_OFF_N,
     C_OUT_NU, C_RHO_HI, C_SETTLE_S, C_SIG_HI, C_SIG_LO, C_STUCK_N, C_TAU_DIV, C_TAU_GUARD, C_TAU_NOISE, C_WARM_S,
     C_ZPIN, F_CK_OK, F_CK_T, F_CTRL, F_EXC0, F_EXC1, F_EXC2, F_GATED_RUN, F_HAVE_PREV, F_NIS_EMA, F_NIS_FAST,
     F_R1, F_RECOVERIES, F_REINITS, F_SETTLE, F_T, F_U1, F_U2, F_UPREV_OK, F_XM1, G_COLOUR, G_DIVERGED, G_NIS, G_OK,
@@ -117,6 +117,9 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
     innov = np.empty(q)
     Sd = np.empty(q)
     nu = np.empty(q)
+    share = np.ones(q)  # the sensor noise's share of each output's innovation variance (noise learning's weight)
+    by_share = cfg[C_NSHARE] > 0.0
+    central = cfg[C_CENTRAL] > 0.0
     use = np.zeros(q, dtype=np.bool_)
     R = np.empty(q)
     a_pow = np.empty(q)
@@ -183,7 +186,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                     wnd[3] = a_now
                     ps = _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
                                   fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc,
-                                  fast, W, S_l, TH, rows)
+                                  fast, W, S_l, TH, rows, central)
                     _carry_controller(ctrl, fs, closed, ps, nc)
                 else:  # across a gap: the drive linear from the last sample to this one
                     for j in range(q):
@@ -200,7 +203,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                         xm = fs[F_XM1] if s_i == 0 or fb < 0 else x[fb] * scale[fb]
                         ps = _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale,
                                       h, nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl,
-                                      nc, fast, W, S_l, TH, rows)
+                                      nc, fast, W, S_l, TH, rows, central)
                         _carry_controller(ctrl, fs, closed, ps, nc)
                         if ps < 0:
                             break
@@ -270,6 +273,8 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
             innov[j] = e
             Sd[j] = s2
             nu[j] = e / math.sqrt(s2) if s2 > 0.0 else np.nan
+            if by_share:
+                share[j] = min(1.0, max(0.0, (P[nmod + j, nmod + j] + R[j]) / s2)) if s2 > 0.0 else 0.0
         # per-output outliers: this output far off while another agrees with the model, in a filter that
         # was consistent (while it converges, a large innovation on one output is the model's, not the sensor's)
         was_consistent = fs[F_NIS_EMA] < cfg[C_NIS_HI] and fs[F_SETTLE] <= 0.0 and fs[F_T] >= cfg[C_WARM_S]
@@ -344,19 +349,23 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
             for j in range(q):
                 if not use[j] or not math.isfinite(nu[j]):
                     continue
+                # noise_share: an innovation tells of the sensor's noise in proportion to that noise's share of its
+                # variance (while the model's own uncertainty dominates, a small innovation says the prior was
+                # wide, not that the sensor is quiet); off: every innovation counts fully
+                wj = w_n * share[j]
                 v2 = min(nu[j] * nu[j], 100.0)
-                ch[j, H_C] += w_n * (v2 - ch[j, H_C])
+                ch[j, H_C] += wj * (v2 - ch[j, H_C])
                 if ch[j, H_HAVE_NU] > 0.0:
                     r1 = max(-10.0, min(10.0, nu[j] * ch[j, H_NU_PREV]))
-                    ch[j, H_R1] += w_n * (r1 - ch[j, H_R1])
+                    ch[j, H_R1] += wj * (r1 - ch[j, H_R1])
                 ch[j, H_NU_PREV] = nu[j]
                 ch[j, H_HAVE_NU] = 1.0
                 if cfg[C_ADAPT] > 0.0 and fs[F_SETTLE] <= 0.0:
                     cj = max(ch[j, H_C], 1e-3)
-                    sg = ch[j, H_SIG] * math.exp(0.5 * w_n * math.log(min(max(cj, 0.25), 4.0)))
+                    sg = ch[j, H_SIG] * math.exp(0.5 * wj * math.log(min(max(cj, 0.25), 4.0)))
                     ch[j, H_SIG] = min(max(sg, cfg[C_SIG_LO] * ch[j, H_SIG_NOM]), cfg[C_SIG_HI] * ch[j, H_SIG_NOM])
                     rho = ch[j, H_R1] / cj
-                    ch[j, H_A] = min(max(ch[j, H_A] + 2.0 * w_n * rho, 0.0), cfg[C_A_MAX])
+                    ch[j, H_A] = min(max(ch[j, H_A] + 2.0 * wj * rho, 0.0), cfg[C_A_MAX])
             if m > 0 and math.isfinite(nis):
                 w_g = min(1.0, max(dtk, dt0) / cfg[C_TAU_GUARD])
                 w_d = min(1.0, max(dtk, dt0) / cfg[C_TAU_DIV])

@@ -19,10 +19,10 @@ S_OK, S_NOISY, S_STUCK, S_CLIPPED, S_OFFSET, S_UNIT, S_MISSING = range(len(SENSO
 #: guard / detector settings (array ``cfg``), in this order (``twin.online.tracker.DEFAULT_GUARD`` names them)
 CFG_NAMES = ("nis_clip", "nis_hi", "rho_hi", "tau_guard", "div_nis", "tau_div", "settle_s", "checkpoint_s",
              "inflate", "gap_max", "tau_noise", "adapt", "noisy_factor", "outlier_nu", "offset_n", "stuck_n",
-             "clear_n", "z_pin", "sig_lo", "sig_hi", "a_max", "warm_s")
+             "clear_n", "z_pin", "sig_lo", "sig_hi", "a_max", "warm_s", "central_mean", "noise_share")
 (C_NIS_CLIP, C_NIS_HI, C_RHO_HI, C_TAU_GUARD, C_DIV_NIS, C_TAU_DIV, C_SETTLE_S, C_CK_S, C_INFLATE, C_GAP_MAX,
  C_TAU_NOISE, C_ADAPT, C_NOISY, C_OUT_NU, C_OFF_N, C_STUCK_N, C_CLEAR_N, C_ZPIN, C_SIG_LO, C_SIG_HI,
- C_A_MAX, C_WARM_S) = range(len(CFG_NAMES))
+ C_A_MAX, C_WARM_S, C_CENTRAL, C_NSHARE) = range(len(CFG_NAMES))
 N_CFG = len(CFG_NAMES)
 #: carried float state (array ``fs``); the model's controller memory follows from ``F_CTRL``
 (F_NIS_EMA, F_NIS_FAST, F_SETTLE, F_CK_T, F_T, F_HAVE_PREV, F_U1, F_U2, F_R1, F_R2, F_XM1, F_EXC0, F_EXC1,
