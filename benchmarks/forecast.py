@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import add_guard_option, apply_guard
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 _TESTS = os.path.join(os.path.dirname(HERE), "tests")
 
@@ -276,23 +278,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, action="append", metavar="N",
                     help="measure only the set's record of this seed (repeatable; default: all of the set)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="print the table of --json outputs of the parts")
-    ap.add_argument("--guard", action="append", metavar="KEY=VALUE", default=[],
-                    help="a tracker guard setting for this run (twin.online.tracker.DEFAULT_GUARD; repeatable), "
-                    "e.g. central_mean=1 noise_share=1, the two settings under trial")
+    add_guard_option(ap)
     a = ap.parse_args(argv)
-    if a.guard:
-        from twin.online.tracker import DEFAULT_GUARD
-
-        for kv in a.guard:
-            key, _, val = kv.partition("=")
-            try:
-                number = float(val)
-            except ValueError:
-                number = math.nan
-            if key not in DEFAULT_GUARD or not math.isfinite(number):
-                print(f"--guard: {kv!r} is not KEY=NUMBER with KEY one of {', '.join(DEFAULT_GUARD)}", file=sys.stderr)
-                return 2
-            DEFAULT_GUARD[key] = number
+    refused = apply_guard(a.guard)
+    if refused:
+        print(refused, file=sys.stderr)
+        return 2
     if a.build:
         build(a.set)
         return 0

@@ -36,6 +36,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(1, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks import add_guard_option, apply_guard  # noqa: E402
 from reference import batch, msp25_spec  # noqa: E402
 
 CHIRP = {"kind": "chirp"}
@@ -158,10 +159,15 @@ def main(argv=None) -> int:
                     help="the product's own chirp instead (digital and analog controller, 5 and 20 mm; tracker "
                          "substeps 2 and 4)")
     ap.add_argument("--json", action="store_true")
+    add_guard_option(ap)
     ap.add_argument("--unmodelled", action="store_true",
                     help="rigs out of the tracker's model instead (a load-train resonance; late sensors), the noise "
                          "learnt and kept")
     args = ap.parse_args(argv)
+    bad = apply_guard(args.guard)
+    if bad:
+        print(bad, file=sys.stderr)
+        return 2
     rows = []
     if args.unmodelled:
         for seed in UNMODELLED:

@@ -44,6 +44,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(1, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the project (tests.*)
 
+from benchmarks import add_guard_option, apply_guard  # noqa: E402
 from reference import batch, msp25_spec  # noqa: E402
 
 from replay.base import Samples  # noqa: E402
@@ -147,7 +148,12 @@ def main(argv=None) -> int:
                     help="also 10 min of a healthy rig whose oil warms from 40 to 60 C (bulk modulus -12 %%, "
                          "leakage +15 %%; T_oil logged at 10 Hz): alarm events counted")
     ap.add_argument("--json", action="store_true")
+    add_guard_option(ap)
     args = ap.parse_args(argv)
+    bad = apply_guard(args.guard)
+    if bad:
+        print(bad, file=sys.stderr)
+        return 2
     cases = [c for c in args.cases.split(",") if c]
     for c in cases:
         if c not in CASES:
