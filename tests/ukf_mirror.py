@@ -38,7 +38,7 @@ def mirror(tr, samples, out) -> np.ndarray:
     # tracker's alpha, beta, kappa (the tracker's default weights are its own, checked against these in test_tracker)
     points = tr.points if hasattr(tr.points, "sigma_points") else MerweScaledSigmaPoints(
         n, alpha=tr.alpha, beta=tr.beta, kappa=tr.kappa)
-    central = tr.guard_settings.get("central_mean", 0.0) > 0.0  # the tracker's mean: the central point's
+    central = tr.guard_settings["central_mean"] > 0.0  # the tracker's mean is then the central point's prediction
     f = UnscentedKalmanFilter(dim_x=n, dim_z=q, dt=tr.dt, hx=None, fx=fx, points=points,
                               x_mean_fn=(lambda sigmas, Wm: np.array(sigmas[0], dtype=float)) if central else None)
     f.x = tr.x.copy()
