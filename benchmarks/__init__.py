@@ -5,7 +5,7 @@ def add_guard_option(ap) -> None:
     """``--guard KEY=VALUE`` (repeatable) on a measurement's argument parser: see :func:`apply_guard`."""
     ap.add_argument("--guard", action="append", metavar="KEY=VALUE", default=[],
                     help="a tracker guard setting for this run (twin.online.tracker.DEFAULT_GUARD; repeatable), "
-                    "e.g. central_mean=1 noise_share=1, the two settings under trial")
+                    "e.g. central_mean=0 noise_share=0: the weighted mean and the plain noise learning")
 
 
 def apply_guard(pairs) -> str | None:

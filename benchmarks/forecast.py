@@ -199,6 +199,29 @@ def wear_figures(rec, twin, param: str, wear_start: float = 0.0) -> dict[str, An
             "early_before_exit": sum(1 for a in early if a.parameter == param and a.t_s < te)}
 
 
+def level_error(rec, twin, param: str, skip_s: float = 60.0, window_s: float = 60.0) -> dict[str, Any]:
+    """The twin's level error against the truth: the forecast's 1-s bins of ``param`` (log of the estimate over the
+    band's centre) less the log of the truth at each bin's time, averaged over ``window_s`` windows after the first
+    ``skip_s`` (the filter converging); the windows' mean and RMS (log units). The RMS is what
+    ``twin.online.forecast.DISCREPANCY`` stands for: an error of the level that no trend sees."""
+    q = twin.forecast.params[param]
+    pts = q.pts[:q.n]
+    v = np.asarray(rec.hidden[param], float) if param in rec.hidden else np.full(rec.t.size, rec.truth[param])
+    truth = np.log(np.interp(pts[:, 0], rec.t, v) / q.base.value)
+    err = pts[:, 1] - truth
+    keep = pts[:, 0] >= skip_s
+    t, e = pts[keep, 0], err[keep]
+    te = true_exit(rec, twin, param)
+    keep = t < te  # up to the exit (the forecast's business)
+    t, e = t[keep], e[keep]
+    edges = np.arange(skip_s, (t[-1] if t.size else skip_s) + window_s, window_s)
+    means = [float(np.mean(e[(t >= a) & (t < a + window_s)])) for a in edges[:-1]
+             if np.any((t >= a) & (t < a + window_s))]
+    m = np.asarray(means)
+    return {"parameter": param, "windows": len(means), "mean": float(m.mean()) if m.size else None,
+            "rms": float(np.sqrt(np.mean(m * m))) if m.size else None, "window_means": [round(x, 4) for x in means]}
+
+
 def healthy_figures(rec, twin) -> dict[str, Any]:
     early = [a for a in twin.alarms if a.level == "early" and a.kind == "raised"]
     hours = float(rec.t[-1] - rec.t[0]) / 3600.0
@@ -217,7 +240,8 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
         t = time.perf_counter()
         twin = run_record(rec)
         r = {"label": label, "shape": shape, "duration_s": dur, "seed": seed, "noise": nz,
-             **wear_figures(rec, twin, param), "track_s": time.perf_counter() - t}
+             **wear_figures(rec, twin, param), "track_s": time.perf_counter() - t,
+             "level_error": {n: level_error(rec, twin, n) for n in twin.forecast.params}}
         out["wear"].append(r)
         say(json.dumps(r))
     hspecs = specs(which)[len(WEAR[which]):]
@@ -226,7 +250,8 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
             continue
         rec = ref.get_record(spec)
         twin = run_record(rec)
-        r = {"label": label, "duration_s": dur, "seed": seed, **healthy_figures(rec, twin)}
+        r = {"label": label, "duration_s": dur, "seed": seed, **healthy_figures(rec, twin),
+             "level_error": {n: level_error(rec, twin, n) for n in twin.forecast.params}}
         out["healthy"].append(r)
         say(json.dumps(r))
     return summarise(out)
@@ -245,10 +270,18 @@ def summarise(out: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _level(w: dict[str, Any]) -> str:
+    le = (w.get("level_error") or {}).get(w["parameter"])
+    if not le or le.get("rms") is None:
+        return "-"
+    return f"{le['mean']:+.4f}, {le['rms']:.4f}"
+
+
 def table(res: dict[str, Any]) -> str:
     """The README table (Markdown)."""
-    lines = ["| record | wear | true exit | forecasts in last third | 90 % coverage | first early alarm | lead / wear |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| record | wear | true exit | forecasts in last third | 90 % coverage | first early alarm | lead / wear "
+             "| level error (60-s means: mean, RMS; log) |",
+             "|---|---|---|---|---|---|---|---|"]
     for w in res["wear"]:
         lf, cov, first = w["lead_fraction"], w["coverage"], w["first_early_s"]
         cov_t = "n/a" if cov is None else f"{100 * cov:.0f} %"
@@ -256,10 +289,10 @@ def table(res: dict[str, Any]) -> str:
         lf_t = "n/a" if lf is None else f"{lf:.2f}"
         lines.append(f"| {w['label']} seed {w['seed']}, {w['duration_s'] / 60:.0f} min, noise x{w['noise']:g} | "
                      f"{w['parameter']} {w['shape']} | {w['t_exit_true_s']:.0f} s | {w['forecasts_in_window']} of "
-                     f"{w['window_s']} s | {cov_t} | {first_t} | {lf_t} |")
+                     f"{w['window_s']} s | {cov_t} | {first_t} | {lf_t} | {_level(w)} |")
     for h in res["healthy"]:
         lines.append(f"| healthy {h['label']} seed {h['seed']}, {h['duration_s'] / 60:.0f} min | none | - | "
-                     f"{h['forecasts']} forecasts | - | {h['early']} early | - |")
+                     f"{h['forecasts']} forecasts | - | {h['early']} early | - | - |")
     s = res["summary"]
     lines.append(f"\nhealthy: {s['healthy_hours']:.2f} h, {s['false_early_per_hour']:.2f} false early alarms per hour; "
                  f"early alarms on parameters that do not wear: {s['early_on_other_parameters']}")

@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 
 from twin import cli
 from twin.online.baseline import Baseline
-from twin.online.forecast import ForecastMonitor
+from twin.online.forecast import DISCREPANCY, ForecastMonitor, discrepancy_of
 from twin.online.events.forecast import FORECAST_SCHEMA, describe
 from twin.online.events import AlarmEvent, validate
 
@@ -97,6 +97,30 @@ def test_a_straight_wear_is_forecast_to_its_exit_with_one_early_alarm():
     assert raised[0].message.startswith("CdAleak leaves its band in ") and " min [" in raised[0].message
     assert raised[0].statistic >= 0.9 and raised[0].band_hi == 3.0
     assert AlarmEvent.from_dict({**raised[0].to_dict(), "seq": 1}).level == "early"
+
+
+def test_each_parameter_has_its_own_discrepancy_and_a_wider_one_widens_only_its_interval():
+    """The level-error table is per parameter (another model's parameter takes the largest; one number sets
+    all); the leakage's larger level error widens the leakage's interval and leaves its median where it was."""
+    fm = ForecastMonitor("r", BASE)
+    assert fm.discrepancy == {"CdAleak": DISCREPANCY["CdAleak"], "wn": DISCREPANCY["wn"]}
+    assert DISCREPANCY["CdAleak"] > 10 * DISCREPANCY["wn"]
+    assert discrepancy_of(["k_other"]) == {"k_other": max(DISCREPANCY.values())}
+    assert discrepancy_of(["CdAleak", "wn"], 0.01) == {"CdAleak": 0.01, "wn": 0.01}
+    assert discrepancy_of(["CdAleak", "wn"], {"wn": 0.02})["wn"] == 0.02
+
+    def leak(t):
+        return 1.2 + 2.4 * t / 1200.0
+
+    stream = _stream(1002, 800.0, leak)
+    last = {}
+    for d in (0.0, 0.1):
+        fm = ForecastMonitor("r", BASE, horizon_s=600.0, discrepancy={"CdAleak": d})
+        _, fcs = _feed(fm, stream)
+        last[d] = [f for f in fcs if f.parameter == "CdAleak"][-1]
+    narrow, wide = last[0.0], last[0.1]
+    assert wide.t_exit_hi - wide.t_exit_lo > 1.5 * (narrow.t_exit_hi - narrow.t_exit_lo)
+    assert abs(wide.t_exit - narrow.t_exit) < 0.1 * (narrow.t_exit - narrow.t)
 
 
 def test_state_is_plain_data_and_a_restored_monitor_continues_exactly():

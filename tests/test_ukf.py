@@ -180,7 +180,10 @@ def test_a_long_rest_does_not_blow_up_the_parameters():
     tr = OnlineTracker(q_rate={n: 20.0 for n in M.PHENOMENOLOGICAL})
     rest = tr.process(s.slice(0, 3000))
     assert rest.frozen[-1].all() and np.mean(rest.status[1000:] == "frozen") > 0.95
-    np.testing.assert_allclose(rest.log_std[-1], ukf.PARAM_STD_CAP, rtol=1e-3)  # to the logit's curvature
+    # at the cap: the walk's addition stops there, in the logit coordinates at the estimate of the moment; the
+    # first samples, before the rest was seen, move an estimate (and the logit's curvature) by a little
+    np.testing.assert_allclose(rest.log_std[-1], ukf.PARAM_STD_CAP, rtol=0.02)
+    np.testing.assert_allclose(rest.log_std[-1], rest.log_std[1000], rtol=1e-9)  # and stays there
     tr.q_rate[:] = [0.3, 0.15, 0.02, 0.05, 0.05]
     out = tr.process(s.slice(3000, len(s)))
     assert np.all(np.isfinite(out.estimates))

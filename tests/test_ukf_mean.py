@@ -1,6 +1,7 @@
-"""The two filter settings under trial (``guard={"central_mean": 1, "noise_share": 1}``, off by default; README,
-"The strong-chirp divergence"): what each fixes on the product's own simulator, where the tracker's model is the
-simulator's, and filterpy's algebra for the central mean."""
+"""The filter's two settings against the strong-chirp divergence (``guard={"central_mean": 1, "noise_share": 1}``,
+the default; README, "The strong-chirp divergence"): what each fixes on the product's own simulator, where the
+tracker's model is the simulator's, against the weighted mean and the plain noise learning (both ``0``), and
+filterpy's algebra for the central mean."""
 
 from __future__ import annotations
 
@@ -38,11 +39,12 @@ def test_the_weighted_mean_biases_a_noise_free_record_and_the_central_mean_does_
     rig's values: with the sigma points' weighted mean the predicted pressures go tens of kPa off and friction
     follows; with the central point's prediction nothing moves."""
     s = _chirp_start({"x": 1e-12, "pA": 1e-6, "pB": 1e-6})
-    tr, weighted = _track(s)
+    tr, weighted = _track(s, central_mean=0.0)
     j = tr.tracked.index("Ffric")
     assert np.sqrt(np.mean(weighted.innovation[500:, 1] ** 2)) > 10e3  # Pa: the one-step prediction is off
     assert np.min(weighted.estimates[500:, j]) < 0.7 * RIG["Ffric"]
-    tr, central = _track(s, central_mean=1.0)
+    tr, central = _track(s)
+    assert tr.guard_settings["central_mean"] == 1.0  # the default
     assert np.sqrt(np.mean(central.innovation[500:, 1] ** 2)) < 1e3
     for k, n in enumerate(tr.tracked):
         np.testing.assert_allclose(central.estimates[500:, k], RIG[n], rtol=0.02, err_msg=n)
@@ -55,10 +57,11 @@ def test_noise_share_keeps_the_learnt_noise_at_the_sensors_own_under_a_wide_prio
     rig = get_model("msp25")
     s = _chirp_start(default_noise(rig))
     nominal = np.array([default_noise(rig)[o] for o in ("x", "pA", "pB")])
-    _, plain = _track(s)
+    _, plain = _track(s, noise_share=0.0)
     assert np.min(plain.noise[:1000] / nominal) < 0.6
     assert np.mean(plain.guard[1000:] == "inconsistent_nis") > 0.3
-    tr, shared = _track(s, noise_share=1.0)
+    tr, shared = _track(s)
+    assert tr.guard_settings["noise_share"] == 1.0  # the default
     assert tr.outputs == ("x", "pA", "pB")
     np.testing.assert_allclose(shared.noise / nominal, 1.0, atol=0.1)
     assert np.mean(shared.guard[1000:] == "consistent") > 0.9

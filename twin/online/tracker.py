@@ -72,11 +72,13 @@ DEFAULT_GUARD = {
     "sig_lo": 0.2, "sig_hi": 50.0,  # learnt noise stays within these factors of the nominal
     "a_max": 0.99,          # largest AR(1) coefficient of the noise
     "warm_s": 1.0,          # s at the start during which the guard's averages fill
-    # two settings under trial, off by default (README, "The strong-chirp divergence"): the predicted mean as the
-    # central sigma point's prediction instead of the points' weighted mean, and each innovation's weight in the
-    # noise learning by the sensor noise's share of its variance
-    "central_mean": 0.0,
-    "noise_share": 0.0,
+    # the predicted mean: the central sigma point's prediction (1; filterpy's x_mean_fn returning sigmas[0]) or
+    # the points' weighted mean (0), and each innovation's weight in the noise learning by the sensor noise's
+    # share of its variance (1) or in full (0); README, "The strong-chirp divergence": with a parameter not yet
+    # pinned by the data the weighted mean (centre weight -10.1) biases the stiff pressures by tens of kPa, and a
+    # wide prior makes the plain learning halve the sensors' noise at a start
+    "central_mean": 1.0,
+    "noise_share": 1.0,
 }
 _GUARD_ORDER = ukf.CFG_NAMES
 assert set(_GUARD_ORDER) == set(DEFAULT_GUARD)
