@@ -26,7 +26,8 @@ off the truth):
   without ``T_oil`` (the bias a constant temperature leaves).
 
 Prints per case and parameter: the largest |z| (error over the fit's standard error) and the largest relative
-error over the seeds.  ``--diagnose``: the healthy diagnosis of each record too (names nothing, not
+error over the seeds, and per case how many fits converged (``conv``) and how many passed the fit's adequacy
+test (``adeq``: no "the model does not represent this record" warning).  ``--diagnose``: the healthy diagnosis of each record too (names nothing, not
 "unexplained").  ``--track-s S``: healthy tracking of each tracking case for S seconds (bands centred on the
 truth, as a commissioning fit gives them; alarm events counted), and a worn seal and a friction rise on the
 CAN-rate rig, alarmed on their own parameter.
@@ -95,6 +96,7 @@ def one(case: str, ref, seed: int) -> dict:
             row["refused_symmetric"] = True
     res = fit(rig, rec, FREE, base=rig.params(**CASES[case][1]), start=start)
     row["success"] = bool(res.success)
+    row["adequate"] = bool(res.adequacy.get("adequate", True))  # the fit's adequacy test: no warning
     for k in FREE:
         row[k] = {"truth": ref.truth[k], "est": res.estimate[k], "std": res.std[k],
                   "z": (res.estimate[k] - ref.truth[k]) / res.std[k], "rel_pct": 100 * (res.estimate[k] / ref.truth[k] - 1)}
@@ -182,7 +184,7 @@ def main(argv=None) -> int:
     if args.warming:
         out.setdefault("tracking", []).append(tracked("warming", 1200, 600.0))
     for c, rs in rows.items():
-        d = {"converged": sum(r["success"] for r in rs),
+        d = {"converged": sum(r["success"] for r in rs), "adequate": sum(r["adequate"] for r in rs),
              "max_abs_z": {k: max(abs(r[k]["z"]) for r in rs) for k in FREE},
              "max_abs_rel_pct": {k: max(abs(r[k]["rel_pct"]) for r in rs) for k in FREE}, "rows": rs}
         if c == "single_rod":
@@ -192,10 +194,10 @@ def main(argv=None) -> int:
         print(json.dumps(out, indent=2))
         return 0
     print(f"{args.seeds} seeds (1000...), {args.duration:g} s records; per parameter: max |z| / max |error| %")
-    print(f"{'case':<14} {'conv':>4} " + " ".join(f"{k:>16}" for k in FREE))
+    print(f"{'case':<14} {'conv':>4} {'adeq':>4} " + " ".join(f"{k:>16}" for k in FREE))
     for c, d in out["cases"].items():
         cells = " ".join(f"{d['max_abs_z'][k]:>6.2f} / {d['max_abs_rel_pct'][k]:>6.2f}%" for k in FREE)
-        print(f"{c:<14} {d['converged']:>4} {cells}")
+        print(f"{c:<14} {d['converged']:>4} {d['adequate']:>4} {cells}")
         if "refused_by_symmetric_model" in d:
             print(f"{'':<14} the symmetric model refused {d['refused_by_symmetric_model']} of {args.seeds}")
     for c, rs in out.get("diagnosis", {}).items():

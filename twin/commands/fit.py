@@ -39,6 +39,10 @@ def add_arguments(p) -> None:
     p.add_argument("--report", metavar="DIR", help="write DIR/fit_report.html: compare, resid, parameters, "
                    "correlation, loop timing (one self-contained file)")
     p.add_argument("--save", metavar="FILE", help="save the fitted parameter set as JSON")
+    p.add_argument("--no-adequacy", action="store_true",
+                   help="skip the adequacy test of the fitted model (by default a model that does not represent "
+                   "the record is said so, with the failed test: its prediction errors follow the drive, stay "
+                   "predictable, or grow on the record's tail)")
     add_timing_arguments(p)
     add_map_argument(p)
     from twin.commands.compare import add_arguments as add_compare_arguments
@@ -70,7 +74,7 @@ def run(args) -> int:
     res = fit(model, records, free, base=base, start=_kv(args.start), outputs=outputs,
               noise=_kv(args.noise_levels), drive=args.drive, estimate_init=_names(args.estimate_init),
               n_starts=args.starts, seed=args.seed, progress=None if args.json else _progress(args),
-              timing=timing)
+              timing=timing, adequacy=not args.no_adequacy)
     plots = []
     if args.plot:
         from twin.reports.plots import fit_convergence

@@ -50,6 +50,9 @@ class FitResult:
     warnings: list[str] = dataclasses.field(default_factory=list)
     #: the noise level (SI std) that weighted each output's residuals: the sensor noise the fit assumed
     noise: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: the adequacy tests of the fitted model (:func:`twin.estimation.diagnose.check.fit_adequacy`; empty when
+    #: not judged): ``adequate``, ``reasons``, ``tests``
+    adequacy: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """Every number in SI with its unit beside it: ``{"value", "unit"}``, a sibling ``"unit"``, or a
@@ -74,7 +77,8 @@ class FitResult:
             "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
             "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
             "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "warnings": self.warnings, "time_s": self.time_s, "init": self.init, "init_unit": init_units,
+            "warnings": self.warnings, "adequacy": self.adequacy or None,
+            "time_s": self.time_s, "init": self.init, "init_unit": init_units,
             "starts": [dict(d, theta_unit=theta_unit) for d in self.starts],
             "history": [dict(d, theta_unit=theta_unit) for d in self.history],
         }
@@ -90,7 +94,8 @@ class FitResult:
     def saved(self) -> dict:
         """What :meth:`save` writes (``twin fit --save``): every parameter as ``{"value", "unit"}`` in SI, the
         fitted ones with their ``"std"``; loop timing; the residual noise level per output as ``{"value",
-        "unit"}``.  Read back by ``--params`` and the tracker (``twin track --params``)."""
+        "unit"}``; the fit's ``warnings`` when it gave any.  Read back by ``--params`` and the tracker (``twin track
+        --params``)."""
         from fpdd.units import SIGNAL_UNITS
 
         params: dict[str, dict] = {}
@@ -98,10 +103,13 @@ class FitResult:
             params[s.name] = {"value": float(v), "unit": s.unit}
             if s.name in self.free:
                 params[s.name]["std"] = float(self.std[s.name])
-        return {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
-                "params": params, "timing": self.timing,
-                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
-                          for o in self.outputs}}
+        out = {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
+               "params": params, "timing": self.timing,
+               "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
+                         for o in self.outputs}}
+        if self.warnings:  # a commissioning read back says what the fit warned
+            out["warnings"] = list(self.warnings)
+        return out
 
     def save(self, path: str) -> str:
         """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""

@@ -44,6 +44,9 @@ class Commission:
     effects: tuple[str, ...] = ()
     source: str = ""
     model: str = DEFAULT_MODEL
+    #: what the fit warned (``twin fit --save`` keeps it): a model that does not represent the rig, an output
+    #: barely fitted
+    warnings: tuple[str, ...] = ()
 
     def baseline(self, names: Sequence[str], rel_band: Mapping[str, float] | None = None, k_sigma: float = 3.0):
         """Healthy bands of ``names`` centred on the fitted (or known) values."""
@@ -123,7 +126,10 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
         except ParameterError as exc:
             raise ConfigError(f"{source}: timing: {exc}") from None
     effects = tuple(doc.get("effects") or ())
-    return Commission(params, fitted, noise, timing, effects, source, model)
+    warnings = doc.get("warnings") or []
+    if not (isinstance(warnings, list) and all(isinstance(w, str) for w in warnings)):
+        raise ConfigError(f"{source}: warnings must be a list of strings (the fit's warnings)")
+    return Commission(params, fitted, noise, timing, effects, source, model, tuple(warnings))
 
 
 def read_saved(path: str, what: str) -> Any:

@@ -281,6 +281,7 @@ class RigTwin(Sink):
             self.forecast = _forecast_monitor(self.rig)
             line = (f"commissioned on its first {c.window.gathered_s:.1f} s: "
                     f"{describe(com, self.rig.track)}")
+            line += "".join(f"; WARNING {w}" for w in com.warnings)
         else:
             line = f"commissioning failed: {problem}; tracking against the configured baseline"
         if c.dropped:
