@@ -66,6 +66,11 @@ def test_twin_fit_says_it_in_the_text_the_json_and_the_saved_file_and_a_commissi
     assert kept["warnings"] == doc["warnings"]
     com = from_dict(kept, str(saved))
     assert com.warnings == tuple(doc["warnings"])
+    # tracked against bands centred on that fit: said again on stderr and in the JSON
+    assert cli.main(["track", str(path), "--params", str(saved), "--json", "--out", str(tmp_path / "t")]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["commission_warnings"] == doc["warnings"]
+    assert "WARNING (" in out.err and "does not represent this record" in out.err
     assert cli.main(["fit", str(path), "--no-adequacy", "--json"]) == 0  # asked not to judge: nothing said
     quiet = json.loads(capsys.readouterr().out)
     assert quiet["adequacy"] is None and quiet["warnings"] == []

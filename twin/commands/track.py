@@ -122,6 +122,8 @@ def run(args) -> int:
 
         commission = load_fit(args.params)
         tracker_params(commission, tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL)  # refuses effects
+        for w in commission.warnings:  # the bands are centred on this fit: what it warned of, said again
+            print(f"WARNING ({args.params}, the fit the bands are centred on): {w}", file=sys.stderr)
     if args.set:
         model = get_model(DEFAULT_MODEL)
         over = kv(args.set)
@@ -161,6 +163,7 @@ def run(args) -> int:
         "forecasts": [f.to_dict() for f in sorted(twin.forecasts, key=lambda f: (f.t, f.parameter))],
         "forecast_horizon_s": twin.forecast.horizon_s,
         "maintenance": [{"parameters": ps, "t": t, "note": note} for t, ps, note in maint],
+        "commission_warnings": list(commission.warnings) if commission is not None else [],
         "final": twin.final_estimates(),
         "status": twin.drift.statuses(),
         "counters": twin.tracker.counters,
