@@ -98,6 +98,7 @@ def test_a_rig_commissions_on_its_first_seconds_and_a_restart_reuses_it(tmp_path
     assert any("fitting its first 12.0 s" in s.message for s in sts[:first_run])
     done = sts[first_run]
     assert done.message.startswith("commissioned on its first 12.0 s: Ffric ") and "noise x " in done.message
+    assert "WARNING" not in done.message and "warnings" not in doc  # the model represents this rig
     assert _alarms(tmp_path, "run1") == []  # a healthy rig against bands centred on its own fit
     assert twin.stats.samples == 30000
     # a restart reuses the saved commissioning: no new commissioning, same bands, the file untouched

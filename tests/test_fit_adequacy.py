@@ -14,7 +14,8 @@ from reference import msp25_spec
 from twin import cli
 from twin.estimation.fit import fit
 from twin.models import get_model
-from twin.online.commission import from_dict
+from replay.base import Samples
+from twin.online.commission import fit_window, from_dict
 from twin.record import Record
 
 #: out of the model's reach (as ``tests/chirp_divergence.py --unmodelled``): a 60 Hz load-train resonance; the
@@ -76,3 +77,20 @@ def test_twin_fit_says_it_in_the_text_the_json_and_the_saved_file_and_a_commissi
     assert quiet["adequacy"] is None and quiet["warnings"] == []
     assert cli.main(["fit", str(path)]) == 0
     assert "WARNING: the model does not represent this record" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_commissioning_in_service_on_a_rig_out_of_reach_carries_the_warning(records):
+    """The service's commissioning fit (``fit_window``, what the spawned fit process runs): the rig with the
+    resonance is commissioned (its bands centred on the fit) and the document it saves says what the fit
+    warned; the same rig without the resonance carries no warning."""
+    names = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
+    for name, warned in (("resonance", True), ("healthy_1020", False)):
+        ref = records[name]
+        t_ns = 1_700_000_000_000_000_000 + np.round(ref.t * 1e9).astype(np.int64)
+        samples = Samples(t_ns, {k: np.asarray(v, float) for k, v in ref.signals.items()})
+        doc, problem = fit_window(samples, names, rig="rig-r")
+        assert doc is not None and problem == "", problem
+        says = [w for w in doc.get("warnings", []) if "does not represent this record" in w]
+        assert bool(says) is warned, (name, doc.get("warnings"))
+        assert from_dict(doc).warnings == tuple(doc.get("warnings", []))
