@@ -12,7 +12,7 @@ import pytest
 from conftest import get_records
 from reference import msp25_spec
 from twin import cli
-from twin.estimation.fit import fit
+from twin.estimation.fit_checked import fit
 from twin.models import get_model
 from replay.base import Samples
 from twin.online.commission import fit_window, from_dict

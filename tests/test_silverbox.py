@@ -29,6 +29,7 @@ from threadpoolctl import threadpool_info
 
 from twin.estimation.diagnose import diagnose
 from twin.estimation.fit import fit, initial_from_data
+from twin.estimation.fit_checked import fit as twin_fit
 from twin.estimation.hac import bartlett_lag
 from twin.models import get_model
 from tests.realdata import realdata
@@ -151,7 +152,7 @@ def test_a_fit_that_explains_nothing_says_so(silverbox):
     # the same with m free from the default starts: found, and the only warning is the adequacy test's: the
     # circuit is not linear (its cubic stiffness, which the diagnosis names), and its prediction errors follow
     # the drive
-    r = fit(OSC, rec, ["m", "d", "k"])
+    r = twin_fit(OSC, rec, ["m", "d", "k"])  # what twin.fit and twin fit run: the fit and its adequacy test
     assert r.fit_pct["y"] > 70.0 and len(r.warnings) == 1, r.table()
     assert "does not represent this record" in r.warnings[0] and "follow the drive" in r.warnings[0]
     assert r.adequacy["adequate"] is False and r.to_dict()["adequacy"]["reasons"] == r.adequacy["reasons"]

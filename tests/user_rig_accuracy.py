@@ -50,7 +50,7 @@ from reference import batch, msp25_spec  # noqa: E402
 
 from replay.base import Samples  # noqa: E402
 from fpdd.errors import DataError  # noqa: E402
-from twin.estimation.fit import fit  # noqa: E402
+from twin.estimation.fit_checked import fit  # noqa: E402
 from twin.models import get_model  # noqa: E402
 from twin.record import Record, records_from_samples  # noqa: E402
 

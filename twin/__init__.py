@@ -28,7 +28,7 @@ _EXPORTS = {
     "load_records": "twin.models.records",
     "excite": "twin.models.simulate",
     "measure": "twin.models.simulate",
-    "fit": "twin.estimation.fit",
+    "fit": "twin.estimation.fit_checked",
     "FitResult": "twin.estimation.fit",
     "OnlineTracker": "twin.online.tracker",
     "DriftMonitor": "twin.online.drift",

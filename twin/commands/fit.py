@@ -52,7 +52,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.estimation.fit import fit
+    from twin.estimation.fit_checked import fit
     from twin.models import get_model
     from twin.models.records import load_records
 

@@ -427,13 +427,11 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         spread: float = 2.0, seed: int = 0, max_nfev: int = 60, tol: float = 1e-12,
         substeps: int | None = None, progress: Callable[[str], None] | None = None,
         timing: Timing | None = None, loop_noise: bool = True,
-        scales: Mapping[str, float] | None = None, adequacy: bool = True) -> FitResult:
+        scales: Mapping[str, float] | None = None) -> FitResult:
     """Fit ``free`` parameters of ``model`` to ``records`` by output-error least squares.
 
-    ``adequacy``: judge the fitted model with the diagnosis's adequacy tests
-    (:func:`twin.estimation.diagnose.check.fit_adequacy`, a tenth of a second on a 20 s record): a model that
-    does not represent the record gets a warning naming the failed test (``warnings``, ``message``) and the
-    tests in ``adequacy``; the diagnosis's own fits skip it.
+    The fit alone: ``twin.fit`` (:func:`twin.estimation.fit_checked.fit`, what ``twin fit`` and a commissioning
+    run) adds the adequacy test of the fitted model.
 
     ``base`` holds the known parameters (and switched-on effects); ``start`` the
     starting values of the free ones (default: ``base``'s values).  ``n_starts``
@@ -537,13 +535,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
                 best = res
             except (ValueError, np.linalg.LinAlgError, FloatingPointError):
                 prob.dither = []
-    out = _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start)
-    if adequacy:
-        from twin.estimation.diagnose.check import judge
-
-        judge(out, prob.model, prob.records, drive=drive, timing=prob.timing)
-        out.time_s = time.perf_counter() - t_start
-    return out
+    return _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start)
 
 
 def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResult:

@@ -236,7 +236,7 @@ def fit_window(samples, tracked: Sequence[str], params: Mapping[str, float] | No
     """
     import numpy as np
 
-    from twin.estimation.fit import fit
+    from twin.estimation.fit_checked import fit
     from twin.record import Record
 
     n = len(samples)

@@ -40,7 +40,7 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
                n_starts: int, seed: int, timing: Timing, max_nfev: int = 80) -> ModelState:
     res = fit(data.model, data.parts, free, base=ps, start=start, outputs=data.outputs, noise=data.sigma,
               drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
-              max_nfev=max_nfev, timing=timing, tol=FIT_TOL, scales=data.scales(), adequacy=False)
+              max_nfev=max_nfev, timing=timing, tol=FIT_TOL, scales=data.scales())
     return _state(data, res, free, timing)
 
 

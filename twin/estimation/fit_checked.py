@@ -1,0 +1,34 @@
+"""``twin.fit``: the fit (:func:`twin.estimation.fit.fit`) and the adequacy test of the fitted model.
+
+What ``twin fit`` and a commissioning run: a model that does not represent its record (its one-step prediction
+errors follow the drive, stay predictable or grow on the record's tail; :mod:`twin.estimation.diagnose.check`) is
+fitted all the same and said so, in ``warnings``, ``message`` and ``adequacy``; never a silently biased fit.  The
+diagnosis's own fits, which judge adequacy their own way, call the fit alone.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+from twin.estimation.diagnose.check import judge
+from twin.estimation.fit import fit as fit_alone
+from twin.estimation.fit_result import FitResult
+from twin.models import Model, get_model
+from twin.models.base import DEFAULT_TIMING
+from twin.record import Record
+
+
+def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str], *,
+        adequacy: bool = True, **options: Any) -> FitResult:
+    """:func:`twin.estimation.fit.fit` with the same arguments (``options``), then, unless ``adequacy`` is
+    false, the adequacy test of the fitted model (a tenth of a second on a 20 s record)."""
+    t0 = time.perf_counter()
+    res = fit_alone(model, records, free, **options)
+    if adequacy:
+        m = get_model(model) if isinstance(model, str) else model
+        recs = [records] if isinstance(records, Record) else list(records)
+        judge(res, m, recs, drive=options.get("drive", "auto"), timing=options.get("timing") or DEFAULT_TIMING)
+        res.time_s = time.perf_counter() - t0
+    return res
