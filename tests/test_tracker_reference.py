@@ -202,19 +202,24 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
         "Cd", est["Cd"][1] / est["Cd"][0])  # the slow, weakly identified leakage counts fewer samples
 
 
-USER_RIG = [("chirp", 1009), ("can_rate", 1010)]
+USER_RIG = [("chirp", 1009), ("can_rate", 1010), ("single_rod", 1011), ("pid_filtered", 1012)]
+#: the rig's own values the tracker is told (as its rigs.toml would): two areas; the PID (it tracks from u)
+USER_PARAMS = {"single_rod": {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0},
+               "pid_filtered": {"KP": 300.0, "KI": 2000.0, "KD": 0.6, "Tf": 1e-3}}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, seed", USER_RIG, ids=[u[0] for u in USER_RIG])
 def test_users_rig_healthy_raises_nothing(name, seed):
     """A chirp of 0.1-8 Hz up to the speed limit 0.25 m/s on the analog controller (tracked with the continuous
-    controller and a cubic demand), and pressures at 500 Hz with CAN-jittered stamps: nothing raised."""
+    controller and a cubic demand), pressures at 500 Hz with CAN-jittered stamps, a single-rod cylinder (area
+    ratio 0.5) and a PID with a 1 ms derivative filter: nothing raised."""
     rec, controller = record(name, seed, 30.0)
     if name == "chirp":
         assert np.max(np.abs(np.gradient(rec.hidden["x"], rec.dt))) > 0.2
     s = to_samples(rec)
-    tr = OnlineTracker(timing=Timing.parse(controller, "cubic" if controller == "continuous" else None))
+    tr = OnlineTracker(params=USER_PARAMS.get(name), timing=Timing.parse(controller, "cubic" if controller ==
+                                                                          "continuous" else None))
     dm, events, outs = _run(s, tr, _commissioned(rec))
     assert events == [], [(e.t_s, e.parameter, e.level) for e in events]
     assert _bounded(tr, outs)

@@ -88,6 +88,13 @@ def scenario(name: str, seed: int = 0, duration: float = 30.0) -> dict[str, Any]
         kw["truth"] = "draw"
         kw["signal_rates"] = {"pA": 500.0, "pB": 500.0}
         kw["time_jitter_s"] = 150e-6
+    elif name == "single_rod":  # a single-rod cylinder (area ratio 0.5), the paper's demand, KP 300 V/m
+        kw["truth"] = "draw"
+        kw["known"] = {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0}
+    elif name == "pid_filtered":  # an industrial PID with a 1 ms derivative filter
+        kw["truth"] = "draw"
+        kw["known"] = {"KP": 300.0, "KI": 2000.0, "KD": 0.6}
+        kw["pid"] = {"Tf": 1e-3}
     elif name == "warming":  # oil 40 -> 60 C over 10 min: bulk modulus -12 %, leakage +15 %
         kw["truth"] = "draw"
         kw["temperature"] = {"T": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": 313.15, "end": 333.15},

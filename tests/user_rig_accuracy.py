@@ -112,7 +112,8 @@ def diagnosed(case: str, ref, seed: int) -> dict:
 
 
 #: healthy tracking: scenario of tests/track_reference.py -> the product's known parameters
-TRACK_CASES = {"chirp": {}, "sweep": {}, "blocks": {}, "road": {}, "can_rate": {}}
+TRACK_CASES = {"chirp": {}, "sweep": {}, "blocks": {}, "road": {}, "can_rate": {},
+               "single_rod": SINGLE_ROD, "pid_filtered": {**PID, "Tf": 1e-3}}
 #: faults on the CAN-rate rig: scenario -> (parameter that must alarm, alone)
 TRACK_FAULTS = {"worn_seal": "CdAleak", "friction_step": "Ffric"}
 
@@ -131,7 +132,8 @@ def tracked(name: str, seed: int, duration: float, fault: str | None = None) -> 
         kw.update(signal_rates={"pA": 500.0, "pB": 500.0}, time_jitter_s=150e-6)
     (ref,) = batch([msp25_spec(**kw)], workers=1)
     timing = Timing.parse(sc["controller"], "cubic" if sc["controller"] == "continuous" else None)
-    tr = OnlineTracker(timing=timing, **({"start": {"Ffric": 40.0, "zeta": 0.33}} if fault else {}))
+    tr = OnlineTracker(params=TRACK_CASES.get(name) or None, timing=timing,
+                       **({"start": {"Ffric": 40.0, "zeta": 0.33}} if fault else {}))
     _, events, _ = _run(to_samples(ref), tr, NOMINAL_BANDS if fault else _commissioned(ref))
     return {"scenario": fault or name, "seed": seed, "duration_s": duration,
             "events": [(round(e.t_s, 3), e.parameter, e.level) for e in events]}
