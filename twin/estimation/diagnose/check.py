@@ -68,7 +68,7 @@ def fit_adequacy(model: Model, records: Sequence[Record], res: FitResult, output
     if not adequate and not reasons:
         reasons.append("its prediction errors fail the adequacy tests")
     return {"adequate": adequate, "reasons": reasons if not adequate else [], "alpha": alpha,
-            "holdout": holdout, "tests": _plain(a)}
+            "holdout_fraction": holdout, "tests": _plain(a)}
 
 
 def judge(res: FitResult, model: Model, records: Sequence[Record], drive: str = "auto",
