@@ -182,10 +182,9 @@ def test_lost_samples_are_predicted_across_or_reinitialised_and_raise_nothing(ki
 def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge():
     """The hardest healthy case: every band's edge sits at the truth, so half the (autocorrelated) estimates
     lie outside once the filter has converged (the test starts after 10 s). The allowance and the
-    effective-sample weight keep the test from alarming. The leakage, weakly identified and estimated about
-    0.1 log above the truth on average (README, "The strong-chirp divergence"), may warn: on this record it
-    reaches 2.6 of its standard deviations above the edge (a warning at 23.5 s), on 2 of 24 other calibration
-    records it warns, on none it alarms; every other parameter stays quiet."""
+    effective-sample weight keep the test quiet (on this record and on 24 other calibration records, seeds
+    100-123, since the pressure states' process noise was lowered; before, the leakage's noise-driven upward
+    bias warned on 3 of them: README, "The strong-chirp divergence")."""
     rec, controller = record("healthy", 1, 30.0)
     s = to_samples(rec)
     tr = OnlineTracker()
@@ -194,9 +193,7 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
         v = float(rec.truth[n])
         edge[n] = Baseline(v / (b.hi / b.value), v / (b.hi / b.value) ** 2, v)  # upper edge at the truth
     dm, events, outs = _run(s, tr, edge, settle_s=10.0)
-    assert all(e.parameter == "CdAleak" and e.level in ("warning", "ok") for e in events), \
-        [(e.t_s, e.parameter, e.level) for e in events]
-    assert dm.params["CdAleak"].level != "alarm"
+    assert events == [], [(e.t_s, e.parameter, e.level) for e in events]
     est = tr.estimate()
     assert dm.ess_factor("CdAleak", est["CdAleak"][1] / est["CdAleak"][0]) > dm.ess_factor(
         "Cd", est["Cd"][1] / est["Cd"][0])  # the slow, weakly identified leakage counts fewer samples

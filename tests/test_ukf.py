@@ -198,7 +198,10 @@ def test_unrepairable_covariance_goes_back_to_the_last_checkpoint_and_says_so():
     tr.process(s.slice(0, 4000))
     tr.P[7, 7] = np.nan
     out = tr.process(s.slice(4000, len(s)))
-    assert out.status[0] == "recovered" and tr.counters["recovered"] == 1
+    # recovered at once; the watchdog may recover once more while it settles (with the pressure states' process
+    # noise at 3e-7 MPa^2 per sample it does, 79 samples later), never again after it has settled
+    assert out.status[0] == "recovered" and 1 <= tr.counters["recovered"] <= 2
+    assert not np.any(out.status[1000:] == "recovered")
     assert set(out.guard[:1000]) <= {"settling", "diverged"}  # the drift test holds while it settles
     assert np.all(np.isfinite(out.estimates)) and np.all(np.isfinite(tr.P))
     j = tr.tracked.index("Cd")

@@ -59,7 +59,9 @@ def test_noise_share_keeps_the_learnt_noise_at_the_sensors_own_under_a_wide_prio
     nominal = np.array([default_noise(rig)[o] for o in ("x", "pA", "pB")])
     _, plain = _track(s, noise_share=0.0)
     assert np.min(plain.noise[:1000] / nominal) < 0.6
-    assert np.mean(plain.guard[1000:] == "inconsistent_nis") > 0.3
+    # the guard calls it inconsistent for a while (12 % of the samples after the first second with the pressure
+    # states' process noise at 3e-7 MPa^2 per sample, over 30 % at 1e-6)
+    assert np.mean(plain.guard[1000:] == "inconsistent_nis") > 0.1
     tr, shared = _track(s)
     assert tr.guard_settings["noise_share"] == 1.0  # the default
     assert tr.outputs == ("x", "pA", "pB")

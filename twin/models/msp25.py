@@ -94,7 +94,7 @@ class MSP25(Model):
         functions="twin.models.msp25_lanes",
         state_scale=(1e-3, 0.1, 1e6, 1e6, 1e-3, 0.1),
         measures={"x": 4, "pA": 2, "pB": 3},
-        q_state=(1e-10, 1e-10, 1e-6, 1e-6, 1e-10, 1e-7),
+        q_state=(1e-10, 1e-10, 3e-7, 3e-7, 1e-10, 1e-7),
         prior_state=(0.01, 0.01, 0.1, 0.1, 0.01, 0.01),
         noise={"x": 2e-6, "pA": 2e4, "pB": 2e4},
         excite=(2e-3, 0.5, 2e4),  # rod speed [m/s], command rate [V/s], piston pressure difference [Pa]
