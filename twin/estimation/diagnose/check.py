@@ -1,7 +1,7 @@
 """Is a fitted model adequate for its records?  The diagnosis's adequacy tests on a fit already made.
 
 ``twin fit`` asks this after every fit (``--no-adequacy`` skips it): a rig the model cannot represent (a
-resonance of the load train, a late sensor, a single-rod cylinder fitted as symmetric) is still fitted, with
+resonance of the load train, late sensors, an oil temperature the fit is not given) is still fitted, with
 ``success`` and parameters that absorbed what the model lacks.  The fit's residuals say so: their one-step
 prediction errors (the residuals through a fitted autoregression, so loop noise and coloured sensors are not
 counted as model errors) follow the exogenous drive, keep a material dependence on their own past, or grow
@@ -14,11 +14,11 @@ of the fit's own time.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from fpdd.jsonio import finite_or_none
 from twin.estimation.diagnose.adequacy import _state
 from twin.estimation.diagnose.constants import ALPHA
 from twin.estimation.diagnose.data import _Data
@@ -68,7 +68,7 @@ def fit_adequacy(model: Model, records: Sequence[Record], res: FitResult, output
     if not adequate and not reasons:
         reasons.append("its prediction errors fail the adequacy tests")
     return {"adequate": adequate, "reasons": reasons if not adequate else [], "alpha": alpha,
-            "holdout_fraction": holdout, "tests": _plain(a)}
+            "holdout_fraction": holdout, "tests": finite_or_none(a)}
 
 
 def judge(res: FitResult, model: Model, records: Sequence[Record], drive: str = "auto",
@@ -95,19 +95,3 @@ def warning_of(check: Mapping) -> str | None:
 
 def _p(p: float) -> str:
     return f"{min(max(p, 0.0), 1.0):.2g}"
-
-
-def _plain(v):
-    """JSON-ready copy (numpy scalars to floats, non-finite to None)."""
-    if isinstance(v, Mapping):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    return v
