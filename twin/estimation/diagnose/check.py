@@ -41,7 +41,7 @@ def fit_adequacy(model: Model, records: Sequence[Record], res: FitResult, output
     n_fit = [int(round(len(r) * (1.0 - holdout))) for r in records]
     data = _Data(model, list(records), n_fit, tuple(outputs), sigma, drive, timing or DEFAULT_TIMING, alpha)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        st = _state(data, res, tuple(res.free), timing or DEFAULT_TIMING)
+        st = _state(data, res, tuple(res.free), data.timing)
     a = st.adequacy or {}
     reasons: list[str] = []
     if a.get("diverged"):
@@ -53,11 +53,11 @@ def fit_adequacy(model: Model, records: Sequence[Record], res: FitResult, output
                        f"output's variance explained by the drive's last {1e3 * exo['lags'] * records[0].dt:.0f} ms "
                        f"beyond chance (p {_p(exo['p'] * n_tests)})")
     for o, w in (a.get("whiteness") or {}).items():
-        if w["material"] and w["p"] * n_tests < alpha:
+        if w.get("dependent"):
             reasons.append(f"its {o} prediction errors stay predictable from their own past "
                            f"({100 * w['r2_excess']:.1f} % of their variance, p {_p(w['p'] * n_tests)})")
     hold = a.get("holdout") or {}
-    if hold and not a.get("diverged") and hold.get("p", 1.0) * n_tests < alpha:
+    if hold.get("worse"):
         reasons.append(f"its prediction errors are {hold['ratio']:.2f} times larger on the record's last "
                        f"{100 * holdout:.0f} % (p {_p(hold['p'] * n_tests)})")
     for o, v in (a.get("simulation_holdout") or {}).items():
