@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from replay.base import Samples
-from tests.track_reference import record, to_samples, truth_at
+from tests.track_reference import RIG_PARAMS, record, to_samples, truth_at
 from twin.online.baseline import Baseline, default_baseline
 from twin.online.drift import DriftMonitor
 from twin.models.base import Timing
@@ -200,9 +200,6 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
 
 
 USER_RIG = [("chirp", 1009), ("can_rate", 1010), ("single_rod", 1011), ("pid_filtered", 1012)]
-#: the rig's own values the tracker is told (as its rigs.toml would): two areas; the PID (it tracks from u)
-USER_PARAMS = {"single_rod": {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0},
-               "pid_filtered": {"KP": 300.0, "KI": 2000.0, "KD": 0.6, "Tf": 1e-3}}
 
 
 @pytest.mark.slow
@@ -215,7 +212,7 @@ def test_users_rig_healthy_raises_nothing(name, seed):
     if name == "chirp":
         assert np.max(np.abs(np.gradient(rec.hidden["x"], rec.dt))) > 0.2
     s = to_samples(rec)
-    tr = OnlineTracker(params=USER_PARAMS.get(name), timing=Timing.parse(controller, "cubic" if controller ==
+    tr = OnlineTracker(params=RIG_PARAMS.get(name), timing=Timing.parse(controller, "cubic" if controller ==
                                                                           "continuous" else None))
     dm, events, outs = _run(s, tr, _commissioned(rec))
     assert events == [], [(e.t_s, e.parameter, e.level) for e in events]

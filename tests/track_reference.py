@@ -35,6 +35,14 @@ WN = MSP25_FREE["wn"]
 LEAK = MSP25_FREE["CdAleak"]
 
 
+#: the user's rigs (known values): a single-rod cylinder (area ratio 0.5) at KP 300 V/m, and an industrial PID whose
+#: derivative is filtered with the time constant ``PID_TF``
+SINGLE_ROD = {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0}
+PID = {"KP": 300.0, "KI": 2000.0, "KD": 0.6}
+PID_TF = 1e-3
+#: what the tracker is told of each user's-rig scenario (as its rigs.toml would say; it tracks from the logged u)
+RIG_PARAMS = {"single_rod": SINGLE_ROD, "pid_filtered": {**PID, "Tf": PID_TF}}
+
 #: healthy scenarios named by their demand kind (tests.reference.msp25.DEMAND_KINDS)
 DEMANDS = ("chirp", "sweep", "blocks", "road")
 
@@ -90,11 +98,11 @@ def scenario(name: str, seed: int = 0, duration: float = 30.0) -> dict[str, Any]
         kw["time_jitter_s"] = 150e-6
     elif name == "single_rod":  # a single-rod cylinder (area ratio 0.5), the paper's demand, KP 300 V/m
         kw["truth"] = "draw"
-        kw["known"] = {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0}
+        kw["known"] = dict(SINGLE_ROD)
     elif name == "pid_filtered":  # an industrial PID with a 1 ms derivative filter
         kw["truth"] = "draw"
-        kw["known"] = {"KP": 300.0, "KI": 2000.0, "KD": 0.6}
-        kw["pid"] = {"Tf": 1e-3}
+        kw["known"] = dict(PID)
+        kw["pid"] = {"Tf": PID_TF}
     elif name == "warming":  # oil 40 -> 60 C over 10 min: bulk modulus -12 %, leakage +15 %
         kw["truth"] = "draw"
         kw["temperature"] = {"T": {"kind": "ramp", "t0": 0.0, "t1": 600.0, "start": 313.15, "end": 333.15},

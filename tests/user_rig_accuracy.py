@@ -47,6 +47,7 @@ sys.path.insert(1, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 
 from benchmarks import add_guard_option, apply_guard  # noqa: E402
 from reference import batch, msp25_spec  # noqa: E402
+from track_reference import PID, RIG_PARAMS, SINGLE_ROD  # noqa: E402
 
 from replay.base import Samples  # noqa: E402
 from fpdd.errors import DataError  # noqa: E402
@@ -57,8 +58,6 @@ from twin.record import Record, records_from_samples  # noqa: E402
 FREE = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
 #: an oil warming 40 -> 60 degC over the first 12 s (bulk modulus -12 %, leakage x1.82 at b_visc 0.03/K)
 WARMING = {"kind": "ramp", "t0": 0.0, "t1": 12.0, "start": 313.15, "end": 333.15}
-SINGLE_ROD = {"AB": 960e-6, "V0B": 300e-6, "KP": 300.0}
-PID = {"KP": 300.0, "KI": 2000.0, "KD": 0.6}
 CASES = {
     "single_rod": ({"known": SINGLE_ROD}, SINGLE_ROD),
     "pid_filtered": ({"known": PID, "pid": {"Tf": 1e-3}}, {**PID, "Tf": 1e-3}),
@@ -112,8 +111,7 @@ def diagnosed(case: str, ref, seed: int) -> dict:
 
 
 #: healthy tracking: scenario of tests/track_reference.py -> the product's known parameters
-TRACK_CASES = {"chirp": {}, "sweep": {}, "blocks": {}, "road": {}, "can_rate": {},
-               "single_rod": SINGLE_ROD, "pid_filtered": {**PID, "Tf": 1e-3}}
+TRACK_CASES = {"chirp": {}, "sweep": {}, "blocks": {}, "road": {}, "can_rate": {}, **RIG_PARAMS}
 #: faults on the CAN-rate rig: scenario -> (parameter that must alarm, alone)
 TRACK_FAULTS = {"worn_seal": "CdAleak", "friction_step": "Ffric"}
 
