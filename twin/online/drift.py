@@ -76,6 +76,14 @@ class _ParamState:
     status: str = "ok"  # ok | frozen | unresolved (what the data say now)
 
 
+def drift_rates(model: str, names, given: Mapping[str, float] | None = None) -> dict[str, float]:
+    """Each parameter's random-walk intensity in the filter (log units per sqrt(s)): ``given`` over the
+    ``drift_rate`` of its spec's tracking in ``model`` (a name the model does not track and ``given`` does not
+    name has none)."""
+    m = get_model(model)
+    return {**{n: m.tracking(n).drift_rate for n in names if n in m.trackable}, **dict(given or {})}
+
+
 class DriftMonitor:
     """Per-rig drift test; feed it the tracker's blocks with :meth:`update_block`.
 
@@ -89,13 +97,11 @@ class DriftMonitor:
                  h_alarm: float = 10.0, rate_hz: float = 20.0, hold_s: float = 1.0, resolve: float = 0.5,
                  settle_s: float = 2.0, drift_rate: Mapping[str, float] | None = None,
                  max_ess_factor: float = 1000.0, model: str = DEFAULT_MODEL):
-        m = get_model(model)
         self.rig = rig
         self.kappa, self.h_warn, self.h_alarm = kappa, h_warn, h_alarm
         self.rate_hz, self.hold_s, self.resolve, self.settle_s = rate_hz, hold_s, resolve, settle_s
         self.params = {n: _ParamState(n, b) for n, b in baseline.items()}
-        self.drift_rate = {**{n: m.tracking(n).drift_rate for n in baseline if n in m.trackable},
-                           **dict(drift_rate or {})}
+        self.drift_rate = drift_rates(model, baseline, drift_rate)
         self.max_ess_factor = float(max_ess_factor)
         self.guard = "consistent"
         self._next_t: float | None = None
