@@ -22,7 +22,7 @@ def _record(which: str, seed: int):
             return get_records([bench.wear_spec(param, shape, dur, s, noise)], workers=1)[0], param
     for _label, kind, dur, s in bench.HEALTHY[which]:
         if s == seed:
-            return get_records([bench.healthy_spec(kind, dur, s)], workers=1)[0], None
+            return bench.logged(get_records([bench.healthy_spec(kind, dur, s)], workers=1)[0], kind), None
     raise KeyError(seed)
 
 
@@ -41,11 +41,14 @@ def test_a_warming_oil_raises_no_early_alarm():
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-@pytest.mark.parametrize("seed", [1006])
+@pytest.mark.parametrize("seed", [1002, 1006, 1019])
 def test_a_wear_record_is_forecast_a_quarter_of_its_wear_ahead(seed):
     """A verification wear record: the 90 % intervals of the last third before the true exit hold it in at least
     80 % of the forecasts, the first early alarm comes at least a quarter of the wear's duration before the exit,
-    and no other parameter raises one."""
+    and no other parameter raises one. 1002: the exponential leakage wear at doubled noise (its early alarm came
+    0.238 of the wear ahead while the reach was one span); 1006: the valve's bandwidth; 1019: friction wearing at
+    doubled noise, where a minute of the leakage's wander raised an early alarm on the leakage before its bins'
+    correlation was bounded by the filter's memory."""
     rec, param = _record("verify", seed)
     twin = bench.run_record(rec)
     fig = bench.wear_figures(rec, twin, param)
