@@ -29,8 +29,8 @@ Prints per case and parameter: the largest |z| (error over the fit's standard er
 error over the seeds, and per case how many fits converged (``conv``) and how many passed the fit's adequacy
 test (``adeq``: no "the model does not represent this record" warning).  ``--diagnose``: the healthy diagnosis of each record too (names nothing, not
 "unexplained").  ``--track-s S``: healthy tracking of each tracking case for S seconds (bands centred on the
-truth, as a commissioning fit gives them; alarm events counted), and a worn seal and a friction rise on the
-CAN-rate rig, alarmed on their own parameter.
+truth, as a commissioning fit gives them; alarm events counted, and the early warning's forecasts and early alarms
+on the same estimates), and a worn seal and a friction rise on the CAN-rate rig, alarmed on their own parameter.
 """
 
 from __future__ import annotations
@@ -132,9 +132,21 @@ def tracked(name: str, seed: int, duration: float, fault: str | None = None) -> 
     timing = Timing.parse(sc["controller"], "cubic" if sc["controller"] == "continuous" else None)
     tr = OnlineTracker(params=TRACK_CASES.get(name) or None, timing=timing,
                        **({"start": {"Ffric": 40.0, "zeta": 0.33}} if fault else {}))
-    _, events, _ = _run(to_samples(ref), tr, NOMINAL_BANDS if fault else _commissioned(ref))
+    from twin.online.forecast import ForecastMonitor
+
+    samples = to_samples(ref)
+    base = NOMINAL_BANDS if fault else _commissioned(ref)
+    _, events, outs = _run(samples, tr, base)
+    # the early warning on the same estimates, as the service feeds it
+    fm, early, n_fc = ForecastMonitor("ref", base), [], 0
+    t0 = int(samples.t_ns[0])
+    for out in outs:
+        ev, fcs = fm.update_block(tr.tracked, out.t_ns, (out.t_ns - t0) * 1e-9, out.estimates, out.log_std,
+                                  out.frozen, out.hold, out.held_log_std)
+        early += [(round(e.t_s, 3), e.parameter, e.kind) for e in ev]
+        n_fc += len(fcs)
     return {"scenario": fault or name, "seed": seed, "duration_s": duration,
-            "events": [(round(e.t_s, 3), e.parameter, e.level) for e in events]}
+            "events": [(round(e.t_s, 3), e.parameter, e.level) for e in events], "early": early, "forecasts": n_fc}
 
 
 def main(argv=None) -> int:
@@ -205,7 +217,8 @@ def main(argv=None) -> int:
         unexp = sum(r["unexplained"] for r in rs)
         print(f"diagnosis {c:<14} named something: {named} of {len(rs)}; unexplained: {unexp} of {len(rs)}")
     for r in out.get("tracking", []):
-        print(f"tracking {r['scenario']:<10} {r['duration_s']:g} s: {len(r['events'])} alarm event(s) {r['events']}")
+        print(f"tracking {r['scenario']:<10} {r['duration_s']:g} s: {len(r['events'])} alarm event(s) {r['events']}; "
+              f"{r['forecasts']} forecasts, early alarm events {r['early']}")
     for r, (f, p) in zip(out.get("faults", []), TRACK_FAULTS.items()):
         ok = bool(r["events"]) and {e[1] for e in r["events"]} == {p}
         print(f"fault {f:<14} on the CAN-rate rig: {'alarmed on ' + p + ' alone' if ok else 'NOT as expected'} "
