@@ -315,18 +315,14 @@ def discrepancy_rule(out: dict[str, Any]) -> dict[str, float]:
     """``twin.online.forecast.DISCREPANCY`` by its rule: per parameter, the RMS of the records' excess level error
     over their scatter (``level_error``'s ``excess_ratio``) over the wear records where that parameter wears, or over
     every record of the set when none does."""
+    wearing = {w["parameter"] for w in out["wear"]}
     ratios: dict[str, list[float]] = {}
-    for w in out["wear"]:
-        le = (w.get("level_error") or {}).get(w["parameter"]) or {}
-        if le.get("excess_ratio") is not None:
-            ratios.setdefault(w["parameter"], []).append(le["excess_ratio"])
     for r in out["wear"] + out["healthy"]:
         for n, le in (r.get("level_error") or {}).items():
-            if n not in {w["parameter"] for w in out["wear"]} and le.get("excess_ratio") is not None:
-                ratios.setdefault("*" + n, []).append(le["excess_ratio"])
-    rule = {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in ratios.items() if not n.startswith("*")}
-    rule.update({n[1:]: float(np.sqrt(np.mean(np.square(v)))) for n, v in ratios.items() if n.startswith("*")})
-    return rule
+            counts = r.get("parameter") == n if n in wearing else True
+            if counts and le.get("excess_ratio") is not None:
+                ratios.setdefault(n, []).append(le["excess_ratio"])
+    return {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in ratios.items()}
 
 
 def _level(w: dict[str, Any]) -> str:

@@ -321,9 +321,10 @@ class ForecastMonitor:
         rss_flat = float(np.sum(w_e * (y - np.sum(w_e * y) / np.sum(w_e)) ** 2))
         best = fe if fe[2] <= fl[2] else fl
         kappa = _kappa(best[3])
+        v_mean = float(np.mean(s * s))  # the filter's mean variance over the bins (log units)
         rate = self.drift_rate.get(q.name)
         if rate:  # never fewer bins per independent one than the filter's own memory gives
-            r = math.exp(-self.step_s * rate * rate / max(float(np.mean(s * s)), 1e-300))
+            r = math.exp(-self.step_s * rate * rate / max(v_mean, 1e-300))
             kappa = min(kappa, (1.0 - r) / (1.0 + r))
         n_eff = max(kappa * n, 3.0)
         # BIC with the tempered likelihood: the Jacobian of u = exp(y) cancels against the weights (see module doc)
@@ -339,7 +340,7 @@ class ForecastMonitor:
         # the twin's own slow level error, which no trend sees: a fraction of the bins' scatter about the trend, in
         # log units (the exponential trend's residual variance at the bins' mean weight), and relative to the linear
         # trend's level now
-        d2 = self.discrepancy[q.name] ** 2 * fe[2] / max(n - 2.0, 1.0) * float(np.mean(s * s))
+        d2 = self.discrepancy[q.name] ** 2 * fe[2] / max(n - 2.0, 1.0) * v_mean
         F = (w_exp * _exit_cdf(fe, kappa, n, nu, math.log(lo), math.log(hi), grid, d2)
              + (1.0 - w_exp) * _exit_cdf(fl, kappa, n, nu, lo, hi, grid, d2 * float(fl[0][0]) ** 2))
         p_alarm = float(F[-1])
