@@ -127,9 +127,9 @@ def healthy_spec(kind: str, duration: float, seed: int) -> dict:
     return ref.msp25_spec(seed, duration=duration, truth=truth, **kw)
 
 
-#: (label, parameter, shape, duration s, seed, noise factor); ``long``: verification records of 30-60 min (slower
+#: (label, parameter, shape, duration s, seed, noise factor[, start of the wear s]); ``long``: verification records of 30-60 min (slower
 #: wear, the same figures; their simulation takes about a tenth of their duration per record on one core)
-WEAR = {
+WEAR: dict[str, list[tuple[Any, ...]]] = {
     "calib": [("leak_lin", "CdAleak", "linear", 600.0, 11, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 13, 2.0),
               ("fric_exp", "Ffric", "exp", 600.0, 14, 2.0), ("wn_exp", "wn", "exp", 900.0, 12, 1.0)],
     "verify": [("leak_lin", "CdAleak", "linear", 600.0, 1001, 1.0), ("leak_exp", "CdAleak", "exp", 600.0, 1002, 2.0),
@@ -139,6 +139,10 @@ WEAR = {
                ("fric_lin", "Ffric", "linear", 600.0, 1018, 1.0), ("fric_exp", "Ffric", "exp", 600.0, 1019, 2.0),
                ("wn_lin", "wn", "linear", 600.0, 1020, 2.0), ("wn_exp", "wn", "exp", 600.0, 1021, 1.0)],
     "unlogged": [],
+    # the rig healthy for 10 min, then the wear starts (the 7th field: its start [s]); 20-min records
+    "late": [("leak_exp_late", "CdAleak", "exp", 1200.0, 1023, 2.0, 600.0),
+             ("wn_lin_late", "wn", "linear", 1200.0, 1024, 1.0, 600.0),
+             ("fric_lin_late", "Ffric", "linear", 1200.0, 1025, 1.0, 600.0)],
     "long": [("leak_exp", "CdAleak", "exp", 1800.0, 1007, 1.0), ("wn_lin", "wn", "linear", 1800.0, 1008, 2.0),
              ("fric_lin", "Ffric", "linear", 3600.0, 1009, 1.0)],
 }
@@ -148,6 +152,7 @@ HEALTHY = {
     "verify": [("plain", "plain", 1200.0, 1011), ("noisy", "noisy", 1200.0, 1012),
                ("warming_oil", "warming_oil", 1200.0, 1014)],
     "long": [("warming_oil", "warming_oil", 3600.0, 1015)],
+    "late": [],
     # not healthy to the twin: the oil warms unlogged, so the twin's leakage takes up the oil's stiffness and the
     # drift test alarms (the early alarm before it is right about the estimate); shown apart, not counted
     "unlogged": [("warming_oil_unlogged", "warming_oil_unlogged", 1200.0, 23),
@@ -165,7 +170,7 @@ def logged(rec, kind: str):
 
 
 def specs(which: str) -> list[dict]:
-    return ([wear_spec(p, s, d, seed, nz) for _, p, s, d, seed, nz in WEAR[which]]
+    return ([wear_spec(p, s, d, seed, nz, t0=(rest[0] if rest else 0.0)) for _, p, s, d, seed, nz, *rest in WEAR[which]]
             + [healthy_spec(k, d, seed) for _, k, d, seed in HEALTHY[which]])
 
 
@@ -270,14 +275,16 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
     """The figures of a set's records (``seeds``: only those of the set's records)."""
     ref = _reference()
     out: dict[str, Any] = {"set": which, "wear": [], "healthy": []}
-    for (label, param, shape, dur, seed, nz), spec in zip(WEAR[which] if part != "healthy" else [], specs(which)):
+    for (label, param, shape, dur, seed, nz, *rest), spec in zip(WEAR[which] if part != "healthy" else [],
+                                                                 specs(which)):
+        t0 = rest[0] if rest else 0.0
         if seeds and seed not in seeds:
             continue
         rec = ref.get_record(spec)
         t = time.perf_counter()
         twin = run_record(rec)
         r = {"label": label, "shape": shape, "duration_s": dur, "seed": seed, "noise": nz,
-             **wear_figures(rec, twin, param), "track_s": time.perf_counter() - t,
+             **wear_figures(rec, twin, param, wear_start=t0), "wear_start_s": t0, "track_s": time.perf_counter() - t,
              "level_error": {n: level_error(rec, twin, n) for n in twin.forecast.params}}
         out["wear"].append(r)
         say(json.dumps(r))
@@ -366,8 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.forecast", description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", choices=sorted(WEAR), default="verify",
                     help="verify (seeds >= 1000, the README's table), long (seeds >= 1000, 30-60 min records), "
-                    "calib (seeds < 1000) or unlogged (a warming oil whose temperature is not logged: not healthy "
-                    "to the twin, shown apart)")
+                    "calib (seeds < 1000), late (seeds >= 1000, 10 min healthy before the wear starts) or "
+                    "unlogged (a warming oil whose temperature is not logged: not healthy to the twin, shown apart)")
     ap.add_argument("--build", action="store_true", help="only fill the reference cache with the set's records")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     ap.add_argument("--part", choices=("all", "wear", "healthy"), default="all",

@@ -131,6 +131,29 @@ def test_a_straight_wear_is_forecast_to_its_exit_with_one_early_alarm():
     assert AlarmEvent.from_dict({**raised[0].to_dict(), "seq": 1}).level == "early"
 
 
+def test_a_wear_that_starts_after_healthy_running_is_forecast_from_its_onset():
+    """Ten healthy minutes, then the leakage grows linearly from 1.2 and leaves its band (hi 3.0) 450 s later: a
+    straight line through all the data bends the evidence away (its residuals are one long excursion); the trend
+    from a hinge where the wear starts finds it, forecasts the exit and warns a quarter of the wear ahead."""
+    onset, exit_t = 600.0, 1050.0
+
+    def leak(t):
+        return 1.2 + 1.8 * np.clip(t - onset, 0.0, None) / (exit_t - onset)
+
+    stream = _stream(1004, 1100.0, leak)
+    fm = ForecastMonitor("r", BASE, horizon_s=600.0)
+    events, fcs = _feed(fm, stream)
+    leak_fc = [f for f in fcs if f.parameter == "CdAleak"]
+    assert not [f for f in leak_fc if f.t < onset]  # nothing while it is flat
+    last_third = [f for f in leak_fc if exit_t - (exit_t - onset) / 3 <= f.t < exit_t]
+    assert len(last_third) >= 140
+    covered = [f.t_exit_lo is not None and f.t_exit_lo <= exit_t <= (f.t_exit_hi or math.inf) for f in last_third]
+    assert np.mean(covered) >= 0.8
+    raised = [e for e in events if e.level == "early" and e.kind == "raised"]
+    assert len(raised) == 1 and raised[0].parameter == "CdAleak"
+    assert onset < raised[0].t_s <= exit_t - (exit_t - onset) / 4
+
+
 def test_each_parameter_has_its_own_discrepancy_and_a_wider_one_widens_only_its_interval():
     """The slow level error is per parameter, a fraction of the bins' scatter (another model's parameter takes the
     largest; one number sets all); a larger one for the leakage widens the leakage's interval and leaves its

@@ -17,9 +17,10 @@ from benchmarks import forecast as bench
 def _record(which: str, seed: int):
     from conftest import get_records
 
-    for _label, param, shape, dur, s, noise in bench.WEAR[which]:
+    for _label, param, shape, dur, s, noise, *rest in bench.WEAR[which]:
         if s == seed:
-            return get_records([bench.wear_spec(param, shape, dur, s, noise)], workers=1)[0], param
+            t0 = rest[0] if rest else 0.0
+            return get_records([bench.wear_spec(param, shape, dur, s, noise, t0=t0)], workers=1)[0], param
     for _label, kind, dur, s in bench.HEALTHY[which]:
         if s == seed:
             return bench.logged(get_records([bench.healthy_spec(kind, dur, s)], workers=1)[0], kind), None

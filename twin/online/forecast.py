@@ -127,6 +127,10 @@ DISCREPANCY = {"Ffric": 0.164, "CdAleak": 0.178, "Cd": 0.165, "zeta": 0.060, "wn
 DISCREPANCY_OTHER = max(DISCREPANCY.values())
 
 
+#: Candidate onsets of a wear (the hinge of a trend that is flat before it), in seconds before now: geometric from
+#: ``min_span_s`` to this fraction of the data's span, this many points.
+HINGE_REACH = 0.9
+HINGE_POINTS = 48
 #: How far ahead ``p_within_horizon`` counts an exit, in spans of the data the trend was fitted on [1]. Tuned on the
 #: calibration records (``python -m benchmarks.forecast --set calib``, seeds < 1000): every wear record's first
 #: early alarm comes a quarter of its wear ahead from 1.1 on (the exponential leakage wear at doubled noise, seed 13:
@@ -316,11 +320,27 @@ class ForecastMonitor:
         u = np.exp(y)
         w_e = 1.0 / (s * s)  # log coordinates: exponential model
         w_l = 1.0 / (u * u * s * s)  # the parameter over its baseline: linear model (delta method)
-        fe = _wls(t, y, w_e)
-        fl = _wls(t, u, w_l)
+        span = float(t[-1] - t[0])
+        # candidate onsets of the wear (hinges, seconds before now): a trend that starts there and is flat before it,
+        # each with at least ``min_span_s`` and 10 bins after it; the first is no hinge (the trend over all the data)
+        onsets = np.concatenate([[span], np.geomspace(self.min_span_s, HINGE_REACH * span, HINGE_POINTS)
+                                 if HINGE_REACH * span > self.min_span_s else []])
+        onsets = onsets[np.concatenate([[True], np.count_nonzero(t[None, :] > -onsets[1:, None], axis=1) >= 10])]
+        Z = np.maximum(t[None, :], -onsets[:, None])
+        Z[0] = t
+        k_par = np.where(np.arange(onsets.size) == 0, 2.0, 3.0)  # a hinge adds its onset
+        n_hinge = onsets.size - 1
+        # prior: half on the trend over all the data, half spread over the hinges (none: all on it)
+        log_prior = np.where(np.arange(onsets.size) == 0, math.log(0.5 if n_hinge else 1.0),
+                             math.log(0.5 / max(n_hinge, 1)))
+        # (shape, onset index, coefficients, covariance, weighted rss) of each candidate
+        fits = [(shape, j, c, v, r) for shape, obs, w in (("exp", y, w_e), ("lin", u, w_l))
+                for j, (c, v, r) in enumerate(zip(*_wls_many(Z, obs, w)))]
         rss_flat = float(np.sum(w_e * (y - np.sum(w_e * y) / np.sum(w_e)) ** 2))
-        best = fe if fe[2] <= fl[2] else fl
-        kappa = _kappa(best[3])
+        # the correlation from the residuals of the best candidate (untempered BIC), never below the filter's memory
+        best = min(fits, key=lambda f: n * math.log(max(f[4], 1e-300)) + k_par[f[1]] * math.log(n))
+        obs_b, w_b = (y, w_e) if best[0] == "exp" else (u, w_l)
+        kappa = _kappa((obs_b - best[2][0] - best[2][1] * Z[best[1]]) * np.sqrt(w_b))
         v_mean = float(np.mean(s * s))  # the filter's mean variance over the bins (log units)
         rate = self.drift_rate.get(q.name)
         if rate:  # never fewer bins per independent one than the filter's own memory gives
@@ -328,21 +348,33 @@ class ForecastMonitor:
             kappa = min(kappa, (1.0 - r) / (1.0 + r))
         n_eff = max(kappa * n, 3.0)
         # BIC with the tempered likelihood: the Jacobian of u = exp(y) cancels against the weights (see module doc)
-        gain = kappa * n * math.log(max(rss_flat, 1e-300) / max(best[2], 1e-300))
-        evidence = gain - math.log(n_eff)
+        bic = np.array([kappa * n * math.log(max(f[4], 1e-300)) + k_par[f[1]] * math.log(n_eff) for f in fits])
+        evidence = kappa * n * math.log(max(rss_flat, 1e-300)) + math.log(n_eff) - float(bic.min())
         if not evidence >= self.evidence:
             return None
-        w_exp = _expit(0.5 * kappa * n * math.log(max(fl[2], 1e-300) / max(fe[2], 1e-300)))
+        logw = np.array([log_prior[f[1]] for f in fits]) - 0.5 * (bic - bic.min())
+        wts = np.exp(logw - logw.max())
+        wts /= wts.sum()
+        w_exp = float(sum(w for w, f in zip(wts, fits) if f[0] == "exp"))
         lo, hi = q.base.lo / q.base.value, q.base.hi / q.base.value
         nu = max(n_eff - 2.0, 1.0)
-        span = float(q.pts[n - 1, 0] - q.pts[0, 0])
-        grid = np.append(self._grid, min(self.horizon_s, self.reach * span))
         # the twin's own slow level error, which no trend sees: a fraction of the bins' scatter about the trend, in
-        # log units (the exponential trend's residual variance at the bins' mean weight), and relative to the linear
-        # trend's level now
-        d2 = self.discrepancy[q.name] ** 2 * fe[2] / max(n - 2.0, 1.0) * v_mean
-        F = (w_exp * _exit_cdf(fe, kappa, n, nu, math.log(lo), math.log(hi), grid, d2)
-             + (1.0 - w_exp) * _exit_cdf(fl, kappa, n, nu, lo, hi, grid, d2 * float(fl[0][0]) ** 2))
+        # log units (the best candidate's residual variance at the bins' mean weight; the weights make both shapes'
+        # residuals relative), and relative to the linear trend's level now
+        d2 = self.discrepancy[q.name] ** 2 * best[4] / max(n - 2.0, 1.0) * v_mean
+        # the candidates that carry 99.9 % of the weight (neighbouring onsets share it), renormalised
+        order = np.argsort(wts)[::-1]
+        keep = order[:int(np.searchsorted(np.cumsum(wts[order]), 0.999)) + 1]
+        is_exp = np.array([fits[i][0] == "exp" for i in keep])
+        coef = np.array([fits[i][2] for i in keep])
+        # an exit counts within the reach of the stretch that supports each trend: from its onset
+        grid = np.concatenate([np.broadcast_to(self._grid, (keep.size, self._grid.size)),
+                               np.minimum(self.horizon_s, self.reach * onsets[[fits[i][1] for i in keep]])[:, None]],
+                              axis=1)
+        F = (wts[keep] / wts[keep].sum()) @ _exit_cdf(
+            coef, np.array([fits[i][3] for i in keep]), np.array([fits[i][4] for i in keep]), kappa, n, nu,
+            np.where(is_exp, math.log(lo), lo), np.where(is_exp, math.log(hi), hi), grid,
+            np.where(is_exp, d2, d2 * coef[:, 0] ** 2))
         p_alarm = float(F[-1])
         F = F[:-1]
         F = np.maximum.accumulate(F)
@@ -361,7 +393,7 @@ class ForecastMonitor:
         # the time axis is resolved to one bin: the interval widened by a bin on either side
         qs[0] = max(now, qs[0] - self.step_s) if qs[0] is not None else None
         qs[2] = qs[2] + self.step_s if qs[2] is not None else None
-        slope = fe[0][1] if w_exp >= 0.5 else fl[0][1]
+        slope = float(fits[int(np.argmax(wts))][2][1])
         return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], p_alarm, w_exp, float(evidence),
                         "high" if slope > 0 else "low")
 
@@ -481,22 +513,24 @@ def _expit(z: float) -> float:
 
 
 # -- closed-form pieces --------------------------------------------------------------------------------------------
-def _wls(t: np.ndarray, y: np.ndarray, w: np.ndarray):
-    """Weighted least squares of ``y = a + b t``: (coefficients, their unscaled covariance (X'WX)^-1, weighted RSS,
-    standardised residuals)."""
-    sw = np.sum(w)
-    st = np.sum(w * t)
-    stt = np.sum(w * t * t)
-    sy = np.sum(w * y)
-    sty = np.sum(w * t * y)
+def _wls_many(Z: np.ndarray, y: np.ndarray, w: np.ndarray):
+    """Weighted least squares of ``y = a + b z`` for each row ``z`` of ``Z`` at once: coefficients ``[m, 2]``, their
+    unscaled covariances ``(X'WX)^-1`` ``[m, 2, 2]`` and the weighted RSS ``[m]`` (a row without spread: infinite RSS,
+    a candidate that never wins)."""
+    sw = float(np.sum(w))
+    st = Z @ w
+    stt = (Z * Z) @ w
+    sy = float(np.sum(w * y))
+    sty = Z @ (w * y)
     det = sw * stt - st * st
-    if not det > 0:
-        det = 1e-300
+    ok = det > 1e-12 * sw * np.maximum(stt, 1e-300)
+    det = np.where(ok, det, 1.0)
     b = (sw * sty - st * sy) / det
     a = (sy - b * st) / sw
-    cov = np.array([[stt, -st], [-st, sw]]) / det
-    r = (y - a - b * t) * np.sqrt(w)
-    return np.array([a, b]), cov, float(np.sum(r * r)), r
+    cov = np.stack([np.stack([stt, -st], -1), np.stack([-st, np.full_like(st, sw)], -1)], -2) / det[:, None, None]
+    res = y[None, :] - a[:, None] - b[:, None] * Z
+    rss = np.where(ok, np.sum(w[None, :] * res * res, axis=1), np.inf)
+    return np.stack([a, b], -1), cov, rss
 
 
 def _kappa(r: np.ndarray) -> float:
@@ -521,16 +555,18 @@ def _kappa(r: np.ndarray) -> float:
     return 1.0 / min(max(tau, 1.0), float(n))
 
 
-def _exit_cdf(fit, kappa: float, n: int, nu: float, lo: float, hi: float, grid: np.ndarray,
-              level_var: float = 0.0) -> np.ndarray:
-    """P(the trend's level at ``grid`` seconds from now is beyond ``lo`` or ``hi``), Student t with ``nu`` degrees
-    of freedom, scale from the residual variance over ``kappa n`` effective points plus ``level_var`` (the
-    estimate's own error now, which the trend's average does not remove: a bias of the filter)."""
-    coef, cov, rss, _ = fit
-    s2 = rss / max(n - 2.0, 1.0) / kappa
-    m = coef[0] + coef[1] * grid
-    v = s2 * (cov[0, 0] + 2.0 * grid * cov[0, 1] + grid * grid * cov[1, 1]) + level_var
+def _exit_cdf(coef: np.ndarray, cov: np.ndarray, rss: np.ndarray, kappa: float, n: int, nu: float, lo: np.ndarray,
+              hi: np.ndarray, grid: np.ndarray, level_var: np.ndarray) -> np.ndarray:
+    """For each of ``K`` trends (rows: ``coef [K, 2]``, ``cov [K, 2, 2]``, weighted ``rss [K]``, band edges ``lo``,
+    ``hi`` and ``level_var [K]`` in the trend's own coordinates), P(the trend's level at ``grid [K, G]`` seconds from
+    now is beyond ``lo`` or ``hi``) ``[K, G]``: Student t with ``nu`` degrees of freedom, scale from the residual
+    variance over ``kappa n`` effective points plus ``level_var`` (the twin's slow level error, which the trend's
+    average does not remove)."""
+    s2 = (rss / max(n - 2.0, 1.0) / kappa)[:, None]
+    m = coef[:, :1] + coef[:, 1:] * grid
+    v = s2 * (cov[:, :1, 0] + 2.0 * grid * cov[:, :1, 1] + grid * grid * cov[:, 1:, 1]) + level_var[:, None]
     sd = np.sqrt(np.maximum(v, 1e-300))
     from scipy import special  # here, not at import: a worker that never forecasts does not pay for it
 
+    hi, lo = hi[:, None], lo[:, None]
     return special.stdtr(nu, (m - hi) / sd) + special.stdtr(nu, (lo - m) / sd)
