@@ -84,6 +84,18 @@ def drift_rates(model: str, names, given: Mapping[str, float] | None = None) -> 
     return {**{n: m.tracking(n).drift_rate for n in names if n in m.trackable}, **dict(given or {})}
 
 
+def memory_factor(step: float, variance: float, rate: float | None) -> float:
+    """How many samples ``step`` seconds apart make one independent sample of an estimate that a filter tracks as a
+    random walk of intensity ``rate`` (log units per sqrt(s)) and knows to ``variance`` (log units^2):
+    ``(1 + r) / (1 - r)`` with ``r = exp(-step / tau)`` and the filter's memory ``tau = variance / rate^2`` (the
+    Kalman-Bucy filter's time constant; the integrated autocorrelation time of AR(1) samples). 1 without a rate."""
+    q = (rate or 0.0) ** 2
+    if not q > 0:
+        return 1.0
+    r = math.exp(-step / max(variance / q, 1e-9))
+    return (1.0 + r) / max(1.0 - r, 1e-12)
+
+
 class DriftMonitor:
     """Per-rig drift test; feed it the tracker's blocks with :meth:`update_block`.
 
@@ -244,12 +256,7 @@ class DriftMonitor:
         """How many evaluation steps make one independent sample of the estimate: ``(1+r)/(1-r)``, with
         ``r = exp(-step / tau)`` and the filter's memory ``tau = sigma^2 / q`` (a random walk of
         intensity ``q`` observed to a standard deviation ``sigma``), at most ``max_ess_factor``."""
-        q = self.drift_rate.get(name, 0.0) ** 2
-        if not q > 0:
-            return 1.0
-        tau = sigma * sigma / q
-        r = math.exp(-1.0 / (self.rate_hz * max(tau, 1e-9)))
-        return min(self.max_ess_factor, (1.0 + r) / max(1.0 - r, 1e-12))
+        return min(self.max_ess_factor, memory_factor(1.0 / self.rate_hz, sigma * sigma, self.drift_rate.get(name)))
 
 
 _STATUSES = ("ok", "frozen", "unresolved", "inconsistent")

@@ -104,7 +104,7 @@ from typing import Any
 import numpy as np
 
 from twin.online.baseline import Baseline
-from twin.online.drift import drift_rates
+from twin.online.drift import drift_rates, memory_factor
 from twin.models import DEFAULT_MODEL
 from twin.online.events import AlarmEvent
 from twin.online.events.forecast import Forecast, describe, fmt_duration
@@ -351,10 +351,8 @@ class ForecastMonitor:
         obs_b, w_b = (y, w_e) if best[0] == "exp" else (u, w_l)
         kappa = _kappa((obs_b - best[2][0] - best[2][1] * Z[best[1]]) * np.sqrt(w_b))
         v_mean = float(np.mean(s * s))  # the filter's mean variance over the bins (log units)
-        rate = self.drift_rate.get(q.name)
-        if rate:  # never fewer bins per independent one than the filter's own memory gives
-            r = math.exp(-self.step_s * rate * rate / max(v_mean, 1e-300))
-            kappa = min(kappa, (1.0 - r) / (1.0 + r))
+        # never fewer bins per independent one than the filter's own memory gives
+        kappa = min(kappa, 1.0 / memory_factor(self.step_s, v_mean, self.drift_rate.get(q.name)))
         n_eff = max(kappa * n, 3.0)
         # BIC with the tempered likelihood: the Jacobian of u = exp(y) cancels against the weights (see module doc)
         bic = np.array([kappa * n * math.log(max(f[4], 1e-300)) + k_par[f[1]] * math.log(n_eff) for f in fits])
