@@ -160,6 +160,11 @@ HEALTHY = {
 }
 
 
+def wear_start(row: tuple[Any, ...]) -> float:
+    """The start of a :data:`WEAR` row's wear [s] (its optional seventh field; 0: from the record's start)."""
+    return float(row[6]) if len(row) > 6 else 0.0
+
+
 def logged(rec, kind: str):
     """The record as the rig logs it: a ``*_unlogged`` healthy kind without its oil temperature (``T_oil``)."""
     if not kind.endswith("_unlogged"):
@@ -170,7 +175,7 @@ def logged(rec, kind: str):
 
 
 def specs(which: str) -> list[dict]:
-    return ([wear_spec(p, s, d, seed, nz, t0=(rest[0] if rest else 0.0)) for _, p, s, d, seed, nz, *rest in WEAR[which]]
+    return ([wear_spec(row[1], row[2], row[3], row[4], row[5], t0=wear_start(row)) for row in WEAR[which]]
             + [healthy_spec(k, d, seed) for _, k, d, seed in HEALTHY[which]])
 
 
@@ -275,9 +280,9 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
     """The figures of a set's records (``seeds``: only those of the set's records)."""
     ref = _reference()
     out: dict[str, Any] = {"set": which, "wear": [], "healthy": []}
-    for (label, param, shape, dur, seed, nz, *rest), spec in zip(WEAR[which] if part != "healthy" else [],
-                                                                 specs(which)):
-        t0 = rest[0] if rest else 0.0
+    for row, spec in zip(WEAR[which] if part != "healthy" else [], specs(which)):
+        label, param, shape, dur, seed, nz = row[:6]
+        t0 = wear_start(row)
         if seeds and seed not in seeds:
             continue
         rec = ref.get_record(spec)

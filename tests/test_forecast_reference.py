@@ -17,10 +17,9 @@ from benchmarks import forecast as bench
 def _record(which: str, seed: int):
     from conftest import get_records
 
-    for _label, param, shape, dur, s, noise, *rest in bench.WEAR[which]:
-        if s == seed:
-            t0 = rest[0] if rest else 0.0
-            return get_records([bench.wear_spec(param, shape, dur, s, noise, t0=t0)], workers=1)[0], param
+    for row in bench.WEAR[which]:
+        if row[4] == seed:
+            return get_records([bench.wear_spec(row[1], row[2], row[3], row[4], row[5], t0=bench.wear_start(row))], workers=1)[0], row[1]
     for _label, kind, dur, s in bench.HEALTHY[which]:
         if s == seed:
             return bench.logged(get_records([bench.healthy_spec(kind, dur, s)], workers=1)[0], kind), None
