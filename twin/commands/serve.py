@@ -18,8 +18,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from twin.commands.common import EXIT_HELP
 
     p.epilog = EXIT_HELP
-    p.add_argument("--config", required=True, metavar="RIG.toml", help="rig configuration (see twin/service/config.py; "
-                   "a [failover] table shares its rigs with other services, one runs each: README \"Failover\")")
+    p.add_argument("--config", required=True, metavar="RIG.toml",
+                   help="rig configuration (every key: the documentation site's rigs.toml page, "
+                        "docs/reference/rigs-toml.md; a [failover] table shares its rigs with other services, one "
+                        "runs each: docs/guide/failover.md)")
     p.add_argument("--json", action="store_true", help="print per-rig statistics as JSON at the end (input_lost: "
                    "what a replayed log's reader lost, \"\" when nothing)")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
