@@ -121,8 +121,6 @@ def test_a_named_effect_that_leaves_an_error_is_partly_explained():
     assert d.effect_params("viscous_friction")["c_visc"]["value"] == pytest.approx(6000.0, rel=0.2)
 
 
-@pytest.mark.xfail(strict=True, reason="the noise model's autoregression whitens the ripple's residual and the "
-                   "held-out power stays consistent: adequacy misses this out-of-catalogue error (open)")
 def test_oscillator_force_ripple_is_unexplained_not_forced_into_a_name():
     d = diagnose(OSC, oscillator_with_force_ripple())
     assert d.causes == [] and d.unexplained, d.text()

@@ -17,6 +17,11 @@ ALPHA = 1e-3
 MIN_SHARE = 0.5
 #: multiples of an effect's typical magnitude used as secant probes in the screen
 SECANTS = (0.3, 1.0, 3.0)
+#: the screen also scores every probe with the best directions of this many other effects (the strongest by
+#: their own scores) projected out, each a test more in its effect's Bonferroni count: one un-modelled effect can
+#: turn another's score the wrong way (a force offset's drift hides a dry friction), and the pair's partner is
+#: one of the strongest
+CONDITION_ON = 2
 #: multiples of a secondary parameter's typical value tried in the screen (e.g. Stribeck velocity)
 SECONDARY = (1.0 / 3.0, 1.0, 3.0)
 #: limit parameters (a clipping effect) and the model state they clip: probed at levels the record reaches

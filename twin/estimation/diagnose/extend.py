@@ -84,24 +84,27 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
     free = cur.free + E.names
     ps = model.params(effects=cur.effects + (row.effect,)).update(cur.params.as_dict())
     # starts: the effect at the screen's estimate, its typical magnitude and close to neutral; the other
-    # free parameters at the current estimates (which may have bent to mimic the effect) or as configured.
-    # All screened in one batch; the best is refined, the second best too when the first does not pass.
-    base_starts = [dict(cur.fit.estimate), {n: configured[n] for n in cur.free if n in configured}]
-    ranked = _rank_starts(data, ps, [{**b, **e} for b in base_starts
-                                     for e in _effect_starts(data, row.effect, row.estimate)], cur.timing)
+    # free parameters at the current estimates (which may have bent to mimic the effect) and as configured (the
+    # baseline: nominal or commissioned values).  All screened in one batch; the best start of each baseline is
+    # refined and the better by held-out error kept; a start close to neutral when neither passes.
+    named = {n for e in cur.effects for n in model.EFFECTS[e].names}  # earlier causes stay at their estimates
+    bases = [dict(cur.fit.estimate),
+             {**cur.fit.estimate, **{n: configured[n] for n in cur.free if n in configured and n not in named}}]
+    if n_ranked < 2 or all(bases[1].get(n) == v for n, v in bases[0].items() if n in cur.free):
+        bases = bases[:1]
+    eff_starts = _effect_starts(data, row.effect, row.estimate)
+    tops = [_rank_starts(data, ps, [{**b, **e} for e in eff_starts], cur.timing)[0] for b in bases]
     near = dict(cur.fit.estimate)
     for s, n, v in zip(E.params, E.neutral, E.typical):
         near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
     t: Trial | None = None
-    for attempt, start in enumerate(ranked[:n_ranked] + [near]):
-        if attempt == n_ranked and t is not None and t.state.fit.cost < cur.fit.cost:
+    for attempt, start in enumerate(tops + [near]):
+        if attempt == len(tops) and t is not None and (t.accepted or t.state.fit.cost < cur.fit.cost):
             break
         st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
         cand = _judge(data, (row.effect,), cur, st, min_share)
-        if t is None or cand.state.fit.cost < t.state.fit.cost:
+        if t is None or _held_out(cand) < _held_out(t):
             t = cand
-        if t.accepted:
-            break
     assert t is not None  # the loop ran at least once (the start near neutral)
     if t.accepted and not t.state.converged and math.isfinite(t.state.fit.cost):
         # accepted, stopped by its evaluation budget: continued once from where it stopped, so that the verdict
@@ -113,6 +116,12 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
         if st.fit.cost < t.state.fit.cost:
             t = _judge(data, (row.effect,), cur, st, min_share)
     return t
+
+
+def _held_out(t: Trial) -> float:
+    """A trial's held-out weighted squared error (infinite when its simulation diverged)."""
+    v = float(t.state.holdout.get("weighted_sse", math.inf))
+    return v if math.isfinite(v) and not t.diverged else math.inf
 
 
 def _try_pair(data: _Data, cur: ModelState, a: Trial, b: Trial, seed: int, min_share: float,

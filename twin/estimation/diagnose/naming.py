@@ -12,22 +12,23 @@ from scipy import stats
 
 from twin.estimation.diagnose.constants import PLAUSIBLE, SIGNATURE_SHIFTS, TIMING_EFFECTS
 from twin.estimation.diagnose.data import ModelState, _Data
-from twin.estimation.diagnose.adequacy import _holdout_gain, _innovations, _lr
+from twin.estimation.diagnose.adequacy import _holdout_test, _innovations, _lr
 from twin.estimation.diagnose.results import Trial
 
 
 def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelState, min_share: float) -> Trial:
     lr, p, df, d_aicc = _lr(cur, st, data)
-    hg, lo, hi = _holdout_gain(cur, st, data)
+    ht = _holdout_test(cur, st, data)
     floor = math.sqrt(2.0 * cur.fit.n_obs)
     share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
-    t = Trial(effects, st, lr, p, df, d_aicc, hg, (lo, hi), share, p_adjusted=p)
+    t = Trial(effects, st, lr, p, df, d_aicc, ht["gain"], (ht["lo"], ht["hi"]), share, p_adjusted=p,
+              holdout_test=ht, holdout_p_adjusted=ht["p"])
     t.implausible = _implausible(data, effects, st)
     t.diverged = not (math.isfinite(st.fit.cost) and math.isfinite(st.wcost)
                       and all(np.all(np.isfinite(p[o])) for p in st.predicted for o in data.outputs))
     if not t.diverged:
         t.signature = _signature(data, cur, st)
-    _verdict(t, data.alpha, min_share, judge_share=share_rule(data, cur))
+    _verdict(t, data.alpha, min_share)
     return t
 
 
@@ -95,26 +96,21 @@ def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) ->
     return out
 
 
-def share_rule(data: _Data, cur: ModelState) -> str:
-    """When an extension of ``cur`` must remove ``min_share`` of its excess misfit: ``"no"`` for an adequate
-    nominal model (the screen found something the adequacy tests did not), ``"unless_adequate"`` while ``cur``
-    is not adequate (an extension that leaves the model adequate is exempt), ``"always"`` for an adequate model
-    that already names something (what is left is a formulation's slight mismatch: a further name must account
-    for most of it, not for a few per cent - a linear droop beside a turbulent line loss)."""
-    if not cur.adequate:
-        return "unless_adequate"
-    return "always" if (cur.effects or cur.timing != data.timing) else "no"
-
-
-def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str) -> None:
+def _verdict(t: Trial, alpha: float, min_share: float) -> None:
+    """One criterion for every kind of name (an effect, a pair, a timing): the whitened LR test significant
+    after Holm over the catalogue, a lower AICc, the held-out gain significant against the noise (the
+    Diebold-Mariano test of :func:`.adequacy._holdout_test`, one-sided, Bonferroni over the catalogue: both at
+    the family's level ``alpha``), a plausible size and the effect's own signature where the residuals have it
+    (a misplaced signature explaining over ``1 - min_share`` of its gain again: an error of other dynamics)."""
     reasons = ["diverged (its simulation of the record is not finite)"] if t.diverged else []
     if not t.p_adjusted < alpha:
         reasons.append(f"LR p_Holm={t.p_adjusted:.3g} >= {alpha:g}")
     if not t.delta_aicc < 0:
         reasons.append("AICc not lower")
-    if not (t.gain_interval[0] > 0):
-        reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not above its bootstrap spread "
-                       f"(interval from {100 * t.gain_interval[0]:.2f} %)")
+    if not t.holdout_p_adjusted < alpha:
+        z = float(t.holdout_test.get("z", 0.0))
+        reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not significant against the noise "
+                       f"(Diebold-Mariano z={z:.3g}, p_adj={t.holdout_p_adjusted:.3g} >= {alpha:g})")
     if t.implausible:
         reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
     # the effect's own signature must be where the residuals have it: the part of its gain that its signature
@@ -127,13 +123,5 @@ def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str) -> None
     if misplaced > 1.0 - min_share:
         reasons.append(f"its own signature is misplaced: led or lagged a few samples it explains again "
                        f"{100 * misplaced:.0f} % of its gain in what it leaves (an error of other dynamics)")
-    net = t.share * (1.0 - misplaced)
-    if judge_share == "unless_adequate" and not net >= min_share and not t.state.adequate:
-        reasons.append(f"explains only {100 * net:.0f} % of the excess misfit with its own signature and leaves "
-                       "the model inadequate")
-    elif judge_share == "always" and not net >= min_share:
-        reasons.append(f"explains only {100 * net:.0f} % of what the adequate model it extends leaves")
-    if not t.state.converged and not reasons:
-        pass  # a fit stopped by its evaluation budget can still be better; its figures are what they are
     t.accepted = not reasons
     t.reason = "; ".join(reasons)

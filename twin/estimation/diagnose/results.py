@@ -52,7 +52,7 @@ class Trial:
     df: int
     delta_aicc: float
     holdout_gain: float        # relative reduction of the held-out innovations' sum of squares
-    gain_interval: tuple[float, float]   # block-bootstrap interval (GAIN_COVERAGE)
+    gain_interval: tuple[float, float]   # GAIN_COVERAGE interval (HAC, delta method)
     share: float               # share of the current model's excess misfit removed
     p_adjusted: float = 1.0    # Holm over the catalogue
     implausible: list[str] = dataclasses.field(default_factory=list)  # parameters beyond PLAUSIBLE
@@ -60,6 +60,8 @@ class Trial:
     reason: str = ""
     diverged: bool = False     # its fit or its simulation of the record went non-finite
     signature: dict = dataclasses.field(default_factory=dict)  # is the effect's own signature in the residuals
+    holdout_test: dict = dataclasses.field(default_factory=dict)  # Diebold-Mariano test of the held-out gain
+    holdout_p_adjusted: float = 1.0  # its p-value, Bonferroni over the catalogue
 
     @property
     def effect(self) -> str:
@@ -77,7 +79,8 @@ class Trial:
                 "holdout_gain": self.holdout_gain, "holdout_gain_interval": list(self.gain_interval),
                 "share": self.share, "converged": self.state.converged, "accepted": self.accepted,
                 "reason": self.reason, "implausible": list(self.implausible), "diverged": self.diverged,
-                "signature": self.signature,
+                "signature": self.signature, "holdout_test": self.holdout_test,
+                "holdout_p_adjusted": self.holdout_p_adjusted,
                 "params": self.params()}
 
 

@@ -12,7 +12,7 @@ from twin.models import Model
 from twin.record import as_logged
 from twin.estimation.noise_model import (NoiseModel, fit_noise_model,
                                          long_run_variance)
-from twin.estimation.diagnose.constants import LIMITS, LIMIT_QUANTILES, SECANTS, SECONDARY
+from twin.estimation.diagnose.constants import CONDITION_ON, LIMITS, LIMIT_QUANTILES, SECANTS, SECONDARY
 from twin.estimation.diagnose.data import ModelState, _Data, _fd_step, holm
 from twin.estimation.diagnose.adequacy import _innovations
 from twin.estimation.diagnose.results import ScreenRow
@@ -129,31 +129,48 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     r_perp = r - Q @ (Q.T @ r)
     sigma2 = float(r_perp @ r_perp) / max(N - nj, 1)
     excess = max(state.excess, math.sqrt(2.0 * N))
+    # marginal scores: every probe against the current model (its free parameters projected out)
+    perp = []
+    marginal = []
+    for k, (_eff, _label, denom, _values, pspec, neutral) in enumerate(probes):
+        s = S[k] / denom
+        s_perp = s - Q @ (Q.T @ s) if np.isfinite(s).all() else None
+        perp.append(s_perp)
+        marginal.append(_score(s_perp, r_perp, m_out, n_t, neutral, pspec))
+    # conditional scores: every probe with the strongest other effects' best directions projected out too.  An
+    # error of one effect can point another's score the wrong way: an un-modelled force offset makes a
+    # free-running axis drift, and against that drift the dry friction's direction looks negative; the marginal
+    # one-sided score of the friction is then exactly 0 although the friction is in the record
+    lead = sorted(((lm, k) for k, (lm, _d) in enumerate(marginal) if lm > 0), reverse=True)
+    leaders: list[tuple[str, int]] = []
+    for _lm, k in lead:
+        if probes[k][0] not in {e for e, _ in leaders}:
+            leaders.append((probes[k][0], k))
+    conditional = []
+    for k, (eff, *_rest, pspec, neutral) in enumerate(probes):
+        others = [j for e, j in leaders if e != eff][:CONDITION_ON]
+        got = []
+        for j in others:
+            u = perp[j]
+            if perp[k] is None or u is None or not float(u @ u) > 0:
+                continue
+            u = u / math.sqrt(float(u @ u))
+            got.append(_score(perp[k] - u * float(u @ perp[k]), r_perp - u * float(u @ r_perp), m_out, n_t,
+                              neutral, pspec))
+        conditional.append(max(got, default=(0.0, 0.0)))
     best: dict[str, ScreenRow] = {}
     n_probes: dict[str, int] = {}
-    for k, (eff, label, denom, values, pspec, neutral) in enumerate(probes):
-        n_probes[eff] = n_probes.get(eff, 0) + 1
-        s = S[k] / denom
-        lm, delta = 0.0, 0.0
-        if np.isfinite(s).all():
-            s_perp = s - Q @ (Q.T @ s)
-            ss = float(s_perp @ s_perp)
-            if ss > 0 and math.isfinite(ss):
-                sr = float(s_perp @ r_perp)
-                delta = sr / ss
-                g = (s_perp * r_perp).reshape(m_out, n_t).sum(axis=0)  # per-sample score, outputs summed
-                lrv = long_run_variance(g - delta * (s_perp * s_perp).reshape(m_out, n_t).sum(axis=0))
-                lm = sr * sr / (n_t * lrv) if lrv > 0 else 0.0
-        one_sided_up = neutral <= pspec.lo
-        one_sided_down = neutral >= pspec.hi
-        if (one_sided_up and delta <= 0) or (one_sided_down and delta >= 0):
-            lm = 0.0
+    for k, (eff, label, _denom, values, pspec, neutral) in enumerate(probes):
+        n_probes[eff] = n_probes.get(eff, 0) + 1 + CONDITION_ON  # Bonferroni over marginal and conditional
+        (lm, delta), cond = marginal[k], False
+        if conditional[k][0] > lm:
+            (lm, delta), cond = conditional[k], True
         pval = float(stats.chi2.sf(lm, 1))
         est = dict(values)
         if label.startswith("derivative") and lm > 0:  # one Gauss-Newton step from neutral
             est[pspec.name] = float(np.clip(neutral + delta, pspec.lo, pspec.hi))
         share = min(lm * sigma2 / excess, 10.0)
-        row = ScreenRow(eff, lm, pval, 1.0, 1.0, label, est, share)
+        row = ScreenRow(eff, lm, pval, 1.0, 1.0, label + (" | others" if cond else ""), est, share)
         if eff not in best or lm > best[eff].lm:
             if eff in best and label.startswith("derivative:"):  # keep both offsets' one-step estimates
                 row.estimate = {**best[eff].estimate, **est}
@@ -166,6 +183,26 @@ def screen(data: _Data, state: ModelState, candidates: Sequence[str]) -> list[Sc
     for row, pa in zip(out, holm([row.p_effect for row in out])):
         row.p_adjusted = pa
     return out
+
+
+def _score(s_perp: np.ndarray | None, r_perp: np.ndarray, m_out: int, n_t: int, neutral: float,
+           pspec) -> tuple[float, float]:
+    """The LM statistic of one probe direction ``s_perp`` against the residual ``r_perp`` (both with the
+    model's free directions projected out; Newey-West variance of the per-sample score) and the one-step
+    estimate ``delta``; 0 for a one-sided effect (a friction, a limit) whose step points out of its range."""
+    if s_perp is None:
+        return 0.0, 0.0
+    ss = float(s_perp @ s_perp)
+    if not (ss > 0 and math.isfinite(ss)):
+        return 0.0, 0.0
+    sr = float(s_perp @ r_perp)
+    delta = sr / ss
+    g = (s_perp * r_perp).reshape(m_out, n_t).sum(axis=0)  # per-sample score, outputs summed
+    lrv = long_run_variance(g - delta * (s_perp * s_perp).reshape(m_out, n_t).sum(axis=0))
+    lm = sr * sr / (n_t * lrv) if lrv > 0 else 0.0
+    if (neutral <= pspec.lo and delta <= 0) or (neutral >= pspec.hi and delta >= 0):
+        return 0.0, delta
+    return lm, delta
 
 
 def _clean_noise_model(data: _Data, raw: Sequence[np.ndarray]) -> NoiseModel | None:

@@ -20,7 +20,7 @@ from twin.estimation.diagnose.data import _Data, holm
 from twin.estimation.diagnose.adequacy import _gain
 from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
 from twin.estimation.diagnose.screen import screen
-from twin.estimation.diagnose.naming import _verdict, share_rule
+from twin.estimation.diagnose.naming import _verdict
 from twin.estimation.diagnose.extend import _fit_state, _try, _try_pair
 from twin.estimation.diagnose.timing import _try_timing
 
@@ -113,9 +113,8 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
                 say(f"  {row.effect}: not fitted (screen LM {row.lm:.3g} < {PRUNE:g} x LR {best_lr:.4g} of an "
                     "accepted extension)")
                 continue
-            # the second-best start (the nominal parameters as configured) is for the first round, where
-            # they may have bent to mimic the effect; later rounds extend a model already fitted with them
-            trials.append(_try(data, cur, row, seed, min_share, base, n_ranked=2 if cur is nominal else 1))
+            # from the current estimates (which may have bent to mimic the effect) and from the baseline
+            trials.append(_try(data, cur, row, seed, min_share, base))
         # Holm over the catalogue (the timing counts as one more candidate): the trials' LR p-values take the
         # places of their effects' screen p-values; effects not fitted keep theirs
         fitted = {t.effects[0]: t for t in trials}
@@ -126,7 +125,8 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         adj = dict(zip([e for e, _ in pool], holm([p for _, p in pool])))
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
-            _verdict(t, alpha, min_share, judge_share=share_rule(data, cur))
+            t.holdout_p_adjusted = min(1.0, float(t.holdout_test.get("p", 1.0)) * len(pool))
+            _verdict(t, alpha, min_share)
             say(f"  {t.effect}: LR={t.lr:.4g} p_Holm={t.p_adjusted:.3g} dAICc={t.delta_aicc:.4g} held-out gain "
                 f"{100 * t.holdout_gain:.2f}% [{100 * t.gain_interval[0]:.2f}, {100 * t.gain_interval[1]:.2f}] "
                 f"share {t.share:.3f} {'accepted' if t.accepted else 'rejected: ' + t.reason}")
@@ -148,7 +148,8 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             a, b = sig[0], sig[1]
             pair, each = _try_pair(data, cur, a, b, seed, min_share, base)
             pair.p_adjusted = min(1.0, pair.p * len(pool))
-            _verdict(pair, alpha, min_share, judge_share=share_rule(data, cur))
+            pair.holdout_p_adjusted = min(1.0, float(pair.holdout_test.get("p", 1.0)) * len(pool))
+            _verdict(pair, alpha, min_share)
             say(f"  pair {pair.effect}: LR={pair.lr:.4g} p={pair.p:.3g} dAICc={pair.delta_aicc:.4g} "
                 f"held-out gain {100 * pair.holdout_gain:.2f}% share {pair.share:.3f} "
                 f"each significant: {each} -> {'accepted' if pair.accepted and each else 'rejected'}")
