@@ -34,6 +34,7 @@ from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
 
 WAIT_S = 10.0  # upper bound of every wait; the happy path takes milliseconds
+START_S = 300.0  # upper bound of a child process's start (imports, Zenoh session): only a hang reaches it
 
 
 def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
@@ -302,11 +303,12 @@ def test_an_unverifiable_jump_is_delivered_and_the_real_alarms_follow_when_the_t
     assert sub.recovered == 3
 
 
-def _child_publisher(endpoint: str, journal_path: str, n: int, done: object) -> None:
+def _child_publisher(endpoint: str, journal_path: str, n: int, done: object, ready: object) -> None:
     """Runs in a spawned process: a twin connecting to the test's session."""
     with zenoh.open(zenoh_config(connect=[endpoint])) as session, AlarmJournal(
         journal_path
     ) as journal, TwinPublisher(session, "child", journal) as twin:
+        ready.set()  # type: ignore[attr-defined]
         twin.wait_for_alarm_subscribers(WAIT_S)
         for i in range(1, n + 1):
             twin.publish_alarm(alarm("child", i))
@@ -317,13 +319,16 @@ def test_second_process_publishes_to_this_one(
     hub: zenoh.Session, endpoint: str, tmp_path: Path
 ) -> None:
     ctx = multiprocessing.get_context("spawn")
-    done = ctx.Event()
+    done, ready = ctx.Event(), ctx.Event()
     child = ctx.Process(
-        target=_child_publisher, args=(endpoint, str(tmp_path / "child.jsonl"), 4, done)
+        target=_child_publisher, args=(endpoint, str(tmp_path / "child.jsonl"), 4, done, ready)
     )
     with AlarmSubscriber(hub, "child") as sub:
         child.start()
         try:
+            # a Python process that imports the product starts in a second on a quiet machine and in tens of seconds
+            # on a loaded one: the wait for the alarms starts once the child's session is open
+            assert ready.wait(START_S), f"the child process did not open its session within {START_S} s"
             got = receive(sub, 4)
         finally:
             done.set()
