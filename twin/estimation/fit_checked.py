@@ -1,6 +1,8 @@
 """``twin.fit``: the fit (:func:`twin.estimation.fit.fit`) and the adequacy test of the fitted model.
 
-What ``twin fit`` and a commissioning run: a model that does not represent its record (its one-step prediction
+What ``twin fit`` and a commissioning run: a free parameter that an un-modelled effect of the catalogue can mimic
+(:func:`mimicry_warnings`: a transducer gain and Cd) is warned of in ``warnings`` (the text, the JSON and the
+report show them); a model that does not represent its record (its one-step prediction
 errors follow the drive, stay predictable or grow on the record's tail; :mod:`twin.estimation.diagnose.check`) is
 fitted all the same and said so, in ``warnings``, ``message`` and ``adequacy``; never a silently biased fit.  The
 diagnosis's own fits, which judge adequacy their own way, call the fit alone.
@@ -31,4 +33,21 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         recs = [records] if isinstance(records, Record) else list(records)
         judge(res, m, recs, drive=options.get("drive", "auto"), timing=options.get("timing") or DEFAULT_TIMING)
         res.time_s = time.perf_counter() - t0
+    m = get_model(model) if isinstance(model, str) else model
+    for w in mimicry_warnings(m, free, effects=getattr(options.get("base"), "effects", ())):
+        if w not in res.warnings:
+            res.warnings.append(w)
     return res
+
+
+def mimicry_warnings(model: Model, free: Sequence[str], effects: Sequence[str] = ()) -> list[str]:
+    """What ``twin diagnose`` knows and the fit would hide: a free parameter that an effect of the catalogue
+    (not switched on) can mimic (``Effect.mimicked_by``: a displacement transducer's gain is a Cd change while Cd
+    is free).  One line per effect: the fitted value carries the effect's error, and how to tell them apart."""
+    out = []
+    for name, E in model.EFFECTS.items():
+        hit = [n for n in E.mimicked_by if n in free]
+        if hit and name not in effects:
+            out.append(f"{', '.join(hit)} can mimic {name} ({E.description}): if the rig has it, the fitted "
+                       f"{', '.join(hit)} carries its error ({E.mimicry})")
+    return out
