@@ -174,7 +174,7 @@ def _five_parameter_command(sim_args=(), fit_args=()) -> dict:
         path = os.path.join(d, "rig40.csv")
         subprocess.run([sys.executable, "-m", "twin.cli", "-q", "simulate", "-o", path, "--duration", "40",
                         "--seed", "3", *sim_args], check=True)
-        start = "Ffric=70N,CdAleak=5e-9,Cd=0.25,zeta=0.45,wn=37Hz"
+        start = "Ffric=70N,CdAleak=0.005mm^2,Cd=0.25,zeta=0.45,wn=37Hz"
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "twin.cli", "-q", "fit", path, "--start", start, "--json", *fit_args],
                        check=True, stdout=subprocess.DEVNULL)

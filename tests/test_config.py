@@ -132,8 +132,15 @@ def test_values_with_units_in_params_and_baselines(tmp_path):
 
 @pytest.mark.parametrize("lines, message", [
     ('[rig.baseline.CdAleak]\nvalue = 0.0033',
-     r"baseline\.CdAleak\.value: 0\.0033 m\^2 is outside CdAleak's bounds \[1e-14, 1e-05\] m\^2; a bare number is "
-     r"SI \(m\^2\): for 0\.0033 mm\^2 write \"0\.0033mm\^2\""),
+     r"baseline\.CdAleak\.value: value = 0\.0033: a bare number is ambiguous \(CdAleak is shown in mm\^2, kept in "
+     r"m\^2\): write the unit, value = \"0\.0033mm\^2\" \(= 3\.3e-09m\^2\) or value = \"0\.0033m\^2\""),
+    ('[rig.baseline.wn]\nvalue = 270.0\nlo = 200\nhi = 400', r"baseline\.wn\.value: value = 270: a bare number is "
+     r"ambiguous \(wn is shown in Hz, kept in rad/s\): write the unit, value = \"270Hz\" \(= 1696\.46rad/s\) or "
+     r"value = \"270rad/s\" \(= 42\.9718Hz\)"),
+    ('noise = { x = 2e-6 }', r"noise\.x: x = 2e-06: a bare number is ambiguous \(x is shown in mm, kept in m\): write the "
+     r"unit, x = \"2e-06mm\""),
+    ('noise = { x = "0.6m" }', r"noise\.x: x=0\.6 m \(given as '0\.6m'\): implausible noise level for x: its physical "
+     r"range -500 \.\. 500 mm allows a standard deviation of at most 0\.5 m"),
     ('[rig.baseline.Ffric]\nvalue = "50 bar"', r"baseline\.Ffric\.value: expected a number or a value with a unit, got '50 bar': '50 bar' is not in a unit of N"),
     ('[rig.params]\nA = "2000 kg"', r"params\.A: expected a number or a value with a unit, got '2000 kg': '2000 kg' is not in a unit of m\^2"),
     ('map = ["pos_mm=x:mm"]', r"rig 'r'\.map item 'pos_mm=x:mm': 'pos_mm' is not a signal name but 'x' is"),

@@ -150,7 +150,8 @@ def test_cli_fits_a_reference_csv_with_the_rigs_timing(reference_records, tmp_pa
                                         demand={"intersample": "cubic"})])[0]
     path = tmp_path / "rig.csv"
     ref.to_csv(path)
-    start = ",".join(f"{k}={v!r}" for k, v in off_truth(ref, (1.2, 0.8, 1.1, 0.9, 1.1)).items())
+    unit = {s.name: "" if s.unit == "1" else s.unit for s in get_model("msp25").params().specs}  # SI, said
+    start = ",".join(f"{k}={v!r}{unit[k]}" for k, v in off_truth(ref, (1.2, 0.8, 1.1, 0.9, 1.1)).items())
     assert cli.main(["fit", str(path), "--controller", "continuous", "--intersample", "cubic", "--start", start,
                      "--json", "--save", str(tmp_path / "fit.json")]) == 0
     out = json.loads(capsys.readouterr().out)

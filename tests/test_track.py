@@ -118,7 +118,7 @@ def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys)
     assert doc["alarms"] == [] and doc["timing"] == "continuous"
     assert doc["noise"]["x"]["nominal"] == pytest.approx(2.1e-6)
     assert set(doc["sensors"].values()) == {"ok"}
-    rc = cli.main(["track", str(log), "--params", str(path), "--noise-levels", "x=4e-6", "--controller",
+    rc = cli.main(["track", str(log), "--params", str(path), "--noise-levels", "x=4um", "--controller",
                    "digital:5000", "--out", str(tmp_path / "o"), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert doc["noise"]["x"]["nominal"] == pytest.approx(4e-6) and doc["timing"] == "digital:5000"
@@ -131,7 +131,7 @@ def test_cli_commissions_from_a_fit_file_with_noise_and_timing(tmp_path, capsys)
     rc = cli.main(["track", str(log), "--noise-levels", "y=1", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and err == ["twin track: error: --noise-levels: expected positive standard deviations of x, pA, "
-                               "pB (SI), got 'y=1'"]
+                               "pB (e.g. x=2um,pA=20kPa), got 'y=1'"]
     path.write_text(json.dumps({**fit, "noise": {"x": -1.0}}))
     rc = cli.main(["track", str(log), "--params", str(path), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()

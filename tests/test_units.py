@@ -161,3 +161,72 @@ def test_simulate_writes_csv_units_that_every_reader_reads_back_to_the_same_numb
     (rec,) = load_records(str(osc), model="oscillator")
     rows = np.loadtxt(osc, delimiter=",", skiprows=1)
     assert np.array_equal(rec.signals["u"], rows[:, 1]) and np.array_equal(rec.signals["y"], rows[:, 2])
+
+
+# --- no silent unit trap: a bare number where the display unit is not SI -----------------------------------------
+
+def _ambiguous_specs():
+    """Every parameter of every model whose declared display unit differs from its SI unit (effects included)."""
+    from twin.models import MODELS
+    from twin.units import _specs
+
+    return [(m, s) for m in MODELS for s in _specs(m).values()
+            if s.unit != "1" and ((s.display_unit or s.unit) != s.unit or s.display_scale != 1.0)]
+
+
+def test_a_bare_number_is_refused_for_every_parameter_shown_in_another_unit():
+    """Found from each spec's declared display unit: wn, CdAleak, the pressures, and every other such one."""
+    from twin.models import get_model
+    from twin.units import _specs
+
+    found = _ambiguous_specs()
+    assert {"wn", "CdAleak", "pP", "pA_off", "A", "Tf"} <= {s.name for _, s in found}
+    for _model, spec in found:
+        with pytest.raises(ParameterError, match=rf"{spec.name}=1\.5: a bare number is ambiguous"):
+            to_si(spec.name, "1.5")
+        with pytest.raises(ParameterError, match="a bare number is ambiguous"):
+            spec.check("1.5")
+        # with its unit it is read, in either spelling (a value within the bounds)
+        si = math.sqrt(spec.lo * spec.hi) if spec.lo > 0 else 0.5 * spec.hi
+        assert to_si(spec.name, f"{si * spec.display_scale!r}{spec.display_unit}") == pytest.approx(si, rel=1e-9)
+        assert spec.check(f"{si * spec.display_scale!r}{spec.display_unit}") == pytest.approx(si, rel=1e-9)
+        assert spec.check(f"{si!r}{spec.unit}") == pytest.approx(si, rel=1e-12)
+    # a parameter shown in its SI unit takes a bare number; zero is zero in every unit; floats from Python are SI
+    assert to_si("Ffric", "50") == 50.0 and to_si("zeta", "0.4") == 0.4 and to_si("AB", "0") == 0.0
+    ps = get_model("msp25").params()
+    assert ps.replace(wn=270.0)["wn"] == 270.0
+    assert "Ffric" in _specs("msp25") and ps.replace(Ffric="60")["Ffric"] == 60.0
+
+
+def test_the_refusal_gives_both_spellings_and_each_works():
+    with pytest.raises(ParameterError) as exc:
+        kv("wn=43")
+    line = str(exc.value)
+    assert "\n" not in line and "wn=43Hz (= 270.177rad/s)" in line and "wn=43rad/s (= 6.84366Hz)" in line
+    for spelling in ("wn=43Hz", "wn=270.177rad/s"):
+        assert kv(spelling)["wn"] == pytest.approx(2 * math.pi * 43, rel=1e-5)
+
+
+@pytest.mark.parametrize("option,text,expected", [
+    ("--set", "wn=43", "wn=43Hz (= 270.177rad/s) or wn=43rad/s"),
+    ("--set", "CdAleak=3.3", "CdAleak=3.3mm^2 (= 3.3e-06m^2) or CdAleak=3.3m^2"),
+    ("--set", "pP=21", "pP=21MPa (= 2.1e+07Pa) or pP=21Pa"),
+    ("--noise-levels", "x=2", "x=2mm (= 0.002m) or x=2m"),
+    ("--noise-levels", "x=2m", "implausible noise level for x: its physical range -500 .. 500 mm allows a "
+                               "standard deviation of at most 0.5 m; give the unit, e.g. x=2um"),
+    ("--noise-levels", "pA=2e4", "pA=20000MPa (= 2e+10Pa) or pA=20000Pa"),
+])
+def test_simulate_refuses_a_silent_unit_trap_in_one_line(tmp_path, capsys, option, text, expected):
+    assert cli.main(["-q", "simulate", "-o", str(tmp_path / "r.csv"), "--duration", "0.2", option, text]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and expected in err[0], err
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_fit_start_and_track_noise_levels_refuse_bare_numbers(tmp_path, capsys):
+    rec = tmp_path / "r.csv"
+    assert cli.main(["-q", "simulate", "-o", str(rec), "--duration", "0.5", "--seed", "5"]) == 0
+    assert cli.main(["-q", "fit", str(rec), "--free", "wn", "--start", "wn=40"]) == 2
+    assert "wn=40Hz (= 251.327rad/s)" in capsys.readouterr().err
+    assert cli.main(["-q", "track", str(rec), "--noise-levels", "x=2e-6", "--out", str(tmp_path / "o")]) == 2
+    assert "x=2e-06mm (= 2e-09m) or x=2e-06m (= 0.002mm)" in capsys.readouterr().err

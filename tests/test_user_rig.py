@@ -171,7 +171,7 @@ def test_jittered_csv_fits_tracks_and_reads_consistently(pid_record, tmp_path, c
     assert info["report"]["gaps_ns"] == [] and 50e-6 < info["jitter_s"] <= 150e-6
     (rec,) = load_records(str(path))
     assert len(rec) == len(pid_record.t)
-    sets = ",".join(f"{k}={v}" for k, v in {**PID, "Tf": 1e-3}.items())
+    sets = ",".join(f"{k}={v}" for k, v in {**PID, "Tf": "1ms"}.items())
     assert cli.main(["fit", str(path), "--set", sets, "--json", "-q", "--starts", "4"]) == 0
     out = json.loads(capsys.readouterr().out)
     for k in ("Cd", "wn"):

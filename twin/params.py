@@ -83,13 +83,17 @@ class ParamSpec:
         a unit (``"2000mm^2"``, ``"43Hz"``: converted to SI as ``--set`` does)."""
         if isinstance(value, str):
             from fpdd.units import text_to_si
+            from twin.units import bare_number
 
             try:
-                value = text_to_si(self.name, value, self.unit)
+                si = text_to_si(self.name, value, self.unit)
             except ParameterError as exc:
                 reason = str(exc).removeprefix(f"{self.name}: ")
                 raise ParameterError(f"{self.name} (={value!r}) must be a number in {self.unit} or a value with a "
                                      f"unit: {reason}") from None
+            if _is_number(value):  # a bare number in text: refused where the display unit is not SI
+                bare_number(self.name, si, unit=(self.unit, self.display_unit or self.unit, self.display_scale))
+            value = si
         try:
             v = float(value)
         except (TypeError, ValueError):
@@ -194,6 +198,14 @@ class ParameterSet:
         for s, v in zip(self.specs, self.values):
             rows.append(f"{s.name:<12} {s.show(v):>16}  {s.category:<16} {s.meaning}")
         return "\n".join(rows)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def check_names(known: Iterable[str], asked: Iterable[str], what: str) -> None:

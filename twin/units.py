@@ -10,8 +10,10 @@ parameter's display unit: :func:`display_of`); the conversion is
 from __future__ import annotations
 
 import functools
+import math
 
-from fpdd.units import SIGNAL_UNITS, display, text_to_si
+from fpdd.errors import ParameterError
+from fpdd.units import SIGNAL_UNITS, SIGNALS, display, text_to_si
 
 #: quantities shown beside the logged signals, not logged themselves: (display unit, factor from SI)
 DERIVED_SIGNALS: dict[str, tuple[str, float]] = {"force": display("N"), "v": display("m/s")}
@@ -51,12 +53,102 @@ def to_si(name: str, text: str, unit: str | None = None) -> float:
 
     ``unit``: the SI unit to convert to (default: looked up by ``name`` among the
     models' parameters and the signals).
+
+    A bare number for a name whose display unit is not its SI unit (``wn``: Hz shown, rad/s inside;
+    ``CdAleak``: mm^2 and m^2; ``pA``: MPa and Pa) is refused (:func:`bare_number`): it would be read in SI
+    while people read the name in its display unit.  A value for a signal's name is a noise level (the one place
+    a signal's name takes a value: ``--noise-levels``, ``[rig] noise``): it must lie within half the span of the
+    signal's physical range (:func:`check_noise`), so ``x=2`` (2 m of noise) is refused.
     """
     try:
-        float(text)
+        value = float(text)
     except ValueError:  # a value with a unit: the models are asked for the unit of the name only then
-        unit = unit or known_units().get(name)
-    return text_to_si(name, text, unit)
+        value = text_to_si(name, text, unit or known_units().get(name))
+    else:
+        value = text_to_si(name, text, unit)
+        bare_number(name, value)
+    if name in SIGNAL_UNITS and name not in parameter_units():
+        check_noise(name, value, text)
+    return value
+
+
+def ambiguity(name: str) -> tuple[str, str, float] | None:
+    """``(SI unit, display unit, display scale)`` of a name whose display unit differs from its SI unit (a bare
+    number would be ambiguous), found from the parameters' declared display units (any model's) and the signals'
+    display units; ``None`` when a bare number is unambiguous."""
+    known = parameter_units().get(name)
+    if known is not None:
+        si, shown, scale = known
+        return known if (shown != si or scale != 1.0) and si != "1" else None
+    if name in SIGNAL_UNITS and "*" not in SIGNALS[name].accepts:  # a generic signal's unit follows the record
+        si = SIGNAL_UNITS[name]
+        shown, scale = display(si)
+        return (si, shown, scale) if (shown != si or scale != 1.0) else None
+    return None
+
+
+def spelled(value: float, unit: str) -> str:
+    """``value`` followed by ``unit`` as pint reads it back (``43Hz``, ``270.2rad/s``, ``0.0033mm^2``)."""
+    return f"{value:.6g}{unit.replace(' ', '*')}"
+
+
+def bare_number(name: str, value: float, *, unit: tuple[str, str, float] | None = None,
+                assign: str = "{name}={value}") -> None:
+    """Refuse (:class:`~fpdd.errors.ParameterError`, one line) a bare, non-zero ``value`` for ``name`` when its
+    display unit differs from its SI unit; the message gives both spellings (``wn=43Hz`` or ``wn=43rad/s``,
+    each with what it equals in the other unit).  ``unit``: ``(SI unit, display unit, display scale)`` when
+    known (a parameter's spec), else :func:`ambiguity`.  ``assign``: how the hint writes a value (a format
+    of ``name`` and ``value``; rigs.toml's is ``{name} = "{value}"``).  Zero is the same in every unit and passes."""
+    unit = unit if unit is not None else ambiguity(name)
+    if unit is None or value == 0.0:
+        return
+    si, shown, scale = unit
+    if shown == si and scale == 1.0:
+        return
+    def put(v: str) -> str:
+        return assign.format(name=name, value=v)
+
+    raise ParameterError(
+        f"{assign.format(name=name, value=f'{value:g}').replace(chr(34), '')}: a bare number is ambiguous ({name} is shown in {shown}, kept in {si}): write the "
+        f"unit, {put(spelled(value, shown))} (= {spelled(value / scale, si)}) or {put(spelled(value, si))} "
+        f"(= {spelled(value * scale, shown)})")
+
+
+def physical_range(name: str, model: str | None = None) -> tuple[float, float] | None:
+    """The physical range (SI) of signal ``name`` that ``model``'s records declare (the rig's table when no model
+    is given); ``None`` for an unknown signal."""
+    spec = None
+    if model:
+        from twin.models.records import signal_specs
+
+        try:
+            spec = signal_specs(model).get(name)
+        except Exception:  # an unknown model: the rig's table
+            spec = None
+    spec = spec or SIGNALS.get(name)
+    return (float(spec.lo), float(spec.hi)) if spec is not None else None
+
+
+def check_noise(name: str, value: float, text: str | None = None, model: str | None = None) -> float:
+    """Refuse a noise level (a standard deviation, SI) of signal ``name`` beyond half the span of the signal's
+    physical range: no sensor's noise is wider than what the signal can read (a value confined to
+    ``[lo, hi]`` has a standard deviation of at most ``(hi - lo) / 2``).  ``x=2`` is 2 m of noise on a
+    displacement of +-0.5 m: the message names the range and how to write a unit."""
+    rng = physical_range(name, model)
+    if rng is None or not math.isfinite(value):
+        return value
+    lo, hi = rng
+    limit = 0.5 * (hi - lo)
+    if abs(value) > limit:
+        si = SIGNAL_UNITS.get(name, "")
+        shown, scale = display(si)
+        given = f" (given as {text.strip()!r})" if text is not None else ""
+        small = {"m": "um", "Pa": "kPa"}.get(si, si)
+        raise ParameterError(
+            f"{name}={value:g} {si}{given}: implausible noise level for {name}: its physical range "
+            f"{lo * scale:g} .. {hi * scale:g} {shown} allows a standard deviation of at most {limit:g} {si}; "
+            f"give the unit, e.g. {name}={spelled(abs(value), small)}")
+    return value
 
 
 def signal_unit(name: str, model: str | None = None) -> tuple[str, float]:

@@ -10,7 +10,7 @@ from replay.options import EXIT_LOSS
 from twin.commands.common import (add_map_argument, add_timing_arguments, dump, kv, loss_lines, names, source_options,
                                   timing_of)
 from twin.online.events import format_alarm
-from twin.models import DEFAULT_MODEL
+from twin.models import DEFAULT_MODEL, trackable_models
 from twin.service.track import track
 
 
@@ -20,16 +20,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = EXIT_HELP
     p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
     p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
-    p.add_argument("--track", help="parameters to track (default Ffric,CdAleak,Cd,zeta,wn)")
+    p.add_argument("--model", choices=trackable_models(), default=None,
+                   help=f"the rig model to track (default the --config rig's, the --params fit's, else "
+                        f"{DEFAULT_MODEL})")
+    p.add_argument("--track", help="parameters to track (default the model's phenomenological ones, e.g. "
+                                   "Ffric,CdAleak,Cd,zeta,wn)")
     p.add_argument("--params", metavar="FIT.json",
                    help="commissioning fit (JSON of twin fit --save): known values, healthy bands around the fitted "
                         "ones, sensor noise, loop timing")
-    p.add_argument("--noise-levels", metavar="x=2e-6,pA=2e4,...",
-                   help="sensor noise standard deviations (SI) per output; default the fit's, else "
-                        "x=2e-6,pA=2e4,pB=2e4 (the filter goes on learning them online)")
+    p.add_argument("--noise-levels", metavar="x=2um,pA=20kPa,...",
+                   help="sensor noise standard deviations per output, with their units; default the fit's, else "
+                        "x=2um,pA=20kPa,pB=20kPa (the filter goes on learning them online)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,...")
     p.add_argument("--config", metavar="RIG.toml", help="take parameters and baseline of this rig configuration")
-    p.add_argument("--dbc", help="DBC for CAN logs (default: the MSP25 DBC)")
+    p.add_argument("--dbc", help="DBC for CAN logs (default: the DBC shipped with replay)")
     p.add_argument("--out", metavar="DIR", default="fpdd-track", help="MCAP and plot directory (default fpdd-track)")
     p.add_argument("--json", action="store_true", help="print alarms, forecasts and final estimates as JSON")
     p.add_argument("--forecast-horizon", type=float, metavar="S",
@@ -67,42 +71,26 @@ def parse_maintenance(text: str, tracked) -> tuple[float, list[str], str]:
     return t, ps, (m.group(3) or "").strip()
 
 
-def _check_rig_log(path: str) -> None:
-    """A CSV of the oscillator (columns u, y, no x) is not a rig log: say so before reading it."""
-    if not str(path).lower().endswith(".csv"):
-        return
-    try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            header = [c.strip() for c in f.readline().split(",")]
-    except OSError:
-        return  # the reader names the problem
-    from replay.csvio.columns import split_unit
-
-    names = {split_unit(c)[0] for c in header}  # y[m], u[N]: the names without their units
-    if "y" in names and not {"x", "pA", "pB"} & names:
-        from fpdd.errors import DataError
-
-        raise DataError(f"{path}: columns {', '.join(header)} are the oscillator's; the tracker follows the "
-                        f"{DEFAULT_MODEL} rig model (it needs u or x_ref and at least one of x, pA, pB)")
-
-
-def _read(path: str, opts: dict, reports: list):
-    """Blocks of the log; its signals checked first (:func:`twin.models.records.check_signals`), its read report kept."""
+def _read(path: str, opts: dict, reports: list, model: str):
+    """Blocks of the log; its signals checked first against ``model`` (:func:`twin.models.records.check_signals`,
+    naming the models whose signals the log has when it is not ``model``'s), its read report kept."""
     from replay.factory import open_source
-    from twin.models.records import check_signals
+    from replay.quality import QualityOptions
+    from twin.models.records import check_signals, signal_specs
 
+    if str(path).lower().endswith((".csv", ".csv.gz", ".mcap")) and "quality" not in opts:
+        opts = {**opts, "quality": QualityOptions(specs=signal_specs(model))}
     with open_source(path, **opts) as src:
-        check_signals(path, src.signals, DEFAULT_MODEL)
+        check_signals(path, src.signals, model, suggest=True)
         reports.append(src.report)
         yield from src.chunks(10000)
 
 
 def run(args) -> int:
     from twin.service.config import load_config
-    from twin.models import DEFAULT_MODEL, get_model
+    from twin.models import get_model
     from twin.reports.plots import parameter_trends
 
-    _check_rig_log(args.log)
     horizon = getattr(args, "forecast_horizon", None)
     if horizon is not None and not (horizon > 0 and horizon < float("inf")):
         from fpdd.errors import ParameterError
@@ -111,31 +99,41 @@ def run(args) -> int:
     params = {}
     baseline = None
     tracked = names(args.track) or None
+    model_name = args.model
     if args.config:
         cfg = load_config(args.config)
         rig = next((r for r in cfg.rigs if r.name == args.rig), cfg.rigs[0])
         params, baseline, tracked = dict(rig.params), rig.baseline, tracked or rig.track
         horizon = horizon if horizon is not None else rig.forecast_horizon_s
+        model_name = model_name or rig.model
     commission = None
     if args.params:
         from twin.online.commission import load_fit, tracker_params
 
         commission = load_fit(args.params)
-        tracker_params(commission, tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL)  # refuses effects
+        if model_name is not None and commission.model != model_name:
+            from fpdd.errors import ConfigError
+
+            raise ConfigError(f"{args.params}: a fit of the {commission.model} model; tracking the {model_name} "
+                              "model")
+        model_name = commission.model
+        tracker_params(commission, tracked or get_model(model_name).PHENOMENOLOGICAL)  # checks the fit's effects
         for w in commission.warnings:  # the bands are centred on this fit: what it warned of, said again
             print(f"WARNING ({args.params}, the fit the bands are centred on): {w}", file=sys.stderr)
+    model_name = model_name or DEFAULT_MODEL
+    model = get_model(model_name)
     if args.set:
-        model = get_model(DEFAULT_MODEL)
         over = kv(args.set)
-        model.params((), **over)  # checks names and ranges
+        model.params(commission.effects if commission is not None else (), **over)  # checks names and ranges
         params.update(over)
     noise = kv(args.noise_levels) if args.noise_levels else None
     if noise:
-        bad = [k for k in noise if k not in ("x", "pA", "pB")]
+        measured = tuple(model.FILTER.measures) if model.FILTER is not None else model.OUTPUTS
+        bad = [k for k in noise if k not in measured]
         if bad or any(not v > 0 for v in noise.values()):
             from fpdd.errors import ParameterError
 
-            raise ParameterError(f"--noise-levels: expected positive standard deviations of x, pA, pB (SI), got "
+            raise ParameterError(f"--noise-levels: expected positive standard deviations of {', '.join(measured)} (e.g. x=2um,pA=20kPa), got "
                                  f"{args.noise_levels!r}")
     timing = timing_of(args) if (args.controller or args.intersample) else None
     say = None if args.json else (lambda m: print("\r" + m, end="", file=sys.stderr, flush=True))
@@ -143,9 +141,10 @@ def run(args) -> int:
     if args.dbc:
         opts["dbc"] = args.dbc
     reports: list = []
-    maint = [parse_maintenance(m, tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL) for m in args.maintenance]
-    twin = track(_read(args.log, opts, reports), args.rig, params, tracked, baseline, args.out, progress=say,
-                 noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon, maintenance=maint)
+    maint = [parse_maintenance(m, tracked or model.PHENOMENOLOGICAL) for m in args.maintenance]
+    twin = track(_read(args.log, opts, reports, model_name), args.rig, params, tracked, baseline, args.out,
+                 progress=say, noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon,
+                 maintenance=maint, model=model_name)
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:
@@ -155,10 +154,8 @@ def run(args) -> int:
     lost = loss_lines("track", reports)
     png = parameter_trends(twin, twin.rig.baseline, os.path.join(args.out, "parameter_trends.png"),
                            title=f"Tracked parameters of {args.rig} ({os.path.basename(args.log)})")
-    from twin.units import SIGNAL_UNITS
-
     result = {
-        "log": args.log, "rig": args.rig, "samples": twin.stats.samples,
+        "log": args.log, "rig": args.rig, "model": model_name, "samples": twin.stats.samples,
         "alarms": [dict(a.to_dict(), t=a.t_s) for a in twin.alarms],
         "forecasts": [f.to_dict() for f in sorted(twin.forecasts, key=lambda f: (f.t, f.parameter))],
         "forecast_horizon_s": twin.forecast.horizon_s,
@@ -169,7 +166,7 @@ def run(args) -> int:
         "counters": twin.tracker.counters,
         "consistency": twin.drift.guard,
         "sensors": twin.tracker.sensor_status(),
-        "noise": {o: dict(v, unit=SIGNAL_UNITS.get(o, "")) for o, v in twin.tracker.noise_levels().items()},
+        "noise": {o: dict(v, unit=model.signal_unit(o)) for o, v in twin.tracker.noise_levels().items()},
         "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},
         "input_lost": lost,

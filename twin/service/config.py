@@ -22,10 +22,10 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     priority = 100                      #   each, the others stand by (keys: twin/service/ownership.py)
 
     [[rig]]
-    name = "msp25-a"
-    model = "msp25"
+    name = "hall1-a"
+    model = "..."                       # a registered model the online twin runs (default the product's rig)
     source = "can://socketcan/can0"     # or zenoh://KEYEXPR, or a log file (replayed)
-    dbc = ""                            # default: the MSP25 DBC shipped with replay (relative to this file)
+    dbc = ""                            # default: the DBC shipped with replay (relative to this file)
     map = ["x=pos_mm:mm", "t=time:ms"]  # a CSV log's columns under other names or units (as --map;
                                         #   or a table: map = { x = "pos_mm:mm", t = "time:ms" })
     speed = 1.0                         # replay speed for log sources (0 = as fast as possible)
@@ -40,7 +40,7 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     intersample = "zoh"                 # logged inputs between samples: zoh, foh, cubic
     forecast_horizon_s = 3600           # early warning when a parameter leaves its band within this
     noise = { x = "2um", pA = "20kPa", pB = "20kPa" }   # sensor noise (learnt online on top)
-    [rig.params]                        # known parameters that differ from the nominal MSP25
+    [rig.params]                        # known parameters that differ from the model's nominal ones
     KP = 400.0                          # a bare number is SI; or with a unit: A = "2000mm^2"
     [rig.baseline.Ffric]                # healthy band (default: nominal value, the parameter's tracking band)
     value = 50.0                        # SI, or with a unit ("50N"; CdAleak = "0.0033mm^2"); a value outside
@@ -61,7 +61,7 @@ import tomllib
 from typing import TYPE_CHECKING, Any
 
 from fpdd.errors import ConfigError, ParameterError
-from twin.service.config_values import _check_keys, _get, _number, suggest
+from twin.service.config_values import _check_keys, _get, _number, suggest, unit_number
 from twin.models import DEFAULT_MODEL
 from twin.online.baseline import Baseline, default_band, default_baseline
 from twin.online.events import RIG_PATTERN
@@ -180,6 +180,7 @@ def _si(d: dict, key: str, where: str, pname: str, spec=None, default: Any = ...
                               f"{reason}") from None
     else:
         v = _get(d, key, float, where, default)
+        unit_number(d, key, where, pname, spec)
     if positive and not v > 0:
         raise ConfigError(f"{where}.{key}: must be > 0, got {v:g}")
     if spec is not None and not spec.lo <= v <= spec.hi:
@@ -432,6 +433,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         if not noise[k] > 0:
             raise ConfigError(f"{where}.noise.{k}: expected a positive standard deviation (SI or with a unit, "
                               f"e.g. \"2um\"), got {v!r}")
+        unit_number(r["noise"], k, f"{where}.noise", k)
     timing = None
     if "controller" in r or "intersample" in r:
         try:

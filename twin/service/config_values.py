@@ -9,7 +9,7 @@ from typing import Any
 
 from fpdd.errors import ConfigError
 
-__all__ = ["suggest"]
+__all__ = ["suggest", "unit_number"]
 
 _TYPE_TEXT = {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table",
               bool: "true or false"}
@@ -52,3 +52,22 @@ def _number(d: dict, key: str, where: str, default: Any = ..., *, lo: float | No
         op = ">" if lo_open else ">="
         raise ConfigError(f"{where}.{key}: must be {op} {lo:g}{what}, got {v:g}")
     return v
+
+
+def unit_number(d: dict, key: str, where: str, name: str, spec=None) -> None:
+    """Refuse a bare number at ``d[key]`` for a quantity whose display unit is not its SI unit (``wn``: Hz shown,
+    rad/s inside): in rigs.toml such a value is a string with its unit, ``wn = "43Hz"``; the message gives both
+    spellings (:func:`twin.units.bare_number`).  ``spec``: the parameter's spec when known (its declared
+    display unit), else the name's among every model's parameters and the signals.  A string, a missing key
+    and zero pass."""
+    v = d.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return
+    from fpdd.errors import ParameterError
+    from twin.units import bare_number
+
+    unit = None if spec is None else (spec.unit, spec.display_unit or spec.unit, float(spec.display_scale))
+    try:
+        bare_number(name, float(v), unit=unit, assign=f'{key} = "{{value}}"')
+    except ParameterError as exc:
+        raise ConfigError(f"{where}.{key}: {exc}") from None
