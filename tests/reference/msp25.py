@@ -58,6 +58,7 @@ from scipy.optimize import root
 from . import msp25_rhs as R
 from .integrate import DRIVERS, METHODS, piece
 from .record import Record
+from .sequences import SEQUENCE_DEFAULT, STEPS_DEFAULT, demand_values, drift_spec, drifted
 from .signals import (blocks_table, chirp_table, multisine_table, noise_sequence, pade_delay, poly_table, quantise,
                       road_table, sig_eval, tv_breaks, tv_eval, tv_row, tv_tables)
 from .tables import MSP25_FREE, MSP25_KNOWN, draw_effects, draw_truth
@@ -78,6 +79,8 @@ DEMAND_KINDS = {
                "fade_s": 0.2, "min_fraction": 0.2, "offset": 0.0, "intersample": "analytic"},
     "road": {"kind": "road", "amplitude": 5e-3, "f_lo": 0.2, "f_hi": 20.0, "n_lines": 200, "v_max": 0.25,
              "ramp_s": 0.5, "offset": 0.0, "intersample": "analytic"},
+    "steps": STEPS_DEFAULT,        # a staircase (:mod:`.sequences`)
+    "sequence": SEQUENCE_DEFAULT,  # parts of these kinds one after the other (:mod:`.sequences`)
 }
 TEMPERATURE_DEFAULT = {"T": 313.15, "T0": 313.15, "a_bulk": 0.006, "b_visc": 0.03, "quant": 0.1}
 # absolute tolerances per state (SI): xs vs pA pB x v x2 v2 zi zd z0..z3 pAm pBm
@@ -95,7 +98,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
                max_step: float = 1e-3, method: str = "LSODA", driver: str = "odeint", pade_order: int = 3,
                derivative_filter_s: float = 1e-3, pid: Mapping | None = None,
                time_jitter_s: float = 0.0, signal_rates: Mapping[str, float] | None = None,
-               temperature: Mapping | None = None) -> dict:
+               temperature: Mapping | None = None, specimen: Mapping | None = None,
+               sensor_drift: Mapping | None = None) -> dict:
     """A complete MSP25 spec (plain dict): every default filled in, truth and effect sizes drawn.
 
     ``truth``: None (Table 9), ``"draw"`` (:func:`draw_truth` with ``spread``) or a dict of free
@@ -105,7 +109,9 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
     (none) or a dict overriding :data:`DEFAULT_NOISE` (``tau`` > 0: AR(1) of that correlation
     time; ``quant``: LSB per signal).  ``demand``: overrides :data:`DEFAULT_DEMAND`, or
     ``{"kind": "samples", "values": array}``; ``intersample`` sets the demand's (or the open-loop
-    drive's) intersample behaviour.  ``drive`` (open loop): ``{"u": array}`` at the log instants
+    drive's) intersample behaviour.  ``specimen``: ``{"k": N/m or a time variation}`` (a specimen that
+    stiffens or cracks; not with the ``specimen_stiffness`` effect).  ``sensor_drift``: sensor -> drifting
+    offset, gain, noise (:mod:`.sequences`; ``x`` with a digital controller only).  ``drive`` (open loop): ``{"u": array}`` at the log instants
     (optionally ``"x_ref"``).  ``init``: a full initial state (14 values) instead of the equilibrium.
     Solver: ``driver`` ``odeint`` (LSODA, default) or ``solve_ivp`` with ``method`` LSODA, Radau or BDF;
     ``rtol``, per-state absolute tolerances :data:`ATOL` times ``atol_scale``, ``max_step`` [s].
@@ -175,6 +181,8 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
         dem = {**DEMAND_KINDS.get(kind, DEFAULT_DEMAND), **dict(demand or {})}
         if kind in ("chirp", "sweep") and dem["sweep_s"] is None:
             dem["sweep_s"] = float(duration)
+        if kind == "sequence":
+            dem["parts"] = [_part_spec(p) for p in dem["parts"]]
         if dem["kind"] == "samples":
             dem["values"] = np.asarray(dem["values"], float)
             dem.setdefault("intersample", "zoh")
@@ -189,6 +197,14 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
             raise ValueError("sampled demand: intersample zoh, foh or cubic")
     if isamp not in ("analytic", "zoh", "foh", "cubic"):
         raise ValueError(f"intersample must be analytic, zoh, foh or cubic, got {isamp!r}")
+    drift = drift_spec(sensor_drift)
+    if "x" in drift and controller != "digital":
+        raise ValueError("sensor_drift on x needs a digital controller (the analog one reads x inside the ODE)")
+    spm = None
+    if specimen is not None:
+        if "specimen_stiffness" in eff:
+            raise ValueError("specimen and the specimen_stiffness effect both set the specimen")
+        spm = {"k": dict(specimen["k"]) if isinstance(specimen["k"], Mapping) else float(specimen["k"])}
     rate = float(rate_hz or log_rate_hz) if controller == "digital" else None
     if rate is not None:
         hi, lo = max(rate, log_rate_hz), min(rate, log_rate_hz)
@@ -204,7 +220,20 @@ def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 10
         "pade_order": int(pade_order), "derivative_filter_s": float(derivative_filter_s),
         "pid": _pid_spec(pid), "time_jitter_s": float(time_jitter_s),
         "signal_rates": _rates_spec(signal_rates, log_rate_hz), "temperature": _temperature_spec(temperature),
+        "specimen": spm, "sensor_drift": drift,
     }
+
+
+def _part_spec(part: Mapping) -> dict:
+    """A sequence's part with its kind's defaults filled in (a chirp or sweep over the part)."""
+    kind = part.get("kind")
+    if kind not in DEMAND_KINDS or kind == "sequence" or "seconds" not in part:
+        raise ValueError(f"a sequence's part needs a kind (not sequence) and its seconds, got {dict(part)}")
+    out = {**DEMAND_KINDS[kind], **dict(part)}
+    out["seconds"] = float(out["seconds"])
+    if kind in ("chirp", "sweep") and out["sweep_s"] is None:
+        out["sweep_s"] = out["seconds"]
+    return out
 
 
 def _rates_spec(rates: Mapping[str, float] | None, log_rate_hz: float) -> dict:
@@ -252,6 +281,9 @@ def _pid_spec(pid: Mapping | None) -> dict:
 def _demand_table(dem: dict, seed: int, duration: float) -> tuple[np.ndarray, np.ndarray]:
     """The analytic demand of a spec: its signal table (see :mod:`.signals`), drawn from ``seed``."""
     kind = dem["kind"]
+    if kind in ("steps", "sequence"):
+        tt, vv = demand_values(dem, seed, duration, _demand_table)
+        return poly_table(vv, float(tt[1] - tt[0]), "cubic")
     if kind == "multisine":
         return multisine_table(dem["amplitude"], dem["f_lo"], dem["f_hi"], dem["n_lines"], seed, dem["ramp_s"],
                                dem["offset"])
@@ -350,6 +382,11 @@ class _Setup:
             rows.append(row)
         else:
             rows.append([0.0, 0.0, 0.0, 0.0, 0.0])
+        k_var = (spec.get("specimen") or {}).get("k")
+        row, desc = tv_row(k_var, float(self.P[R.KSPEC]), tabs, t_lo, spec["duration"])
+        rows.append(row)
+        if k_var is not None:
+            self.truth_desc["k_spec"] = desc
         self.tv, self.tab = tv_tables(rows, tabs)
         ctrl = spec["controller"]
         rng = np.random.default_rng([spec["seed"], 1234])
@@ -378,6 +415,8 @@ class _Setup:
             self.C = int(round(self.base_rate / spec["rate_hz"]))
             n_base = (self.n_log - 1) * self.L + 1
             self.xnoise = noise_sequence(rng, n_base, nz["x"], 1.0 / self.base_rate, nz["tau"])
+            self.xdrift_w = (np.random.default_rng([spec["seed"], 5152]).standard_normal(n_base)
+                             if "x" in (spec.get("sensor_drift") or {}) else None)
         else:
             self.base_rate = spec["log_rate_hz"]
             self.L = self.C = 1
@@ -442,7 +481,7 @@ def _equilibrium(s: _Setup, t: float) -> tuple[np.ndarray, str]:
         return y, "rest"
     r0 = float(sig_eval(s.sigp, s.sc, t, -1))
     x0 = r0 / P[R.GAIN]
-    dpF = (spec["Fext"] + P[R.KSPEC] * x0) / P[R.AREA]
+    dpF = (spec["Fext"] + tv_eval(s.tv, s.tab, R.TV_KSPEC, t) * x0) / P[R.AREA]
     y[R.S_X] = x0
     y[R.S_X2] = x0
     y[R.S_PA] = pm + (0.5 * dpF if P[R.AREA_B] == P[R.AREA] else dp_half)
@@ -560,8 +599,11 @@ def _run_ticks(s: _Setup, y: np.ndarray, j_pre: int):
         xt = x_read[read_of[j]] if delay > 0.0 else y_now[R.S_X]
         clean = P[R.GAIN] * xt
         xm = clean + (s.xnoise[j] if j >= 0 else 0.0)
+        if xdrift is not None and j >= 0:
+            xm = float(drifted(xdrift, np.array([t]), np.array([xm]), np.array([s.xdrift_w[j]]))[0])
         return float(quantise(np.array(xm), qx)), clean
 
+    xdrift = spec.get("sensor_drift", {}).get("x")
     held_demand = spec["intersample"] in ("zoh", "foh")
     opts = dict(s.opts, max_step=min(s.max_step, hb))
     for j in range(-j_pre, j_end + 1):
@@ -663,6 +705,12 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
             pA = pA + off["sign"] * off["offset"]
         else:
             pB = pB + off["sign"] * off["offset"]
+    drift = spec.get("sensor_drift") or {}
+    wd = np.random.default_rng([spec["seed"], 5151]).standard_normal((2, tk.size))
+    if "pA" in drift:
+        pA = drifted(drift["pA"], tk, pA, wd[0])
+    if "pB" in drift:
+        pB = drifted(drift["pB"], tk, pB, wd[1])
     pA = quantise(pA, nz["quant"]["pA"])
     pB = quantise(pB, nz["quant"]["pB"])
     if spec["controller"] == "open_loop":
@@ -692,6 +740,8 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
         if name in spec["time_varying"]:
             hidden[name] = np.array([tv_eval(s.tv, s.tab, i, t) for t in tk])
     hidden.update(fresh)
+    if (spec.get("specimen") or {}).get("k") is not None:
+        hidden["k_spec"] = np.array([tv_eval(s.tv, s.tab, R.TV_KSPEC, t) for t in tk])
     if T is not None:
         dT = T - temp["T0"]
         hidden.update({"T_oil": T, "B": s.P[R.BULK] * (1.0 - temp["a_bulk"] * dT),

@@ -33,8 +33,8 @@ S_PAM, S_PBM = 14, 15
  PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON,
  AREA_B, V0_B, KTURB, TAUP, TEMP_ON, TREF, ABULK, BVISC) = range(55)
 NP = 55
-# time-varying free parameters, rows of the TV table; then the oil temperature [K]
-TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN, TV_TEMP = range(6)
+# time-varying free parameters, rows of the TV table; then the oil temperature [K], the specimen's stiffness [N/m]
+TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN, TV_TEMP, TV_KSPEC = range(7)
 FREE_ORDER = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
 # controller modes
 M_ANALOG, M_HELD, M_SIGNAL = 0, 1, 2
@@ -184,7 +184,7 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
     fd = Ffric
     if fs > 0.0:
         fd += fs * math.exp(-abs(v) / P[VSTR])
-    F = pA * A - pB * Ab - fd * math.tanh(v / P[VREF]) - P[CVISC] * v - P[FEXT] - P[KSPEC] * x
+    F = pA * A - pB * Ab - fd * math.tanh(v / P[VREF]) - P[CVISC] * v - P[FEXT] - tv_eval(tv, tab, TV_KSPEC, t) * x
     if P[M2] > 0.0:
         Fc = P[K2] * (x - y[S_X2]) + P[C2] * (v - y[S_V2])
         F -= Fc
