@@ -18,10 +18,10 @@ from twin.params import EXCITATION, Tracking
 
 
 def test_the_registry_names_every_model_and_what_it_can_do():
-    assert set(MODELS) == set(REGISTRY) == {"msp25", "oscillator"}
-    assert trackable_models() == ("msp25",)
+    assert set(MODELS) == set(REGISTRY) == {"msp25", "oscillator", "axis"}
+    assert trackable_models() == ("msp25", "oscillator", "axis")
     assert get_model("msp25").CLOSED_LOOP and not get_model("oscillator").CLOSED_LOOP
-    with pytest.raises(ParameterError, match="unknown model 'msp26'; known: msp25, oscillator"):
+    with pytest.raises(ParameterError, match="unknown model 'msp26'; known: msp25, oscillator, axis"):
         get_model("msp26")
 
 
@@ -72,6 +72,23 @@ def test_changing_a_spec_changes_what_the_tracker_does(monkeypatch):
     assert np.allclose(tr.q_rate, [0.001])
 
 
-def test_the_online_twin_refuses_a_model_it_cannot_run():
-    with pytest.raises(ParameterError, match="does not run the oscillator model; it runs: msp25"):
+def test_the_online_twin_refuses_a_model_it_cannot_run(monkeypatch):
+    m = get_model("oscillator")
+    monkeypatch.setattr(type(m), "TRACKABLE", False)
+    with pytest.raises(ParameterError, match="does not run the oscillator model; it runs: msp25, axis"):
         OnlineTracker("oscillator")
+
+
+def test_every_model_declares_its_signals_with_their_roles():
+    """What generic code asks of a model: its drive, demand, outputs and units, declared on the model."""
+    for name in MODELS:
+        m = get_model(name)
+        sig = m.signals()
+        assert m.drive_name in m.INPUTS and set(m.INPUTS) <= set(sig) and set(m.OUTPUTS) <= set(sig), name
+        assert (m.demand_name is not None) == m.CLOSED_LOOP, name
+        assert set(m.signals("output")) == set(m.OUTPUTS), name
+        assert m.EXPERIMENT is not None and m.EXPERIMENT.drive in m.INPUTS, name
+        if m.FILTER is not None:
+            assert set(m.FILTER.measures) <= set(m.OUTPUTS) and set(m.FILTER.exogenous) <= set(
+                m.signals("exogenous")), name
+    assert get_model("oscillator").signal_unit("u") == "N" and get_model("msp25").signal_unit("u") == "V"

@@ -21,7 +21,8 @@ def add_arguments(p) -> None:
     p.add_argument("--dt", type=float, default=1e-3, help="sample time in s (default 1e-3)")
     p.add_argument("--excitation", default=None, choices=("multisine", "chirp", "steps"))
     p.add_argument("--amplitude", default=None, metavar="PEAK",
-                   help="peak of the drive, with a unit or SI: 5mm (x_ref, m) or 800N (force)")
+                   help="peak of the drive of the model's default experiment, with a unit or SI: 5mm (a demand "
+                        "x_ref in m) or 800N (a force u in N)")
     p.add_argument("--f-lo", type=float, default=None, help="lowest frequency in Hz")
     p.add_argument("--f-hi", type=float, default=None, help="highest frequency in Hz")
     p.add_argument("--seed", type=int, default=0)
@@ -79,11 +80,11 @@ def run(args) -> int:
     ps = model.params(effects=_names(args.effects), **_kv(args.set))
     amplitude = None
     if args.amplitude is not None:
-        from twin.models.simulate import DEFAULT_EXPERIMENT
+        from twin.models.simulate import default_experiment
         from twin.units import to_si
 
-        drive_name = DEFAULT_EXPERIMENT[model.name]["drive"]
-        amplitude = to_si(f"--amplitude ({drive_name})", args.amplitude, "N" if drive_name == "force" else "m")
+        drive_name = default_experiment(model)["drive"]
+        amplitude = to_si(f"--amplitude ({drive_name})", args.amplitude, model.signal_unit(drive_name) or None)
     name, drive = excite(model, args.duration, args.dt, args.excitation, amplitude, args.seed,
                          args.f_lo, args.f_hi)
     noise = {} if args.noise == "none" else default_noise(model)
@@ -95,19 +96,18 @@ def run(args) -> int:
     from replay import formats
     from twin.models.records import signal_specs
 
-    # a CSV names each column's SI unit (t[s], x[m], pA[Pa]; the oscillator's u[N]), as every reader understands
+    # a CSV names each column's SI unit (t[s], x[m], pA[Pa]; a force u[N]: the model's own), as every reader
+    # understands
     csv = formats.lookup(args.output, what="output").suffix == ".csv"
     specs = signal_specs(model.name)
     units = {k: specs[k].unit for k in rec.signals if k in specs}
     with open_sink(args.output, **({"units": units} if csv else {})) as sink:
         sink.write(rec.to_samples())
-    from fpdd.units import SIGNAL_UNITS
-
     info = {"output": args.output, "model": model.name, "samples": len(rec), "dt": {"value": args.dt, "unit": "s"},
             "signals": list(rec.signals),
             "params": {s.name: {"value": float(v), "unit": s.unit} for s, v in zip(ps.specs, ps.values)},
             "effects": list(ps.effects),
-            "noise": {k: {"value": float(v), "unit": SIGNAL_UNITS.get(k, "")} for k, v in noise.items()},
+            "noise": {k: {"value": float(v), "unit": model.signal_unit(k)} for k, v in noise.items()},
             "timing": timing.to_dict()}
     if exo:
         t = exo["T_oil"]

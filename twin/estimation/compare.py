@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from fpdd.errors import DataError, ParameterError
-from twin.models import Model, get_model
+from twin.models import DEFAULT_MODEL, Model, get_model
 from twin.models.base import Timing
 from twin.params import ParameterSet
 from twin.record import Record
@@ -179,13 +179,13 @@ class Candidate:
     """A model to compare: ``model`` with ``effects`` switched on, their parameters fitted with ``free``."""
 
     name: str
-    model: str = "msp25"
+    model: str = DEFAULT_MODEL
     effects: tuple[str, ...] = ()
     free: tuple[str, ...] | None = None  # default: the model's phenomenological parameters + the effects' own
 
     @classmethod
-    def parse(cls, text: str, model: str = "msp25") -> Candidate:
-        """``[MODEL:]EFFECT+EFFECT`` (``none`` or nothing: no effect), e.g. ``msp25:viscous_friction``."""
+    def parse(cls, text: str, model: str = DEFAULT_MODEL) -> Candidate:
+        """``[MODEL:]EFFECT+EFFECT`` (``none`` or nothing: no effect), e.g. ``MODEL:viscous_friction``."""
         text = text.strip()
         mdl, _, eff = text.rpartition(":") if ":" in text else ("", "", text)
         mdl = mdl or model

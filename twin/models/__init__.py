@@ -13,7 +13,7 @@ from fpdd.errors import ParameterError
 from twin.models.base import Model, SimResult
 
 #: model name -> module defining ``MODEL`` (the registry; :func:`register` adds one)
-REGISTRY = {"msp25": "twin.models.msp25", "oscillator": "twin.models.oscillator"}
+REGISTRY = {"msp25": "twin.models.msp25", "oscillator": "twin.models.oscillator", "axis": "twin.models.axis"}
 MODELS = tuple(REGISTRY)
 #: the model a command, a rig or a tracker runs when none is named
 DEFAULT_MODEL = "msp25"

@@ -26,7 +26,9 @@ import numpy as np
 from fpdd.errors import DataError
 from twin.models import base as _base_src
 from twin.models import intersample as _intersample_src
-from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
+from twin.models import hydraulic_signals
+from twin.models.base import (DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive,
+                              start_of)
 from twin.models.intersample import input_at
 from twin.models.jitcache import keep_fresh
 from twin.params import Effect, ParamSpec, Tracking
@@ -180,6 +182,8 @@ class Actuator2(Model):
     PHENOMENOLOGICAL = PHENOMENOLOGICAL
     CLOSED_LOOP = True
     TRACKABLE = True
+    SIGNALS = tuple(s for s in hydraulic_signals.SIGNALS if s.name in ("x_ref", "u", "x", "pA", "pB"))
+    EXPERIMENT = hydraulic_signals.EXPERIMENT
     substeps = 3
     INIT = ("x0", "dp0", "v0", "pA0", "pB0")
     INIT_FREE = ("x0", "dp0", "v0")
@@ -193,6 +197,10 @@ class Actuator2(Model):
         excite=(2e-3, 0.5, 2e4),
         feedback="x",
     )
+
+    def fast_controller(self, ps) -> bool:
+        """A P controller: the law the model runs between the log's samples."""
+        return True
 
     def controller_response(self, ps, q, dt):
         """The P controller's response: its gain at every frequency."""

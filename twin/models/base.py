@@ -175,6 +175,51 @@ class FilterMap:
     excitation: np.ndarray
 
 
+#: what a logged signal is to a model: the drive it is simulated from (a controller output, a force), the demand
+#: its controller follows, a measured output it predicts, an exogenous input that sets a parameter sample by sample
+#: (an oil temperature), or logged beside them and read by none of these
+ROLES = ("drive", "demand", "output", "exogenous", "logged")
+
+
+@dataclasses.dataclass(frozen=True)
+class Signal:
+    """One signal of a model's records: its role (:data:`ROLES`), SI unit, physical range in that unit, meaning,
+    nominal sensor noise (SI standard deviation; ``None``: no sensor of its own) and the other SI units a column
+    mapped onto it may be in (``"*"``: any, a signal whose units follow the record)."""
+
+    name: str
+    role: str
+    unit: str
+    lo: float
+    hi: float
+    meaning: str
+    noise: float | None = None
+    accepts: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.role not in ROLES:
+            raise ValueError(f"signal {self.name}: role {self.role!r} not in {ROLES}")
+
+    @property
+    def spec(self):
+        """The :class:`fpdd.units.SignalSpec` the readers and the quality gate take."""
+        from fpdd.units import SignalSpec
+
+        return SignalSpec(self.name, self.unit, self.lo, self.hi, self.meaning, self.accepts, self.noise)
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """A model's default identification experiment: an excitation ``kind`` (multisine, chirp, steps) of the
+    signal ``drive`` with ``amplitude`` (peak, SI) over ``f_lo`` .. ``f_hi`` Hz."""
+
+    kind: str
+    drive: str
+    amplitude: float
+    f_lo: float
+    f_hi: float
+
+
 class Model(abc.ABC):
     """Base class of the first-principle models (one instance per model kind)."""
 
@@ -194,6 +239,42 @@ class Model(abc.ABC):
     TRACKABLE: bool = False       # the online twin's compiled filter runs this model (twin track / serve)
     NOISE_FROM_DATA: bool = False  # outputs in the record's own units: residual weights follow the record
     FILTER: FilterSpec | None = None  # what the online filter needs (a trackable model has one)
+    SIGNALS: tuple[Signal, ...] = ()  # every signal of its records, with its role, unit and range
+    EXPERIMENT: Experiment | None = None  # the default identification experiment (twin simulate)
+
+    # --- signals --------------------------------------------------------------------------
+    def signals(self, role: str | None = None) -> dict[str, Signal]:
+        """The model's signals (of ``role`` only, when given), by name."""
+        return {s.name: s for s in self.SIGNALS if role is None or s.role == role}
+
+    @property
+    def drive_name(self) -> str:
+        """The signal the model is simulated from open loop (a controller output, a force)."""
+        return next(iter(self.signals("drive")))
+
+    @property
+    def demand_name(self) -> str | None:
+        """The demand its controller follows (``None``: no controller)."""
+        return next(iter(self.signals("demand")), None)
+
+    def signal_specs(self) -> dict:
+        """``{name: fpdd.units.SignalSpec}`` of the model's signals (what the readers and the quality gate take)."""
+        return {s.name: s.spec for s in self.SIGNALS}
+
+    def signal_unit(self, name: str) -> str:
+        """The SI unit of the model's signal ``name`` ("" for a signal it does not declare)."""
+        s = self.signals().get(name)
+        return s.unit if s is not None else ""
+
+    def nominal_noise(self) -> dict[str, float]:
+        """Nominal sensor noise of each measured output (SI standard deviation): what a simulation adds."""
+        return {n: float(s.noise) for n, s in self.signals("output").items() if s.noise is not None}
+
+    def fast_controller(self, ps: ParameterSet) -> bool:
+        """True when the model's digital controller can drive it from the demand between the log's samples (a
+        law the model reproduces exactly, e.g. a P controller); the tracker then runs the loop itself when the
+        controller ticks faster than the log.  False by default."""
+        return False
 
     # --- the online filter ----------------------------------------------------------------
     def filter_map(self, ps: ParameterSet) -> FilterMap:

@@ -54,7 +54,9 @@ import numpy as np
 
 from fpdd.errors import DataError
 from twin.models import msp25_loop, msp25_params, msp25_rhs
-from twin.models.base import DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive, start_of
+from twin.models import hydraulic_signals
+from twin.models.base import (DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimResult, check_drive,
+                              start_of)
 from twin.models.effect_scale import msp25_typicals
 from twin.models.msp25_loop import (
     N_CTRL, advance, pid_tick, sensor_lag, simulate_kernel, step_varying,
@@ -88,6 +90,8 @@ class MSP25(Model):
     PHENOMENOLOGICAL = PHENOMENOLOGICAL
     CLOSED_LOOP = True
     TRACKABLE = True
+    SIGNALS = hydraulic_signals.SIGNALS
+    EXPERIMENT = hydraulic_signals.EXPERIMENT
     substeps = 3
     #: the online filter: spool in mm and 0.1 m/s, pressures in MPa, rod in mm and 0.1 m/s; x, pA, pB measured
     FILTER = FilterSpec(
@@ -120,6 +124,11 @@ class MSP25(Model):
                          ranges={"x": (-ps["stroke"], ps["stroke"]), "pA": (ps["pT"] - 2e6, ps["pP"] + 5e6),
                                  "pB": (ps["pT"] - 2e6, ps["pP"] + 5e6)},
                          centres={"x": 0.0, "pA": pmid, "pB": pmid}, excitation=exc)
+
+    def fast_controller(self, ps) -> bool:
+        """The paper's P controller (no integral, no derivative) is the law the model runs between the log's
+        samples."""
+        return ps["KI"] == 0 and ps["KD"] == 0
 
     def controller_response(self, ps, q, dt):
         """The digital PID's response ``KP + KI dt / q + KD q / dt``."""

@@ -12,24 +12,39 @@ from twin.record import Record, records_from_samples
 
 
 def signal_specs(model: str):
-    """The signal vocabulary of ``model``'s records: the rig's, except that the
-    oscillator's ``u`` is a force in N (the paper's ``t, u, y``), not a valve voltage; its
-    ``u`` and ``y`` are generic (a circuit's volts are read as volts)."""
-    from fpdd.units import SIGNALS, SignalSpec
+    """The signal vocabulary of ``model``'s records: the signals the model declares (:attr:`Model.SIGNALS`: a
+    force ``u`` in N for one, a valve voltage ``u`` in V for another), over the readers' common vocabulary
+    (:data:`fpdd.units.SIGNALS`) for the names it does not declare; the common vocabulary alone for a name that
+    is no registered model."""
+    from fpdd.units import SIGNALS
+    from twin.models import REGISTRY
 
-    if model == "oscillator":
-        return {**SIGNALS, "u": SignalSpec("u", "N", -1e7, 1e7, "oscillator input (force, or any quantity)",
-                                           accepts=("*",))}
-    return SIGNALS
+    if model not in REGISTRY:
+        return dict(SIGNALS)
+    return {**SIGNALS, **get_model(model).signal_specs()}
 
 
-def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=()) -> None:
+def _fitting_models(have: set, model: str) -> list[str]:
+    """The registered models other than ``model`` whose drive (or demand) and a measured output ``have`` holds."""
+    from twin.models import MODELS
+
+    out = []
+    for name in MODELS:
+        m = get_model(name)
+        drives = set(m.signals("drive")) | set(m.signals("demand"))
+        if name != model and have & drives and have & set(m.signals("output")):
+            out.append(name)
+    return out
+
+
+def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=(), suggest: bool = False) -> None:
     """Refuse (:class:`DataError`, one line) a record without a signal its command needs.
 
     Needed: a drive of ``model`` (any of its inputs), at least one of its outputs, and
     ``needed``. A column that is no signal of ``model`` is "not understood"; one whose name
     starts with a missing signal's name and a unit (``x[mm]``, ``x_ref (mm)``) is that
     signal under a name the readers do not know: refused too, with the ``--map`` that reads it.
+    ``suggest``: name the registered models whose signals the record has (``--model NAME``).
     """
     import re
 
@@ -42,9 +57,9 @@ def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=()) -> No
     missing = [n for n in rig if n not in have]
     lacks = []
     if not have & set(m.INPUTS):
-        words = {"u": "the controller output 'u'", "x_ref": "the demand 'x_ref'"} if model != "oscillator" else {}
-        drives = sorted(m.INPUTS, key=lambda n: n != "u")
-        lacks.append(f"a drive ({' or '.join(words.get(n, repr(n)) for n in drives)})")
+        sig = m.signals()
+        drives = sorted(m.INPUTS, key=lambda n: sig[n].role != "drive" if n in sig else True)
+        lacks.append(f"a drive ({' or '.join(f'the {sig[n].meaning} {n!r}' if n in sig else repr(n) for n in drives)})")
     if not have & set(m.OUTPUTS):
         lacks.append(f"a measured output (any of {', '.join(m.OUTPUTS)})")
     stems = {n: re.split(r"[\[\(\s]", n, maxsplit=1)[0] for n in foreign}
@@ -65,6 +80,9 @@ def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=()) -> No
         unit = re.search(r"[\[\(]\s*([^\]\)]+?)\s*[\]\)]", col)
         hint = f"; map a column with --map NAME=COLUMN[:UNIT], e.g. --map {stem}={col}" + (
             f":{unit.group(1)}" if unit else "")
+    others = _fitting_models(have, model) if suggest else []
+    if others:
+        hint += f"; the record has the signals of the {' and the '.join(others)} model: --model {others[0]}"
     raise DataError(f"{path}: {'; '.join(parts)}; the record has {', '.join(names) or 'no signals'}{hint}")
 
 

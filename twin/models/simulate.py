@@ -1,7 +1,7 @@
 """Simulated measurements: drive a model, add sensor noise and quantisation, get a :class:`Record`.
 
-Default sensor models (what an MSP25 logs): LVDT displacement with 2 um noise,
-chamber pressures with 20 kPa noise; the oscillator's displacement with 1 um.
+The default experiment and the default sensor noise are the model's own (:attr:`Model.EXPERIMENT`, the
+``noise`` of its measured outputs in :attr:`Model.SIGNALS`).
 """
 
 from __future__ import annotations
@@ -12,20 +12,20 @@ from typing import Any
 import numpy as np
 
 from twin.models import excitation
-from fpdd.units import NOMINAL_NOISE
 from fpdd.errors import DataError
 from twin.models import Model, get_model
 from twin.models.base import Timing
 from twin.params import ParameterSet
 from twin.record import Record
 
-#: realistic sensor noise, standard deviation in SI units
 
-#: default experiments per model: (excitation kind, driving signal, amplitude, band)
-DEFAULT_EXPERIMENT: dict[str, dict[str, Any]] = {
-    "msp25": {"kind": "multisine", "drive": "x_ref", "amplitude": 0.01, "f_lo": 0.2, "f_hi": 12.0},
-    "oscillator": {"kind": "multisine", "drive": "u", "amplitude": 100.0, "f_lo": 1.0, "f_hi": 30.0},
-}
+def default_experiment(model: Model) -> dict[str, Any]:
+    """``model``'s default identification experiment (:attr:`Model.EXPERIMENT`) as keywords."""
+    import dataclasses
+
+    if model.EXPERIMENT is None:
+        raise DataError(f"the {model.name} model declares no default experiment")
+    return dataclasses.asdict(model.EXPERIMENT)
 
 
 def excite(model: Model | str, duration_s: float = 10.0, dt: float = 1e-3, kind: str | None = None,
@@ -33,7 +33,7 @@ def excite(model: Model | str, duration_s: float = 10.0, dt: float = 1e-3, kind:
            f_hi: float | None = None) -> tuple[str, np.ndarray]:
     """The default identification input of ``model``: (driving signal name, values)."""
     model = get_model(model) if isinstance(model, str) else model
-    e = dict(DEFAULT_EXPERIMENT[model.name])
+    e = default_experiment(model)
     kind = kind or e["kind"]
     amp = e["amplitude"] if amplitude is None else amplitude
     lo = e["f_lo"] if f_lo is None else f_lo
@@ -84,8 +84,8 @@ def measure(model: Model, ps: ParameterSet, drive_name: str, drive: np.ndarray, 
             raise DataError(f"quantisation given for {k!r}, which the model does not log ({', '.join(sig)})")
         if lsb > 0:
             sig[k] = np.round(sig[k] / lsb) * lsb
-    order = ["x_ref", "u", "x", "pA", "pB", "y", "T_oil"]
-    sig = {k: sig[k] for k in sorted(sig, key=lambda n: order.index(n) if n in order else 99)}
+    order = [s.name for s in model.SIGNALS]  # the model's own order: demand, drive, outputs, exogenous
+    sig = {k: sig[k] for k in sorted(sig, key=lambda n: order.index(n) if n in order else len(order))}
     return Record(dt, sig, name)
 
 
@@ -97,4 +97,5 @@ def ramp(start: float, end: float, n: int) -> np.ndarray:
 
 
 def default_noise(model: Model) -> dict[str, float]:
-    return {k: NOMINAL_NOISE[k] for k in model.OUTPUTS}
+    """The nominal sensor noise of ``model``'s measured outputs (SI standard deviations)."""
+    return model.nominal_noise()

@@ -374,8 +374,11 @@ class OnlineTracker:
         """Filter a block of samples (signals in SI; the model's drive and demand, its measured outputs)."""
         T = len(samples)
         sig = samples.signals
-        if "u" not in sig and "x_ref" not in sig:
-            raise DataError("the tracker needs the controller output 'u' or the demand 'x_ref'; "
+        drive, demand = self.model.drive_name, self.model.demand_name
+        if drive not in sig and demand not in sig:
+            needs = f"the {'controller output' if self.model.CLOSED_LOOP else 'drive'} {drive!r}" + (
+                f" or the demand {demand!r}" if demand is not None else "")
+            raise DataError(f"the {self.model.name} tracker needs {needs}; "
                             f"the block has {', '.join(sig) or 'no signals'}")
         if not any(o in sig for o in self.outputs):
             raise DataError(f"the tracker needs at least one of {', '.join(self.outputs)}; "
@@ -396,7 +399,7 @@ class OnlineTracker:
             if not self.dt > 0:
                 raise DataError(f"sample times do not increase (median step {self.dt} s)")
         ticks = self.timing.ticks(self.dt)
-        mode = self.timing.intersample_code(self.dt)
+        mode = self.model.intersample_code(self.timing, self.dt)  # the model says how its drive moves between samples
         if not self._started:
             self._start_from_data(samples)
             self._started = True
@@ -408,12 +411,12 @@ class OnlineTracker:
             DT[1:] = np.diff(t_ns) * 1e-9
             self._last_t_ns = int(t_ns[-1])
         nan = np.full(T, np.nan)
-        # a digital controller faster than the log: its output between samples is a staircase the logged u
-        # cannot show, so the controller itself drives the model from x_ref (when it is the paper's P controller)
-        closed = "u" not in sig or (ticks > 1 and "x_ref" in sig and self.ps["KI"] == 0 and self.ps["KD"] == 0
-                                    and self.closed_fast)
-        U = np.ascontiguousarray(sig.get("u", nan), dtype=float)
-        XREF = np.ascontiguousarray(sig.get("x_ref", nan), dtype=float)
+        # a digital controller faster than the log: its output between samples is a staircase the logged drive
+        # cannot show, so the controller itself drives the model from the demand (when the model runs its law)
+        closed = drive not in sig or (ticks > 1 and demand in sig and self.model.fast_controller(self.ps)
+                                      and self.closed_fast)
+        U = np.ascontiguousarray(sig.get(drive, nan), dtype=float)
+        XREF = np.ascontiguousarray(sig.get(demand, nan) if demand is not None else nan, dtype=float)
         Z = np.empty((T, len(self.outputs)))
         for a, o in enumerate(self.outputs):
             Z[:, a] = np.asarray(sig[o], dtype=float) / self.scale[self.meas_index[o]] if o in sig else np.nan

@@ -25,6 +25,7 @@ import numpy as np
 from scipy import stats
 
 from twin.estimation import compare as C
+from twin.models import DEFAULT_MODEL
 from twin.estimation.residuals import ALPHA, ljung_box, noise_level
 from twin.reports.units import Shown, fmt, signal_unit
 
@@ -312,7 +313,7 @@ def _rows_display(cmp: Mapping, model: str) -> list[dict]:
 
 
 def compare_text(cmp: Mapping) -> str:
-    model = cmp["rows"][0]["model"] if cmp["rows"] else "msp25"
+    model = cmp["rows"][0]["model"] if cmp["rows"] else DEFAULT_MODEL
     rows = _rows_display(cmp, model)
     if not rows:
         return "no candidates"
@@ -329,7 +330,7 @@ def compare_report(cmp: Mapping, out_dir: str, filename: str = "compare_report.h
     """The comparison as one self-contained HTML page; returns its path."""
     from twin.reports import page as P
 
-    model = cmp["rows"][0]["model"] if cmp["rows"] else "msp25"
+    model = cmp["rows"][0]["model"] if cmp["rows"] else DEFAULT_MODEL
     pg = P.Page(f"twin compare: {model}", {"best": str(cmp["best"]), "criterion": cmp["criterion"],
                                            "estimation": ", ".join(cmp["estimation"]),
                                            "validation": ", ".join(cmp["validation"])}, kind="compare")

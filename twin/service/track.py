@@ -5,8 +5,9 @@ The same :class:`twin.service.rig.RigTwin` as the live service (tracker, drift
 test), without Zenoh: estimates, alarms and statuses go to an MCAP file that
 Foxglove plots (``/twin/estimate``, ``/twin/alarm``, ``/twin/status``), the
 parameter trends with the healthy band to a PNG (like the paper's Fig. 4).
-The healthy baseline is the rig configuration's values (the paper's Table 9
-for the MSP25) unless ``--config`` or ``--baseline`` says otherwise.
+The healthy baseline is the rig configuration's values (the model's nominal ones, each band as wide as its
+parameter's declared tracking band) unless ``--config`` or ``--baseline`` says otherwise.  Any registered model
+the online twin runs (``model=``) is tracked the same way.
 
 Offline there is no journal, so :class:`SequenceNumbers` stands in for the
 service's publisher and numbers the alarm events 1, 2, 3, ... as the journal
@@ -88,13 +89,14 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
           estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None,
-          forecast_horizon_s: float | None = None, maintenance=()):
+          forecast_horizon_s: float | None = None, maintenance=(), model: str | None = None):
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
     :class:`twin.record.Record`, :class:`replay.base.Samples`, or an iterable of
-    them in time order (a stream of blocks).  ``params``: known parameters that
-    differ from the nominal MSP25; ``tracked``: parameter names (default all five
+    them in time order (a stream of blocks).  ``model``: the registered model to track (default
+    :data:`twin.models.DEFAULT_MODEL`, or the commissioning fit's); ``params``: known parameters that
+    differ from the model's nominal ones; ``tracked``: parameter names (default the model's
     phenomenological ones); ``baseline``: ``{name: twin.online.baseline.Baseline}``
     overriding the default bands; ``noise``: sensor noise standard deviations
     per output (SI); ``timing``: the loop's :class:`~twin.models.base.Timing`;
@@ -120,15 +122,17 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
 
     from twin.online.commission import Commission, load_fit, tracker_for
 
-    tracked = tuple(tracked or get_model(DEFAULT_MODEL).PHENOMENOLOGICAL)
     if isinstance(commission, (str, os.PathLike)):
         commission = load_fit(os.fspath(commission))
-    base = default_baseline(DEFAULT_MODEL, params, tracked)
+    if model is None:
+        model = commission.model if isinstance(commission, Commission) else DEFAULT_MODEL
+    tracked = tuple(tracked or get_model(model).PHENOMENOLOGICAL)
+    base = default_baseline(model, params, tracked)
     if isinstance(commission, Commission):
         base.update(commission.baseline(tracked))
     base.update(baseline or {})
     where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else f"<{type(source).__name__}>"
-    rig = RigConfig(rig_name, DEFAULT_MODEL, where, dbc, 0.0, tracked, dict(params or {}), base,
+    rig = RigConfig(rig_name, model, where, dbc, 0.0, tracked, dict(params or {}), base,
                     forecast_horizon_s=3600.0 if forecast_horizon_s is None else float(forecast_horizon_s))
     rec = None
     if out_dir:
@@ -138,7 +142,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
     if noise or timing is not None or commission is not None:
         # the rig configuration plus what the command line adds
-        r = SimpleNamespace(model=DEFAULT_MODEL, params=dict(params or {}), track=tracked,
+        r = SimpleNamespace(model=model, params=dict(params or {}), track=tracked,
                             noise=dict(noise or {}), timing=timing, commission=commission)
         twin.tracker = tracker_for(r)
     import numpy as np
