@@ -4,6 +4,7 @@ a twin restored from it continues exactly as one that was never interrupted."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import pickle
@@ -24,7 +25,7 @@ from twin.models.scenario import Drift, simulate_wear
 from fpdd.units import NOMINAL_NOISE
 from twin.models.simulate import excite
 from twin.service.config import parse_config
-from twin.service.journal import AlarmJournal
+from twin.service.journal import AlarmJournal, Binding
 from twin.service.rig import make_twin
 from twin.service.checkpoint_file import (CHECKPOINT_VERSION, Checkpoint, decode_state, encode_state,
                                           read_checkpoints, write_checkpoints)
@@ -105,12 +106,13 @@ def test_a_checkpoint_records_its_journal_and_last_alarm(tmp_path: Path) -> None
 
 
 @pytest.mark.parametrize("damage, message", [
-    (lambda d: d.replace('"version":1', '"version":99'), r"checkpoint version 99, this program reads version 1"),
+    (lambda d: d.replace('"version":2', '"version":99'), r"checkpoint version 99, this program reads version 2"),
     (lambda d: d.replace('"format":"fpdd-twin checkpoint"', '"format":"other"'), r"not a checkpoint of this "
                                                                                    r"program \(format 'other'"),
-    (lambda d: d.replace('"alarm_seq":2', '"alarm_seq":1'), r"SHA-256 does not match its content"),
+    (lambda d: d.replace('"alarm_seq":2', '"alarm_seq":1'), r"HMAC does not match its content under the journal's "
+                                                            r"key"),
     (lambda d: d[: len(d) // 2], r"not a JSON checkpoint document"),
-    (lambda d: d.replace('"sha256"', '"sha256":NaN,"x"'), r"not a JSON checkpoint document"),
+    (lambda d: d.replace('"hmac"', '"hmac":NaN,"x"'), r"not a JSON checkpoint document"),
 ])
 def test_a_checkpoint_of_another_version_or_damaged_is_refused_with_one_line(tmp_path: Path, damage,
                                                                              message) -> None:
@@ -153,8 +155,8 @@ def test_a_pickled_checkpoint_never_runs(tmp_path: Path) -> None:
     assert not marker.exists()
 
 
-def _wear_log(path: Path, seed: int) -> None:
-    _, xr = excite(M.MODEL, 12.0, 1e-3, seed=seed)
+def _wear_log(path: Path, seed: int, seconds: float = 12.0) -> None:
+    _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
     rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 3.0, 3.0, shape="step")],
                            noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
     with McapSink(str(path)) as sink:
@@ -184,6 +186,14 @@ speed = 0
     slot = journal / "rig-p.checkpoint.json"
     assert read_checkpoints(slot)[1]["rig-p"].alarm_seq >= 1  # the rig ran and raised its alarm
     good = slot.read_bytes()
+    # another (shorter) log under the same name: the checkpoint would resume past its end; refused in one line
+    kept = log.read_bytes()
+    _wear_log(log, 1003, seconds=6.0)
+    other = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    errors = [line for line in other.stderr.splitlines() if "error" in line]
+    assert other.returncode != 0 and len(errors) == 1 and "Traceback" not in other.stderr, other.stderr
+    assert f"resumes {log} of {len(kept)} bytes, the file has {log.stat().st_size} bytes now" in errors[0]
+    log.write_bytes(kept)
     marker = tmp_path / "planted"
     slot.write_bytes(pickle.dumps({"tracker": Planted(marker)}))
     second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
@@ -224,9 +234,9 @@ def test_a_twin_restored_from_its_plain_state_continues_exactly(tmp_path: Path) 
     for b in blocks[:half]:
         first.write(b)
     path = tmp_path / "r.checkpoint.json"
-    write_checkpoints(path, "id", {"rig-s": Checkpoint("rig-s", 0, 0, "fp", first.state(), 0.0)})
+    write_checkpoints(path, "id", {"rig-s": Checkpoint("rig-s", 0, 0, "fp", first.state(), 0.0)}, b"key")
     second = make_twin(rig)
-    second.restore(read_checkpoints(path)[1]["rig-s"].state)
+    second.restore(read_checkpoints(path, b"key")[1]["rig-s"].state)
     for b in blocks[half:]:
         second.write(b)
     got = [(a.identity, a.estimate, a.statistic) for a in list(first.alarms) + list(second.alarms)]
@@ -280,3 +290,66 @@ def test_everything_of_the_tracker_and_detector_that_changes_is_in_their_state(t
     named = {("tracker", k) for k in twin.tracker.state()} | {("drift", k) for k in twin.drift.state()} | \
         {("drift", "_next_t"), ("drift", "params")}
     assert changed and {(o, k.lstrip("_")) if o == "tracker" else (o, k) for o, k in changed} - caches <= named
+
+
+# --------------------------------------------------------------------------- bound to the rig
+
+
+def _campaign(directory: Path, rig: str, key: str = "") -> None:
+    """A rig's journal of five alarms and its checkpoint, as the service leaves them."""
+    with AlarmJournal(directory / f"{rig}.db", bind=Binding(rig, key, f"/data/{rig}.mcap")) as journal:
+        for i in range(1, 6):
+            journal.append(alarm(rig, i))
+        journal.save_checkpoint(Checkpoint(rig, 5_000_000_000, 5000, "fp", {"x": np.arange(3.0)}, 1.0,
+                                           source={"uri": f"/data/{rig}.mcap", "bytes": 1000}))
+
+
+def test_another_rigs_journal_and_checkpoint_copied_in_together_are_refused_with_one_line(tmp_path: Path) -> None:
+    _campaign(tmp_path, "rig-z")
+    _campaign(tmp_path, "rig-y")
+    before = (tmp_path / "rig-y.db").read_bytes()
+    for suffix in (".db", ".checkpoint.json"):  # rig-z's files put in rig-y's place
+        (tmp_path / f"rig-y{suffix}").write_bytes((tmp_path / f"rig-z{suffix}").read_bytes())
+    with pytest.raises(LogFormatError) as info:
+        AlarmJournal(tmp_path / "rig-y.db", bind=Binding("rig-y", "", "/data/rig-y.mcap"))
+    text = str(info.value)
+    assert "\n" not in text and text.startswith(f"{tmp_path / 'rig-y.db'}: the journal of rig 'rig-z', not of rig "
+                                                "'rig-y' (copied from another rig?); refused")
+    # a journal of an earlier version, without a recorded rig but with another rig's alarms: refused too
+    legacy = tmp_path / "old"
+    legacy.mkdir()
+    with AlarmJournal(legacy / "rig-y.db") as journal:
+        journal.append(alarm("rig-z", 1))
+    with pytest.raises(LogFormatError, match=r"the journal of rig 'rig-z', not of rig 'rig-y'"):
+        AlarmJournal(legacy / "rig-y.db", bind=Binding("rig-y"))
+    # under another signing key: another rig's journal (or a new key, which starts a new journal)
+    (tmp_path / "rig-y.db").write_bytes(before)
+    (tmp_path / "rig-y.checkpoint.json").unlink()
+    keyed = tmp_path / "keyed"
+    keyed.mkdir()
+    _campaign(keyed, "rig-k", key="SHA256:00112233aabbccdd")
+    with pytest.raises(LogFormatError, match=r"under signing key SHA256:00112233aabbccdd, the rig's key is "
+                                             r"SHA256:ffffffffffffffff now"):
+        AlarmJournal(keyed / "rig-k.db", bind=Binding("rig-k", "SHA256:ffffffffffffffff"))
+    with AlarmJournal(keyed / "rig-k.db", bind=Binding("rig-k", "SHA256:00112233aabbccdd")) as journal:
+        cp = journal.load_checkpoint("rig-k")
+        assert cp is not None and cp.epoch == journal.epoch("rig-k") and cp.source["bytes"] == 1000
+
+
+def test_a_checkpoint_whose_digest_is_recomputed_is_refused(tmp_path: Path) -> None:
+    """An edited checkpoint (resuming past the end of its log) with a digest anyone can recompute: refused."""
+    _campaign(tmp_path, "rig-y")
+    path = tmp_path / "rig-y.checkpoint.json"
+    doc = json.loads(path.read_text())
+    body = doc["body"]
+    body["rigs"]["rig-y"]["t_ns"] = 10**18  # past the end of the log
+    data = json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
+    for forged in ({"format": doc["format"], "version": 1, "sha256": hashlib.sha256(data).hexdigest(), "body": body},
+                   {**doc, "body": body, "hmac": hashlib.sha256(data).hexdigest()}):
+        path.write_text(json.dumps(forged))
+        with pytest.raises(LogFormatError) as info:
+            AlarmJournal(tmp_path / "rig-y.db", bind=Binding("rig-y"))
+        text = str(info.value)
+        assert "\n" not in text and text.startswith(str(path)) and "refused" in text
+        assert ("checkpoint version 1 (a bare SHA-256 anyone can recompute)" in text
+                or "HMAC does not match its content under the journal's key" in text)

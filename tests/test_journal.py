@@ -10,6 +10,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -464,3 +465,75 @@ def test_a_full_disk_until_shutdown_never_publishes_an_alarm_twice(tmp_path: Pat
     second = run(cfg, lambda j: Bus())  # the disk has room again
     got = first.alarms + second.alarms
     assert [(a.seq, a.identity, a.estimate) for a in got] == [(a.seq, a.identity, a.estimate) for a in reference]
+
+
+# --------------------------------------------------------------------------- epochs
+
+
+def test_each_journal_numbers_in_its_own_epoch_and_a_standby_adopts_the_owners(tmp_path: Path) -> None:
+    with AlarmJournal(tmp_path / "a.db") as a:
+        first = a.append(alarm("r1", 1))
+        epoch_a = a.epoch("r1")
+        assert first.epoch == epoch_a and len(epoch_a) == 32 and a.read()[0].epoch == epoch_a
+    with AlarmJournal(tmp_path / "a.db") as a:  # reopened: the same numbering, the same epoch
+        assert a.append(alarm("r1", 2)).epoch == epoch_a and a.epoch("r1") == epoch_a
+    with AlarmJournal(tmp_path / "b.db") as b:  # a new journal numbers from 1 again: in a new, later epoch
+        again = b.append(alarm("r1", 3))
+        assert again.seq == 1 and again.epoch != epoch_a and again.epoch > epoch_a
+    with AlarmJournal(tmp_path / "standby.db") as s:
+        s.epoch("r1")  # made before any alarm (its service started first)
+        kept = s.record(first)  # the owner's alarm under the owner's number: the owner's epoch is adopted
+        assert kept.new and kept.event.epoch == epoch_a and s.epoch("r1") == epoch_a
+        with pytest.raises(DataError, match=r"AlarmEvent\.epoch: .* where this journal numbers the rig's alarms in "
+                                            f"epoch {epoch_a}"):
+            s.record(replace(again, seq=2))  # another numbering's alarm under this one's next number
+        assert [e.seq for e in s.read()] == [1]
+    with Store(tmp_path / "a.db", writer=False) as reader:
+        assert reader.epoch("r1") == epoch_a and reader.epoch("r9") == ""  # a reader makes none
+
+
+# --------------------------------------------------------------------------- a journal alone
+
+
+def _vacuumed(sql: str):
+    def run(path: Path) -> None:
+        db = sqlite3.connect(path)
+        db.executescript(sql)
+        db.commit()
+        db.execute("VACUUM")  # the file shrinks as if the rows had never been there
+        db.close()
+    return run
+
+
+@pytest.mark.parametrize("damage, message", [
+    (_set("DELETE FROM alarms WHERE seq > 3"), r"the alarms of rig 'msp25' end at seq 3, but the journal's own "
+                                               r"high-water mark says rig 'msp25' journaled 5: seq 4\.\.5 of rig "
+                                               r"'msp25' missing"),
+    (_vacuumed("DELETE FROM alarms WHERE seq = 5"), r"end at seq 4, .* journaled 5: seq 5 of rig 'msp25' missing"),
+    (_set("DELETE FROM alarms"), r"end at seq 0, .* journaled 5: seq 1\.\.5 of rig 'msp25' missing"),
+    (_vacuumed("DROP TABLE alarms"), r"its alarms table is missing, .* seq 1\.\.5 of rig 'msp25' missing"),
+    (_vacuumed("DELETE FROM meta WHERE key LIKE 'last_seq:%'; DELETE FROM alarms WHERE seq > 2"),
+     r"the journal's header counts 5 alarms, 2 are there: 3 missing"),
+])
+def test_a_journal_alone_tells_deleted_or_dropped_alarms(path: Path, damage, message) -> None:
+    with AlarmJournal(path) as journal:  # no checkpoint, no witness: the journal alone
+        for i in range(1, 6):
+            journal.append(alarm(i=i))
+    damage(path)
+    with pytest.raises(LogFormatError, match=message) as info:
+        AlarmJournal(path)
+    assert "\n" not in str(info.value) and str(info.value).startswith(str(path))
+
+
+def test_a_journal_alone_cut_anywhere_is_refused(path: Path) -> None:
+    with AlarmJournal(path) as journal:
+        for i in range(1, 201):
+            journal.append(alarm(i=i))
+    data = path.read_bytes()
+    cuts = list(range(512, len(data), 4096 + 512))  # inside pages and at their ends
+    for cut in cuts:
+        path.write_bytes(data[:cut])
+        with pytest.raises(LogFormatError) as info:
+            AlarmJournal(path)
+        assert "\n" not in str(info.value), cut
+    assert len(cuts) >= 20

@@ -26,25 +26,27 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from event_helpers import T0_NS
 from event_helpers import alarm as make_alarm
 from net_helpers import connected
 from twin.cli import main as twin_main
 from twin.commands.alarms import add_arguments as add_alarms_arguments
 from twin.commands.alarms import run as run_alarms_cli
 from fpdd.errors import ConfigError
-from twin.online.events import AlarmEvent, event_to_json
+from twin.online.events import AlarmEvent, StatusEvent, event_to_json
 from twin.service.bus import TwinPublisher
 from twin.service.subscriber import AlarmSubscriber
 from twin.service.config import parse_config
 from twin.service.fleet import BusFront
 from twin.service.journal import AlarmJournal
-from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, TrustStore, canonical, init_keys, load_signer
+from twin.service.signing import (FORGED, STATUS_DOMAIN, UNVERIFIED, VERIFIED, TrustStore, canonical, init_keys,
+                                  load_signer)
 
 WAIT_S = 10.0  # upper bound of every wait; the happy path takes milliseconds
 
 
-def alarm(rig: str, i: int, seq: int = 0) -> AlarmEvent:
-    return make_alarm(rig, i, seq, level="alarm" if i % 2 else "warning")
+def alarm(rig: str, i: int, seq: int = 0, level: str = "") -> AlarmEvent:
+    return make_alarm(rig, i, seq, level=level or ("alarm" if i % 2 else "warning"))
 
 
 def unsigned(events: list[AlarmEvent]) -> list[AlarmEvent]:
@@ -100,12 +102,14 @@ def foreign_signature(event: AlarmEvent, tmp_path: Path) -> AlarmEvent:
 
 def test_every_field_of_a_signed_alarm_is_covered(keys: Path) -> None:
     signer, trust = load_signer(keys / "r1.key", "r1"), TrustStore(keys)
-    payload = json.loads(event_to_json(signer.sign(alarm("r1", 3, seq=3))))
+    event = replace(alarm("r1", 3, seq=3), epoch="18ed2f6e4b1c0a00" + "0123456789abcdef")
+    payload = json.loads(event_to_json(signer.sign(event)))
     assert trust.check(payload).status == VERIFIED
-    assert signer.sign(alarm("r1", 3, seq=3)).signature == payload["signature"]  # deterministic: live = history
+    assert signer.sign(event).signature == payload["signature"]  # deterministic: live = history
     changed = {"rig": "r2", "parameter": "Ffric", "level": "warning", "kind": "returned", "t_ns": payload["t_ns"] + 1,
                "t_s": 3.5, "estimate": 4e-12, "std": 1e-13, "baseline": 2e-12, "band_lo": 1e-13, "band_hi": 3e-12,
-               "seq": 4, "statistic": 99.0, "message": "fine", "unit": "N", "wall_ns": 1_700_000_000_000_000_000}
+               "seq": 4, "statistic": 99.0, "message": "fine", "unit": "N", "wall_ns": 1_700_000_000_000_000_000,
+               "epoch": "18ed2f6e4b1c0a01" + "0123456789abcdef"}
     assert set(changed) == set(payload) - {"signature"}  # a field added to the payload must be tried here too
     for field, value in changed.items():
         tampered = {**payload, field: value}
@@ -259,12 +263,15 @@ def test_without_keys_a_different_alarm_under_a_delivered_number_is_a_conflict(
         assert sub.recv(timeout=WAIT_S) == real and sub.verification[("r1", 1)] == UNVERIFIED
         forger = forger_session.declare_publisher("fpdd/r1/alarm")
         wait_matching(forger)
-        forger.put(event_to_json(real))  # a plain duplicate: nothing to say
+        forger.put(event_to_json(real))  # the very alarm again: a replay, not delivered twice
         forger.put(event_to_json(alarm("r1", 9, seq=1)))
         pump_until(sub, lambda: sub.conflicts == 1)
         forger.undeclare()
-    assert sub.reports == ["conflict: rig r1 seq 1: a different alarm under a number already delivered "
+    assert sub.reports == [f"replayed: rig r1 seq 1 on fpdd/r1/alarm: received live before (epoch {real.epoch}); "
+                           "not delivered again",
+                           "conflict: rig r1 seq 1: a different alarm under a number already delivered "
                            "(Kleak alarm raised delivered, Kleak alarm raised now); not delivered"]
+    assert sub.replayed == 1 and sub.epochs == {"r1": real.epoch}
 
 
 # --------------------------------------------------------------------------- history
@@ -402,3 +409,138 @@ def test_the_service_front_signs_live_alarms_and_history(
             front.close()
     assert unsigned(got) == [first, second]
     assert [sub.verification[("r1", s)] for s in (1, 2)] == [VERIFIED, VERIFIED] and sub.reports == []
+
+
+# --------------------------------------------------------------------------- replays of another campaign
+
+
+def earlier_campaign(hub: zenoh.Session, tmp_path: Path, keys: Path, endpoint: str) -> list[str]:
+    """Five alarms of r1 as they went over the bus in an earlier campaign (journal ``a.db``), recorded off the
+    bus by a plain Zenoh subscriber (in the listening peer): signed, valid for ever."""
+    recorded: list[str] = []
+    arrived = threading.Event()
+    signer = load_signer(keys / "r1.key", "r1")
+
+    def keep(sample: zenoh.Sample) -> None:
+        recorded.append(sample.payload.to_string())
+        if len(recorded) == 5:
+            arrived.set()
+
+    with connected(endpoint) as twin_session, AlarmJournal(tmp_path / "a.db") as journal_a:
+        listener = hub.declare_subscriber("fpdd/r1/alarm", keep)
+        with TwinPublisher(twin_session, "r1", journal_a, signer=signer) as twin:
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            for i in range(1, 6):
+                twin.publish_alarm(replace(alarm("r1", i), parameter="Ffric", unit=""))
+            assert arrived.wait(WAIT_S)
+        listener.undeclare()
+    return recorded
+
+
+def test_alarms_of_an_earlier_epoch_put_again_are_refused_and_the_real_ones_arrive(
+    hub: zenoh.Session, endpoint: str, keys: Path, tmp_path: Path
+) -> None:
+    old = earlier_campaign(hub, tmp_path, keys, endpoint)
+    trust = TrustStore(keys)
+    assert {trust.check(json.loads(p)).status for p in old} == {VERIFIED}  # still validly signed
+    statuses: list[str] = []
+    signer = load_signer(keys / "r1.key", "r1")
+    with connected(endpoint) as twin_session, connected(endpoint) as attacker_session, \
+            AlarmJournal(tmp_path / "b.db") as journal_b:
+        status_listener = hub.declare_subscriber("fpdd/r1/status", lambda s: statuses.append(s.payload.to_string()))
+        twin = TwinPublisher(twin_session, "r1", journal_b, signer=signer)
+        twin.publish_status(StatusEvent(rig="r1", t_ns=T0_NS, state="running"))  # announces the new epoch
+        with AlarmSubscriber(hub, "r1", trust=trust) as sub:
+            assert sub.epochs == {"r1": journal_b.epoch("r1")}  # from the owner's latest status, before anything
+            attacker = attacker_session.declare_publisher("fpdd/r1/alarm")
+            wait_matching(attacker)
+            for payload in old:
+                attacker.put(payload)
+            assert pump_until(sub, lambda: sub.replayed == 5) == []
+            assert twin.wait_for_alarm_subscribers(WAIT_S)
+            real = twin.publish_alarm(replace(alarm("r1", 7, level="warning"), parameter="CdAleak", unit=""))
+            got = sub.recv(timeout=WAIT_S)  # the real seq 1 of this campaign: not taken by the replayed seq 1
+            twin.close()  # the rig's twin is gone: the replays are still told by their epoch
+            for payload in old:
+                attacker.put(payload)
+            assert pump_until(sub, lambda: sub.replayed == 10) == []
+            attacker.undeclare()
+        deadline = time.monotonic() + WAIT_S
+        while not statuses:
+            assert time.monotonic() < deadline, "the plain subscriber got no status"
+            time.sleep(0.01)
+        status_listener.undeclare()
+    assert unsigned([got]) == [real] and real.seq == 1 and sub.verification[("r1", 1)] == VERIFIED
+    epoch_a, epoch_b = json.loads(old[0])["epoch"], real.epoch
+    assert epoch_a < epoch_b
+    lines = [r for r in sub.reports if r.startswith("replayed: ")]
+    assert len(lines) == 10 and lines[0] == (f"replayed: rig r1 seq 1 on fpdd/r1/alarm: of epoch {epoch_a}, earlier "
+                                             f"than the rig's epoch {epoch_b}; not accepted")
+    assert sub.forged == 0 and sub.conflicts == 0 and sub.missed == []
+    # What a plain Zenoh subscriber sees is enough to tell the same: the status announces the epoch under the
+    # rig's key, and the replayed alarms carry an earlier one that cannot be changed without breaking them.
+    status = json.loads(statuses[-1])
+    assert status["epoch"] == epoch_b and trust.check(status, STATUS_DOMAIN).status == VERIFIED
+    assert trust.check(status).status == FORGED  # a status signature is no alarm signature
+    assert trust.check({**status, "epoch": epoch_a}, STATUS_DOMAIN).status == FORGED
+    assert all(json.loads(p)["epoch"] == epoch_a for p in old)
+    assert trust.check({**json.loads(old[0]), "epoch": epoch_b}).status == FORGED
+
+
+def test_alarms_cli_refuses_a_history_of_an_earlier_epoch_in_one_line(
+    hub: zenoh.Session, endpoint: str, keys: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A second history queryable answering with the rig's alarms of another campaign (validly signed): the
+    command prints the real alarm only and says in one line what it refused."""
+    old = earlier_campaign(hub, tmp_path, keys, endpoint)
+    parser = add_alarms_arguments(argparse.ArgumentParser(prog="twin alarms"))
+    signer = load_signer(keys / "r1.key", "r1")
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            for payload in old:
+                query.reply("fpdd/r1/alarm/history", payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    with AlarmJournal(tmp_path / "b.db") as journal_b:
+        replayer = hub.declare_queryable("fpdd/r1/alarm/history", answer)
+        try:
+            with TwinPublisher(hub, "r1", journal_b, signer=signer) as twin:
+                twin.publish_status(StatusEvent(rig="r1", t_ns=T0_NS, state="running"))
+                common = ["--rig", "r1", "--connect", endpoint, "--keys", str(keys), "--json", "--timeout", "1"]
+                assert run_alarms_cli(parser.parse_args(common)) == 0  # the new campaign has no alarm yet
+                before = capsys.readouterr()
+                real = twin.publish_alarm(replace(alarm("r1", 7, level="warning"), parameter="CdAleak", unit=""))
+                assert run_alarms_cli(parser.parse_args(common)) == 0
+                after = capsys.readouterr()
+        finally:
+            replayer.undeclare()
+    assert before.out == ""
+    epoch_a = json.loads(old[0])["epoch"]
+    for err in (before.err, after.err):
+        replayed = [line for line in err.splitlines() if line.startswith("replayed: ")]
+        assert len(replayed) == 1 and replayed[0].startswith("replayed: rig r1 seq 1..5 in replies of queryable ")
+        assert replayed[0].endswith(f": of epoch {epoch_a}, earlier than the rig's epoch {real.epoch}; not accepted")
+        assert "Traceback" not in err
+    lines = [json.loads(line) for line in after.out.splitlines()]
+    assert len(lines) == 1 and lines[0]["verification"] == VERIFIED and lines[0]["epoch"] == real.epoch
+    assert unsigned([AlarmEvent.from_dict(lines[0])]) == [real]
+
+
+def test_a_later_epoch_starts_the_numbers_afresh(hub: zenoh.Session, endpoint: str, keys: Path, tmp_path: Path) -> None:
+    """The rig's journal was replaced (a new campaign): a subscriber running across it gets the new alarms 1, 2."""
+    signer = load_signer(keys / "r1.key", "r1")
+    delivered: list[AlarmEvent] = []
+    with AlarmSubscriber(hub, "r1", trust=TrustStore(keys)) as sub:
+        for name in ("a.db", "b.db"):
+            with connected(endpoint) as s, AlarmJournal(tmp_path / name) as j, \
+                    TwinPublisher(s, "r1", j, signer=signer) as twin:
+                assert twin.wait_for_alarm_subscribers(WAIT_S)
+                sent = [twin.publish_alarm(alarm("r1", i + (10 if name == "b.db" else 0))) for i in (1, 2)]
+                got = [sub.recv(timeout=WAIT_S) for _ in sent]
+                assert unsigned(got) == sent and [e.seq for e in got] == [1, 2]
+                delivered += got
+    first, second = delivered[0].epoch, delivered[2].epoch
+    assert first < second and sub.epochs == {"r1": second}
+    assert [r for r in sub.reports if r.startswith("epoch: ")] == [
+        f"epoch: rig r1 numbers its alarms in a new epoch {second} (was {first}), announced by alarm seq 1 on "
+        "fpdd/r1/alarm; its alarms from 1 are delivered"]

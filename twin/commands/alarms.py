@@ -5,7 +5,9 @@ alarm of a rig with a key is verified: each printed line says ``verified``; a fo
 not printed, a ``forged: ...`` line goes to stderr instead. Alarms of rigs without a key are
 printed marked ``unverified`` (refused with ``--require-signed``). Two history queryables that
 disagree are reported as ``conflict: ...`` on stderr and never merged. ``--json`` adds
-``"verification"`` to each alarm object.
+``"verification"`` to each alarm object. An alarm of an earlier epoch of the rig's numbering (one
+recorded off the bus in another campaign and put again), or a number received live before, is not
+printed: a ``replayed: ...`` line goes to stderr (:class:`twin.service.subscriber.AlarmSubscriber`).
 """
 
 from __future__ import annotations

@@ -190,6 +190,13 @@ class StoreHistory:
     def last_seq(self, rig: str) -> int:
         return self._store.last_seq(rig)
 
+    def epoch(self, rig: str) -> str:
+        return self._store.epoch(rig)
+
+    @property
+    def path(self) -> Path:
+        return self._store.path
+
     def close(self) -> None:
         self._store.close()
 
@@ -255,6 +262,8 @@ class TwinPublisher(_Declarations, Publisher):
         (lets advanced subscribers notice a missed last estimate/status).
     :param signer: the rig's private key (:func:`twin.service.signing.load_signer`): every alarm put and
         every history reply carries its signature. ``None``: alarms go out unsigned.
+    :param put_mark: the file that records how far the journal's alarms were put
+        (:mod:`twin.service.put_mark`; :meth:`put_unsent` puts those after it). ``None``: not recorded.
     :raises ConfigError: ``rig`` is not a valid rig id.
     :raises SourceError: a declaration failed (session closed, access denied).
     """
@@ -268,8 +277,12 @@ class TwinPublisher(_Declarations, Publisher):
         history: History | None = None,
         heartbeat_s: float = 1.0,
         signer: Signer | None = None,
+        put_mark: str | Path | None = None,
     ) -> None:
+        from twin.service.put_mark import PutMark
+
         self.rig = _check_rig(rig, wildcard=False)
+        self._mark = PutMark(put_mark, rig) if put_mark is not None else None
         self.keys = RigKeys(rig)
         self._session = session
         self._journal = journal
@@ -383,14 +396,39 @@ class TwinPublisher(_Declarations, Publisher):
                 f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({zenoh_text(exc)}); "
                 f"subscribers will get it from {self.keys.history}"
             ) from exc
+        if self._mark is not None:
+            self._mark.done(event.seq, event.epoch)
+
+    def put_unsent(self, wait_s: float = 2.0) -> int:
+        """Put the alarms journaled after the put mark (the service died between journal and put), in order,
+        once a subscriber matches the alarm key (waiting up to ``wait_s``: a restarted session learns the
+        subscribers' declarations after it opens). Returns how many were put."""
+        if self._mark is None:
+            return 0
+        epoch = getattr(self._history, "epoch", lambda _rig: "")(self.rig)
+        first = self._mark.unsent(self._history.last_seq(self.rig), epoch)
+        if first is None:
+            return 0
+        events = self._history.read(since_seq=first, rig=self.rig)
+        if not events:
+            return 0
+        self.wait_for_alarm_subscribers(wait_s)
+        for event in events:
+            self.put_alarm(event)
+        log.warning("rig %s: alarm(s) seq %s were journaled but not put when the service stopped; put now",
+                    self.rig, _ranges([e.seq for e in events]))
+        return len(events)
 
     def _payload(self, event: AlarmEvent) -> str:
         """The alarm's JSON payload, signed when the rig has a key."""
         return event_to_json(event) if self._signer is None else self._signer.payload(event)
 
     def put_payload(self, what: str, payload: str) -> None:
-        """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value."""
+        """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value; a
+        status is signed when the rig has a key (it announces the rig's epoch)."""
         pub = {"estimate": self._estimate_pub, "status": self._status_pub}[what]
+        if what == "status" and self._signer is not None:
+            payload = self._signer.sign_status(payload)
         with self._latest_lock:
             self._latest[what] = payload
         try:
@@ -453,8 +491,11 @@ class TwinPublisher(_Declarations, Publisher):
         counters = dict(event.counters)
         if "alarm_seq" not in counters:  # a rig's worker fills it in from its own journal
             counters["alarm_seq"] = self._history.last_seq(self.rig)
-        event = replace(event, counters=counters)
+        epoch = event.epoch or getattr(self._history, "epoch", lambda _rig: "")(self.rig)
+        event = replace(event, counters=counters, epoch=epoch)
         payload = event_to_json(event)
+        if self._signer is not None:
+            payload = self._signer.sign_status(payload)
         with self._latest_lock:
             self._latest["status"] = payload
         try:

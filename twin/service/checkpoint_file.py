@@ -1,8 +1,14 @@
 """A rig's checkpoint as a file: data only (:func:`encode_state`, :func:`read_checkpoints`), a versioned JSON
-document of numbers, strings, lists and numeric arrays (raw little-endian bytes in base64, bit for bit), with
-its SHA-256; nothing in it is ever executed. A checkpoint of an unknown format or version, or a damaged one, is
-refused with one line naming the file. The runner's side (when to take one, how to resume) is
-:mod:`twin.service.checkpoints`."""
+document of numbers, strings, lists and numeric arrays (raw little-endian bytes in base64, bit for bit); nothing
+in it is ever executed. A checkpoint of an unknown format or version, or a damaged one, is refused with one line
+naming the file. The runner's side (when to take one, how to resume) is :mod:`twin.service.checkpoints`.
+
+Integrity (version 2): the body carries, per rig, what the checkpoint resumes from (the journal's epoch of the
+rig's alarm numbering, the source's URI and, for a file, its length) and is sealed by an HMAC-SHA256 under the
+journal's own random key (:attr:`twin.service.store.Store.secret`, made with the journal, kept inside it). A
+bare digest can be recomputed by anyone who edits the file; the HMAC cannot without the journal, and the
+journal it names must be the one beside it. Version 1 (a bare SHA-256) is read only beside a journal of an
+earlier version (one that had no key yet), once: the next checkpoint is written as version 2."""
 
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ import numpy as np
 from fpdd.errors import LogFormatError, SourceError
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "Checkpoint", "checkpoint_path", "decode_state",
-           "encode_state", "read_checkpoints", "write_checkpoints"]
+           "encode_state", "read_checkpoints", "source_identity", "write_checkpoints"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,12 +47,18 @@ class Checkpoint:
     """The rig's last alarm number in the journal when the checkpoint was taken."""
     journal_id: str = ""
     """The id of the journal those alarms are in."""
+    epoch: str = ""
+    """The journal's epoch of the rig's alarm numbering when it was taken (:mod:`twin.service.store`)."""
+    source: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    """What it resumes from: ``{"uri"}`` and, for a file, ``"bytes"`` (its length then)."""
 
 
 
 CHECKPOINT_FORMAT = "fpdd-twin checkpoint"
 #: The checkpoint documents this program reads and writes.
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
+#: The earlier version, read beside a journal of an earlier version only (see the module docstring).
+LEGACY_VERSION = 1
 _ARRAY_DTYPES = {"float64": "<f8", "int64": "<i8", "bool": "|b1"}
 _SPECIAL_FLOATS = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 
@@ -136,8 +148,27 @@ def _canonical(body: Any) -> bytes:
     return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
-def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Checkpoint]) -> None:
-    """Write the checkpoints of a journal's rigs atomically (a temporary file, fsync, rename over the old one).
+def _mac(secret: bytes, data: bytes) -> str:
+    import hmac
+
+    return hmac.new(secret, b"fpdd-checkpoint-v2\n" + data, hashlib.sha256).hexdigest()
+
+
+def source_identity(uri: str) -> dict[str, Any]:
+    """What a checkpoint resumes from: ``{"uri"}``, with ``"bytes"`` (the file's length) for a file."""
+    out: dict[str, Any] = {"uri": uri}
+    try:
+        st = os.stat(uri)
+    except (OSError, ValueError):
+        return out
+    if os.path.isfile(uri):
+        out["bytes"] = int(st.st_size)
+    return out
+
+
+def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Checkpoint], secret: bytes) -> None:
+    """Write the checkpoints of a journal's rigs atomically (a temporary file, fsync, rename over the old one),
+    sealed with an HMAC under the journal's ``secret`` (see the module docstring).
 
     The folder is not synced after the rename: a power cut that loses the rename leaves the previous
     checkpoint, which is consistent with the journal too (its alarm number is not larger), so one fsync a
@@ -146,12 +177,15 @@ def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Che
     :raises SourceError: the file cannot be written (naming it).
     :raises TypeError: a state holds something that is not plain data.
     """
+    if not secret:
+        raise SourceError(f"{path}: the journal has no checkpoint key; no checkpoint is written without one")
     rigs = {rig: {"t_ns": cp.t_ns, "samples": cp.samples, "fingerprint": cp.fingerprint, "saved_at": cp.saved_at,
-                  "alarm_seq": cp.alarm_seq, "state": encode_state(cp.state, f"{rig}.state")}
+                  "alarm_seq": cp.alarm_seq, "epoch": cp.epoch, "source": dict(cp.source),
+                  "state": encode_state(cp.state, f"{rig}.state")}
             for rig, cp in sorted(checkpoints.items())}
     body = {"journal_id": journal_id, "rigs": rigs}
     data = _canonical(body)
-    head = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(data).hexdigest()}
+    head = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "hmac": _mac(secret, data)}
     doc = b'{"body":' + data + b"," + _canonical(head)[1:]  # the body serialised once
     tmp = path.with_name(path.name + ".tmp")
     try:
@@ -168,13 +202,18 @@ def write_checkpoints(path: Path, journal_id: str, checkpoints: Mapping[str, Che
         raise SourceError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
 
 
-def read_checkpoints(path: Path) -> tuple[str, dict[str, Checkpoint]] | None:
+def read_checkpoints(path: Path, secret: bytes | None = None,
+                     legacy: bool = False) -> tuple[str, dict[str, Checkpoint]] | None:
     """The journal id and the checkpoints of a checkpoint file (``None`` when there is none).
 
     Only data is read (JSON; arrays from raw bytes): nothing in the file can run code.
 
+    :param secret: the journal's checkpoint key: the HMAC is checked (``None``: not checked, a first look
+        before the journal is open; the journal checks it once open).
+    :param legacy: a version 1 document (a bare SHA-256) is read (beside a journal of an earlier version).
     :raises LogFormatError: one line naming the file and what is wrong: not a checkpoint document (e.g. a
-        pickle of an earlier version), another format or an unknown version, a SHA-256 that does not match.
+        pickle of an earlier version), another format or an unknown version, an HMAC (or SHA-256) that does
+        not match.
     """
     try:
         raw = path.read_bytes()
@@ -192,22 +231,39 @@ def read_checkpoints(path: Path) -> tuple[str, dict[str, Checkpoint]] | None:
         raise LogFormatError(f"{path}: not a checkpoint of this program (format "
                              f"{doc.get('format') if isinstance(doc, dict) else None!r}, expected "
                              f"{CHECKPOINT_FORMAT!r}); refused: {fix}")
-    if doc.get("version") != CHECKPOINT_VERSION:
-        raise LogFormatError(f"{path}: checkpoint version {doc.get('version')!r}, this program reads version "
+    version = doc.get("version")
+    if version not in (CHECKPOINT_VERSION, LEGACY_VERSION):
+        raise LogFormatError(f"{path}: checkpoint version {version!r}, this program reads version "
                              f"{CHECKPOINT_VERSION}; refused: {fix}")
     body = doc.get("body")
-    if not isinstance(body, dict) or hashlib.sha256(_canonical(body)).hexdigest() != doc.get("sha256"):
-        raise LogFormatError(f"{path}: the checkpoint's SHA-256 does not match its content (the file is damaged); "
-                             f"refused: {fix}")
+    if not isinstance(body, dict):
+        raise LogFormatError(f"{path}: not a valid checkpoint (no body); refused: {fix}")
+    if version == LEGACY_VERSION:
+        if secret is not None and not legacy:
+            raise LogFormatError(f"{path}: checkpoint version 1 (a bare SHA-256 anyone can recompute) beside a "
+                                 f"journal that seals its checkpoints (version {CHECKPOINT_VERSION}); refused: {fix}")
+        if hashlib.sha256(_canonical(body)).hexdigest() != doc.get("sha256"):
+            raise LogFormatError(f"{path}: the checkpoint's SHA-256 does not match its content (the file is "
+                                 f"damaged); refused: {fix}")
+    elif secret is not None:
+        import hmac
+
+        mac = doc.get("hmac")
+        if not isinstance(mac, str) or not secret or not hmac.compare_digest(mac, _mac(secret, _canonical(body))):
+            raise LogFormatError(f"{path}: the checkpoint's HMAC does not match its content under the journal's key "
+                                 f"(changed, damaged, or another journal's checkpoint); refused: {fix}")
     try:
         jid = body["journal_id"]
         if not isinstance(jid, str):
             raise ValueError("journal_id is not a string")
         out = {}
         for rig, e in body["rigs"].items():
+            source = e.get("source", {})
+            if not isinstance(source, dict):
+                raise ValueError(f"{rig}.source is not a mapping")
             cp = Checkpoint(rig, _int(e["t_ns"]), _int(e["samples"]), str(e["fingerprint"]),
                             decode_state(e["state"], f"{rig}.state"), float(e["saved_at"]), _int(e["alarm_seq"]),
-                            jid)
+                            jid, str(e.get("epoch", "")), source)
             if not isinstance(cp.state, dict):
                 raise ValueError(f"{rig}.state is not a mapping")
             out[rig] = cp

@@ -13,7 +13,8 @@ from fpdd.errors import SourceError, TwinError
 from twin.service.config import ServiceConfig
 from twin.service.outcome import RigFailure
 from twin.service.runner_core import RunnerCore
-from twin.service.checkpoint_file import Checkpoint
+from twin.service.checkpoint_file import Checkpoint, source_identity
+from twin.service.inputs import is_live
 
 log = logging.getLogger("twin.serve")
 
@@ -41,6 +42,7 @@ class Checkpoints(RunnerCore):
         cp = self.journal.load_checkpoint(self.rig.name)
         if cp is None:
             return
+        self._check_bound(cp)
         if cp.fingerprint != self._fp:
             log.warning("rig %s: its configuration changed since the checkpoint of %s; starting afresh "
                         "(alarms journaled before are not raised twice)", self.rig.name,
@@ -57,6 +59,31 @@ class Checkpoints(RunnerCore):
         log.info("rig %s: resumed from its checkpoint after %d samples (t_ns=%d)", self.rig.name, cp.samples,
                  cp.t_ns)
 
+    @property
+    def _source_id(self) -> dict:
+        """The rig's source as a checkpoint names it (a file's length read once, when the rig starts)."""
+        sid = self.__dict__.get("_source_identity")
+        if sid is None:
+            sid = self.__dict__["_source_identity"] = source_identity(self.rig.source)
+        return sid
+
+    def _check_bound(self, cp: Checkpoint) -> None:
+        """Refuse, in one line, a checkpoint of another numbering (epoch) or of another file than the rig's source
+        now (sealed under the journal's key: :mod:`twin.service.checkpoint_file`)."""
+        where = self.journal.checkpoint_path
+        epoch = self.journal.epoch(self.rig.name)
+        if cp.epoch and epoch and cp.epoch != epoch:
+            raise RigFailure(f"its checkpoint in {where} was taken in epoch {cp.epoch} of the rig's alarms, the journal "
+                             f"numbers them in epoch {epoch}; refused: move the checkpoint aside to start the rig "
+                             "afresh from its journal")
+        if is_live(self.rig.source) or not cp.source:
+            return
+        now = source_identity(self.rig.source)
+        if cp.source.get("uri") == now.get("uri") and "bytes" in cp.source and cp.source.get("bytes") != now.get("bytes"):
+            raise RigFailure(f"its checkpoint in {where} resumes {cp.source['uri']} of {cp.source['bytes']} bytes, "
+                             f"the file has {now.get('bytes', 'no')} bytes now (another log under that name); refused: "
+                             "move the checkpoint aside to start the rig afresh from its journal")
+
     def _checkpoint(self) -> None:
         self._last_cp = time.monotonic()
         twin = self.twin
@@ -65,7 +92,8 @@ class Checkpoints(RunnerCore):
             return  # nothing tracked yet (a restart during the commissioning gathers its window again)
         try:
             saved = self.journal.save_checkpoint(Checkpoint(self.rig.name, twin.last_t_ns, twin.stats.samples,
-                                                            self._fp, twin.state(), time.time()))
+                                                            self._fp, twin.state(), time.time(),
+                                                            source=self._source_id))
             if self.cfg.failover is not None:  # to the standbys (twin.service.replication)
                 self.outbox.publish_checkpoint(saved, self.summary.state)
             if self._cp_error:

@@ -83,12 +83,22 @@ log = logging.getLogger("twin.serve")
 # --------------------------------------------------------------------------- the service's process
 
 
+def _binding(rig: RigConfig):
+    """What the rig's journal is bound to (:class:`twin.service.journal.Binding`)."""
+    from twin.service.journal import Binding
+    from twin.service.signing import load_signer
+
+    key = load_signer(rig.signing_key, rig.name).fingerprint if rig.signing_key else ""
+    return Binding(rig.name, key, rig.source)
+
+
 class BusFront:
     """The service's side of the bus: a :class:`~twin.service.bus.TwinPublisher` per rig, fed by the runners."""
 
     def __init__(self, session, histories: dict[str, Any],
                  on_alarm: Callable[[AlarmEvent], None] | None = None, signing_keys: dict[str, str] | None = None) -> None:
         from twin.service.bus import TwinPublisher
+        from twin.service.put_mark import put_mark_path
         from twin.service.signing import load_signer
 
         self._pubs: dict[str, TwinPublisher] = {}
@@ -101,8 +111,15 @@ class BusFront:
         try:
             for rig, history in histories.items():
                 key = (signing_keys or {}).get(rig)
+                path = getattr(history, "path", None)
                 self._pubs[rig] = TwinPublisher(session, rig, history=history,
-                                                signer=load_signer(key, rig) if key else None)
+                                                signer=load_signer(key, rig) if key else None,
+                                                put_mark=put_mark_path(path) if path is not None else None)
+            for rig, pub in self._pubs.items():  # what a killed service journaled and never put, first
+                try:
+                    pub.put_unsent()
+                except TwinError as exc:
+                    log.warning("rig %s: %s", rig, exc)
         except BaseException:
             self.close()
             raise
@@ -201,7 +218,7 @@ class Fleet:
             # Every journal is opened here first: integrity, migration and locks are checked before any rig runs.
             for rig in cfg.rigs:
                 journals[rig.name] = AlarmJournal(journal_path(cfg, rig.name), legacy=legacy_journal_path(cfg, rig.name),
-                                                  witnesses=[commission_path(cfg, rig.name)])
+                                                  witnesses=[commission_path(cfg, rig.name)], bind=_binding(rig))
             for group in self.remote:
                 for rig in group:
                     journals.pop(rig.name).close()

@@ -28,6 +28,13 @@ that is missing, empty, replaced or whose alarms end before the checkpoint's
 (or, without a checkpoint, one missing or empty where a ``witnesses`` file such
 as a commissioning says the rig ran before) is refused with one line.
 
+Binding: the service opens a rig's journal with the rig it belongs to (:class:`Binding`: the rig's name,
+its signing key's fingerprint, its source). The first open records them in the journal; a journal that holds
+another rig's alarms or was recorded for another rig or under another key is refused with one line (a
+journal copied from another rig, with or without its checkpoint, is never continued). The checkpoint beside
+it is sealed under the journal's own key and names the rig's epoch and source
+(:mod:`twin.service.checkpoint_file`).
+
 Migration: the journal of earlier versions was a JSON-lines file
 (``<rig>.alarms.jsonl``). Given ``legacy=PATH``, an existing file is imported
 once, in one transaction, and renamed ``PATH.imported``; a file that is not a
@@ -54,7 +61,7 @@ from twin.online.events import AlarmEvent
 from twin.service.checkpoint_file import Checkpoint, checkpoint_path, read_checkpoints, write_checkpoints
 from twin.service.store import Continuity, NotFolded, Store
 
-__all__ = ["AlarmJournal", "Recorded", "read_legacy_journal"]
+__all__ = ["AlarmJournal", "Binding", "Recorded", "read_legacy_journal"]
 
 log = logging.getLogger(__name__)
 
@@ -72,19 +79,32 @@ class Recorded:
     :meth:`AlarmJournal.take_written` hands it over."""
 
 
+@dataclasses.dataclass(frozen=True)
+class Binding:
+    """The rig a journal belongs to (see the module docstring)."""
+
+    rig: str
+    key: str = ""
+    """The fingerprint of the rig's signing key (``""``: unsigned)."""
+    source: str = ""
+    """The rig's source URI (recorded, not enforced: a rig's next campaign may read another log)."""
+
+
 class AlarmJournal:
     """Alarms and checkpoints of one or more rigs in one SQLite file (one writer).
 
     :param path: the database file (created with its directory if missing).
     :param legacy: an old JSON-lines journal to import once if it exists.
     :param witnesses: files whose existence says the journal's rigs ran before (a saved commissioning).
+    :param bind: the rig the journal belongs to (refused when it is another's; see the module docstring).
     :raises SourceError: the file cannot be opened or is locked by another writer.
     :raises LogFormatError: the file (or the legacy journal, or the checkpoint) is corrupt, or the journal
         disagrees with its checkpoint or witnesses (module docstring); nothing is changed.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, legacy: str | os.PathLike[str] | None = None,
-                 lock_wait_s: float = 5.0, witnesses: Iterable[str | os.PathLike[str]] = ()) -> None:
+                 lock_wait_s: float = 5.0, witnesses: Iterable[str | os.PathLike[str]] = (),
+                 bind: Binding | None = None) -> None:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -114,12 +134,38 @@ class AlarmJournal:
         """While writes fail: one line naming the file and the cause; ``None`` when all is on disk."""
         self.imported = 0
         """Alarms imported from the legacy journal by this open."""
-        if legacy is not None:
-            try:
+        try:
+            saved = read_checkpoints(self.checkpoint_path, self.store.secret, legacy=self.store.new_secret)
+            self._checkpoints = saved[1] if saved is not None else {}  # sealed under this journal's key
+            if bind is not None:
+                self._bind(bind)
+            if legacy is not None:
                 self._import(Path(legacy))
-            except BaseException:
-                self.store.close()
-                raise
+        except BaseException:
+            self.store.close()
+            raise
+
+    def _bind(self, bind: Binding) -> None:
+        """Refuse a journal of another rig or key; record the binding at the first open."""
+        store, rig = self.store, bind.rig
+        fix = (f"refused: put rig {rig}'s own journal back, or move this one (and its checkpoint) aside to start "
+               "a new journal (a new epoch)")
+        owner = store.meta("rig")
+        others = [r for r in store.rigs() if r != rig]
+        if (owner is not None and owner != rig) or others:
+            who = owner if owner is not None and owner != rig else others[0]
+            raise LogFormatError(f"{self.path}: the journal of rig {who!r}, not of rig {rig!r} (copied from another "
+                                 f"rig?); {fix}")
+        key = store.meta(f"key:{rig}")
+        if bind.key and key and key != bind.key:
+            raise LogFormatError(f"{self.path}: the journal of rig {rig!r} under signing key {key}, the rig's key is "
+                                 f"{bind.key} now (another rig's journal, or a new key: a new key starts a new "
+                                 f"journal); {fix}")
+        values = {"rig": rig, f"source:{rig}": bind.source}
+        if bind.key:
+            values[f"key:{rig}"] = bind.key
+        if any(store.meta(k) != v for k, v in values.items()):
+            store.set_meta(values)
 
     # ------------------------------------------------------------------ life cycle
 
@@ -186,6 +232,8 @@ class AlarmJournal:
                 raise DataError(f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {nxt} "
                                 f"(the next journal number) or 0 (assign) was expected")
             event = event.with_seq(nxt)
+            if not event.epoch and event.rig in self.store._epochs:  # known: the pending alarm carries it already
+                event = dataclasses.replace(event, epoch=self.store._epochs[event.rig])
             self._pending.append(event)
             log.error("rig %s: alarm seq %d kept in memory, not on disk and not published yet: %s; retrying "
                       "with every alarm and every block", event.rig, event.seq, self.write_error)
@@ -203,12 +251,12 @@ class AlarmJournal:
     def _retry_locked(self) -> bool:
         while self._pending:
             try:
-                self.store.insert_alarm(self._pending[0])  # a duplicate when it was committed, not folded
+                done, _ = self.store.insert_alarm(self._pending[0])  # a duplicate when committed, not folded
                 self.store.fold()
             except SourceError as exc:
                 self._failed(exc)
                 return False
-            done = self._pending.pop(0)
+            self._pending.pop(0)
             self._written.append(done)
             log.warning("rig %s: pending alarm seq %d is now on disk in %s", done.rig, done.seq, self.path)
         if self.write_error is not None:
@@ -253,8 +301,10 @@ class AlarmJournal:
                                   f"{cp.rig} are not journaled ({self.write_error})")
             if self.store.journal_id is None:
                 raise SourceError(f"{self.path}: the journal has no id")
-            cp = dataclasses.replace(cp, alarm_seq=self.store.last_seq(cp.rig), journal_id=self.store.journal_id)
-            write_checkpoints(self.checkpoint_path, self.store.journal_id, {**self._checkpoints, cp.rig: cp})
+            cp = dataclasses.replace(cp, alarm_seq=self.store.last_seq(cp.rig), journal_id=self.store.journal_id,
+                                     epoch=self.store.epoch(cp.rig))
+            write_checkpoints(self.checkpoint_path, self.store.journal_id, {**self._checkpoints, cp.rig: cp},
+                              self.store.secret)
             self._checkpoints[cp.rig] = cp
             return cp
 
@@ -264,6 +314,15 @@ class AlarmJournal:
             return self._checkpoints.get(rig)
 
     # ------------------------------------------------------------------ reading
+
+    def epoch(self, rig: str) -> str:
+        """The epoch of ``rig``'s alarm numbering in this journal (made when the rig has none yet;
+        :mod:`twin.service.store`); ``""`` while it cannot be written."""
+        try:
+            return self.store.epoch(rig)
+        except SourceError as exc:
+            self._failed(exc)
+            return ""
 
     def _last_seq_locked(self, rig: str) -> int:
         mine = [p.seq for p in self._pending if p.rig == rig]

@@ -35,6 +35,7 @@ class Outbox(Publisher):
         self._batch: list[tuple] = []
         self._last_flush = time.monotonic()
         self._seq = journal.last_seq(rig)
+        journal.epoch(rig)  # made now if the rig has none: its first status announces it
 
     def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
         recorded = self.journal.record(event)
@@ -80,6 +81,8 @@ class Outbox(Publisher):
     def publish_status(self, event: StatusEvent) -> StatusEvent:
         if "alarm_seq" not in event.counters:
             event = dataclasses.replace(event, counters={**event.counters, **self.status_counters()})
+        if not event.epoch:  # the numbering the alarms count in, announced (and signed by the bus front)
+            event = dataclasses.replace(event, epoch=self.journal.epoch(self.rig))
         self._batch.append(("status", event_to_json(event), event.state, event.message))
         return event
 

@@ -142,7 +142,10 @@ class Replica:
         self.rig = rig.name
         self._session = session
         self.keys = RigKeys(rig.name)
-        self.journal = AlarmJournal(journal_path(cfg, rig.name), witnesses=[commission_path(cfg, rig.name)])
+        from twin.service.journal import Binding
+
+        self.journal = AlarmJournal(journal_path(cfg, rig.name), witnesses=[commission_path(cfg, rig.name)],
+                                    bind=Binding(rig.name, source=rig.source))
         self.checkpoint: Checkpoint | None = self.journal.load_checkpoint(rig.name)
         """The latest checkpoint kept (its alarms all journaled here)."""
         self.owner = ""
@@ -261,4 +264,9 @@ class Replica:
         if self._thread.is_alive():
             self._work.put(None)
             self._thread.join(timeout=2 * FETCH_S + 1.0)
+        if not self.journal.closed:  # the owner's alarms journaled here were put by the owner
+            from twin.service.put_mark import PutMark, put_mark_path
+
+            PutMark(put_mark_path(self.journal.path), self.rig).done(self.journal.last_seq(self.rig),
+                                                                     self.journal.epoch(self.rig))
         self.journal.close()

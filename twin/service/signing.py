@@ -8,11 +8,19 @@ a subscriber tell the twin's alarms from anyone else's, whatever the bus.
 What is signed: the alarm's JSON payload without its ``signature`` field, in a
 canonical form (:func:`canonical`: keys sorted, no whitespace, UTF-8, numbers as
 Python's ``json`` writes them), prefixed by the domain tag ``fpdd-alarm-v1\\n``.
-Every field of the payload is covered (rig, seq, parameter, level, kind,
+Every field of the payload is covered (rig, epoch, seq, parameter, level, kind,
 t_ns, t_s, estimate, std, baseline, band, statistic, message, unit), so a
 changed field, a changed number or another rig's alarm under this rig's key
 does not verify. Ed25519 signatures are deterministic: the live alarm and its
 history reply carry the same signature.
+
+Replays: a validly signed alarm recorded off the bus stays valid for ever, so the
+signature also covers the alarm's ``epoch`` (the identity of the rig's numbering,
+made with its journal, :mod:`twin.service.store`), and the rig's owner announces
+that epoch in its status, signed too (domain ``fpdd-status-v1\\n``, :meth:`Signer.sign_status`).
+A subscriber (:class:`twin.service.subscriber.AlarmSubscriber`) keeps per rig the
+epoch and the numbers delivered, and refuses an alarm of an earlier epoch or a
+number delivered before.
 
 Keys (:func:`init_keys`, ``twin keys init``): ``<rig>.key`` (PKCS#8 PEM, mode
 0600, read by the service) and ``<rig>.pub`` (SubjectPublicKeyInfo PEM, handed
@@ -49,6 +57,7 @@ from twin.online.events import RIG_PATTERN, AlarmEvent
 __all__ = [
     "DOMAIN",
     "SIGNATURE_FIELD",
+    "STATUS_DOMAIN",
     "Signer",
     "TrustStore",
     "Verdict",
@@ -60,7 +69,9 @@ __all__ = [
 ]
 
 DOMAIN = b"fpdd-alarm-v1\n"
-"""Prefix of every signed message: a signature over an alarm is good for nothing else."""
+"""Prefix of every signed alarm: a signature over an alarm is good for nothing else."""
+STATUS_DOMAIN = b"fpdd-status-v1\n"
+"""Prefix of every signed status (it announces the rig's epoch): a status signature is no alarm's."""
 
 SIGNATURE_FIELD = "signature"
 """The payload field that carries the base64 Ed25519 signature (64 bytes)."""
@@ -68,11 +79,11 @@ SIGNATURE_FIELD = "signature"
 VERIFIED, UNVERIFIED, FORGED = "verified", "unverified", "forged"
 
 
-def canonical(payload: Mapping[str, Any]) -> bytes:
-    """The bytes that are signed: ``payload`` without its signature, canonical JSON, after :data:`DOMAIN`."""
+def canonical(payload: Mapping[str, Any], domain: bytes = DOMAIN) -> bytes:
+    """The bytes that are signed: ``payload`` without its signature, canonical JSON, after ``domain``."""
     body = {k: v for k, v in payload.items() if k != SIGNATURE_FIELD}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
-    return DOMAIN + text.encode("utf-8")
+    return domain + text.encode("utf-8")
 
 
 def fingerprint(public_key: Any) -> str:
@@ -121,6 +132,18 @@ class Signer:
         from dataclasses import replace
 
         return replace(event, signature=self.signature(event))
+
+    def sign_status(self, payload: str) -> str:
+        """A status JSON payload (:class:`twin.online.events.StatusEvent`) with its ``signature`` (domain
+        :data:`STATUS_DOMAIN`) over every other field; the payload as it was when it is another rig's."""
+        from fpdd import jsonio
+
+        data = json.loads(payload)
+        if not isinstance(data, dict) or data.get("rig") != self.rig:
+            return payload
+        data.pop(SIGNATURE_FIELD, None)
+        data[SIGNATURE_FIELD] = base64.b64encode(self._key.sign(canonical(data, STATUS_DOMAIN))).decode("ascii")
+        return jsonio.dumps(data, indent=None, sort_keys=True)
 
 
 def load_signer(path: str | Path, rig: str) -> Signer:
@@ -276,8 +299,9 @@ class TrustStore:
     def has_key(self, rig: str) -> bool:
         return rig in self._keys
 
-    def check(self, payload: Mapping[str, Any]) -> Verdict:
-        """The verdict on a decoded alarm payload (before or after schema validation)."""
+    def check(self, payload: Mapping[str, Any], domain: bytes = DOMAIN) -> Verdict:
+        """The verdict on a decoded alarm payload (a status's with ``domain`` :data:`STATUS_DOMAIN`), before or
+        after schema validation."""
         from cryptography.exceptions import InvalidSignature
 
         rig = payload.get("rig")
@@ -292,7 +316,7 @@ class TrustStore:
         except (binascii.Error, ValueError):
             return Verdict(FORGED, "the signature is not base64")
         try:
-            key.verify(signature, canonical(payload))
+            key.verify(signature, canonical(payload, domain))
         except InvalidSignature:
             return Verdict(FORGED, f"the signature does not verify with the key of rig {rig!r}")
         except (TypeError, ValueError) as exc:

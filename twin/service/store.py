@@ -7,8 +7,17 @@ One database per rig (``<journal_dir>/<rig>.db``) holds
   ``(rig, parameter, level, kind, t_ns)``: the same alarm is never stored
   twice, whatever re-processing raised it again. Each row carries the JSON
   payload and its CRC-32;
-* ``meta``: schema version, the journal's id (random, made with the journal)
-  and the record of a legacy journal imported.
+* ``meta``: schema version, the journal's id (random, made with the journal),
+  each rig's *epoch* (``epoch:<rig>``) and the record of a legacy journal imported.
+
+Epochs: a rig's alarm numbers count within its epoch, a random identity made
+with the rig's first use of the journal (:func:`new_epoch`: its creation time
+first, so a later epoch sorts after an earlier one). Every alarm carries it
+(:attr:`~twin.online.events.AlarmEvent.epoch`, covered by the signature), the
+owner announces it in its status, and a subscriber refuses an alarm of an earlier
+epoch (a replay of another campaign's alarms). A journal that starts numbering
+again from 1 (a new journal) has a new epoch; a standby's journal adopts the
+owner's epoch with its first alarm (it continues the owner's numbering).
 
 Durability: WAL mode with ``synchronous=FULL``, and every alarm commit is
 folded into the main database file at once (``PRAGMA wal_checkpoint(TRUNCATE)``):
@@ -24,6 +33,11 @@ file: alarm numbering never restarts silently.
 
 Checkpoints are data only, in a file beside the journal
 (:mod:`twin.service.checkpoint_file`).
+
+High-water marks: the journal keeps, in the same transaction as each alarm, the rig's last number in
+``meta`` (``last_seq:<rig>``) and the count of all its alarms in the SQLite file header (``PRAGMA
+user_version``). A journal alone (its checkpoint gone) whose last rows were deleted, whose alarms table was
+dropped or whose rows were lost otherwise is refused on open, naming the numbers missing.
 
 Corruption is detected, reported and never repaired: the open runs
 ``PRAGMA quick_check`` and verifies every alarm's CRC and the sequence numbers;
@@ -45,6 +59,7 @@ import fcntl
 import json
 import logging
 import os
+import secrets
 import sqlite3
 import threading
 import time
@@ -59,7 +74,7 @@ from typing import BinaryIO, Self
 from fpdd.errors import DataError, LogFormatError, SourceError
 from twin.online.events import AlarmEvent, AlarmIdentity, event_to_json
 
-__all__ = ["Continuity", "NotFolded", "Store"]
+__all__ = ["Continuity", "NotFolded", "Store", "new_epoch"]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +92,11 @@ CREATE TABLE IF NOT EXISTS alarms (
     UNIQUE (rig, parameter, level, kind, t_ns)
 );
 """
+
+
+def new_epoch() -> str:
+    """A new epoch: 16 hex digits of the wall-clock time [ns] then 16 random ones (sorts by creation time)."""
+    return f"{time.time_ns():016x}{secrets.token_hex(8)}"
 
 
 def _crc(data: str | bytes) -> int:
@@ -120,6 +140,10 @@ class Store:
         self._db: sqlite3.Connection | None = None
         self.journal_id: str | None = None
         """The journal's random id (made with the journal; ``None`` for a reader of a file without one)."""
+        self._writer = writer
+        self._epochs: dict[str, str] = {}
+        self.new_secret = False
+        """The checkpoint key (:attr:`secret`) was made by this open: the journal is new or of an earlier version."""
         try:
             if writer:
                 self._take_lock(lock_wait_s)
@@ -135,6 +159,7 @@ class Store:
             if expect is not None:
                 self._check_continuity(expect, version)
             self._verify_alarms()  # all checks before anything is written
+            self._check_marks()
             mode = self._db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             if mode.lower() != "wal":
                 raise SourceError(f"{self.path}: cannot switch the journal to WAL mode (got {mode!r})")
@@ -147,8 +172,16 @@ class Store:
                         if statement.strip():
                             db.execute(statement)
                     db.execute("INSERT OR IGNORE INTO meta VALUES ('journal_id', ?)", (uuid.uuid4().hex,))
+                    had_secret = db.execute("SELECT 1 FROM meta WHERE key='checkpoint_key'").fetchone()
+                    self.new_secret = had_secret is None  # made by this open (a journal of an earlier version)
+                    db.execute("INSERT OR IGNORE INTO meta VALUES ('checkpoint_key', ?)", (secrets.token_hex(32),))
                     if version != SCHEMA_VERSION:
                         db.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,))
+                    if not self._marks(db):  # a journal of an earlier version: its marks from what it holds now
+                        for rig, last in db.execute("SELECT rig, MAX(seq) FROM alarms GROUP BY rig").fetchall():
+                            db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"last_seq:{rig}", str(last)))
+                        count = db.execute("SELECT COUNT(*) FROM alarms").fetchone()[0]
+                        db.execute(f"PRAGMA user_version = {int(count)}")
                     db.execute("COMMIT")
                 except BaseException:
                     if db.in_transaction:
@@ -285,6 +318,39 @@ class Store:
             raise LogFormatError(f"{self.path}: the journal is corrupt (quick_check: {detail}); left untouched: "
                                  "restore it from a backup or move it aside")
 
+    @staticmethod
+    def _marks(db: sqlite3.Connection) -> dict[str, int]:
+        """Per rig, the last number journaled as the journal's own meta says (empty: none kept)."""
+        try:
+            rows = db.execute("SELECT key, value FROM meta WHERE key LIKE 'last_seq:%'").fetchall()
+        except sqlite3.OperationalError:
+            return {}
+        return {k.split(":", 1)[1]: int(v) for k, v in rows}
+
+    def _check_marks(self) -> None:
+        """Refuse a journal whose alarms end before its own high-water marks (module docstring), naming the
+        numbers missing."""
+        db = self._conn()
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'").fetchall()}
+        if "meta" not in tables:
+            return  # not a journal (yet): an empty file, or another program's database (refused elsewhere)
+        fix = "left untouched: restore it from a backup or move it aside"
+        marks = self._marks(db)
+        have = ({r: self._last_seq(db, r) for r in marks} if "alarms" in tables else {r: 0 for r in marks})
+        for rig, mark in sorted(marks.items()):
+            if have[rig] < mark:
+                lost = f"seq {have[rig] + 1}..{mark}" if have[rig] + 1 < mark else f"seq {mark}"
+                what = "its alarms table is missing" if "alarms" not in tables else \
+                    f"the alarms of rig {rig!r} end at seq {have[rig]}"
+                raise LogFormatError(f"{self.path}: {what}, but the journal's own high-water mark says rig {rig!r} "
+                                     f"journaled {mark}: {lost} of rig {rig!r} missing (rows deleted or the file "
+                                     f"damaged); {fix}")
+        counted = int(db.execute("PRAGMA user_version").fetchone()[0])
+        there = db.execute("SELECT COUNT(*) FROM alarms").fetchone()[0] if "alarms" in tables else 0
+        if counted > there:
+            raise LogFormatError(f"{self.path}: the journal's header counts {counted} alarms, {there} are there: "
+                                 f"{counted - there} missing (rows or marks deleted, or the file damaged); {fix}")
+
     def _verify_alarms(self) -> None:
         """Every alarm's CRC, payload and number; raises LogFormatError naming the first bad one."""
         last: dict[str, int] = {}
@@ -340,14 +406,17 @@ class Store:
                     elif event.seq != nxt:
                         raise DataError(f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {nxt} "
                                         f"(the next journal number) or 0 (assign) was expected")
+                    event = dataclasses.replace(event, epoch=self._stamp_epoch(db, event, nxt == 1))
                     payload = event_to_json(event)
                     db.execute("INSERT INTO alarms VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                                (event.rig, event.seq, event.parameter, event.level, event.kind, event.t_ns,
                                 payload, _crc(payload)))
+                    self._mark(db, {event.rig: event.seq}, 1)
                     db.execute("COMMIT")
                 except BaseException:
                     if db.in_transaction:
                         db.execute("ROLLBACK")
+                    self._epochs.pop(event.rig, None)  # an epoch made in the transaction is not on disk
                     raise
             except sqlite3.Error as exc:
                 raise self._error(exc, "cannot write to") from exc
@@ -369,6 +438,7 @@ class Store:
             try:
                 db.execute("BEGIN IMMEDIATE")
                 try:
+                    lasts: dict[str, int] = {}
                     for ev in events:
                         if self._find(db, ev.identity) is not None:
                             continue
@@ -376,7 +446,9 @@ class Store:
                         db.execute("INSERT INTO alarms VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                                    (ev.rig, ev.seq, ev.parameter, ev.level, ev.kind, ev.t_ns, payload,
                                     _crc(payload)))
+                        lasts[ev.rig] = max(lasts.get(ev.rig, 0), ev.seq)
                         n += 1
+                    self._mark(db, lasts, n)
                     db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
                     db.execute("COMMIT")
                 except BaseException:
@@ -392,10 +464,83 @@ class Store:
         return n
 
     @staticmethod
-    def _find(db: sqlite3.Connection, ident: AlarmIdentity) -> AlarmEvent | None:
+    def _mark(db: sqlite3.Connection, lasts: Mapping[str, int], added: int) -> None:
+        """Raise the high-water marks (inside the caller's transaction)."""
+        for rig, seq in lasts.items():
+            db.execute("INSERT INTO meta VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value "
+                       "WHERE CAST(value AS INTEGER) < CAST(excluded.value AS INTEGER)", (f"last_seq:{rig}", str(seq)))
+        if added:
+            count = int(db.execute("PRAGMA user_version").fetchone()[0])
+            db.execute(f"PRAGMA user_version = {count + added}")
+
+    def _find(self, db: sqlite3.Connection, ident: AlarmIdentity) -> AlarmEvent | None:
         row = db.execute("SELECT payload FROM alarms WHERE rig=? AND parameter=? AND level=? AND kind=? AND t_ns=?",
                          (ident.rig, ident.parameter, ident.level, ident.kind, ident.t_ns)).fetchone()
-        return AlarmEvent.from_dict(json.loads(row[0])) if row else None
+        return self._event(db, row[0]) if row else None
+
+    def _event(self, db: sqlite3.Connection, payload: str) -> AlarmEvent:
+        """A stored alarm; one journaled before epochs existed carries its rig's epoch now (the numbering it is in)."""
+        ev = AlarmEvent.from_dict(json.loads(payload))
+        if not ev.epoch:
+            epoch = self._epochs.get(ev.rig) or self._read_epoch(db, ev.rig)
+            if epoch:
+                ev = dataclasses.replace(ev, epoch=epoch)
+        return ev
+
+    def _read_epoch(self, db: sqlite3.Connection, rig: str) -> str:
+        try:
+            row = db.execute("SELECT value FROM meta WHERE key=?", (f"epoch:{rig}",)).fetchone()
+        except sqlite3.OperationalError:  # a reader on a file no writer has initialised yet
+            return ""
+        if row:
+            self._epochs[rig] = str(row[0])
+        return str(row[0]) if row else ""
+
+    def _stamp_epoch(self, db: sqlite3.Connection, event: AlarmEvent, first: bool) -> str:
+        """The epoch an alarm is journaled under, inside the insert's transaction: the rig's; made now if it has
+        none; the alarm's own (a standby continuing the owner's numbering) when it is the rig's first alarm here.
+
+        :raises DataError: the alarm carries another epoch than the rig's alarms journaled here.
+        """
+        have = self._read_epoch(db, event.rig)
+        want = event.epoch or have or new_epoch()
+        if want != have:
+            if have and not first:
+                raise DataError(f"AlarmEvent.epoch: {event.epoch} for rig {event.rig!r} seq {event.seq}, where this "
+                                f"journal numbers the rig's alarms in epoch {have}")
+            db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"epoch:{event.rig}", want))
+            self._epochs.pop(event.rig, None)
+        self._epochs[event.rig] = want
+        return want
+
+    def epoch(self, rig: str) -> str:
+        """The rig's epoch (a writer makes it when the rig has none yet; a reader returns ``""`` then).
+
+        :raises SourceError: a writer cannot write it (naming the file).
+        """
+        with self._lock:
+            if rig in self._epochs:
+                return self._epochs[rig]
+            have = self._read(lambda db: self._read_epoch(db, rig))
+            if have or not self._writer:
+                return have
+            db = self._conn()
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    have = self._read_epoch(db, rig) or new_epoch()
+                    db.execute("INSERT OR IGNORE INTO meta VALUES (?, ?)", (f"epoch:{rig}", have))
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
+                    raise
+                self._fold()
+            except sqlite3.Error as exc:
+                self._epochs.pop(rig, None)
+                raise self._error(exc, "cannot write to") from exc
+            self._epochs[rig] = have
+            return have
 
     @staticmethod
     def _last_seq(db: sqlite3.Connection, rig: str) -> int:
@@ -428,7 +573,7 @@ class Store:
         sql += " ORDER BY rig, seq"
         with self._lock:
             rows = self._read(lambda db: db.execute(sql, args).fetchall())
-        return [AlarmEvent.from_dict(json.loads(r[0])) for r in rows]
+            return self._read(lambda db: [self._event(db, r[0]) for r in rows])
 
     def rigs(self) -> list[str]:
         with self._lock:
@@ -451,6 +596,34 @@ class Store:
         with self._lock:
             row = self._read(lambda db: db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone())
         return row[0] if row else None
+
+    @property
+    def secret(self) -> bytes:
+        """The journal's random checkpoint key (made with it, never leaves the file): a checkpoint beside the
+        journal carries an HMAC under it (:mod:`twin.service.checkpoint_file`); empty for a reader of a file
+        without one."""
+        text = self.meta("checkpoint_key")
+        return bytes.fromhex(text) if text else b""
+
+    def set_meta(self, values: Mapping[str, str]) -> None:
+        """Set ``values`` in the meta table in one transaction, folded into the main file.
+
+        :raises SourceError: the write failed (naming the file).
+        """
+        with self._lock:
+            db = self._conn()
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(values.items()))
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
+                    raise
+                self._fold()
+            except sqlite3.Error as exc:
+                raise self._error(exc, "cannot write to") from exc
 
 
 class NotFolded(SourceError):

@@ -20,7 +20,7 @@ from fpdd.zenohconf import zenoh_text
 from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, StatusEvent
 from twin.service.bus import RigKeys, _Declarations, _open_error, _ranges
-from twin.service.signing import FORGED, UNVERIFIED, VERIFIED, TrustStore, Verdict
+from twin.service.signing import FORGED, STATUS_DOMAIN, UNVERIFIED, VERIFIED, TrustStore, Verdict
 
 log = logging.getLogger("twin.service.bus")
 
@@ -78,6 +78,16 @@ class AlarmSubscriber(_Declarations):
     is the twin). A different alarm arriving live under a number already
     delivered is reported as a conflict too (it is not delivered).
 
+    Epochs (:mod:`twin.service.store`): a rig's numbers count within its epoch,
+    which every alarm carries (signed) and the rig's owner announces in its signed
+    status. The subscriber keeps per rig the epoch (:attr:`epochs`: from a verified
+    status or alarm, or, for a rig without a key, from the alarms it delivers) and
+    refuses, reported as ``replayed: ...``, an alarm of an earlier epoch (one
+    recorded off the bus in another campaign and put again) and a live alarm whose
+    number was received live before. A verified alarm or status of a later epoch
+    (a new journal) starts the rig's numbering afresh: its alarms 1, 2, ... are
+    delivered.
+
     :param history: fetch the history first (default). With ``False`` only live
         alarms are delivered; gaps between them are still filled.
     :param query_timeout: timeout of each history query [s].
@@ -113,7 +123,13 @@ class AlarmSubscriber(_Declarations):
         self.verification: dict[tuple[str, int], str] = {}
         """Per delivered ``(rig, seq)``: ``verified`` or ``unverified``."""
         self.reports: list[str] = []
-        """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``), in order."""
+        """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``, ``replayed: ...``,
+        ``epoch: ...``), in order."""
+        self.epochs: dict[str, str] = {}
+        """Per rig: the epoch its alarms are delivered in (see the class docstring)."""
+        self.replayed = 0
+        """Alarms refused as replays: of an earlier epoch, or a number received live before."""
+        self._live: set[tuple[str, int]] = set()
         self.forged = 0
         """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
         self.conflicts = 0
@@ -149,6 +165,7 @@ class AlarmSubscriber(_Declarations):
             self.close()
             raise _open_error(exc, f"cannot subscribe to {self.keys.alarm}") from exc
         if history:
+            self._ask_status(rig)  # the owners' announced epochs first: a replayed history reply is told by them
             for event, status in sorted(self._query(rig, since_seq, since_t_ns), key=lambda p: (p[0].rig, p[0].seq)):
                 self._accept(event, status)
 
@@ -176,14 +193,38 @@ class AlarmSubscriber(_Declarations):
             return
         self._inbox.put(("alarm", (event, self._trust.check(data))))
 
-    def _on_status(self, sample: zenoh.Sample) -> None:
+    def _status_of(self, payload: str, key_expr: Any) -> tuple[StatusEvent, str] | None:
+        """A status payload and its verdict (signed with the rig's key: ``verified``); ``None``: not a status or
+        a forged one (logged)."""
         try:
-            status = StatusEvent.from_dict(json.loads(sample.payload.to_string()))
+            data = json.loads(payload)
+            status = StatusEvent.from_dict(data)
         except (DataError, ValueError) as exc:
-            log.warning("%s: rejected status payload: %s", sample.key_expr, exc)
+            log.warning("%s: rejected status payload: %s", key_expr, exc)
+            return None
+        verdict = self._trust.check(data, STATUS_DOMAIN)
+        if verdict.status == FORGED:
+            log.warning("%s: status not accepted: %s", key_expr, verdict.reason)
+            return None
+        return status, verdict.status
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        got = self._status_of(sample.payload.to_string(), sample.key_expr)
+        if got is not None:
+            status, verdict = got
+            self._inbox.put(("status", (status.rig, status.counters.get("alarm_seq"), status.epoch, verdict)))
+
+    def _ask_status(self, rig: str) -> None:
+        """Learn the epochs the rigs' owners announce (their latest status) before the history is judged."""
+        try:
+            replies = list(self._session.get(RigKeys(rig).status, timeout=min(self._query_timeout, 1.0)))
+        except zenoh.ZError:
             return
-        if "alarm_seq" in status.counters:
-            self._inbox.put(("status", (status.rig, status.counters["alarm_seq"])))
+        for reply in replies:
+            if reply.ok is not None:
+                got = self._status_of(reply.ok.payload.to_string(), reply.ok.key_expr)
+                if got is not None and got[1] == VERIFIED and got[0].epoch:
+                    self._learn_epoch(got[0].rig, got[0].epoch, f"the status of rig {got[0].rig}")
 
     def _on_twin(self, sample: zenoh.Sample) -> None:
         try:
@@ -192,6 +233,38 @@ class AlarmSubscriber(_Declarations):
             log.warning("liveliness: %s", exc)
             return
         self._inbox.put(("twin" if sample.kind == zenoh.SampleKind.PUT else "twin-gone", rig))
+
+    # ------------------------------------------------------------------ epochs
+
+    def _learn_epoch(self, rig: str, epoch: str, where: str) -> bool:
+        """Take ``epoch`` (from a trusted source) as the rig's when none is known or it is later; ``True``
+        when it is the rig's epoch now. A later epoch starts the rig's numbering afresh."""
+        known = self.epochs.get(rig)
+        if known is not None and epoch <= known:
+            return epoch == known
+        self.epochs[rig] = epoch
+        if known is not None:
+            self._report("epoch", f"rig {rig} numbers its alarms in a new epoch {epoch} (was {known or 'none'}), "
+                         f"announced by {where}; its alarms from 1 are delivered")
+            if rig in self._last:
+                self._last[rig] = 0
+            self._gaps.pop(rig, None)
+            self._status_seq.pop(rig, None)
+            for key in [k for k in self._delivered if k[0] == rig]:
+                del self._delivered[key]
+            self._live = {k for k in self._live if k[0] != rig}
+        return True
+
+    def _stale(self, event: AlarmEvent, where: str) -> bool:
+        """An alarm of an earlier epoch than the rig's (reported, counted): ``True``, refuse it."""
+        known = self.epochs.get(event.rig)
+        if known is None or event.epoch >= known:
+            return False
+        self.rejected += 1
+        self.replayed += 1
+        self._report("replayed", f"rig {event.rig} seq {event.seq} on {where}: of epoch {event.epoch or 'none'}, "
+                     f"earlier than the rig's epoch {known}; not accepted")
+        return True
 
     # ------------------------------------------------------------------ ordering logic
 
@@ -242,8 +315,11 @@ class AlarmSubscriber(_Declarations):
             for key in list(self._delivered)[: _KEEP_DELIVERED // 2]:
                 del self._delivered[key]
                 self.verification.pop(key, None)
+                self._live.discard(key)
         self._delivered[(event.rig, event.seq)] = event
         self.verification[(event.rig, event.seq)] = status
+        if event.epoch and event.rig not in self.epochs:
+            self.epochs[event.rig] = event.epoch
         self._ready.append(event)
 
     def _check_duplicate(self, event: AlarmEvent) -> None:
@@ -331,6 +407,13 @@ class AlarmSubscriber(_Declarations):
         reasons: dict[tuple[str, str, str], str] = {}
         per_rig: dict[str, dict[str, dict[int, AlarmEvent]]] = {}
         status: dict[tuple[str, int], dict[AlarmEvent, str]] = {}
+        replayed: dict[tuple[str, str, str], list[int]] = {}  # (replier, rig, epoch) -> seqs
+        newest: dict[str, str] = {}  # the latest epoch trusted replies carry, per rig
+        for _, event, verdict in answers:  # rigs without a key: repliers that disagree are never merged anyway
+            if verdict.status == VERIFIED and event.epoch > newest.get(event.rig, ""):
+                newest[event.rig] = event.epoch
+        for rig, epoch in newest.items():
+            self._learn_epoch(rig, epoch, f"the replies on {RigKeys(rig).history}")
         for replier, event, verdict in answers:
             rig = event.rig
             per_rig.setdefault(rig, {}).setdefault(replier, {})
@@ -339,6 +422,9 @@ class AlarmSubscriber(_Declarations):
                 forged.setdefault(key, []).append(event.seq)
                 reasons[key] = verdict.reason
                 continue
+            if self._trust.has_key(rig) and rig in self.epochs and event.epoch < self.epochs[rig]:
+                replayed.setdefault((replier, rig, event.epoch), []).append(event.seq)
+                continue
             per_rig[rig][replier][event.seq] = event
             status.setdefault((rig, event.seq), {})[event] = verdict.status
         where = {r: RigKeys(r).history for r in per_rig}
@@ -346,6 +432,12 @@ class AlarmSubscriber(_Declarations):
             self.rejected += len(seqs)
             self._report(kind, f"rig {rig} seq {_ranges(seqs)} in replies of {replier} on {where[rig]}: "
                          f"{reasons[(kind, replier, rig)]}; not accepted", len(seqs), once=True)
+        for (replier, rig, epoch), seqs in replayed.items():
+            self.rejected += len(seqs)
+            self.replayed += len(seqs)
+            self._report("replayed", f"rig {rig} seq {_ranges(seqs)} in replies of {replier} on {where[rig]}: of "
+                         f"epoch {epoch or 'none'}, earlier than the rig's epoch {self.epochs[rig]}; not accepted",
+                         once=True)
         out: list[tuple[AlarmEvent, str]] = []
         for rig, by_replier in per_rig.items():
             views = {replier: frozenset(alarms.items()) for replier, alarms in by_replier.items()}
@@ -382,8 +474,11 @@ class AlarmSubscriber(_Declarations):
             since_seq, since_t_ns = self._last[rig] + 1, None
         else:
             since_seq, since_t_ns = self.since_seq, self.since_t_ns
-        found = sorted((p for p in self._query(rig, since_seq, since_t_ns) if p[0].rig == rig),
-                       key=lambda p: p[0].seq)
+        before = self.epochs.get(rig)
+        answered = self._query(rig, since_seq, since_t_ns)
+        if before is not None and self.epochs.get(rig) != before:  # a new epoch: its numbers from the start
+            answered = self._query(rig, self.since_seq, None)
+        found = sorted((p for p in answered if p[0].rig == rig), key=lambda p: p[0].seq)
         for event, status in found:
             self._accept(event, status)
         return [event for event, _ in found]
@@ -417,10 +512,22 @@ class AlarmSubscriber(_Declarations):
         rig, seq = event.rig, event.seq
         if not self._admit(event, verdict, RigKeys(rig).alarm):
             return  # forged: moves nothing, the real alarm of this number is still awaited
+        if event.epoch and event.epoch > self.epochs.get(rig, event.epoch) and not self._later_epoch(event, verdict):
+            return
+        if (verdict.status == VERIFIED or rig not in self._alive) and self._stale(event, RigKeys(rig).alarm):
+            return  # an earlier epoch's alarm put again: moves nothing (an unverified one: the live twin's
+            # history tells it below)
         last = self._last.get(rig)
         if last is not None and seq <= last and not self._in_gap(rig, seq):
+            if (rig, seq) in self._live and self._delivered.get((rig, seq)) == event:
+                self.replayed += 1  # the very alarm again: not a payload to reject, a number not to deliver twice
+                self._report("replayed", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: received live before "
+                             f"(epoch {event.epoch or 'none'}); not delivered again")
+                return
+            self._live.add((rig, seq))
             self._check_duplicate(event)
             return  # a duplicate (live after history, or twice)
+        self._live.add((rig, seq))
         expected = self._expected(rig)
         if expected is not None and seq < expected and last is None:
             return  # below --since-seq
@@ -449,7 +556,31 @@ class AlarmSubscriber(_Declarations):
             self._last[rig] = seq - 1
         self._accept(event, verdict.status)  # signed by the rig, or unverifiable: never drop what may be real
 
-    def _on_alarm_seq(self, rig: str, alarm_seq: int) -> None:
+    def _later_epoch(self, event: AlarmEvent, verdict: Verdict) -> bool:
+        """A live alarm of a later epoch than the rig's: a verified one (or, without a key, one the rig's live
+        twin's history holds, or any when no twin answers) starts the new epoch; else it is refused."""
+        rig = event.rig
+        if verdict.status != VERIFIED and self._twin_alive(rig):
+            held = [e for e, _ in self._query(rig, event.seq, None) if e.seq == event.seq]
+            if not any(replace(e, signature="") == replace(event, signature="") for e in held):
+                self.rejected += 1
+                self._report("forged", f"rig {rig} seq {event.seq} on {RigKeys(rig).alarm}: epoch {event.epoch} is "
+                             "not the live twin's (not journaled by it); not accepted")
+                return False
+        self._learn_epoch(rig, event.epoch, f"alarm seq {event.seq} on {RigKeys(rig).alarm}")
+        return True
+
+    def _on_alarm_seq(self, rig: str, alarm_seq: int | None, epoch: str = "", status: str = UNVERIFIED) -> None:
+        if epoch:
+            known = self.epochs.get(rig)
+            if known is not None and epoch < known:
+                return  # an earlier epoch's status (replayed): says nothing of the numbers now
+            if status == VERIFIED:
+                self._learn_epoch(rig, epoch, f"the status of rig {rig}")
+            elif known is not None and epoch != known:
+                return  # an unverifiable status of another epoch moves nothing
+        if alarm_seq is None:
+            return
         if self._status_seq.get(rig) == alarm_seq:
             return
         self._status_seq[rig] = alarm_seq

@@ -51,6 +51,9 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "wall_ns": {"type": ["integer", "null"], "minimum": 0, "maximum": INT64_MAX,
                     "description": "wall-clock time the twin journaled the alarm [ns since the Unix epoch] (beside "
                     "t_ns, the record's time: a replayed log's alarms are raised now about then); null: unknown"},
+        "epoch": {"type": "string", "pattern": "^[0-9a-f]{1,64}$",
+                  "description": "optional: the epoch of the rig's alarm numbering (a random identity made with its "
+                  "journal, its creation time first: a later epoch sorts after an earlier one); seq counts within it"},
     },
 }
 
@@ -97,6 +100,8 @@ class AlarmEvent(FromJson):
     :ivar signature: base64 Ed25519 signature of the rig's key over every other field
         (:mod:`twin.service.signing`); ``""``: unsigned (the field is then left out of the payload).
     :ivar wall_ns: wall-clock time the journal recorded it [ns since the epoch]; ``None``: not journaled or unknown.
+    :ivar epoch: the epoch of the rig's numbering (set by the journal, :mod:`twin.service.store`); ``""``: unknown
+        (the field is then left out of the payload).
     """
 
     rig: str
@@ -116,6 +121,7 @@ class AlarmEvent(FromJson):
     unit: str = ""
     signature: str = ""
     wall_ns: int | None = None
+    epoch: str = ""
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
@@ -156,6 +162,8 @@ class AlarmEvent(FromJson):
         }
         if self.signature:  # an unsigned alarm's payload is as before signatures existed
             data["signature"] = self.signature
+        if self.epoch:  # likewise an alarm of a journal without epochs
+            data["epoch"] = self.epoch
         return data
 
     @classmethod

@@ -28,7 +28,7 @@ _STATUS_SCHEMA: dict[str, Any] = {
             "type": "object",
             "propertyNames": {"pattern": NAME_PATTERN},
             "additionalProperties": {"type": "string", "pattern": STATUS_PATTERN},
-            "description": "parameter name -> status: ok, frozen (not excited), unresolved (not identifiable from recent data), warning, alarm",
+            "description": "parameter name -> status: ok, frozen (not excited), unresolved (not identifiable from recent data), warning, alarm; with confirmed alarms: not_testable (the last window re-fit could not test it), untested (no window yet)",
         },
         "counters": {
             "type": "object",
@@ -48,6 +48,18 @@ _STATUS_SCHEMA: dict[str, Any] = {
             "type": "string",
             "description": "the filter's consistency with the data: 'consistent', or why not (the drift test "
                            "holds its evidence meanwhile)",
+        },
+        "epoch": {"type": "string", "pattern": "^[0-9a-f]{1,64}$",
+                  "description": "optional: the epoch of the rig's alarm numbering in the owner's journal "
+                  "(AlarmEvent.epoch): announced so that a subscriber refuses alarms of an earlier epoch"},
+        "signature": {"type": "string", "description": "optional: base64 Ed25519 signature of the rig's key over "
+                      "the canonical JSON of every other field (twin.service.signing, domain fpdd-status-v1)"},
+        "tested": {
+            "type": "object",
+            "propertyNames": {"pattern": NAME_PATTERN},
+            "additionalProperties": {"type": "number", "minimum": 0},
+            "description": "optional: parameter -> record time [s] of the last window re-fit that tested it "
+                           "(twin.online.confirm; a parameter not yet tested is absent)",
         },
     },
 }
@@ -69,6 +81,10 @@ class StatusEvent(FromJson):
     :ivar message: one human-readable line.
     :ivar sensors: measured signal -> sensor status (:data:`SENSOR_STATES`).
     :ivar consistency: ``consistent`` or why the filter is not consistent with the data.
+    :ivar epoch: the epoch of the rig's alarm numbering (``""``: not announced; left out of the payload).
+    :ivar signature: the rig key's signature (:mod:`twin.service.signing`; ``""``: unsigned, left out).
+    :ivar tested: parameter -> record time [s] of the last window re-fit that tested it (confirmed alarms,
+        :mod:`twin.online.confirm`; empty: left out of the payload).
     """
 
     rig: str
@@ -79,11 +95,14 @@ class StatusEvent(FromJson):
     message: str = ""
     sensors: Mapping[str, str] = field(default_factory=dict)
     consistency: str = "consistent"
+    epoch: str = ""
+    signature: str = ""
+    tested: Mapping[str, float] = field(default_factory=dict)
 
     SCHEMA: ClassVar[dict[str, Any]] = _STATUS_SCHEMA
 
     def __post_init__(self) -> None:
-        for name in ("parameters", "counters", "sensors"):
+        for name in ("parameters", "counters", "sensors", "tested"):
             value = getattr(self, name)
             if not isinstance(value, Mapping):
                 raise DataError(f"StatusEvent.{name}: {value!r} must be an object")
@@ -92,7 +111,7 @@ class StatusEvent(FromJson):
 
     def to_dict(self) -> dict[str, Any]:
         """The event as a JSON-ready dict (the payload of ``fpdd/<rig>/status``)."""
-        return {
+        data: dict[str, Any] = {
             "rig": self.rig,
             "t_ns": self.t_ns,
             "state": self.state,
@@ -102,3 +121,9 @@ class StatusEvent(FromJson):
             "sensors": dict(self.sensors),
             "consistency": self.consistency,
         }
+        for name in ("epoch", "signature"):  # optional: a payload without them is as before they existed
+            if getattr(self, name):
+                data[name] = getattr(self, name)
+        if self.tested:
+            data["tested"] = dict(self.tested)
+        return data
