@@ -184,8 +184,11 @@ def _kind_of(d: dict[str, Any], t: float) -> str:
 
 
 def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The campaign's figures from its draws (see the module docstring)."""
-    fig: dict[str, Any] = {"draws": len(draws), "by_kind": {k: sum(d["kind"] == k for d in draws) for k in KINDS}}
+    """The campaign's figures from its draws (see the module docstring); draws that stopped on an error are
+    counted apart (``failed``)."""
+    failed = [{"seed": d["seed"], "what": d["what"], "error": d["error"]} for d in draws if d.get("error")]
+    draws = [d for d in draws if not d.get("error")]
+    fig: dict[str, Any] = {"draws": len(draws), "failed": failed, "by_kind": {k: sum(d["kind"] == k for d in draws) for k in KINDS}}
     healthy = [d for d in draws if d["kind"] == "healthy"]
     hours = sum(d["duration_s"] for d in healthy) / 3600.0
     ev = [e for d in healthy for e in _raised(d)]
@@ -315,6 +318,8 @@ def table(res: dict[str, Any]) -> str:
         lines.append(f"  lead / wear median {lf['median']:.2f} [{lf['lo']:.2f}, {lf['hi']:.2f}] over "
                      f"{lf['with_early_alarm']} of {lf['records']} wears with an early alarm")
     lines.append(f"commissioning refused (started cold)     {f['commission_refused']}")
+    for d in f.get("failed", []):
+        lines.append(f"failed draw: seed {d['seed']} ({d['what']}): {d['error']}")
     return "\n".join(lines)
 
 
@@ -383,8 +388,9 @@ def html(res: dict[str, Any], out_dir: str) -> str:
     import html as html_mod
 
     rows = "".join(f"<tr><td>{d['seed']}</td><td>{html_mod.escape(d['what'])}</td><td>"
-                   + html_mod.escape(", ".join(f"{e['parameter']} {e['level']} {e['t_s']:.1f} s"
-                                               for e in _raised(d))) + "</td></tr>" for d in res["draws"])
+                   + html_mod.escape(d.get("error") or ", ".join(f"{e['parameter']} {e['level']} {e['t_s']:.1f} s"
+                                                                 for e in _raised(d))) + "</td></tr>"
+                   for d in res["draws"])
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>campaign {res['set']}</title></head><body>"
             f"<h1>Campaign: {res['set']} draws</h1><pre>{html_mod.escape(table(res))}</pre>{body}"
             f"<h2>Draws</h2><table border=1 cellpadding=3><tr><th>seed</th><th>scenario</th>"
@@ -403,7 +409,14 @@ def _result(which: str, minutes: float, draws: list[dict[str, Any]], command: st
 
 
 def _one(args: tuple[int, float]) -> dict[str, Any]:
-    return run_draw(*args)
+    """:func:`run_draw`, or the draw with the error that stopped it (an unstable loop the simulator could not
+    integrate, a twin that failed): counted apart, never silently dropped."""
+    try:
+        return run_draw(*args)
+    except Exception as exc:  # noqa: BLE001 - reported per draw and counted
+        scn = draw(*args)
+        return {"seed": args[0], "kind": scn["kind"], "what": describe(scn), "scenario": scn,
+                "error": f"{type(exc).__name__}: {exc}"[:300]}
 
 
 def _build_one(args: tuple[int, float]) -> int:
@@ -429,26 +442,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--build", action="store_true", help="only simulate the draws' records into the cache")
     ap.add_argument("--json", action="store_true", help="print everything (draws and figures) as JSON")
     ap.add_argument("--html", metavar="DIR", help="also write DIR/index.html with plots")
-    ap.add_argument("--merge", nargs="+", metavar="JSON", help="summarise the --json outputs of earlier runs")
+    ap.add_argument("--log", metavar="FILE", help="append each draw's result to FILE as it finishes (JSON lines)")
+    ap.add_argument("--merge", nargs="+", metavar="FILE",
+                    help="summarise earlier runs: their --json outputs or --log files")
     a = ap.parse_args(argv)
     command = "python -m benchmarks.campaign " + " ".join(argv if argv is not None else sys.argv[1:])
     if a.merge:
         draws: list[dict[str, Any]] = []
-        sets, mins = set(), set()
+        sets: set[str] = set()
+        mins: set[float] = set()
         for path in a.merge:
             try:
                 with open(path, encoding="utf-8") as fh:
-                    doc = json.load(fh)
-                draws += list(doc["draws"])
-                sets.add(doc["set"])
-                mins.add(doc["minutes"])
+                    text = fh.read()
+                if text.lstrip().startswith("{\"seed\""):  # a --log file: a draw per line
+                    got = [json.loads(line) for line in text.splitlines() if line.strip()]
+                else:
+                    got = list(json.loads(text)["draws"])
+                seen = {d["seed"] for d in draws}
+                draws += [d for d in got if d["seed"] not in seen]
+                sets.update(d["scenario"]["set"] for d in got)
+                mins.update(d["scenario"]["duration_s"] / 60.0 for d in got)
             except (OSError, ValueError, KeyError, TypeError) as exc:
-                print(f"--merge: {path}: not a campaign --json output ({type(exc).__name__}: {exc})", file=sys.stderr)
+                print(f"--merge: {path}: not a campaign --json output or --log file ({type(exc).__name__}: {exc})",
+                      file=sys.stderr)
                 return 2
-        if len(sets) != 1:
-            print(f"--merge: the files mix draw sets {sorted(sets)}; merge one set at a time", file=sys.stderr)
+        if len(sets) != 1 or len(mins) != 1:
+            print(f"--merge: the files mix draw sets {sorted(sets)} or lengths {sorted(mins)} min; merge one set "
+                  "and length at a time", file=sys.stderr)
             return 2
-        res = _result(sets.pop(), max(mins), draws, command)
+        draws.sort(key=lambda d: d["seed"])
+        res = _result(sets.pop(), mins.pop(), draws, command)
     else:
         kinds = tuple(k.strip() for k in a.kinds.split(",") if k.strip())
         bad = [k for k in kinds if k not in KINDS]
@@ -482,6 +506,13 @@ def main(argv: list[str] | None = None) -> int:
                       flush=True)
                 continue
             draws.append(r)
+            if a.log:
+                with open(a.log, "a", encoding="utf-8") as fh:
+                    fh.write(json.dumps(r, default=float) + "\n")
+            if r.get("error"):
+                print(f"[{i + 1}/{len(jobs)}] seed {r['seed']}: {r['what']} -> FAILED: {r['error']}", file=sys.stderr,
+                      flush=True)
+                continue
             ev = "; ".join(f"{e['parameter']} {e['level']} {e['t_s']:.1f} s" for e in _raised(r)) or "no event"
             print(f"[{i + 1}/{len(jobs)}] seed {r['seed']}: {r['what']} -> {ev} "
                   f"(track {r['track_s']:.1f} s, {time.time() - t0:.0f} s)", file=sys.stderr, flush=True)
