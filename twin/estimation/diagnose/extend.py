@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
@@ -11,7 +12,7 @@ from twin.estimation.fit import fit
 from twin.models.base import Timing
 from twin.params import ParameterSet
 from twin.record import as_logged
-from twin.estimation.diagnose.constants import FIT_TOL
+from twin.estimation.diagnose.constants import FIT_TOL, GROW_FRACTION
 from twin.estimation.diagnose.data import ModelState, _Data
 from twin.estimation.diagnose.adequacy import _lr, _state
 from twin.estimation.diagnose.results import ScreenRow, Trial
@@ -42,6 +43,30 @@ def _fit_state(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapp
               drive=data.drive, n_starts=n_starts, n_refine=1 if n_starts <= 2 else 2, spread=1.5, seed=seed,
               max_nfev=max_nfev, timing=timing, tol=FIT_TOL, scales=data.scales())
     return _state(data, res, free, timing)
+
+
+def _fit_grown(data: _Data, ps: ParameterSet, free: tuple[str, ...], start: Mapping[str, float], seed: int,
+               timing: Timing, hold: Sequence[str] = ()) -> ModelState:
+    """A fit over a growing horizon: first on the first ``GROW_FRACTION`` of each record's fitting data with
+    ``hold`` (an effect's shape parameters: a friction's smoothing velocity) held at the start, then, from there,
+    on all of it with everything free.  An open-loop simulation of a plant that a loop held (a free axis driven by its
+    logged force) drifts with every force error, so the whole record's cost has many local minima far from the
+    start; over a short stretch the drift is small and the start's basin wide (multiple shooting's reason)."""
+    short = [max(int(GROW_FRACTION * n), min(n, 200)) for n in data.n_fit]
+    part = dataclasses.replace(data, records=[r.slice(0, k) for r, k in zip(data.records, short)],
+                               n_fit=short, exo_cache={})
+    res = fit(data.model, part.parts, tuple(n for n in free if n not in hold), base=ps, start=start, outputs=data.outputs, noise=data.sigma,
+              drive=data.drive, n_starts=1, n_refine=1, spread=1.5, seed=seed, max_nfev=80, timing=timing,
+              tol=FIT_TOL, scales=data.scales())
+    mid = {**start, **res.estimate}
+    if not all(math.isfinite(v) for v in mid.values()):
+        mid = dict(start)
+    return _fit_state(data, ps.update(mid), free, mid, 1, seed, timing)
+
+
+def _open_loop(data: _Data) -> bool:
+    """Is the model driven by a logged input (its simulation runs open loop), not by a loop's reference?"""
+    return data.drives()[0][0] != "x_ref"
 
 
 def _rank_starts(data: _Data, ps: ParameterSet, starts: Sequence[Mapping[str, float]],
@@ -101,9 +126,12 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
     for attempt, start in enumerate(tops + [near]):
         if attempt == len(tops) and t is not None and (t.accepted or t.state.fit.cost < cur.fit.cost):
             break
-        st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
+        if attempt == 0 and _open_loop(data):  # from the current estimates, over a growing horizon
+            st = _fit_grown(data, ps.update(start), free, start, seed, cur.timing, hold=E.names[1:])
+        else:
+            st = _fit_state(data, ps.update(start), free, start, 1, seed, cur.timing)
         cand = _judge(data, (row.effect,), cur, st, min_share)
-        if t is None or _held_out(cand) < _held_out(t):
+        if t is None or (not cand.accepted, _held_out(cand)) < (not t.accepted, _held_out(t)):
             t = cand
     assert t is not None  # the loop ran at least once (the start near neutral)
     if t.accepted and not t.state.converged and math.isfinite(t.state.fit.cost):
