@@ -159,8 +159,9 @@ def test_late_subscriber_gets_every_missed_alarm(
             assert twin.wait_for_alarm_subscribers(WAIT_S)
             live = twin.publish_alarm(alarm("r1", 6))
             assert sub.recv(timeout=WAIT_S) == live
-            with pytest.raises(TimeoutError):
-                sub.recv(timeout=0.2)  # no duplicates of anything
+            # no duplicates of anything: a later alarm is the next one delivered, whatever the machine's speed
+            marker = twin.publish_alarm(alarm("r1", 7))
+            assert sub.recv(timeout=WAIT_S) == marker
             assert sub.missed == []
 
 
@@ -279,8 +280,8 @@ def test_a_forged_jump_is_checked_against_the_history_and_no_real_alarm_is_dropp
             forger.put(event_to_json(alarm("r1", 77, seq=2)))  # a different payload under a number seen
             real += [twin.publish_alarm(alarm("r1", i)) for i in (3, 4, 5, 6)]
             assert receive(sub, 4) == real[2:]
-            with pytest.raises(TimeoutError):
-                sub.recv(timeout=0.3)
+            marker = twin.publish_alarm(alarm("r1", 7))  # nothing of the forger's before the next real one
+            assert sub.recv(timeout=WAIT_S) == marker
             forger.undeclare()
     assert sub.missed == [] and sub.rejected == 1  # seq 100: not in the twin's history; seq 2: a duplicate
 
