@@ -1,4 +1,5 @@
-"""The README's Python API example runs as written, and the curated API is what it says."""
+"""The Python API example of the documentation (docs/reference/api.md) runs as written, and the curated API is
+what it says."""
 
 from __future__ import annotations
 
@@ -9,14 +10,14 @@ import replay
 import twin
 from twin.reports import fit_report
 
-README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+API_PAGE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "reference" / "api.md"
 
 
-def test_readme_api_example_runs(capsys):
-    text = README.read_text()
+def test_documented_api_example_runs(capsys):
+    text = API_PAGE.read_text()
     m = re.search(r"<!-- api-example -->\n```python\n(.*?)```", text, re.S)
-    assert m, "README: the API example block is missing"
-    exec(compile(m.group(1), "README.md:api-example", "exec"), {})
+    assert m, "docs/reference/api.md: the API example block is missing"
+    exec(compile(m.group(1), "docs/reference/api.md:api-example", "exec"), {})
     out = capsys.readouterr().out
     assert "Ffric" in out and "zeta tracked:" in out
 
