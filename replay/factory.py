@@ -5,6 +5,8 @@ path or URI                 source / sink
 ==========================  ==============================================================
 ``*.csv``                   :class:`replay.csvio.CsvSource` / :class:`~replay.csvio.CsvSink`
 ``*.mcap``                  :class:`replay.mcapio.McapSource` / :class:`~replay.mcapio.McapSink`
+``*.mat`` (``.mat.gz``)     :class:`replay.matio.MatSource` (read only)
+``*.txt .tsv`` (``.gz``)    :class:`replay.matio.TextSource` (read only)
 ``*.asc .blf .log .trc``    ``replay.can.logs.CanLogSource(path, dbc=..., **options)`` /
                             ``replay.can.logs.CanLogSink(path, **options)``
 ``can://INTERFACE/CHANNEL`` ``replay.can.bus.CanBusSource(uri, **options)``
@@ -62,9 +64,10 @@ def check_readable(text: str) -> Path:
 def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
     """Open a sample source; the format comes from the suffix or URI scheme (table above).
 
-    ``options`` go to the source's constructor (e.g. ``mapping=`` for CSV, ``topic=``,
-    ``start_ns=``, ``end_ns=`` for MCAP, ``dbc=`` for CAN logs, ``required=`` for all
-    file sources).
+    ``options`` go to the source's constructor (e.g. ``mapping=`` for CSV, text and MATLAB files,
+    ``topic=``, ``start_ns=``, ``end_ns=`` for MCAP, ``dbc=`` for CAN logs, ``required=`` for all
+    file sources).  A CAN log's ``mapping`` (``{"MyPosSignal": ("x", "mm")}``, :func:`replay.csvio.parse_map`)
+    maps the DBC's signals onto the rig's, as a CSV's columns.
     """
     text = os.fspath(path_or_uri)
     scheme = _scheme(text)
@@ -80,6 +83,11 @@ def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
     cls = formats.load(fmt.source)
     if fmt.kind == "can":
         dbc = options.pop("dbc", None)
+        mapping = options.pop("mapping", None)
+        if mapping:  # the DBC's own signal names mapped onto the rig's (--map x=MyPosSignal:mm)
+            from replay.can.codec import VectorCodec
+
+            dbc = VectorCodec(dbc, mapping=mapping)
         return cls(path, dbc=dbc, **options)
     return cls(path, **options)
 
@@ -93,6 +101,7 @@ def open_sink(path: str | os.PathLike, **options: Any) -> Sink:
         raise SourceError(f"{text}: cannot create output file: is a directory")
     if p.parent and not p.parent.is_dir():
         raise SourceError(f"{text}: cannot create output file: directory {str(p.parent)!r} does not exist")
+    assert fmt.sink is not None  # lookup(what="output") refuses a read-only format
     return formats.load(fmt.sink)(p, **options)
 
 

@@ -9,6 +9,9 @@ suffix      kind        source / sink                        python-can reader /
 ==========  ==========  ===================================  ============================
 ``.csv``    samples     ``replay.csvio.CsvSource/CsvSink``   -
 ``.mcap``   samples     ``replay.mcapio.McapSource/McapSink``  -
+``.mat``    samples     ``replay.matio.MatSource`` (read only)  -
+``.txt``    samples     ``replay.matio.TextSource`` (read only) -
+``.tsv``    samples     ``replay.matio.TextSource`` (read only) -
 ``.asc``    can (text)  ``replay.can.logs.CanLogSource/Sink``   ``ASCReader`` / ``ASCWriter``
 ``.blf``    can         ``replay.can.logs.CanLogSource/Sink``   ``BLFReader`` / ``BLFWriter``
 ``.log``    can (text)  ``replay.can.logs.CanLogSource/Sink``   ``CanutilsLogReader`` / ``...Writer``
@@ -43,7 +46,7 @@ class Format:
     suffix: str
     kind: str                      # "samples" (signals in SI) or "can" (raw CAN frames + DBC)
     source: str                    # "module:Class" of the replay source
-    sink: str                      # "module:Class" of the replay sink
+    sink: str | None               # "module:Class" of the replay sink (None: read only)
     description: str
     text: bool = False             # a line-oriented text file
     can_reader: str | None = None  # python-can reader class name (CAN logs)
@@ -67,6 +70,12 @@ FORMATS: dict[str, Format] = {f.suffix: f for f in (
            "candump -l CAN log", text=True, can_reader="CanutilsLogReader", can_writer="CanutilsLogWriter"),
     Format(".trc", "can", "replay.can.logs:CanLogSource", "replay.can.logs:CanLogSink",
            "PEAK TRC CAN log", text=True, can_reader="TRCReader", can_writer="TRCWriter"),
+    Format(".mat", "samples", "replay.matio:MatSource", None,
+           "MATLAB file (v4-v7; named vectors, a time vector t or a sample time)"),
+    Format(".txt", "samples", "replay.matio:TextSource", None,
+           "text file (columns separated by tabs or blanks, a header row naming them or none)", text=True),
+    Format(".tsv", "samples", "replay.matio:TextSource", None,
+           "tab-separated text file (a header row naming the columns)", text=True),
 )}
 
 #: Every file suffix, and those of CAN logs (python-can formats).
@@ -81,19 +90,39 @@ def known() -> str:
             + ", ".join(f"{s}://{'INTERFACE/CHANNEL' if s == 'can' else 'KEYEXPR'}" for s in URI_SCHEMES))
 
 
+#: Formats also read gzip'd (``.csv.gz``, ``.mat.gz``, ...).
+GZIP_SUFFIXES: tuple[str, ...] = (".csv", ".mat", ".txt", ".tsv")
+
+
 def suffix_of(path: str | os.PathLike) -> str:
-    """The format suffix of ``path``, lower case; a gzip'd CSV (``.csv.gz``) is ``.csv``."""
+    """The format suffix of ``path``, lower case; a gzip'd file (``.csv.gz``, ``.mat.gz``) is its format's."""
     p = Path(os.fspath(path))
     suffix = p.suffix.lower()
-    if suffix == ".gz" and Path(p.stem).suffix.lower() == ".csv":
-        return ".csv"
+    if suffix == ".gz" and Path(p.stem).suffix.lower() in GZIP_SUFFIXES:
+        return Path(p.stem).suffix.lower()
     return suffix
+
+
+def takes_map(path: str | os.PathLike) -> bool:
+    """Whether a record of ``path``'s format takes a column map (``--map``): CSV, text, MATLAB files and CAN
+    logs (the DBC's signals), not MCAP (its signals are named)."""
+    suf = suffix_of(path)
+    return suf in FORMATS and suf != ".mcap"
+
+
+def takes_rate(path: str | os.PathLike) -> bool:
+    """Whether a record of ``path``'s format may be given its sample rate (``--rate``/``--dt``): one that may
+    lack a time column (CSV, text, MATLAB files)."""
+    return suffix_of(path) in (".csv", ".mat", ".txt", ".tsv")
 
 
 def lookup(path: str | os.PathLike, *, kind: str | None = None, what: str = "log") -> Format:
     """The format of ``path`` by its suffix; :class:`LogFormatError` naming the known ones if none."""
     suf = suffix_of(path)
     fmt = FORMATS.get(suf)
+    if fmt is not None and what == "output" and fmt.sink is None:
+        raise LogFormatError(f"{os.fspath(path)}: {fmt.name} files are read, not written; write one of "
+                             f"{', '.join(s for s, f in FORMATS.items() if f.sink)}")
     if fmt is None or (kind is not None and fmt.kind != kind):
         pool = FILE_SUFFIXES if kind is None else tuple(s for s, f in FORMATS.items() if f.kind == kind)
         if kind is None and what == "log":
@@ -123,5 +152,5 @@ def python_can_classes(suffix: str) -> tuple[type, type]:
     return getattr(can, fmt.can_reader), getattr(can, fmt.can_writer)
 
 
-__all__ = ["Format", "FORMATS", "FILE_SUFFIXES", "CAN_LOG_SUFFIXES", "SAMPLE_SUFFIXES", "URI_SCHEMES",
-           "known", "lookup", "suffix_of", "is_can_log", "load", "python_can_classes"]
+__all__ = ["Format", "FORMATS", "FILE_SUFFIXES", "CAN_LOG_SUFFIXES", "SAMPLE_SUFFIXES", "URI_SCHEMES", "GZIP_SUFFIXES",
+           "known", "lookup", "suffix_of", "is_can_log", "load", "python_can_classes", "takes_map", "takes_rate"]

@@ -32,8 +32,9 @@ def source_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
                                              f"not to {path}")
         options["dbc"] = args.dbc
     if getattr(args, "map", None):
-        if suffix != ".csv":
-            raise argparse.ArgumentTypeError(f"--map applies to CSV input, not to {path}")
+        if not formats.takes_map(path):
+            raise argparse.ArgumentTypeError(f"--map applies to CSV input, text and MATLAB files and CAN logs "
+                                             f"(the DBC's signals), not to {path} (its signals are named)")
         try:
             options["mapping"] = parse_map(args.map)
         except TwinError as exc:
@@ -56,8 +57,9 @@ def rate_options(args: argparse.Namespace, path: str) -> dict[str, float]:
         return {}
     if rate is not None and dt is not None:
         raise argparse.ArgumentTypeError("--rate and --dt say the same thing: give one")
-    if formats.suffix_of(path) != ".csv":
-        raise argparse.ArgumentTypeError(f"--rate/--dt apply to CSV input without a time column, not to {path}")
+    if not formats.takes_rate(path):
+        raise argparse.ArgumentTypeError(f"--rate/--dt apply to CSV, text or MATLAB input without a time column, "
+                                         f"not to {path}")
     return {"rate_hz": float(rate)} if rate is not None else {"dt_s": float(dt or 0.0)}
 
 
@@ -92,19 +94,25 @@ def dt_s(text: str) -> float:
 def add_rate_options(p: argparse.ArgumentParser) -> None:
     """``--rate HZ`` / ``--dt S``: the sample rate of a CSV that has no time column."""
     p.add_argument("--rate", metavar="HZ", type=rate_hz, default=None,
-                   help="CSV input without a time column: its sample rate (Hz, or with a unit: 1kHz); row i is "
-                        "at i/HZ s, e.g. --rate 610.3515625")
+                   help="CSV, text or MATLAB input without a time column: its sample rate (Hz, or with a unit: "
+                        "1kHz); row i is at i/HZ s, e.g. --rate 610.3515625")
     p.add_argument("--dt", metavar="S", type=dt_s, default=None,
-                   help="CSV input without a time column: its sample time (s, or with a unit: 1ms), instead of "
-                        "--rate")
+                   help="CSV, text or MATLAB input without a time column: its sample time (s, or with a unit: "
+                        "1ms), instead of --rate")
+
+
+#: ``--map``'s help, the one text of every command that reads a record.
+MAP_HELP = ("signal NAME is COLUMN (a CSV or text column, a MATLAB variable, a CAN signal of the DBC) in UNIT "
+            "(converted to SI), times GAIN plus OFFSET (each a number, optionally with a unit; a gain in A/B reads "
+            "the column in B and gives A; units checked against the signal's), e.g. x=pos_mm:mm, t=time:ms, "
+            "u=vir*35.15N/V, x=pos*0.001+0.2, x=MyPosSignal:mm (repeatable)")
 
 
 def add_input_options(p: argparse.ArgumentParser) -> None:
     """``--dbc``, ``--map``, ``--rate``/``--dt``, ``--topic``: the options of a command that reads a record."""
     p.add_argument("--dbc", metavar="FILE", help="DBC file for CAN logs (default: the MSP25 DBC shipped)")
-    p.add_argument("--map", metavar="NAME=COLUMN[:UNIT]", action="append", default=[],
-                   help="CSV input: signal NAME is in column COLUMN, in UNIT (converted to SI), e.g. x=pos_mm:mm, "
-                        "t=time:ms (repeatable)")
+    p.add_argument("--map", metavar="NAME=COLUMN[:UNIT][*GAIN][+OFFSET]", action="append", default=[],
+                   help=MAP_HELP)
     add_rate_options(p)
     p.add_argument("--topic", metavar="TOPIC", help="MCAP input: the samples topic (default: "
                    "/rig/signals_block if present, else /rig/signals)")

@@ -441,3 +441,121 @@ def test_many_unknown_ids_are_named_up_to_a_limit(tmp_path):
     assert len(s) == 100
     named = [k for k in rep.skipped if k.startswith("unknown_id 0x")]
     assert len(named) == 20 and rep.skipped["unknown_id other"] == 10
+
+
+# --- your own DBC: its signal names mapped with --map ----------------------------------------------------------
+
+def _foreign_dbc(path: Path, *, units: bool = True) -> Path:
+    """A DBC of another vendor's names, written by cantools: the MSP25's resolutions (0.1 um, 0.5 mV, 1 kPa) in
+    other units and scales (mm, mV, bar), the position's unit left out where ``units`` is False."""
+    from cantools.database.can import Database, Message, Signal
+
+    def sig(name, start, length, scale, unit, signed=True, lo=None, hi=None):
+        return Signal(name, start, length, is_signed=signed, conversion=cantools.database.conversion.BaseConversion
+                      .factory(scale=scale, offset=0.0), minimum=lo, maximum=hi, unit=unit)
+
+    msgs = [
+        Message(0x210, "AxisPosition", 8, [sig("MyPosSignal", 0, 32, 1e-4, "mm" if units else ""),
+                                           sig("MyDemand", 32, 32, 1e-4, "mm")], cycle_time=1),
+        Message(0x211, "ServoValve", 2, [sig("ValveCmd", 0, 16, 0.5, "mV")], cycle_time=1),
+        Message(0x220, "Chambers", 4, [sig("ChamberA", 0, 16, 0.01, "bar", signed=False),
+                                       sig("ChamberB", 16, 16, 0.01, "bar", signed=False)], cycle_time=1),
+    ]
+    path.write_text(Database(msgs).as_dbc_string())
+    return path
+
+
+FOREIGN_MAP = ["--map", "x=MyPosSignal:mm", "--map", "x_ref=MyDemand", "--map", "u=ValveCmd",
+               "--map", "pA=ChamberA", "--map", "pB=ChamberB"]
+
+
+def _foreign_log(path: Path, dbc: Path, samples: Samples) -> Path:
+    """``samples`` (SI) as frames of the foreign DBC, encoded by cantools, written by python-can's own writer."""
+    import can
+
+    db = cantools.database.load_file(str(dbc))
+    values = {"AxisPosition": {"MyPosSignal": samples["x"] * 1e3, "MyDemand": samples["x_ref"] * 1e3},
+              "ServoValve": {"ValveCmd": samples["u"] * 1e3},
+              "Chambers": {"ChamberA": samples["pA"] * 1e-5, "ChamberB": samples["pB"] * 1e-5}}
+    with can.Logger(str(path)) as writer:
+        for i, t_ns in enumerate(samples.t_ns):
+            for k, (name, sigs) in enumerate(values.items()):
+                msg = db.get_message_by_name(name)
+                data = msg.encode({s: float(v[i]) for s, v in sigs.items()}, scaling=True, strict=False)
+                writer.on_message_received(can.Message(timestamp=t_ns * 1e-9 + 1e-4 * k, arbitration_id=msg.frame_id,
+                                                       is_extended_id=False, data=data))
+    return path
+
+
+def _reference_samples() -> Samples:
+    from replay.csvio import CsvSource
+
+    with CsvSource(DATA / "reference.csv") as src:
+        return src.read_all()
+
+
+def test_own_dbc_signals_mapped_as_csv_columns(tmp_path, capsys):
+    """A DBC with other names and units (cantools) and a BLF log (python-can's writer): ``replay info --map``
+    reads it to the same numbers as the record it was made from, to the DBC's resolution."""
+    import json
+
+    from replay import cli as replay_cli
+
+    samples = _reference_samples()
+    dbc = _foreign_dbc(tmp_path / "vendor.dbc", units=False)
+    log = _foreign_log(tmp_path / "vendor.blf", dbc, samples)
+    assert replay_cli.main(["info", str(log), "--dbc", str(dbc), *FOREIGN_MAP, "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert set(info["signals"]) == {"x", "x_ref", "u", "pA", "pB"}
+    src = CanLogSource(log, dbc=VectorCodec(dbc, mapping={"MyPosSignal": ("x", "mm"), "MyDemand": "x_ref",
+                                                          "ValveCmd": "u", "ChamberA": "pA", "ChamberB": "pB"}))
+    got = src.read_all()
+    assert len(got) == len(samples)
+    for name in ("x", "x_ref", "u", "pA", "pB"):
+        _close(got[name], samples[name], name)
+
+
+def test_own_dbc_without_map_names_what_was_looked_for(tmp_path, capsys):
+    """Without --map the error says what was looked for and what the DBC has (not an empty list); a mapped
+    signal the DBC lacks is named with the DBC's signals; a signal without a unit is refused with the map
+    that gives it one."""
+    from replay import cli as replay_cli
+
+    dbc = _foreign_dbc(tmp_path / "vendor.dbc", units=False)
+    log = _foreign_log(tmp_path / "vendor.asc", dbc, _reference_samples().slice(0, 50))
+    assert replay_cli.main(["info", str(log), "--dbc", str(dbc)]) != 0
+    err = capsys.readouterr().err
+    assert "()" not in err and "looked for CAN signals named as a rig signal" in err
+    assert "MyPosSignal (no unit, in AxisPosition)" in err and "--map x=MyPosSignal:mm" in err
+    assert replay_cli.main(["info", str(log), "--dbc", str(dbc), "--map", "x=MyPos"]) != 0
+    err = capsys.readouterr().err
+    assert "no signal 'MyPos' in the DBC; its signals: ChamberA, ChamberB, MyDemand, MyPosSignal, ValveCmd" in err
+    assert replay_cli.main(["info", str(log), "--dbc", str(dbc), "--map", "x=MyPosSignal"]) != 0
+    err = capsys.readouterr().err
+    assert "signal 'MyPosSignal' (-> x) has unit ''" in err and "--map x=MyPosSignal:UNIT" in err
+    assert replay_cli.main(["info", str(log), "--dbc", str(dbc), "--map", "x=MyPosSignal:bar"]) != 0
+    assert "but 'x' is in m" in capsys.readouterr().err
+    assert len(err.strip().splitlines()) <= 2  # one line (and argparse's pointer to --help)
+
+
+@pytest.mark.slow
+def test_twin_track_reads_own_dbc_through_map(tmp_path, capsys):
+    """``twin track LOG --dbc VENDOR.dbc --map x=MyPosSignal:mm ...`` tracks the very numbers the shipped MSP25
+    DBC gives for the same record: the same resolutions decode to the same values, so the same estimates."""
+    import json
+
+    from twin import cli as twin_cli
+
+    samples = _reference_samples()
+    dbc = _foreign_dbc(tmp_path / "vendor.dbc")
+    ours = _foreign_log(tmp_path / "vendor.blf", dbc, samples)
+    shipped = tmp_path / "msp25.blf"
+    with CanLogSink(shipped, decimate=False) as sink:
+        sink.write(samples)
+    runs = []
+    for log, extra in ((ours, ["--dbc", str(dbc), *FOREIGN_MAP]), (shipped, [])):
+        assert twin_cli.main(["track", str(log), *extra, "--out", str(tmp_path / log.stem), "--json", "-q"]) == 0
+        runs.append(json.loads(capsys.readouterr().out))
+    assert runs[0]["samples"] == runs[1]["samples"] == len(samples)
+    for name, d in runs[1]["final"].items():
+        assert runs[0]["final"][name]["value"] == pytest.approx(d["value"], rel=1e-9), name

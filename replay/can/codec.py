@@ -25,7 +25,11 @@ control cycle, ``MSP25_Pressure`` every second cycle; the hydraulic power unit's
 sends ``HPU_Status`` (big-endian, as PLCs do) every 100 ms.  The signal attribute
 ``RigSignal`` maps a CAN signal onto an fpdd-twin signal name of
 :data:`fpdd.units.SIGNALS` (``"counter"`` marks a rolling counter); without the
-attribute a CAN signal whose name is a rig signal name maps onto it.  The message
+attribute a CAN signal whose name is a rig signal name maps onto it.  A DBC of other
+names needs neither: a column map (``--map x=MyPosSignal:mm``, :func:`replay.csvio.parse_map`,
+the ``mapping`` of :class:`VectorCodec`) maps its signals onto the rig's as a CSV's columns, with
+the unit the signal is in (where the DBC gives none, or to override it), a gain and an offset
+(``--map u=ValveCmd*0.001``); a mapped rig signal is taken from the mapped CAN signal only.  The message
 attribute ``GenMsgCycleTime`` (ms) gives the nominal period used for alignment.
 Values in the DBC are in the units the rig reports; :data:`UNIT_TO_SI` converts them.
 
@@ -264,7 +268,13 @@ class MessageLayout:
         return f"{key_str(self.key)} {self.name}"
 
 
-def _rig_name(sig, source: str) -> str | None:
+def _rig_name(sig, source: str, mapping: Mapping[str, tuple] | None = None) -> str | None:
+    if mapping:
+        if sig.name in mapping:
+            return mapping[sig.name][0]
+        taken = {m[0] for m in mapping.values()}
+        name = _rig_name(sig, source)
+        return None if name in taken else name  # a mapped rig signal comes from its mapped CAN signal only
     attr = None
     if sig.dbc is not None and "RigSignal" in sig.dbc.attributes:
         attr = sig.dbc.attributes["RigSignal"].value
@@ -277,7 +287,7 @@ def _rig_name(sig, source: str) -> str | None:
     return sig.name if sig.name in SIGNALS else None
 
 
-def _signal_layout(sig, rig: str | None, source: str, msg_name: str) -> SignalLayout:
+def _signal_layout(sig, rig: str | None, source: str, msg_name: str, mapped: tuple | None = None) -> SignalLayout:
     if sig.byte_order == "little_endian":
         shift, big = sig.start, False
     else:
@@ -286,14 +296,22 @@ def _signal_layout(sig, rig: str | None, source: str, msg_name: str) -> SignalLa
         shift, big = msb - sig.length + 1, True
     if shift < 0 or shift + sig.length > 64:
         raise LogFormatError(f"{source}: message {msg_name}: signal {sig.name!r} does not fit in 8 bytes")
-    unit = sig.unit or ""
+    unit = (mapped[1] if mapped is not None and mapped[1] else None) or sig.unit or ""
     si_factor, si_offset = 1.0, 0.0
-    if rig is not None and rig != COUNTER:
+    if mapped is not None and len(mapped) == 4:  # a gain and an offset (checked against the signal's unit)
+        factor, offset = mapped[2], mapped[3]
+        if mapped[1]:
+            f_u, o_u, _ = UNIT_TO_SI[mapped[1]]
+            si_factor, si_offset = f_u * factor, o_u * factor + offset
+        else:  # the DBC's value as the gain reads it
+            si_factor, si_offset = factor, offset
+    elif rig is not None and rig != COUNTER:
         want = SIGNALS[rig].unit
+        hint = f"; give its unit with --map {rig}={sig.name}:UNIT" if not unit or unit not in UNIT_TO_SI else ""
         if unit not in UNIT_TO_SI:
             raise LogFormatError(
                 f"{source}: message {msg_name}: signal {sig.name!r} (-> {rig}) has unit {unit!r}; "
-                f"expected one convertible to {want!r} (known: {sorted(UNIT_TO_SI)})")
+                f"expected one convertible to {want!r} (known: {', '.join(UNIT_TO_SI)}){hint}")
         si_factor, si_offset, si_unit = UNIT_TO_SI[unit]
         if si_unit != want:
             raise LogFormatError(
@@ -304,8 +322,29 @@ def _signal_layout(sig, rig: str | None, source: str, msg_name: str) -> SignalLa
                         si_factor, si_offset)
 
 
-def message_layouts(db: cantools.database.can.Database, source: str = "DBC") -> dict[int, MessageLayout]:
-    """Layouts of every message of ``db``, by frame key."""
+def check_mapping(db: cantools.database.can.Database, source: str, mapping) -> dict[str, tuple]:
+    """A column map of CAN signals (:func:`replay.csvio.parse_map`'s form) normalised and checked against
+    ``db``: every mapped name a signal of the DBC, every target a rig signal, the units fitting it."""
+    from fpdd.errors import DataError
+    from replay.csvio.columns import parse_mapping
+
+    mapped = parse_mapping(source, mapping, SIGNALS)
+    have = sorted({sg.name for m in db.messages for sg in m.signals})
+    for name, target in mapped.items():
+        if name not in have:
+            raise DataError(f"{source}: --map {target[0]}={name}: no signal {name!r} in the DBC; its signals: "
+                            f"{', '.join(have) or 'none'}")
+        if target[0] not in SIGNALS:
+            raise DataError(f"{source}: --map {target[0]}={name}: {target[0]!r} is not a rig signal; CAN signals map "
+                            f"onto {', '.join(SIGNALS)}")
+    return mapped
+
+
+def message_layouts(db: cantools.database.can.Database, source: str = "DBC",
+                    mapping=None) -> dict[int, MessageLayout]:
+    """Layouts of every message of ``db``, by frame key; ``mapping``: CAN signal -> rig signal
+    (:func:`check_mapping`), before the ``RigSignal`` attribute and the names."""
+    mapped = check_mapping(db, source, mapping) if mapping else {}
     out: dict[int, MessageLayout] = {}
     for m in db.messages:
         if m.length > 8:
@@ -314,13 +353,13 @@ def message_layouts(db: cantools.database.can.Database, source: str = "DBC") -> 
         sigs = []
         seen: dict[str, str] = {}
         for s in m.signals:
-            rig = _rig_name(s, source)
+            rig = _rig_name(s, source, mapped)
             if rig is not None and rig != COUNTER:
                 if rig in seen:
                     raise LogFormatError(f"{source}: message {m.name}: signals {seen[rig]!r} and {s.name!r} "
                                          f"both map to {rig!r}")
                 seen[rig] = s.name
-            sigs.append(_signal_layout(s, rig, source, m.name))
+            sigs.append(_signal_layout(s, rig, source, m.name, mapped.get(s.name)))
         period = m.cycle_time / 1000.0 if m.cycle_time else None
         key = frame_key(m.frame_id, m.is_extended_frame)
         out[key] = MessageLayout(key, m.name, m.length, period, tuple(sigs), m.is_multiplexed())
@@ -347,14 +386,15 @@ class VectorCodec:
     ``si_offset``).  ``encode(key, values)`` is the inverse (DBC units in, (n, 8) bytes out).
     """
 
-    def __init__(self, db: cantools.database.can.Database | str | Path | None = None) -> None:
+    def __init__(self, db: cantools.database.can.Database | str | Path | None = None, *, mapping=None) -> None:
         source = "DBC"
         if db is None or isinstance(db, (str, Path)):
             source = str(db if db is not None else DEFAULT_DBC)
             db = load_dbc(db)
         self.db = db
         self.source = source
-        self.messages: dict[int, MessageLayout] = message_layouts(db, source)
+        self.mapping = mapping
+        self.messages: dict[int, MessageLayout] = message_layouts(db, source, mapping)
         self.keys = np.array(sorted(self.messages), dtype=np.uint32)
         self._cantools = {frame_key(m.frame_id, m.is_extended_frame): m for m in db.messages}
 
@@ -371,6 +411,16 @@ class VectorCodec:
         """Every rig signal the DBC carries, in SIGNALS order."""
         have = {r for lay in self.messages.values() for r in lay.rig_signals}
         return tuple(s for s in SIGNALS if s in have)
+
+    def describe_lookup(self) -> str:
+        """What a rig signal is looked for as, and what the DBC has: for an error that finds none."""
+        sigs = [f"{sg.name} ({sg.unit or 'no unit'}, in {m.name})" for m in self.db.messages for sg in m.signals]
+        shown = ", ".join(sigs[:24]) + (f", ... ({len(sigs)} in all)" if len(sigs) > 24 else "")
+        return (f"looked for CAN signals named as a rig signal ({', '.join(SIGNALS)}), with a RigSignal attribute"
+                + (", or mapped with --map" if self.mapping else "")
+                + f"; the DBC {self.source} has {shown or 'no signals'}; map them with --map NAME=SIGNAL[:UNIT], "
+                "e.g. --map x=" + (self.db.messages[0].signals[0].name if self.db.messages and
+                                   self.db.messages[0].signals else "MyPosSignal") + ":mm")
 
     # -- decode
     @staticmethod

@@ -288,14 +288,17 @@ def make_plan(codec: VectorCodec, seen: dict[int, Decoded] | None, signals: Sequ
             have = {r for k in seen for r in codec.messages[k].rig_signals}
             signals = tuple(s for s in SIGNALS if s in have)
         if not signals:
+            if not codec.rig_signals:
+                raise DataError(f"{source}: no rig signal in the DBC: {codec.describe_lookup()}")
             raise DataError(f"{source}: no frame of a DBC message carrying rig signals "
                             f"({', '.join(codec.rig_signals)}) at the start of the stream")
     else:
         signals = tuple(signals)
         for s in signals:
             if codec.message_of(s) is None:
-                raise DataError(f"{source}: signal {s!r} is in no message of the DBC {codec.source}; "
-                                f"available: {', '.join(codec.rig_signals)}")
+                raise DataError(f"{source}: signal {s!r} is in no message of the DBC {codec.source}"
+                                + (f" (it carries {', '.join(codec.rig_signals)})" if codec.rig_signals else "")
+                                + f": {codec.describe_lookup()}")
     message_of = {}
     for s in signals:
         lay = codec.message_of(s)

@@ -16,34 +16,65 @@ TIME_COLUMN = "t"
 
 ColumnMap = Mapping[str, "str | tuple[str, str]"]
 
-MAP_SYNTAX = "--map NAME=COLUMN[:UNIT]"
+MAP_SYNTAX = "--map NAME=COLUMN[:UNIT][*GAIN][+OFFSET]"
 #: A header of more columns is refused (a rig record has tens of columns)
 MAX_COLUMNS = 4096
 UNIT_IN_NAME = re.compile(r"^(?P<name>.*?)\s*[\[(](?P<unit>[^\[\]()]*)[\])]\s*$")
 
 
-def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str, str | tuple[str, str]]:
-    """Parse command-line column mappings ``NAME=COLUMN[:UNIT]`` into a CSV ``mapping``.
+#: One number (a gain or an offset of a ``--map`` item), then its optional unit.
+_UNSIGNED = r"(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_NUMBER = r"[-+]?" + _UNSIGNED
+_TARGET = re.compile(
+    r"^(?P<column>.+?)(?::(?P<unit>[^:*]+?))?"
+    rf"(?:\s*\*\s*(?P<gain>{_NUMBER})\s*(?P<gain_unit>[^+\-\s][^+]*?)?)?"
+    rf"(?:\s*(?P<sign>[+-])\s*(?P<offset>{_UNSIGNED})\s*(?P<offset_unit>[^\d\s.+\-][^+]*?)?)?\s*$")
+
+
+def split_target(target: str) -> tuple[str, str, str, str]:
+    """``COLUMN[:UNIT][*GAIN[UNIT]][+OFFSET[UNIT]]`` -> (column, unit, gain, offset), each "" when absent
+    (``"vir*35.15N/V"`` -> ``("vir", "", "35.15N/V", "")``, ``"pos*0.001+0.2"`` -> ``("pos", "", "0.001",
+    "+0.2")``, ``"pos:mm"`` -> ``("pos", "mm", "", "")``)."""
+    m = _TARGET.match(target.strip())
+    if m is None:
+        return target.strip(), "", "", ""
+    gain = (m.group("gain") or "") + (m.group("gain_unit") or "").strip()
+    offset = ((m.group("sign") or "") + (m.group("offset") or "") + (m.group("offset_unit") or "").strip()
+              if m.group("offset") else "")
+    return m.group("column").strip(), (m.group("unit") or "").strip(), gain, offset
+
+
+def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str, str | tuple]:
+    """Parse command-line column mappings ``NAME=COLUMN[:UNIT][*GAIN][+OFFSET]`` into a ``mapping``.
 
     ``["x=pos_mm:mm", "pA=p_a", "t=time:ms"]`` -> ``{"pos_mm": ("x", "mm"), "p_a": "pA",
-    "time": ("t", "ms")}`` (foreign column -> signal name or (signal, unit), the form
-    :class:`CsvSource` takes).  ``NAME`` is a signal of :data:`fpdd.units.SIGNALS`, ``t``
-    for the time column, or an extra signal's name; ``UNIT`` is the unit the column is in
-    (:data:`fpdd.units.UNITS`).  Every command that reads a record calls this for its
-    ``--map`` option.  Raises :class:`~fpdd.errors.DataError` naming the item and the
-    expected syntax (a swapped ``COLUMN=NAME`` is recognised and the right order suggested).
+    "time": ("t", "ms")}`` (foreign column -> signal name or (signal, unit), the form the sources
+    take); with a gain or an offset the entry is ``(signal, unit, gain, offset)``:
+    ``"u=vir*35.15N/V"`` -> ``{"vir": ("u", "", "35.15N/V", "")}``.  ``NAME`` is a signal of
+    :data:`fpdd.units.SIGNALS`, ``t`` for the time column, or an extra signal's name; ``COLUMN``
+    a column of a CSV or text file, a variable of a MATLAB file or a signal of a CAN log's DBC;
+    ``UNIT`` the unit the column is in (:data:`fpdd.units.UNITS`); ``GAIN`` and ``OFFSET`` numbers,
+    each with an optional unit (the signal is ``column * GAIN + OFFSET``; their units are checked
+    against the signal's, through pint, by :func:`parse_mapping` when the record is read).  Every
+    command that reads a record calls this for its ``--map`` option.  Raises
+    :class:`~fpdd.errors.DataError` naming the item and the expected syntax (a swapped
+    ``COLUMN=NAME`` is recognised and the right order suggested).
     """
 
-    out: dict[str, str | tuple[str, str]] = {}
+    out: dict[str, str | tuple] = {}
     names: dict[str, str] = {}
     for item in items or ():
         name, sep, target = str(item).partition("=")
         name, target = name.strip(), target.strip()
-        column, colon, unit = target.rpartition(":") if ":" in target else (target, "", "")
-        column, unit = column.strip(), unit.strip()
-        if not sep or not name or not column or (colon and not unit):
-            raise DataError(f"{option} {item!r}: expected {option} NAME=COLUMN[:UNIT], e.g. "
-                            f"{option} x=pos_mm:mm (signal x is the column pos_mm, in mm)")
+        column, unit, gain, offset = split_target(target)
+        bare_colon = target.endswith(":")
+        if "*" in target and not gain:
+            raise DataError(f"{option} {item!r}: expected a number after '*' (the gain, optionally with a unit: "
+                            f"{option} u=vir*35.15N/V)")
+        if not sep or not name or not column or bare_colon:
+            raise DataError(f"{option} {item!r}: expected {option} {MAP_SYNTAX.split(' ', 1)[1]}, e.g. "
+                            f"{option} x=pos_mm:mm (signal x is the column pos_mm, in mm) or "
+                            f"{option} u=vir*35.15N/V (u is the column vir, in V, times 35.15 N/V)")
         known_name = name == TIME_COLUMN or name in SIGNALS
         if not known_name and (column == TIME_COLUMN or column in SIGNALS):
             swapped = f"{column}={name}" + (f":{unit}" if unit else "")
@@ -51,28 +82,126 @@ def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str
                             f"NAME=COLUMN[:UNIT]: did you mean {option} {swapped}?")
         if unit and unit not in UNITS:
             raise DataError(f"{option} {item!r}: unknown unit {unit!r}; known units: {', '.join(UNITS)}")
+        if (gain or offset) and name == TIME_COLUMN:
+            raise DataError(f"{option} {item!r}: the time takes a unit (e.g. {option} t={column}:ms), not a gain "
+                            "or an offset")
+        for what, text in (("gain", gain), ("offset", offset)):
+            if text:
+                _quantity(text, f"{option} {item!r}: {what}")
         if name in names:
             raise DataError(f"{option} {item!r}: signal {name!r} is already mapped to column {names[name]!r}")
         if column in out:
             raise DataError(f"{option} {item!r}: column {column!r} is already mapped")
         names[name] = column
-        out[column] = (name, unit) if unit else name
+        out[column] = (name, unit, gain, offset) if (gain or offset) else (name, unit) if unit else name
     return out
 
 
+def _quantity(text: str, what: str):
+    """``text`` (``35.15N/V``, ``0.001``, ``-3.2N``) as a pint quantity; DataError naming ``what``."""
+    import pint
+
+    from fpdd.units import _registry
+
+    m = re.fullmatch(rf"\s*({_NUMBER})\s*(.*?)\s*", text.replace("µ", "u").replace("²", "^2"))
+    try:
+        if m is None:
+            raise ValueError(text)
+        unit = m.group(2) or "dimensionless"
+        return _registry().Quantity(float(m.group(1)), "degC" if unit in ("°C", "C") else unit)
+    except (pint.errors.PintError, ValueError, TypeError, AttributeError, AssertionError):
+        raise DataError(f"{what} {text!r}: expected a number, optionally with a unit (e.g. 35.15N/V, 0.001, "
+                        "-3.2N)") from None
+
+
+#: The SI units a mapped column may end in (what :data:`fpdd.units.SIGNALS` are kept in).
+_SI_UNITS = ("m", "m/s", "Pa", "V", "N", "K", "s", "A", "kg", "m^3/s")
+
+
+def scaling(file: str, column: str, name: str, unit: str | None, gain: str, offset: str,
+            spec: SignalSpec | None) -> tuple[float, float, str]:
+    """(factor, offset, SI unit) of a mapped column with a gain or an offset: the signal in SI is
+    ``to_si(column, unit) * factor + offset`` (:func:`parse_mapping`).
+
+    The gain's unit says what the column is in when ``unit`` does not: ``u=vir*35.15N/V`` reads
+    ``vir`` in V (the gain's denominator) and gives newtons.  The result's dimension must be the
+    signal's (``spec``: its SI unit and the units it accepts), the offset's too (a bare offset is in
+    the signal's SI unit); else :class:`DataError` naming the file, the column and both units.
+    """
+    import pint
+
+    from fpdd.units import _registry
+
+    ureg = _registry()
+    item = f"{file}: --map {name}={column}" + (f":{unit}" if unit else "") + (f"*{gain}" if gain else "") + offset
+    g = _quantity(gain, f"{item}: gain") if gain else ureg.Quantity(1.0, "dimensionless")
+    if unit:
+        column_unit = ureg.Unit(si_unit(unit, what=item))
+    else:  # the gain's denominator: the unit the gain expects the column in
+        below = {u: -e for u, e in g.unit_items() if e < 0}
+        column_unit = ureg.Unit("dimensionless")
+        for u, e in below.items():
+            column_unit = column_unit * ureg.Unit(u) ** e
+    result = ureg.Quantity(float(g.magnitude), g.units * column_unit)
+    if result.dimensionless and not unit and str(g.units) == "dimensionless":  # plain numbers: the signal's SI
+        result = ureg.Quantity(float(g.magnitude), ureg.Unit(spec.unit if spec is not None else "dimensionless"))
+    if spec is not None:
+        candidates = [spec.unit, *(a for a in spec.accepts if a != "*")]
+        if "*" in spec.accepts:
+            candidates += [u for u in _SI_UNITS if u not in candidates]
+    else:
+        candidates = list(_SI_UNITS)
+    target = None
+    for cand in candidates:
+        try:
+            factor = float(result.to(ureg.Unit(cand)).magnitude)
+        except pint.errors.DimensionalityError:
+            continue
+        target = cand
+        break
+    if target is None:
+        if spec is None or "*" in spec.accepts:
+            factor, target = float(result.to_base_units().magnitude), f"{result.to_base_units().units:~}"
+        else:
+            expected = " or ".join(candidates)
+            given = f"{result.units:~}" if str(result.units) != "dimensionless" else "a plain number"
+            raise DataError(f"{item}: gives {given}, but {name!r} is in {expected} (a gain's unit A/B reads "
+                            f"the column in B and gives A)")
+    off = 0.0
+    if offset:
+        q = _quantity(offset, f"{item}: offset")
+        if str(q.units) == "dimensionless":
+            off = float(q.magnitude)
+        else:
+            try:
+                off = float(q.to(ureg.Unit(target)).magnitude)
+            except pint.errors.DimensionalityError:
+                raise DataError(f"{item}: the offset {offset} is not in a unit of {target} (the signal's unit)"
+                                ) from None
+    return factor, off, target
+
+
 def parse_mapping(file: str, mapping: ColumnMap | None,
-                   specs: Mapping[str, SignalSpec] | None = None) -> dict[str, tuple[str, str | None]]:
-    """Normalise ``mapping`` to ``{foreign column: (signal, unit or None)}`` and check units.
+                  specs: Mapping[str, SignalSpec] | None = None) -> dict[str, tuple]:
+    """Normalise ``mapping`` to ``{foreign column: (signal, unit or None[, factor, offset])}`` and check units.
 
     A unit must be dimensionally compatible with the signal (``specs``, default
     :data:`~fpdd.units.SIGNALS`): ``x`` takes mm, not bar; a generic signal (the
-    oscillator's ``y``) takes any unit.
+    oscillator's ``y``) takes any unit.  An entry with a gain or an offset (``(signal, unit, gain,
+    offset)``, from :func:`parse_map`) becomes ``(signal, unit or None, factor, offset)``: the signal
+    in SI is ``to_si(column, unit) * factor + offset`` (:func:`scaling`).
     """
     specs = SIGNALS if specs is None else specs
-    out: dict[str, tuple[str, str | None]] = {}
+    out: dict[str, tuple] = {}
     for column, target in (mapping or {}).items():
         if isinstance(target, str):
             out[column] = (target, None)
+            continue
+        if isinstance(target, tuple) and len(target) == 4:
+            name, unit, gain, offset = target
+            spec = specs.get(name) or SIGNALS.get(name)
+            factor, off, _ = scaling(file, column, name, unit or None, gain or "", offset or "", spec)
+            out[column] = (name, unit or None, factor, off)
             continue
         try:
             name, unit = target

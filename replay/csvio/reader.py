@@ -150,14 +150,17 @@ class CsvSource(Source):
                             f"(a sample time from {1 / hi:g} s to {1 / lo:g} s)")
         return int(round(1e9 / rate))
 
-    def _setup(self, mapped: dict[str, tuple[str, str | None]]) -> None:
+    def _setup(self, mapped: dict[str, tuple]) -> None:
         columns, self._header_line = self._read_header()
         self._columns = columns
         names: list[str] = []
         units: list[str | None] = []
+        self._scaled: dict[int, tuple[float, float]] = {}  # column -> (factor, offset) of a gain/offset map
         for col in columns:
             if col in mapped:
-                name, unit = mapped[col]
+                name, unit = mapped[col][:2]
+                if len(mapped[col]) == 4:
+                    self._scaled[len(names)] = (float(mapped[col][2]), float(mapped[col][3]))
             else:
                 name, unit = split_unit(col)
                 if unit is not None and (name == TIME_COLUMN or name in SIGNALS):
@@ -462,6 +465,9 @@ class CsvSource(Source):
             col = table[:, pos]
             if unit is not None:
                 col = to_si(col, unit, what=f"{self.path}: column {self._columns[j]!r}")
+            if j in self._scaled:
+                factor, offset = self._scaled[j]
+                col = col * factor + offset
             signals[name] = np.ascontiguousarray(col)
         return Samples(t_ns, signals), labels
 

@@ -127,17 +127,18 @@ def timing_of(args, default=None):
 
 
 def add_map_argument(p) -> None:
-    """``--map NAME=COLUMN[:UNIT]`` (repeatable): read a CSV whose columns have other names or units."""
-    p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT]",
-                   help="a CSV column under another name or unit, e.g. --map x=pos_mm:mm --map t=time:ms "
-                        "(repeatable; CSV files only)")
+    """``--map NAME=COLUMN[:UNIT][*GAIN][+OFFSET]`` (repeatable): read a record whose columns (a CSV's or a text
+    file's, a MATLAB file's variables, a CAN log's DBC signals) have other names, units or scales."""
+    from replay.options import MAP_HELP
+
+    p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT][*GAIN][+OFFSET]", help=MAP_HELP)
     from replay.options import add_rate_options
 
     add_rate_options(p)
 
 
 def source_options(args, path: str) -> dict:
-    """Reader options for ``path`` from ``--map`` (a CSV column mapping) and ``--rate``/``--dt``, checked."""
+    """Reader options for ``path`` from ``--map`` (a column mapping) and ``--rate``/``--dt``, checked."""
     from replay.options import rate_options
 
     try:
@@ -149,11 +150,13 @@ def source_options(args, path: str) -> dict:
     items = getattr(args, "map", None)
     if not items:
         return rate
-    if not str(path).lower().endswith((".csv", ".csv.gz")):
+    from replay import formats
+
+    if not formats.takes_map(path):
         from fpdd.errors import DataError
 
-        raise DataError(f"{path}: --map renames CSV columns; this file is not a CSV (its signals are named by "
-                        "its format)")
+        raise DataError(f"{path}: --map maps the columns of CSV, text and MATLAB files and the signals of CAN logs; "
+                        "this file is not a CSV, text, MATLAB file or CAN log (its signals are named by its format)")
     from replay.csvio import parse_map
 
     return {"mapping": parse_map(items), **rate}

@@ -8,7 +8,9 @@ import sys
 COMPARE_HELP = ("compare candidate models instead of one fit: a comma-separated list, each candidate "
                 "[MODEL:]EFFECT+EFFECT or 'none' (e.g. none,viscous_friction,viscous_friction+laminar_leakage); "
                 "each is fitted on the records (their first halves without --validate) and simulated on the "
-                "held-out data; Fit %%, held-out RMS, AIC and BIC per candidate, the lowest BIC marked best")
+                "held-out data; Fit %%, held-out RMS, AIC and BIC per candidate, the lowest BIC marked best; "
+                "every candidate fits --free (default the phenomenological parameters, less those --set) and its "
+                "effects' own parameters, and holds --set and --params values")
 VALIDATE_HELP = "held-out records for --compare (default: the second half of each record)"
 
 
@@ -20,7 +22,7 @@ def add_arguments(p) -> None:
 def run_compare(args, model, records, base, timing, lost) -> int:
     """Run ``--compare`` and print the table (text, ``--json``; ``--report DIR``: DIR/compare_report.html)."""
     from replay.options import EXIT_LOSS
-    from twin.commands.common import dump, names, progress, source_options
+    from twin.commands.common import dump, kv, names, progress, source_options
     from twin.estimation.compare import Candidate, compare_models
     from twin.models.records import load_records
     from twin.reports import summary as S
@@ -33,7 +35,8 @@ def run_compare(args, model, records, base, timing, lost) -> int:
             validation.extend(load_records(path, model=model.name, **source_options(args, path)))
     cmp = compare_models(cands, records, validation, base=base, drive=args.drive, timing=timing,
                          n_starts=args.starts, seed=args.seed, outputs=names(args.outputs) or None,
-                         progress=None if args.json else progress(args))
+                         progress=None if args.json else progress(args), free=names(args.free) or None,
+                         known=tuple(kv(args.set)))
     report = S.compare_report(cmp, args.report) if args.report else None
     if args.json:
         d = S.compare_json(cmp)

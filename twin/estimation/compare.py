@@ -197,11 +197,22 @@ class Candidate:
                                  f"{', '.join(m.EFFECTS)}")
         return cls(name=text or "none", model=mdl, effects=effects)
 
-    def free_names(self) -> tuple[str, ...]:
+    def free_names(self, free: Sequence[str] | None = None, known: Sequence[str] = (),
+                   effects: Sequence[str] = ()) -> tuple[str, ...]:
+        """The parameters this candidate fits: its own ``free``; else ``free`` (the user's ``--free``) or the
+        model's phenomenological ones, with the parameters of its effects (and of ``effects``, those every
+        candidate shares), less those ``known`` (``--set``) unless ``free`` names them."""
         if self.free is not None:
             return self.free
         m = get_model(self.model)
-        return tuple(m.PHENOMENOLOGICAL) + tuple(n for e in self.effects for n in m.EFFECTS[e].names)
+        own = tuple(n for e in (*effects, *self.effects) for n in m.EFFECTS[e].names)
+        if free:
+            names = {sp.name for sp in m.BASE} | set(own)
+            chosen = tuple(n for n in free if n in names)  # an effect's parameter where the candidate has it
+            extra = tuple(n for n in own if n not in chosen and n not in known
+                          and not any(n in m.EFFECTS[e].names for e in effects))
+            return tuple(dict.fromkeys((*chosen, *extra)))
+        return tuple(dict.fromkeys(n for n in (*m.PHENOMENOLOGICAL, *own) if n not in known))
 
 
 def split_half(record: Record) -> tuple[Record, Record]:
@@ -215,13 +226,16 @@ def split_half(record: Record) -> tuple[Record, Record]:
 def compare_models(candidates: Sequence[Candidate], records: Sequence[Record],
                    validation: Sequence[Record] | None = None, *, base: ParameterSet | None = None,
                    drive: str = "auto", timing: Timing | None = None, n_starts: int = 8, seed: int = 0,
-                   outputs: Sequence[str] | None = None, progress=None) -> dict:
+                   outputs: Sequence[str] | None = None, progress=None, free: Sequence[str] | None = None,
+                   known: Sequence[str] = ()) -> dict:
     """Fit each candidate on ``records`` and simulate it on ``validation`` (default: each record's second
     half, the fit then using the first halves).  ``base``: known parameter values and effects every candidate
-    of its model shares; returns the comparison as a JSON-ready dict (SI, units
-    named): ``{"rows": [...], "best": name, "criterion": "BIC", "estimation": [...], "validation": [...]}``."""
+    of its model shares; ``free``: the parameters every candidate fits (``--free``; default the model's
+    phenomenological ones), each candidate adding its effects' own; ``known``: parameters held at ``base``'s
+    values (``--set``), never freed unless ``free`` names them.  Returns the comparison as a JSON-ready dict
+    (SI, units named): ``{"rows": [...], "best": name, "criterion": "BIC", "estimation": [...],
+    "validation": [...]}``."""
     from twin.estimation.fit import fit
-    from twin.units import SIGNAL_UNITS
 
     if not candidates:
         raise ParameterError("compare: no candidate models given")
@@ -240,8 +254,11 @@ def compare_models(candidates: Sequence[Candidate], records: Sequence[Record],
             ps = ps.update({n: v for n, v in shared.as_dict().items() if n in ps})
         if progress:
             progress(f"fitting {c.name}")
-        res = fit(m, records, c.free_names(), base=ps, outputs=outputs, drive=drive, n_starts=n_starts,
-                  seed=seed, timing=timing)
+        names = c.free_names(free, known, shared.effects if shared is not None else ())
+        if not names:
+            raise ParameterError(f"candidate {c.name!r}: no free parameter (every one is held by --set)")
+        res = fit(m, records, names, base=ps, outputs=outputs, drive=drive, n_starts=n_starts, seed=seed,
+                  timing=timing)
         rms, vfit = {}, {}
         for o in res.outputs:
             e, ys = [], []
@@ -251,9 +268,10 @@ def compare_models(candidates: Sequence[Candidate], records: Sequence[Record],
                 ys.append(rec[o])
             ee = np.concatenate(e)
             y = np.concatenate(ys)
-            rms[o] = {"value": float(np.sqrt(np.mean(ee * ee))), "unit": SIGNAL_UNITS.get(o, "")}
+            rms[o] = {"value": float(np.sqrt(np.mean(ee * ee))), "unit": get_model(c.model).signal_unit(o)}
             vfit[o] = fit_percent(y, y - ee)
-        rows.append({"name": c.name, "model": c.model, "effects": list(c.effects), "n_par": res.n_par,
+        rows.append({"name": c.name, "model": c.model, "effects": list(c.effects), "free": list(names),
+                     "n_par": res.n_par,
                      "fit_pct": dict(res.fit_pct), "validation_fit_pct": vfit, "validation_rms": rms,
                      "aic": res.aic, "bic": res.bic, "converged": res.success, "result": res})
     finite = [r for r in rows if math.isfinite(r["bic"])]

@@ -39,7 +39,7 @@ BASE = (
     ParamSpec("m", "kg", 1e-9, 1e6, "physical", "mass", typical=1.0),
     ParamSpec("d", "N s/m", 0.0, 1e6, "phenomenological", "viscous damping", typical=0.1,
               tracking=Tracking(band=0.5, drift_rate=0.01, bounds=(1 / 20, 20.0), excited_by="rod_motion")),
-    ParamSpec("k", "N/m", 1e-9, 1e9, "phenomenological", "stiffness", typical=3947.8,
+    ParamSpec("k", "N/m", 0.0, 1e9, "phenomenological", "stiffness", typical=3947.8,
               tracking=Tracking(band=0.3, drift_rate=0.002, bounds=(1 / 4, 4.0), excited_by="rod_motion")),
 )
 NOMINAL = {"m": 1.0, "d": 0.1, "k": 3947.8}

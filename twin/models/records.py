@@ -1,4 +1,4 @@
-"""A model's records read from a file: any source ``replay`` knows (CSV, MCAP, CAN logs) read into uniform
+"""A model's records read from a file: any source ``replay`` knows (CSV, MCAP, MATLAB, text, CAN logs) read into uniform
 :class:`twin.record.Record` pieces, its signals checked first against what the model needs (:func:`check_signals`:
 a drive among the model's inputs, one of its outputs), in the signal vocabulary of the model's records
 (:func:`signal_specs`).
@@ -90,8 +90,9 @@ def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL,
                  map=None, **options) -> list[Record]:  # noqa: A002
     """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``.
 
-    ``map``: a CSV's columns under other names or units, in the direction of ``--map``: ``{"x": "pos_mm:mm",
-    "t": "time:ms"}``, or ``--map``'s strings (``"x=pos_mm:mm"`` or a list of them). ``dbc=`` (CAN logs) and
+    ``map``: columns (of a CSV or text file; a MATLAB file's variables; a CAN log's DBC signals) under other
+    names, units or scales, in the direction of ``--map``: ``{"x": "pos_mm:mm", "t": "time:ms", "u":
+    "vir*35.15N/V"}``, or ``--map``'s strings (``"x=pos_mm:mm"`` or a list of them). ``dbc=`` (CAN logs) and
     other keyword options go to the reader.
 
     Refused (:class:`DataError`): a record without the signals a fit needs (:func:`check_signals`) or
@@ -99,23 +100,30 @@ def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL,
     was lost on the way: ``report.lossy``, ``report.loss_line()``); without it a loss is logged as a
     warning (logger ``twin.models.records``), never passed over in silence.
     """
+    from replay import formats
     from replay.factory import open_source
     from replay.quality import QualityOptions
 
     if map:
         from replay.csvio import parse_map
 
-        if not str(path).lower().endswith((".csv", ".csv.gz")):
-            raise DataError(f"{path}: map renames CSV columns; this file is not a CSV (its signals are named by "
-                            "its format)")
+        if not formats.takes_map(path):
+            raise DataError(f"{path}: map names the columns of CSV, text and MATLAB files and the signals of CAN "
+                            "logs; this file's signals are named by its format")
         items = [map] if isinstance(map, str) else ([f"{k}={v}" for k, v in map.items()] if isinstance(map, dict)
                                                      else list(map))
         options["mapping"] = parse_map(items, option="map")
 
-    if str(path).lower().endswith((".csv", ".csv.gz", ".mcap")) and "quality" not in options:
+    if formats.suffix_of(path) in formats.SAMPLE_SUFFIXES and "quality" not in options:
         options["quality"] = QualityOptions(specs=signal_specs(model))
     with open_source(path, **options) as src:
-        check_signals(str(path), src.signals, model)
+        try:
+            check_signals(str(path), src.signals, model)
+        except DataError as exc:
+            codec = getattr(src, "codec", None)  # a CAN log: what was looked for and what its DBC has
+            if codec is None:
+                raise
+            raise DataError(f"{exc}; {codec.describe_lookup()}") from None
         samples = src.read_all()
         report = src.report
     if reports is not None:
