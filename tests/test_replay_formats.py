@@ -604,3 +604,118 @@ def test_factory_passes_options(tmp_path: Path) -> None:
         open_source(DATA / "reference.mcap", required=("F",))
     with open_sink(tmp_path / "o.mcap", flush_period_s=0.5) as sink:
         assert isinstance(sink, McapSink)
+
+
+# --- MATLAB and text files; gains and offsets in the column map -------------------------------------------------
+
+def _mat_record(path: Path, **extra) -> dict:
+    """A MATLAB v5 file written by scipy: a time vector, two signals in foreign names and units, scalars."""
+    import gzip
+
+    import scipy.io
+
+    rng = np.random.default_rng(3)
+    n = 500
+    data = {"t": (np.arange(n) * 1e-3)[:, None], "pos_mm": rng.normal(0.0, 5.0, (n, 1)),
+            "vir": rng.normal(0.0, 1.0, (1, n)), "gain": np.array([[35.15]]), "notes": "bench 3", **extra}
+    if str(path).endswith(".gz"):
+        import io
+
+        buf = io.BytesIO()
+        scipy.io.savemat(buf, data)
+        path.write_bytes(gzip.compress(buf.getvalue()))
+    else:
+        scipy.io.savemat(path, data)
+    return {k: np.asarray(v).ravel() for k, v in data.items() if k != "notes"}
+
+
+@pytest.mark.parametrize("name", ["rec.mat", "rec.mat.gz"])
+def test_mat_file_reads_mapped_vectors_with_gain_and_unit(tmp_path, name):
+    from twin.models.records import load_records
+
+    path = tmp_path / name
+    d = _mat_record(path)
+    with open_source(path, mapping={"pos_mm": ("x", "mm"), "vir": ("F", "", "35.15N/V", "-2N")}) as src:
+        got = src.read_all()
+    assert set(got.names) == {"x", "F"} and len(got) == 500
+    np.testing.assert_array_equal(got.t_ns, np.rint(d["t"] * 1e9).astype(np.int64))
+    np.testing.assert_allclose(got["x"], d["pos_mm"] * 1e-3, rtol=1e-15)
+    np.testing.assert_allclose(got["F"], d["vir"] * 35.15 - 2.0, rtol=1e-15)
+    (rec,) = load_records(str(path), model="oscillator", map=["u=vir*35.15N/V", "y=pos_mm:mm"])
+    np.testing.assert_allclose(rec["u"], d["vir"] * 35.15, rtol=1e-15)
+
+
+def test_mat_file_refuses_a_missing_or_non_vector_variable(tmp_path):
+    path = tmp_path / "rec.mat"
+    _mat_record(path)
+    with pytest.raises(DataError, match=r"rec\.mat: variable 'qm' \(--map x=qm\) not in the file; expected a vector"
+                                        r".*pos_mm \(500 samples\)"):
+        open_source(path, mapping={"qm": "x"})
+    with pytest.raises(DataError, match=r"variable 'gain' \(--map x=gain\) is a 1x1 scalar, expected a vector"):
+        open_source(path, mapping={"gain": "x"})
+    with pytest.raises(DataError, match=r"variable 'notes' \(--map x=notes\) is text, expected a vector"):
+        open_source(path, mapping={"notes": "x"})
+    with pytest.raises(DataError, match=r"gives N, but 'x' is in m"):
+        open_source(path, mapping={"vir": ("x", "", "35.15N/V", "")})
+    bad = tmp_path / "bad.mat"
+    bad.write_bytes(b"not a MATLAB file at all, just words" * 10)
+    with pytest.raises(LogFormatError, match=r"bad\.mat: not a MATLAB \.mat file"):
+        open_source(bad)
+
+
+def test_mat_file_with_a_sample_time_instead_of_a_time_vector(tmp_path):
+    import scipy.io
+
+    path = tmp_path / "ts.mat"
+    scipy.io.savemat(path, {"y": np.arange(100.0)[:, None] * 1e-3, "u": np.ones((100, 1)), "Ts": np.array([[2e-3]])})
+    with open_source(path) as src:
+        got = src.read_all()
+    np.testing.assert_array_equal(got.t_ns, np.arange(100) * 2_000_000)
+    path2 = tmp_path / "none.mat"
+    scipy.io.savemat(path2, {"y": np.arange(100.0)[:, None] * 1e-3})
+    with pytest.raises(DataError, match=r"none\.mat: no time variable .* give --rate HZ or --dt S"):
+        open_source(path2)
+    with open_source(path2, rate_hz=500.0) as src:
+        assert src.read_all().t_ns[1] == 2_000_000
+
+
+def test_text_files_tab_header_blank_separated_and_numbered_columns(tmp_path):
+    tab = tmp_path / "run.tsv"
+    tab.write_text("time\tlabel\tpos\n0.000\ta\t1.5\n0.001\tb\t2.5\n0.002\tc\t3.5\n0.003\td\t4.5\n")
+    with open_source(tab, mapping={"time": "t", "pos": ("x", "mm")}) as src:
+        got = src.read_all()
+    np.testing.assert_allclose(got["x"], [1.5e-3, 2.5e-3, 3.5e-3, 4.5e-3])
+    blank = tmp_path / "run.txt"
+    blank.write_text("% a comment\nt   u    y\n0.000  1  2\n0.001  2  4\n0.002  3 x\n0.003  4  8\n0.004  5  10\n")
+    src = open_source(blank, mapping={"u": ("F", "", "2", "+1")})
+    got = src.read_all()
+    np.testing.assert_allclose(got["F"], [3.0, 5.0, 9.0, 11.0])  # the row with 'x' skipped and counted
+    assert src.report.skipped["bad_row"] == 1
+    numbered = tmp_path / "bare.txt"
+    numbered.write_text("".join(f"{i * 1e-3:.3f} {i} {2 * i}\n" for i in range(10)))
+    with open_source(numbered, mapping={"1": "t", "3": ("x", "mm")}) as src:
+        got = src.read_all()
+    np.testing.assert_allclose(got["x"], 2e-3 * np.arange(10))
+
+
+def test_map_grammar_gain_offset_and_its_errors():
+    from replay.csvio import parse_map
+    from replay.csvio.columns import parse_mapping
+
+    m = parse_map(["u=vir*35.15N/V", "x=pos*0.001+0.2", "pA=p:bar*2", "x_ref=dem:mm-5mm", "t=time:ms"])
+    assert m == {"vir": ("u", "", "35.15N/V", ""), "pos": ("x", "", "0.001", "+0.2"),
+                 "p": ("pA", "bar", "2", ""), "dem": ("x_ref", "mm", "", "-5mm"), "time": ("t", "ms")}
+    from twin.models.records import signal_specs
+
+    n = parse_mapping("f", m, signal_specs("oscillator"))
+    assert n["vir"] == ("u", None, pytest.approx(35.15), 0.0)
+    assert n["pos"] == ("x", None, 0.001, 0.2)
+    assert n["dem"] == ("x_ref", "mm", 1.0, pytest.approx(-0.005))
+    with pytest.raises(DataError, match=r"expected a number after '\*'"):
+        parse_map(["x=pos*abc"])
+    with pytest.raises(DataError, match=r"the time takes a unit"):
+        parse_map(["t=time*0.001"])
+    with pytest.raises(DataError, match=r"f: --map u=vir\*35.15N/V: gives N, but 'u' is in V"):
+        parse_mapping("f", parse_map(["u=vir*35.15N/V"]))  # the rig's u is a valve voltage
+    with pytest.raises(DataError, match=r"the offset \+2bar is not in a unit of m"):
+        parse_mapping("f", parse_map(["x=pos:mm+2bar"]))
