@@ -13,6 +13,9 @@ import pytest
 
 from twin import cli
 
+#: each fits a few times (and the first compiles the oscillator's kernels): the slow suite's
+pytestmark = pytest.mark.slow
+
 MASS, DAMPING = 2.5, 8.0
 
 
@@ -57,3 +60,13 @@ def test_compare_honours_free_and_set(free_mass, capsys):
     d = json.loads(capsys.readouterr().out)
     assert d["rows"][0]["free"] == ["d"]
     assert d["rows"][0]["params"]["d"]["value"] == pytest.approx(DAMPING, rel=0.05)
+
+
+def test_plain_fit_does_not_free_what_set_holds(free_mass, capsys):
+    """``twin fit --set k=0,m=2.5`` without --free fits d alone (before, k was freed from 0 and went to 7e7 N/m)."""
+    code = cli.main(["fit", str(free_mass), "--model", "oscillator", "--set", f"k=0,m={MASS}",
+                     "--controller", "digital", "--json", "-q"])
+    assert code in (0, 3)
+    d = json.loads(capsys.readouterr().out)
+    assert set(d["params"]) == {"d"}
+    assert d["params"]["d"]["value"] == pytest.approx(DAMPING, rel=0.01)

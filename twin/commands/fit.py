@@ -65,7 +65,8 @@ def run(args) -> int:
     base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
                                           with_timing=True)
     timing = timing_of(args, saved_timing)
-    free = _names(args.free) or model.PHENOMENOLOGICAL
+    # without --free: the phenomenological parameters less those --set holds (k=0 stays 0)
+    free = _names(args.free) or tuple(n for n in model.PHENOMENOLOGICAL if n not in _kv(args.set))
     outputs = _names(args.outputs) or None
     if args.compare:
         from twin.commands.compare import run_compare
