@@ -96,6 +96,8 @@ def run_case(c: dict, duration: float) -> dict:
         known = info["meta"]["known"]
         cmd = float(np.max(np.abs(rec["u"]))) * known["Ke"] * known["Ksp"]
         row["limit_reached"] = bool(cmd > info["truth"]["spool_saturation.xs_max"])
+        demand = np.abs(rec["u"]) * known["Ke"] * known["Ksp"]  # the spool opening the valve is asked for
+        row["saturated_share"] = float(np.mean(demand > info["truth"]["spool_saturation.xs_max"]))
     return row
 
 
@@ -142,7 +144,9 @@ def table(rows: list[dict]) -> str:
         rs = sorted(rs, key=lambda r: r["seed"])
         said = "; ".join(("+".join(r["causes"]) or "nothing") + (" (unexplained)" if r["unexplained"] else "")
                          + (" [not testable]" if c_in(r) else "")
-                         + ("" if r.get("limit_reached", True) else " [limit never reached]") for r in rs)
+                         + ("" if r.get("limit_reached", True) else " [limit never reached]")
+                         + (f" [{100 * r['saturated_share']:.0f} % saturated]" if "saturated_share" in r else "")
+                         for r in rs)
         k = sum(r["correct"] for r in rs)
         lo, hi = wilson(k, len(rs))
         lines.append(f"{case:<34} {len(rs):>5} {100 * k / len(rs):7.0f}% {100 * lo:6.0f}-{100 * hi:3.0f} %  {said}")

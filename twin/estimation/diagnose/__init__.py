@@ -42,7 +42,10 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
        LM = (sum g_t)^2 / (N * long-run variance of g)      (Newey-West),
 
    chi-square(1) when the effect is absent, even if whitening left some
-   colour.  An effect's p-value is its best probe's times its number of
+   colour.  Each probe is also scored with the best directions of the
+   ``CONDITION_ON`` strongest other effects projected out (one un-modelled
+   effect can turn another's one-sided score to 0: a force offset's drift
+   hides a dry friction), the larger kept.  An effect's p-value is its best probe's times its number of
    probes; the effects' p-values are Holm-corrected over the catalogue.  One-
    sided effects (a friction, a stroke limit) score 0 when the residual
    points the wrong way.  Nothing passes: nothing is fitted.  An effect that
@@ -59,31 +62,31 @@ The method (``twin diagnose DATA --model msp25|oscillator``):
    estimates; the best refit is judged by the same tests as an effect,
    counted as one parameter.
 7. **Fit the promising extensions** (nominal free parameters plus the
-   effect's own) and **decide**: accepted when its likelihood-ratio test on
-   the whitened residuals (``LR = C0 - C1``, the innovations' sums of squares
-   under the current noise model, chi-square(df)) is significant after a
-   Holm correction over the catalogue, its (whitened) AICc is lower, and its
-   held-out gain - the relative reduction of the held-out innovations' sum of
-   squares - exceeds its moving-block bootstrap spread (the lower end of its
-   95 % interval above zero).  While the current model is not adequate the
-   extension must also remove at least ``min_share`` of the current model's
-   excess misfit (an effect soaking up a little of an out-of-catalogue error
-   is not named) or leave a model that is adequate, and its parameters must
-   lie within 10 times the effect's
-   typical deviation from neutral.  The effect is named by its own
-   signature, not by what it removes (:func:`.naming._signature`): the
+   effect's own) from the current estimates and from the configured
+   baseline (nominal or commissioned values), the effect's starts across its
+   physical range; a model simulated open loop is refitted over a growing
+   horizon (``GROW_FRACTION``); the better refit by held-out error is kept.
+   **Decide** by one criterion for every kind of name (an effect, a pair, a
+   timing): accepted when its likelihood-ratio test on the whitened
+   residuals (``LR = C0 - C1``, the innovations' sums of squares under the
+   current noise model, chi-square(df)) is significant after a Holm
+   correction over the catalogue, its (whitened) AICc is lower, its held-out
+   gain - the relative reduction of the held-out innovations' sum of squares
+   - is significant against the noise (a Diebold-Mariano-type test on the
+   relative scale, HAC variance, Bonferroni over the catalogue at ``alpha``:
+   :func:`.adequacy._holdout_test`), and its parameters lie within 10 times
+   the effect's typical deviation from neutral.  The effect's own signature
+   must be where the residuals have it (:func:`.naming._signature`): the
    errors it leaves are regressed on its signature led and lagged by 1-16
-   samples; when that is significant, the part explained again counts
-   against its gain (over half of the gain: not named; while the model stays
-   inadequate the share of the excess it removes is taken net of it) - an
-   effect standing in for an error of other dynamics (a transducer's lag
-   taken for a friction) leaves exactly such a misplaced copy of its
-   signature.  Candidates whose screen LM is below a
-   tenth of an accepted extension's LR are not fitted.  The lowest AICc
-   among accepted ones wins; the screen is
-   run again on the extended model (greedy).  When no single effect passes
-   but two are significant, the pair is fitted together and judged the same
-   way, each significant within the pair.
+   samples; when that is significant and explains again over half of its
+   gain (``1 - min_share``), it is not named - an effect standing in for an
+   error of other dynamics (a transducer's lag taken for a friction) leaves
+   exactly such a misplaced copy of its signature.  Candidates whose screen
+   LM is below a tenth of an accepted extension's LR are not fitted.  The
+   lowest AICc among accepted ones wins; the screen is run again on the
+   extended model (greedy).  When no single effect passes but two are
+   significant, the pair is fitted together and judged the same way, each
+   significant within the pair.
 8. **Verdict**: ``causes`` are the accepted effects; ``unexplained`` is true
    when the final model is not adequate (step 4): "explained", "partly
    explained" (named, a significant part left), "unexplained" (no name) or

@@ -280,11 +280,18 @@ def _holdout_test(cur: ModelState, st: ModelState, data: _Data) -> dict:
     q1 = np.sum(H1 * H1, axis=0)
     if not (np.all(np.isfinite(q1)) and q0.sum() > 0 and q0.size > 10):
         inf = float("-inf")
-        return {"gain": inf, "lo": inf, "hi": inf, "z": inf, "p": 1.0}
+        return {"gain": inf, "lo": inf, "hi": inf, "z": inf, "p": 1.0}  # a diverged or empty comparison
+    lag = max(bartlett_lag(q0 - q1), 4 * cur.noise.order, int(round(0.1 / data.records[0].dt)))
+    return gain_test(q0, q1, lag)
+
+
+def gain_test(q0: np.ndarray, q1: np.ndarray, lag: int) -> dict:
+    """The relative gain ``sum (q0 - q1) / sum q0`` of per-sample losses ``q1`` over ``q0``, its HAC standard
+    error (delta method for a ratio of means, Newey-West with ``lag``), ``z``, the one-sided p-value of
+    ``gain <= 0`` and the ``GAIN_COVERAGE`` interval (:func:`_holdout_test`)."""
     d = q0 - q1
     T = d.size
     g = float(d.sum()) / float(q0.sum())
-    lag = max(bartlett_lag(d), 4 * cur.noise.order, int(round(0.1 / data.records[0].dt)))
     se = math.sqrt(long_run_variance(d - g * q0, lag) / T) / float(q0.mean())
     z = g / se if se > 0 else (math.inf if g > 0 else 0.0)
     half = float(stats.norm.isf((1.0 - GAIN_COVERAGE) / 2.0)) * se

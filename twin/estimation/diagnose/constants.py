@@ -32,9 +32,10 @@ LIMIT_QUANTILES = (0.75, 0.9, 0.97, 0.995)
 #: fraction of one whitened unit, not to machine precision
 FIT_TOL = 1e-8
 #: an extension of a model simulated open loop (driven by a logged input) is fitted first on this fraction of
-#: the fitting data, then on all of it (:func:`.extend._fit_grown`): EMPS (a free axis driven by its logged
-#: force, 18.6 s fitted) from the offset model's bent estimates reached a local minimum 25 % above the best
-#: cost fitted on the whole at once, and one within 6 % of it through a quarter first (halves and eighths alike)
+#: the fitting data, then on all of it (:func:`.extend._fit_grown`): on EMPS (a free axis driven by its logged
+#: force, 18.6 s fitted; the estimation record, the validation record kept apart) the friction's refit from the
+#: offset model's bent estimates stopped 27 % above the best cost found when fitted on the whole at once, and
+#: within 1.4 % of it through a quarter first, from each of four starts of the friction
 GROW_FRACTION = 0.25
 #: a candidate whose screen LM is below this fraction of an accepted trial's LR is not fitted in that round
 #: (its linearised gain cannot reach the accepted one's AICc; the margin covers nonlinear effects)
