@@ -217,3 +217,58 @@ def test_a_rig_of_another_model_commissions_with_its_own_model(tmp_path, monkeyp
     for n, v in truth.items():
         p = doc["params"][n]
         assert abs(p["value"] - v) <= 4.0 * p["std"] and abs(p["value"] / v - 1.0) < 0.05, (n, p)
+
+
+def _foreign(src, dst, scale=1.0):
+    """``src`` (the product's CSV, SI) rewritten as another logger writes it: ms, mm, bar, its own column names."""
+    lines = src.read_text(encoding="utf-8").splitlines()
+    with open(dst, "w", encoding="utf-8") as f:
+        f.write("time_ms,dem_mm,valve,pos_mm,p_a_bar,p_b_bar\n")
+        for line in lines[1:]:
+            t, xr, u, x, pa, pb = (float(v) for v in line.split(","))
+            f.write(f"{t * 1e3!r},{xr * 1e3 * scale!r},{u!r},{x * 1e3 * scale!r},{pa * 1e-5!r},{pb * 1e-5!r}\n")
+
+
+FOREIGN_MAP = ["t=time_ms:ms", "x_ref=dem_mm:mm", "u=valve", "x=pos_mm:mm", "pA=p_a_bar:bar", "pB=p_b_bar:bar"]
+
+
+@pytest.mark.slow
+def test_the_commissioning_file_keeps_its_column_map_for_the_next_commands(tmp_path, capsys):
+    """Step 5 of commissioning: ``twin track other.csv --params commissioning.json`` on a foreign CSV of the same
+    logger reads it through the map (and units) the commissioning fit was given; so do ``twin fit --params``
+    and the Python API (``twin.track(commission=...)``, ``FitResult.load``)."""
+    import pathlib
+
+    import twin
+    from twin import cli
+    from twin.estimation.fit_result import FitResult
+
+    here = pathlib.Path(__file__).parent / "data" / "reference.csv"
+    run, other = tmp_path / "run.csv", tmp_path / "other.csv"
+    _foreign(here, run)
+    _foreign(here, other)
+    saved = tmp_path / "commissioning.json"
+    maps = [a for m in FOREIGN_MAP for a in ("--map", m)]
+    assert cli.main(["-q", "fit", str(run), "--free", "Ffric", "--starts", "1", *maps, "--save", str(saved)]) == 0
+    capsys.readouterr()
+    doc = json.loads(saved.read_text())
+    assert doc["source"] == {"map": FOREIGN_MAP}
+    assert cli.main(["-q", "track", str(other), "--params", str(saved), "--json", "--out", str(tmp_path / "o")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    n = len(here.read_text().splitlines()) - 1
+    assert out["alarms"] == [] and out["samples"] == n
+    assert cli.main(["-q", "fit", str(other), "--free", "Ffric", "--starts", "1", "--params", str(saved),
+                     "--json"]) == 0
+    refit = json.loads(capsys.readouterr().out)
+    loaded = FitResult.load(str(saved))
+    assert refit["params"]["Ffric"]["value"] == pytest.approx(loaded.estimate["Ffric"], rel=1e-6)
+    assert loaded.source == {"map": FOREIGN_MAP} and loaded.free == ("Ffric",)
+    sd = doc["params"]["Ffric"]["std"]
+    assert loaded.std["Ffric"] == pytest.approx(np.nan if sd is None else sd, nan_ok=True)
+    assert loaded.noise == {o: pytest.approx(v["value"]) for o, v in doc["noise"].items()}
+    tw = twin.track(str(other), commission=str(saved))
+    assert tw.stats.samples == n
+    # a --map given on the command line wins over the saved one
+    assert cli.main(["-q", "track", str(other), "--params", str(saved), "--map", "x=pos_mm", "--out",
+                     str(tmp_path / "o2")]) == 2
+    capsys.readouterr()

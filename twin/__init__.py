@@ -4,12 +4,13 @@ The public API (imported on first use, so ``import twin`` stays light)::
 
     import twin
     model = twin.get_model("msp25")                     # the rig's first-principle model
-    result = twin.fit(model, records, ["Ffric", "zeta"])  # batch grey-box fit -> FitResult
+    result = twin.fit(model, records, ["Ffric", "zeta"], params=model.params(A="2000mm^2"))  # -> FitResult
     tracker = twin.OnlineTracker(noise={"x": 2e-6})       # augmented-state UKF, block by block
     monitor = twin.DriftMonitor(...)                      # CUSUM drift alarms on its estimates
     diagnosis = twin.diagnose(records, "msp25")           # what the model gets wrong, and why
-    twin.track(source), twin.serve(config)                # a log offline, rigs online
+    twin.track(source, map={"x": "pos_mm:mm"}), twin.serve(config)  # a log offline, rigs online
     twin.TwinPublisher, twin.AlarmSubscriber              # the Zenoh side
+    twin.reports.fit_report(result, records, model, "out/") # the subpackages too, on first use
 """
 
 from __future__ import annotations
@@ -45,6 +46,9 @@ _EXPORTS = {
     "TwinError": "fpdd.errors",
 }
 
+#: subpackages and modules reached as attributes (``twin.reports.fit_report(...)``), imported on first use
+_SUBMODULES = ("commands", "estimation", "models", "online", "params", "record", "reports", "service", "units")
+
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
@@ -53,8 +57,12 @@ def __getattr__(name: str) -> Any:
         value = getattr(importlib.import_module(_EXPORTS[name]), name)
         globals()[name] = value
         return value
+    if name in _SUBMODULES:
+        module = importlib.import_module(f"twin.{name}")
+        globals()[name] = module
+        return module
     raise AttributeError(f"module 'twin' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return __all__
+    return sorted({*__all__, *_SUBMODULES})

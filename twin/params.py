@@ -193,6 +193,26 @@ class ParameterSet:
     def by_category(self, *categories: str) -> tuple[str, ...]:
         return tuple(s.name for s in self.specs if s.category in categories)
 
+    def changed(self) -> dict[str, float]:
+        """The values that differ from the model's nominal ones (same effects): what makes this set this rig."""
+        try:
+            from twin.models import get_model
+
+            nominal = get_model(self.model).params(effects=self.effects)
+        except Exception:  # a model not in the registry: every value is its own
+            return self.as_dict()
+        return {n: v for n, v in zip(self.names, self.values) if n not in nominal or nominal[n] != v}
+
+    def __repr__(self) -> str:
+        """One line: the model, its effects and the values that differ from its nominal ones, in display units
+        (``table()`` lists them all)."""
+        changed = self.changed()
+        shown = ", ".join(f"{n}={self.spec(n).show(v).replace(' ', '')}" for n, v in list(changed.items())[:8])
+        more = f", ... {len(changed) - 8} more" if len(changed) > 8 else ""
+        effects = f", effects={list(self.effects)}" if self.effects else ""
+        what = f"changed: {shown}{more}" if changed else "nominal"
+        return f"ParameterSet(model={self.model!r}{effects}, {what}; {len(self.values)} parameters)"
+
     def table(self) -> str:
         rows = [f"{'parameter':<12} {'value':>16}  {'category':<16} meaning"]
         for s, v in zip(self.specs, self.values):

@@ -148,6 +148,10 @@ def source_options(args, path: str) -> dict:
 
         raise DataError(str(exc)) from None
     items = getattr(args, "map", None)
+    if not items:  # the map a commissioning file (--params) was fitted through, with its units
+        from twin.online.commission import saved_map
+
+        items = saved_map(getattr(args, "params", None), path)
     if not items:
         return rate
     from replay import formats

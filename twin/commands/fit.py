@@ -87,7 +87,7 @@ def run(args) -> int:
 
         report = fit_report(res, records, model, args.report)
     if args.save:
-        res.save(args.save)
+        res.save(args.save, map=getattr(args, "map", None))
     from twin.reports import summary as _summary
 
     summary = _summary.summarize(res, records, drive=args.drive)

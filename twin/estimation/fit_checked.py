@@ -23,9 +23,20 @@ from twin.record import Record
 
 
 def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str], *,
-        adequacy: bool = True, **options: Any) -> FitResult:
+        adequacy: bool = True, params: Any = None, **options: Any) -> FitResult:
     """:func:`twin.estimation.fit.fit` with the same arguments (``options``), then, unless ``adequacy`` is
-    false, the adequacy test of the fitted model (a tenth of a second on a 20 s record)."""
+    false, the adequacy test of the fitted model (a tenth of a second on a 20 s record).
+
+    ``params``: the known parameter values the fit starts from and holds (the command line's ``--params`` and
+    ``--set``): a :class:`~twin.params.ParameterSet`, a mapping of values (SI floats, or text with units as
+    ``--set``: ``{"A": "2000mm^2"}``) or the path of a ``twin fit --save`` file; ``base=`` is the same keyword
+    under its older name."""
+    if params is not None:
+        if options.get("base") is not None:
+            from fpdd.errors import ParameterError
+
+            raise ParameterError("fit: give params= or its older name base=, not both")
+        options["base"] = _params_of(model, params)
     t0 = time.perf_counter()
     res = fit_alone(model, records, free, **options)
     if adequacy:
@@ -38,6 +49,31 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         if w not in res.warnings:
             res.warnings.append(w)
     return res
+
+
+def _params_of(model: Model | str, params: Any):
+    """A parameter set from what ``fit(params=...)`` takes (a set, a mapping of values, a saved fit's path)."""
+    import os
+    from collections.abc import Mapping
+
+    from twin.params import ParameterSet
+
+    if isinstance(params, ParameterSet):
+        return params
+    m = get_model(model) if isinstance(model, str) else model
+    if isinstance(params, (str, os.PathLike)):
+        saved = FitResult.load(os.fspath(params))
+        if saved.model != m.name:
+            from fpdd.errors import ConfigError
+
+            raise ConfigError(f"{os.fspath(params)}: parameters of model {saved.model!r}, expected {m.name!r}")
+        return saved.params
+    if isinstance(params, Mapping):
+        return m.params(**dict(params))
+    from fpdd.errors import ParameterError
+
+    raise ParameterError(f"fit: params= takes a ParameterSet, a mapping of values or a saved fit's path, got "
+                         f"{type(params).__name__}")
 
 
 def mimicry_warnings(model: Model, free: Sequence[str], effects: Sequence[str] = ()) -> list[str]:

@@ -53,6 +53,9 @@ class FitResult:
     #: the adequacy tests of the fitted model (:func:`twin.estimation.diagnose.check.fit_adequacy`; empty when
     #: not judged): ``adequate``, ``reasons``, ``tests``
     adequacy: dict = dataclasses.field(default_factory=dict)
+    #: how the fitted records were read (``{"map": ["x=pos_mm:mm", ...]}``: the column map with its units), saved
+    #: so that later commands read another file of the same logger alike; empty when nothing was mapped
+    source: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """Every number in SI with its unit beside it: ``{"value", "unit"}``, a sibling ``"unit"``, or a
@@ -103,19 +106,104 @@ class FitResult:
             params[s.name] = {"value": float(v), "unit": s.unit}
             if s.name in self.free:
                 params[s.name]["std"] = float(self.std[s.name])
-        out = {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
+        out: dict = {"model": self.model, "effects": list(self.params.effects), "free": list(self.free),
                "params": params, "timing": self.timing,
                "noise": {o: {"value": float(np.sqrt(self.mse[o])), "unit": SIGNAL_UNITS.get(o, "")}
                          for o in self.outputs}}
         if self.warnings:  # a commissioning read back says what the fit warned
             out["warnings"] = list(self.warnings)
+        out["fit_pct"] = {o: float(v) for o, v in self.fit_pct.items()}
+        out["corr"] = {"names": list(self.free), "matrix": np.round(np.asarray(self.corr, dtype=float), 6).tolist()}
+        out["n_obs"], out["success"], out["message"] = int(self.n_obs), bool(self.success), str(self.message)
+        if self.source:  # how the record was read: a later command reads the same kind of file alike
+            out["source"] = dict(self.source)
         return out
 
-    def save(self, path: str) -> str:
-        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path."""
+    def save(self, path: str, *, map: object = None) -> str:  # noqa: A002
+        """Write :meth:`saved` as JSON to ``path`` (as ``twin fit --save``); returns the path.
+
+        ``map``: the column map the fitted records were read with (``--map``'s items, ``["x=pos_mm:mm",
+        "t=time:ms"]``, or a mapping in the direction of ``load_records(map=...)``), kept in the file with its units
+        so that ``twin track other.csv --params FILE`` reads another file of the same logger alike."""
         from fpdd import jsonio
 
+        if map:
+            self.source = {**self.source, "map": map_items(map)}
         return jsonio.write(path, self.saved())
+
+    @classmethod
+    def load(cls, path: str) -> FitResult:
+        """The fit a ``twin fit --save`` file (:meth:`save`) holds: its model and parameter set (effects
+        included), the free parameters with their estimates and standard errors, the noise level per output,
+        the loop timing, warnings, Fit % and correlation when saved, and ``source`` (the column map).  What the
+        file does not keep (history, predictions, information criteria) is empty or NaN.  Errors name the file
+        and the field (:class:`~fpdd.errors.ConfigError`)."""
+        import json
+        import math
+
+        from fpdd.errors import ConfigError, ParameterError, TwinError
+        from twin.models import get_model
+
+        try:
+            with open(path, encoding="utf-8") as f:
+                doc = json.load(f)
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read the saved fit ({exc.strerror or exc})") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: not JSON ({exc})") from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("params"), dict):
+            raise ConfigError(f"{path}: expected the JSON object twin fit --save writes (model, params, ...)")
+        nan = math.nan
+        try:
+            model = get_model(str(doc.get("model", "msp25")))
+            ps = model.params(effects=tuple(doc.get("effects") or ()))
+            values: dict[str, float | str] = {}
+            std: dict[str, float] = {}
+            for name, v in doc["params"].items():
+                if name not in ps.names:
+                    raise ConfigError(f"{path}: params.{name}: the {model.name} model has no parameter {name!r}")
+                if isinstance(v, dict):
+                    if v.get("unit", ps.spec(name).unit) != ps.spec(name).unit:
+                        raise ConfigError(f"{path}: params.{name}.unit is {v.get('unit')!r}, expected "
+                                          f"{ps.spec(name).unit!r} (values are saved in SI)")
+                    values[name] = v["value"] if isinstance(v.get("value"), (int, float, str)) else math.nan
+                    if v.get("std") is not None:
+                        std[name] = float(v["std"])
+                else:
+                    values[name] = v
+            ps = ps.update(values)
+        except TwinError as exc:
+            if isinstance(exc, ConfigError):
+                raise
+            raise ConfigError(f"{path}: {exc}") from None
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise ConfigError(f"{path}: params: {exc}") from None
+        free = tuple(doc.get("free") or std)
+        bad = [n for n in free if n not in ps.names]
+        if bad:
+            raise ConfigError(f"{path}: free: {bad[0]!r} is no parameter of the {model.name} model")
+        noise = {o: float(v["value"] if isinstance(v, dict) else v) for o, v in (doc.get("noise") or {}).items()}
+        corr_doc = doc.get("corr") or {}
+        corr = np.full((len(free), len(free)), nan)
+        if isinstance(corr_doc, dict) and list(corr_doc.get("names") or ()) == list(free):
+            corr = np.asarray(corr_doc["matrix"], dtype=float).reshape(len(free), len(free))
+        timing: dict = doc["timing"] if isinstance(doc.get("timing"), dict) else {}
+        try:
+            from twin.models.base import Timing
+
+            if timing:
+                Timing(timing.get("controller", "digital"), timing.get("rate_hz"), timing.get("intersample"))
+        except ParameterError as exc:
+            raise ConfigError(f"{path}: timing: {exc}") from None
+        fit_pct = {o: float(v) for o, v in (doc.get("fit_pct") or {}).items()}
+        return cls(model=model.name, params=ps, free=free, estimate={n: ps[n] for n in free},
+                   std={n: std.get(n, nan) for n in free}, corr=corr, outputs=tuple(noise or fit_pct),
+                   fit_pct=fit_pct, mse={o: v * v for o, v in noise.items()}, nrmse={}, loglik=nan, aic=nan, aicc=nan,
+                   bic=nan, fpe=nan, n_obs=int(doc.get("n_obs", 0)), n_par=len(free), cost=nan,
+                   success=bool(doc.get("success", True)), status=0, message=str(doc.get("message", f"loaded from {path}")),
+                   nfev=0, history=[], starts=[], init=[], time_s=nan, timing=dict(timing),
+                   warnings=list(doc.get("warnings") or ()), noise=noise,
+                   source=dict(doc["source"]) if isinstance(doc.get("source"), dict) else {})
 
     def table(self) -> str:
         specs = {s.name: s for s in self.params.specs}
@@ -130,6 +218,18 @@ class FitResult:
                     f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
         rows.extend(f"WARNING: {w}" for w in self.warnings)
         return "\n".join(rows)
+
+
+def map_items(map: object) -> list[str]:  # noqa: A002
+    """A column map as ``--map``'s items (``["x=pos_mm:mm", "t=time:ms"]``) from those items, one such string,
+    or a mapping ``{signal: "column[:unit]"}`` (``load_records(map=...)``'s direction)."""
+    from collections.abc import Mapping
+
+    if isinstance(map, str):
+        return [map]
+    if isinstance(map, Mapping):
+        return [f"{k}={v}" if isinstance(v, str) else f"{k}={v[0]}:{v[1]}" for k, v in map.items()]
+    return [str(m) for m in map]  # type: ignore[attr-defined]
 
 
 def _squared(unit: str) -> str:

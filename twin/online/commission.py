@@ -47,6 +47,18 @@ class Commission:
     #: what the fit warned (``twin fit --save`` keeps it): a model that does not represent the rig, an output
     #: barely fitted
     warnings: tuple[str, ...] = ()
+    #: the column map (``--map``'s items, with their units) the commissioning record was read with: a later
+    #: ``twin track other.csv --params FILE`` reads another file of the same logger through it
+    map: tuple[str, ...] = ()
+
+    def __repr__(self) -> str:
+        """One line: the model, the fitted values, the noise levels, the timing, where it came from."""
+        fitted = ", ".join(f"{n}={v:.4g}" for n, (v, _) in list(self.fitted.items())[:6])
+        more = ", ..." if len(self.fitted) > 6 else ""
+        noise = ", ".join(f"{k}={v:.3g}" for k, v in self.noise.items())
+        return (f"Commission(model={self.model!r}, fitted: {fitted}{more} (SI); noise: {noise or 'none'}; "
+                f"timing={self.timing.label if self.timing is not None else None}; "
+                f"map={list(self.map)}; source={self.source!r})")
 
     def baseline(self, names: Sequence[str], rel_band: Mapping[str, float] | None = None, k_sigma: float = 3.0):
         """Healthy bands of ``names`` centred on the fitted (or known) values."""
@@ -129,7 +141,11 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     warnings = doc.get("warnings") or []
     if not (isinstance(warnings, list) and all(isinstance(w, str) for w in warnings)):
         raise ConfigError(f"{source}: warnings must be a list of strings (the fit's warnings)")
-    return Commission(params, fitted, noise, timing, effects, source, model, tuple(warnings))
+    source_doc = doc.get("source") or {}
+    items = source_doc.get("map") if isinstance(source_doc, Mapping) else None
+    if items is not None and not (isinstance(items, list) and all(isinstance(m, str) for m in items)):
+        raise ConfigError(f"{source}: source.map must be a list of --map items (\"x=pos_mm:mm\"), got {items!r}")
+    return Commission(params, fitted, noise, timing, effects, source, model, tuple(warnings), tuple(items or ()))
 
 
 def read_saved(path: str, what: str) -> Any:
@@ -147,6 +163,28 @@ def read_saved(path: str, what: str) -> Any:
 def load_fit(path: str) -> Commission:
     """Read a ``twin fit --save`` file; errors name the file and the field."""
     return from_dict(read_saved(path, "commissioning fit"), path)
+
+
+def saved_map(params_path: str | None, data_path: str) -> list[str]:
+    """The column map (``--map``'s items) a ``twin fit --save`` file keeps (``source.map``) when ``data_path`` is a
+    file a map applies to (a CSV, a text file, a CAN log); ``[]`` when there is none or it does not apply."""
+    if not params_path:
+        return []
+    from replay import formats
+
+    try:
+        if not formats.takes_map(data_path):
+            return []
+    except Exception:  # an unknown kind of file: its reader names the problem
+        return []
+    doc = read_saved(params_path, "parameter file")
+    source = doc.get("source") if isinstance(doc, Mapping) else None
+    items = source.get("map") if isinstance(source, Mapping) else None
+    if items is None:
+        return []
+    if not (isinstance(items, list) and all(isinstance(m, str) for m in items)):
+        raise ConfigError(f"{params_path}: source.map must be a list of --map items (\"x=pos_mm:mm\"), got {items!r}")
+    return list(items)
 
 
 def tracker_params(c: Commission, tracked: Sequence[str]) -> tuple[dict[str, float], dict[str, float]]:

@@ -60,7 +60,7 @@ def _from_zero(blocks):
         yield block
 
 
-def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
+def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None, mapping=None):
     """Blocks of :class:`replay.base.Samples` from a path, a Record, Samples or an iterable of them (the read
     report of a path goes to ``reports``)."""
     from replay.base import Samples
@@ -68,7 +68,12 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
     from twin.record import Record
 
     if isinstance(source, (str, os.PathLike)):
-        opts = {"dbc": dbc} if dbc else {}
+        opts: dict = {"dbc": dbc} if dbc else {}
+        if mapping:  # a log's columns under other names or units, as --map
+            from replay.csvio import parse_map
+            from twin.estimation.fit_result import map_items
+
+            opts["mapping"] = parse_map(map_items(mapping), option="map")
         with open_source(os.fspath(source), **opts) as src:
             if reports is not None:
                 reports.append(src.report)
@@ -89,7 +94,8 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None):
 def track(source, rig_name: str = "rig", params: dict | None = None, tracked=None, baseline=None,
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
           estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None,
-          forecast_horizon_s: float | None = None, maintenance=(), model: str | None = None):
+          forecast_horizon_s: float | None = None, maintenance=(), model: str | None = None,
+          map=None):  # noqa: A002
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -113,6 +119,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``tracker.counters``, ``forecasts`` (:class:`twin.online.forecast.Forecast`, one per
     parameter per second of record while it has one; ``/twin/forecast`` in the MCAP); for a log path
     ``read_report`` (:class:`replay.base.ReadReport`: what its reader lost on the way, also logged as a warning).
+    ``map``: a log's columns under other names or units, as ``--map`` (``{"x": "pos_mm:mm", "t": "time:ms"}`` or
+    ``["x=pos_mm:mm"]``); default the map the commissioning fit was read with (``twin fit --map ... --save``).
     """
     from replay.mcapio import McapSink
     from twin.online.baseline import default_baseline
@@ -152,7 +160,11 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     seq = 0
     t0_ns: int | None = None
     try:
-        for block in _from_zero(_blocks(source, chunk, dbc, reports)):
+        if map is None and isinstance(commission, Commission) and isinstance(source, (str, os.PathLike)):
+            from replay import formats
+
+            map = list(commission.map) if commission.map and formats.takes_map(os.fspath(source)) else None  # noqa: A001
+        for block in _from_zero(_blocks(source, chunk, dbc, reports, map)):
             if t0_ns is None and len(block):
                 t0_ns = int(block.t_ns[0])
             while pending and len(block) and t0_ns is not None:
