@@ -25,7 +25,7 @@ Figures per wear record (``twin.online.forecast`` through the service's
 * false ``early`` alarms per hour on the healthy records (any parameter), and
   ``early`` alarms on a parameter that does not wear in the wear records.
 
-Verification seeds are >= 1000 (``--set verify``, the README's table);
+Verification seeds are >= 1000 (``--set verify``, the table of docs/results/forecast.md);
 ``--set calib`` (seeds < 1000) is what any constant was looked at on (its last
 line: ``twin.online.forecast.DISCREPANCY`` by its rule); ``--set unlogged``:
 a warming oil whose temperature the log leaves out, which the twin cannot tell
@@ -345,7 +345,7 @@ def _level(w: dict[str, Any]) -> str:
 
 
 def table(res: dict[str, Any]) -> str:
-    """The README table (Markdown)."""
+    """The results table (Markdown, as in docs/results/forecast.md)."""
     lines = ["| record | wear | true exit | forecasts in last third | 90 % coverage | first early alarm | lead / wear "
              "| level error (60-s means: mean, RMS; log) |",
              "|---|---|---|---|---|---|---|---|"]
@@ -377,7 +377,7 @@ def table(res: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.forecast", description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", choices=sorted(WEAR), default="verify",
-                    help="verify (seeds >= 1000, the README's table), long (seeds >= 1000, 30-60 min records), "
+                    help="verify (seeds >= 1000, the table of docs/results/forecast.md), long (seeds >= 1000, 30-60 min records), "
                     "calib (seeds < 1000), late (seeds >= 1000, 10 min healthy before the wear starts) or "
                     "unlogged (a warming oil whose temperature is not logged: not healthy to the twin, shown apart)")
     ap.add_argument("--build", action="store_true", help="only fill the reference cache with the set's records")

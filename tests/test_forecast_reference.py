@@ -2,7 +2,7 @@
 
 Each record is simulated by the independent reference simulator (``tests/reference``, cached) and goes through
 ``twin track``'s library exactly as ``python -m benchmarks.forecast --set verify --seed N`` runs it; the figures
-asserted are the README's early-warning table's. A 10-min wear record and a 20-min healthy one cost minutes
+asserted are the early-warning table's of docs/results/forecast.md. A 10-min wear record and a 20-min healthy one cost minutes
 (simulation and tracker; minutes more on a loaded machine): marked slow with a timeout of their own, CI runs them
 (``pytest -m slow``).
 """

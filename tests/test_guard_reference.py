@@ -5,7 +5,7 @@ noise through the loop, bands centred on the truth as a commissioning fit gives 
 
 The filter keeps its commissioned sensor noise here (``adapt``: 0): learning the noise online absorbs a late
 position sensor into a coloured, louder noise (2.2 x, AR(1) 0.72 on this record) and the filter then reads the
-rest of the mismatch as parameter changes, consistently (zeta x1.6, wn x0.78: alarms; README, "The strong-chirp
+rest of the mismatch as parameter changes, consistently (zeta x1.6, wn x0.78: alarms; docs/explanation/tracking-and-alarms.md, "The strong-chirp
 divergence").  What the guard can see, it holds."""
 
 from __future__ import annotations

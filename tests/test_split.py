@@ -26,7 +26,7 @@ from twin.online.tracker import OnlineTracker
 RIG = {"wn": 250.0, "zeta": 0.4, "Ffric": 55.0, "CdAleak": 4e-6, "Cd": 0.2}
 
 
-#: the filter the hold was found with (README, "The strong-chirp divergence"): the sigma points' weighted mean,
+#: the filter the hold was found with (docs/explanation/tracking-and-alarms.md, "The strong-chirp divergence"): the sigma points' weighted mean,
 #: the plain noise learning and the pressure states' process noise at 1e-6 MPa^2 per sample; on this record its
 #: zeta / wn wander is a zeta warning at 22 s without the hold (the present default wanders less: x1.3 at 24 s)
 WANDERING = {"guard": {"central_mean": 0.0, "noise_share": 0.0},

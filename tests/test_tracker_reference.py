@@ -184,7 +184,7 @@ def test_drift_test_on_the_filters_real_output_with_the_truth_at_the_bands_edge(
     lie outside once the filter has converged (the test starts after 10 s). The allowance and the
     effective-sample weight keep the test quiet (on this record and on 24 other calibration records, seeds
     100-123, since the pressure states' process noise was lowered; before, the leakage's noise-driven upward
-    bias warned on 3 of them: README, "The strong-chirp divergence")."""
+    bias warned on 3 of them: docs/explanation/tracking-and-alarms.md)."""
     rec, controller = record("healthy", 1, 30.0)
     s = to_samples(rec)
     tr = OnlineTracker()

@@ -1,5 +1,5 @@
 """The filter's two settings against the strong-chirp divergence (``guard={"central_mean": 1, "noise_share": 1}``,
-the default; README, "The strong-chirp divergence"): what each fixes on the product's own simulator, where the
+the default; docs/explanation/tracking-and-alarms.md, "The central mean"): what each fixes on the product's own simulator, where the
 tracker's model is the simulator's, against the weighted mean and the plain noise learning (both ``0``), and
 filterpy's algebra for the central mean."""
 

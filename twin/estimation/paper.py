@@ -1,6 +1,6 @@
 """The paper's numerical cases, regenerated: our estimate and error beside the paper's.
 
-What the paper leaves ambiguous and what we chose (also in the README):
+What the paper leaves ambiguous and what we chose (also in docs/results/fit.md):
 
 * Oscillator excitation and record length are not given: a 10 s, 1 kHz
   Schroeder multisine force of 100 N peak on 1-30 Hz (the resonance is 10 Hz).

@@ -6,7 +6,7 @@ bound by memory, not arithmetic, so a second BLAS thread gains little even on an
 cores are shared (a service's workers, a test run beside others) OpenBLAS's threads wait for each other at every
 call: the Silverbox's whole estimation part (65 062 samples) took 56.6 s of processor time and 172 s on the clock
 with two threads under a load average of 9.6-13.3, and 17.1 s and 53 s with one, verdict and estimates unchanged
-(``python -m benchmarks.silverbox --samples 0``, README "Speed").  The model kernels' own parallel loop over
+(``python -m benchmarks.silverbox --samples 0``, docs/results/speed.md).  The model kernels' own parallel loop over
 parameter sets (numba) is untouched: its work per thread is a whole simulation.
 """
 

@@ -127,7 +127,7 @@ _QUANTILES = (0.05, 0.5, 0.95)
 #: integrated autocorrelation time (the part the regression already counts); ``excess / sigma`` per record, by
 #: ``python -m benchmarks.forecast --set calib --json`` (each record's ``level_error``, the summary's
 #: ``discrepancy_rule``): Ffric seed 14 (0.164), CdAleak seeds 11 and 13 (0.252, 0), wn seed 12 (0.105), Cd
-#: (0.136, 0, 0.181, 0.272, 0.072, 0.182), zeta (0.129, 0, 0, 0, 0.069, 0). README, tuned constants.
+#: (0.136, 0, 0.181, 0.272, 0.072, 0.182), zeta (0.129, 0, 0, 0, 0.069, 0). docs/explanation/constants.md.
 DISCREPANCY = {"Ffric": 0.164, "CdAleak": 0.178, "Cd": 0.165, "zeta": 0.060, "wn": 0.105}
 #: a parameter of another model (no calibration records): the largest of the table
 DISCREPANCY_OTHER = max(DISCREPANCY.values())
@@ -137,7 +137,7 @@ DISCREPANCY_OTHER = max(DISCREPANCY.values())
 #: ``min_span_s`` to this fraction of the data's span, this many points (neighbours 6 % apart over 60-1000 s).
 #: Chosen on a synthetic late-onset wear (``tests/test_forecast.py``, 10 healthy minutes, then a linear wear): the
 #: last third's coverage 64 % with 12 points, 66 % with 24, 91 % with 48 (a coarse grid puts the onset off and
-#: biases the slope). README, tuned constants.
+#: biases the slope). docs/explanation/constants.md.
 HINGE_REACH = 0.9
 HINGE_POINTS = 48
 #: How far ahead ``p_within_horizon`` counts an exit, in spans of the data the trend was fitted on [1]. Tuned on the
@@ -145,7 +145,7 @@ HINGE_POINTS = 48
 #: early alarm comes a quarter of its wear ahead from 1.1 on (the exponential leakage wear at doubled noise, seed 13:
 #: 0.23 at 1, 0.25 at 1.1, 0.26 at 1.2, 0.50 at 2), and the healthy warming record (seed 21, the leakage rising 30 %
 #: and levelling off) stays far from an early alarm up to 3 (its largest probability 0.01 at 2, 0.14 at 3, 0.31 at 4,
-#: 0.75 at 6, an early alarm at 8): 2 leaves a factor of about two on either side. README, tuned constants.
+#: 0.75 at 6, an early alarm at 8): 2 leaves a factor of about two on either side. docs/explanation/constants.md.
 REACH = 2.0
 
 

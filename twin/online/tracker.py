@@ -74,7 +74,7 @@ DEFAULT_GUARD = {
     "warm_s": 1.0,          # s at the start during which the guard's averages fill
     # the predicted mean: the central sigma point's prediction (1; filterpy's x_mean_fn returning sigmas[0]) or
     # the points' weighted mean (0), and each innovation's weight in the noise learning by the sensor noise's
-    # share of its variance (1) or in full (0); README, "The strong-chirp divergence": with a parameter not yet
+    # share of its variance (1) or in full (0); docs/explanation/tracking-and-alarms.md, "The central mean": with a parameter not yet
     # pinned by the data the weighted mean (centre weight -10.1) biases the stiff pressures by tens of kPa, and a
     # wide prior makes the plain learning halve the sensors' noise at a start
     "central_mean": 1.0,

@@ -1,8 +1,8 @@
 """The diagnosis's constants: significance levels, rules and the tuned numbers, each with its derivation.
 
 Numbers chosen by looking at data were set on the reference simulator's calibration seeds (0-999); the tests
-and the README's figures use its verification seeds (1000 and above).  Rules from first principles (a
-significance level, a majority, a physical bound) are preferred; the README's "Tuned constants" table lists
+and the documented figures (docs/results/diagnosis.md) use its verification seeds (1000 and above).  Rules from first principles (a
+significance level, a majority, a physical bound) are preferred; the table of docs/explanation/constants.md lists
 every number with the data it was set on.
 """
 
