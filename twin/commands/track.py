@@ -82,8 +82,10 @@ def _read(path: str, opts: dict, reports: list, model: str):
         opts = {**opts, "quality": QualityOptions(specs=signal_specs(model))}
     with open_source(path, **opts) as src:
         check_signals(path, src.signals, model, suggest=True)
-        reports.append(src.report)
-        yield from src.chunks(10000)
+        try:
+            yield from src.chunks(10000)
+        finally:  # the report of the reading itself (a CAN log's reader starts a fresh one for each reading)
+            reports.append(src.report)
 
 
 def run(args) -> int:

@@ -128,11 +128,16 @@ def regime_signals(model_name: str, record, predicted: Mapping[str, np.ndarray])
             out["spool_opening"] = np.asarray(u)
         if "x_ref" in record:
             out["demand"] = record["x_ref"]
-    else:
-        y = np.asarray(predicted["y"])
+    else:  # a mechanical model: its first measured output is a position, its drive a force (or its command)
+        from twin.models import get_model
+
+        m = get_model(model_name)
+        y = np.asarray(predicted[next(o for o in m.OUTPUTS if o in predicted)])
         out["position"] = y
         out["velocity"] = np.gradient(y, dt)
-        out["force"] = record["u"]
+        drive = predicted.get(m.drive_name, record.signals.get(m.drive_name))
+        if drive is not None:
+            out["force"] = np.asarray(drive)
     return out
 
 

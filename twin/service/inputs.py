@@ -21,8 +21,12 @@ def open_rig_source(rig: RigConfig, session=None, timeout_s: float | None = None
         opts["session"] = session
     if is_live(rig.source) and timeout_s is not None:
         opts["timeout_s"] = timeout_s
-    if rig.source.startswith("zenoh://"):  # the runner orders blocks itself and judges a block from the future
-        from replay.quality import QualityOptions
+    from replay.quality import QualityOptions
+    from twin.models.records import signal_specs
 
-        opts["quality"] = QualityOptions(order_across_blocks=False)
+    specs = signal_specs(rig.model)  # the rig model's signals: their units and physical ranges
+    if rig.source.startswith("zenoh://"):  # the runner orders blocks itself and judges a block from the future
+        opts["quality"] = QualityOptions(order_across_blocks=False, specs=specs)
+    elif rig.source.lower().endswith((".csv", ".csv.gz", ".mcap")):
+        opts["quality"] = QualityOptions(specs=specs)
     return open_source(rig.source, **opts)

@@ -75,9 +75,11 @@ def _blocks(source, chunk: int, dbc: str | None, reports: list | None = None, ma
 
             opts["mapping"] = parse_map(map_items(mapping), option="map")
         with open_source(os.fspath(source), **opts) as src:
-            if reports is not None:
-                reports.append(src.report)
-            yield from src.chunks(chunk)
+            try:
+                yield from src.chunks(chunk)
+            finally:  # the report of the reading itself (a CAN log's reader starts a fresh one for each reading)
+                if reports is not None:
+                    reports.append(src.report)
         return
     items = [source] if isinstance(source, (Record, Samples)) else source
     if not isinstance(items, Iterable):
