@@ -687,8 +687,8 @@ def test_text_files_tab_header_blank_separated_and_numbered_columns(tmp_path):
     np.testing.assert_allclose(got["x"], [1.5e-3, 2.5e-3, 3.5e-3, 4.5e-3])
     blank = tmp_path / "run.txt"
     blank.write_text("% a comment\nt   u    y\n0.000  1  2\n0.001  2  4\n0.002  3 x\n0.003  4  8\n0.004  5  10\n")
-    src = open_source(blank, mapping={"u": ("F", "", "2", "+1")})
-    got = src.read_all()
+    with open_source(blank, mapping={"u": ("F", "", "2", "+1")}) as src:
+        got = src.read_all()
     np.testing.assert_allclose(got["F"], [3.0, 5.0, 9.0, 11.0])  # the row with 'x' skipped and counted
     assert src.report.skipped["bad_row"] == 1
     numbered = tmp_path / "bare.txt"
@@ -719,3 +719,15 @@ def test_map_grammar_gain_offset_and_its_errors():
         parse_mapping("f", parse_map(["u=vir*35.15N/V"]))  # the rig's u is a valve voltage
     with pytest.raises(DataError, match=r"the offset \+2bar is not in a unit of m"):
         parse_mapping("f", parse_map(["x=pos:mm+2bar"]))
+
+
+def test_tab_text_whose_last_column_is_empty_on_some_rows(tmp_path):
+    """A tab-separated export (as the hydraulic actuator data set's) whose last column is filled only on its first
+    rows: a row ending in a tab has an empty last field, not one field fewer."""
+    path = tmp_path / "export.txt"
+    rows = [f"{i}\t{0.1 * i:.1f}\t" + ("Var_A\t1.5" if i < 2 else "\t") for i in range(6)]
+    path.write_text("Time\tPG_1\tF_Names\tF_Values\n" + "\n".join(rows) + "\n")
+    with open_source(path, mapping={"Time": ("t", "ms"), "PG_1": ("pA", "bar")}) as src:
+        got = src.read_all()
+    assert len(got) == 6 and not src.report.skipped
+    np.testing.assert_allclose(got["pA"], 1e4 * np.arange(6))

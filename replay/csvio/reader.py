@@ -425,7 +425,7 @@ class CsvSource(Source):
                 # usecols alone would take a row of any field count: every row has the header's (the unnamed
                 # trailing columns empty); a row this quick test doubts is parsed line by line
                 d = self._delimiter
-                if any(ln.rstrip().rstrip(d).count(d) != ncol - 1 for ln in lines
+                if any(self._strip(ln, right=True).rstrip(d).count(d) != ncol - 1 for ln in lines
                        if ln.strip() and not ln.lstrip().startswith("#")):
                     raise ValueError("a value in an unnamed column")
             with warnings.catch_warnings():
@@ -498,6 +498,13 @@ class CsvSource(Source):
 
     _rate_checked = False
 
+    def _strip(self, line: str, right: bool = False) -> str:
+        """``line`` without its surrounding blanks; with a tab delimiter only spaces and line ends go (a trailing
+        tab is an empty last field, as in a tab-separated export whose last column is empty on some rows)."""
+        if self._delimiter == "\t":
+            return line.rstrip(" \r\n") if right else line.strip(" \r\n")
+        return line.rstrip() if right else line.strip()
+
     def _parse_slowly(self, lines: list[str], first: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Line by line, to find and count the rows np.loadtxt refused."""
         ncol = len(self._columns)
@@ -506,7 +513,7 @@ class CsvSource(Source):
         index: list[int] = []
         for i, line in enumerate(lines):
             cut = line.startswith(_CUT)
-            text = line.removeprefix(_CUT).strip()
+            text = self._strip(line.removeprefix(_CUT))
             if not text or text.startswith("#"):
                 continue
             self.report.records_read += 1
