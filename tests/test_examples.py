@@ -1,7 +1,8 @@
 """The scripts of ``examples/`` run as a user runs them (a subprocess each, seeded) and print what they say.
 
 Each takes a few seconds to tens of seconds (a fit, a track, a diagnosis, a service on loopback Zenoh), so they
-are marked slow: CI runs them with ``-m slow``; ``pytest -m "" tests/test_examples.py`` runs them here.
+are marked slow: CI runs them with ``-m slow``; ``pytest -m "" tests/test_examples.py`` runs them here. That
+every script has its test is checked in the default run.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 
-pytestmark = pytest.mark.slow
 
 
 def run(script: str, *args: str, timeout: float = 280.0) -> str:
@@ -34,6 +34,7 @@ def test_every_example_is_tested() -> None:
     assert [s for s in scripts if f'"{s}"' not in here] == []
 
 
+@pytest.mark.slow
 def test_fit_a_record_finds_the_simulated_values() -> None:
     out = run("fit_a_record.py", "--seed", "1")
     assert re.search(r"^FitResult\(model='msp25', Ffric=.*converged", out, re.M), out
@@ -43,6 +44,7 @@ def test_fit_a_record_finds_the_simulated_values() -> None:
         assert float(m.group(1)) < 4.0, out  # started 40 % and 30 % off
 
 
+@pytest.mark.slow
 def test_track_and_alarms_alarms_the_leakage_alone() -> None:
     out = run("track_and_alarms.py", "--seed", "2")
     assert "alarmed parameters: CdAleak\n" in out, out
@@ -53,6 +55,7 @@ def test_track_and_alarms_alarms_the_leakage_alone() -> None:
     assert abs(value - 3e-8) < 4 * std, out  # the simulated leakage, tracked from the nominal (a tenth of it)
 
 
+@pytest.mark.slow
 def test_diagnose_a_record_names_the_viscous_friction() -> None:
     out = run("diagnose_a_record.py", "--seed", "3")
     assert "verdict: explained\n" in out and "named: viscous_friction\n" in out, out
@@ -61,6 +64,7 @@ def test_diagnose_a_record_names_the_viscous_friction() -> None:
     assert abs(float(m.group(1)) - 2000.0) < 4 * float(m.group(2)), out
 
 
+@pytest.mark.slow
 def test_commission_your_csv_fits_and_tracks_quietly(tmp_path: Path) -> None:
     out = run("commission_your_csv.py", "--seed", "4", "--dir", str(tmp_path))
     offs = re.findall(r"^(\w+): ([0-9.]+) std from the rig's value$", out, re.M)
@@ -72,6 +76,7 @@ def test_commission_your_csv_fits_and_tracks_quietly(tmp_path: Path) -> None:
     assert "alarms on the second run: 0\n" in out, out
 
 
+@pytest.mark.slow
 def test_subscribe_to_alarms_receives_them_numbered() -> None:
     out = run("subscribe_to_alarms.py", "--seed", "2", "--wait", "120")
     m = re.search(r"^received (\d+) alarm\(s\), numbered \[([0-9, ]+)\], on \['CdAleak'\]$", out, re.M)
