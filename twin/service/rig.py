@@ -30,7 +30,7 @@ import hashlib
 import logging
 import time
 from typing import Any
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -175,7 +175,7 @@ class RigTwin(Sink):
 
     def __init__(self, rig: RigConfig, publisher: Publisher | None = None, recorder=None, estimate_every: int = 50,
                  on_alarm: Callable[[AlarmEvent], None] | None = None, dt: float | None = None,
-                 history: int | None = None):
+                 history: int | None = None, confirm: Mapping[str, Any] | bool | None = None):
         from twin.online.commission import tracker_for
         from twin.online.drift import DriftMonitor
 
@@ -186,6 +186,10 @@ class RigTwin(Sink):
         self.on_alarm = on_alarm
         self.tracker = tracker_for(rig, dt=dt)
         self.drift = DriftMonitor(rig.name, rig.baseline, model=rig.model)
+        self._confirm_options = ({} if confirm is True else dict(confirm)) if confirm else None
+        self.confirm = self._confirmed_drift()
+        """Alarms confirmed by window re-fits (:mod:`twin.online.confirm`; ``None``: the filter's drift test
+        raises them itself)."""
         self.forecast = _forecast_monitor(rig)
         self.forecasts: collections.deque = collections.deque(maxlen=history and FORECASTS_KEPT)
         self._forecast_shown = False
@@ -206,6 +210,13 @@ class RigTwin(Sink):
         """Set while the rig commissions (``commission_s``): samples are gathered, not tracked."""
         self.read_report: ReadReport | None = None
         """What the reader of its log lost on the way (set by :func:`twin.service.track.track` for a log path)."""
+
+    def _confirmed_drift(self):
+        if self._confirm_options is None:
+            return None
+        from twin.online.confirm import ConfirmedDrift
+
+        return ConfirmedDrift(self.rig.name, self.rig.baseline, self.rig.model, **self._confirm_options)
 
     # -- checkpoints ------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -276,6 +287,7 @@ class RigTwin(Sink):
             self.rig = apply_commission(self.rig, com)
             self.tracker = tracker_for(self.rig)
             self.drift = DriftMonitor(self.rig.name, self.rig.baseline, model=self.rig.model)
+            self.confirm = self._confirmed_drift()
             for ev in self.forecast.reset(why="re-commissioned"):
                 self._alarm(ev)
             self.forecast = _forecast_monitor(self.rig)
@@ -311,8 +323,10 @@ class RigTwin(Sink):
             self._last_row = (out.estimates[-1], out.interval_stds[-1])
         self.last_t_ns = int(samples.t_ns[-1])
         t_s = (out.t_ns - self._t0_ns) * 1e-9
-        for ev in self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
-                                          out.frozen, out.hold, out.guard):
+        raised = (self.confirm.update(samples, out, t_s, self.tracker) if self.confirm is not None else
+                  self.drift.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
+                                          out.frozen, out.hold, out.guard))
+        for ev in raised:
             self._alarm(ev)
         early, fcs = self.forecast.update_block(self.tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
                                                 out.frozen, out.hold, out.held_log_std)
@@ -459,7 +473,8 @@ class RigTwin(Sink):
         consistency changed, else at most once a second (``STATUS_S``; a change of the message alone, such as
         the lag, waits for it); ``force``: now."""
         now = time.monotonic()
-        per_param = self.drift.statuses()
+        drift = self.confirm if self.confirm is not None else self.drift
+        per_param = drift.statuses()
         state = state or self.health.state
         com = self.commissioning
         if com is not None:
@@ -467,7 +482,9 @@ class RigTwin(Sink):
                 state = "commissioning"
             per_param = {n: "commissioning" for n in per_param}
         sensors = self.tracker.sensor_status()
-        guard = str(self.drift.guard or "consistent")
+        if self.confirm is not None:  # the filter's model-based sensor verdicts as the window re-fits decide them
+            sensors = self.confirm.sensor_status(sensors)
+        guard = str(drift.guard or "consistent")
         key = (state, tuple(per_param.items()), tuple(sensors.items()), guard, com is not None and com.fitting)
         if not force and key == self._last_status and now - self._last_status_wall < STATUS_S:
             return
@@ -475,7 +492,7 @@ class RigTwin(Sink):
         self._last_status_wall = now
         from twin.online.tracker import consistency_note
 
-        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, self.drift)) if m)
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, drift)) if m)
         if com is not None and state not in ("failed", "stopped", "finished"):
             message = "; ".join(m for m in (com.note(), message) if m)
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
@@ -488,7 +505,9 @@ class RigTwin(Sink):
         if self.publisher is not None:  # the publisher's own counters (alarm_seq), so the event is built and checked once
             counters.update(self.publisher.status_counters())
         ev = StatusEvent(rig=self.rig.name, t_ns=max(0, t_ns), state=state, parameters=per_param,
-                         counters=counters, message=message, sensors=sensors, consistency=guard)
+                         counters=counters, message=message, sensors=sensors, consistency=guard,
+                         tested={n: t for n, t in (self.confirm.tested if self.confirm is not None else {}).items()
+                                 if t is not None and t >= 0})
         if self.publisher is not None:
             ev = self.publisher.publish_status(ev) or ev
         if self.recorder is not None:

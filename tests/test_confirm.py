@@ -1,0 +1,133 @@
+"""Alarms confirmed by window re-fits (twin.online.confirm): the decision rule, the window, the status field."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from replay.base import Samples
+from twin.online.baseline import Baseline
+from twin.online.confirm import (ALPHA, OFFSET_TOLERANCE_PA, RESOLVE, ConfirmedDrift, Window, critical_z, decide,
+                                 decide_offset)
+from twin.online.events import StatusEvent
+
+BAND = Baseline(100.0, 100.0 / 1.5, 150.0)  # log half-width log(2.25)/2 = 0.405
+
+
+def test_critical_z_is_the_two_sided_normal_quantile():
+    from scipy.stats import norm
+
+    assert critical_z(1e-3) == pytest.approx(norm.isf(5e-4), rel=1e-9)
+    assert critical_z(ALPHA) > 3.0
+
+
+def test_outside_the_band_and_significant_is_confirmed_on_its_side():
+    hi = decide("p", 200.0, 0.05, BAND, True)
+    lo = decide("p", 50.0, 0.05, BAND, True)
+    assert (hi.state, lo.state) == ("high", "low")
+    assert hi.z == pytest.approx(math.log(2.0) / 0.05)
+    assert lo.z == pytest.approx(math.log(0.5) / 0.05)
+
+
+def test_outside_the_band_but_not_away_from_the_baseline_is_not_confirmed():
+    # 160 is outside [66.7, 150] but log(1.6) / 0.19 = 2.5 < 3.29: the two-sample test does not reject the baseline
+    v = decide("p", 160.0, 0.19, BAND, True)
+    assert v.state == "inside" and 2.0 < v.z < critical_z(ALPHA)
+    # the commissioning's own uncertainty counts as the second sample
+    assert decide("p", 200.0, 0.1, BAND, True).state == "high"
+    assert decide("p", 200.0, 0.1, BAND, True, base_rel_std=0.2).state == "inside"
+
+
+def test_a_window_that_does_not_inform_the_parameter_is_not_testable():
+    half = 0.5 * math.log(BAND.hi / BAND.lo)
+    wide = decide("p", 400.0, 1.01 * RESOLVE * half, BAND, True)
+    assert wide.state == "not_testable" and "informs it" in wide.why
+    assert decide("p", 400.0, 0.99 * RESOLVE * half, BAND, True).state == "high"
+    assert decide("p", 400.0, math.nan, BAND, True).state == "not_testable"
+    assert decide("p", 0.0, 0.01, BAND, True).state == "not_testable"
+
+
+def test_an_inadequate_window_tests_nothing():
+    v = decide("p", 400.0, 0.01, BAND, False)
+    assert v.state == "not_testable" and v.why == "the model does not represent the rig now"
+    assert decide_offset("pA_off", 1e6, 1e3, False).state == "not_testable"
+
+
+def test_an_offset_counts_beyond_the_tolerance_and_when_significant():
+    assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e3, True).state == "high"
+    assert decide_offset("pA_off", -2 * OFFSET_TOLERANCE_PA, 1e3, True).state == "low"
+    assert decide_offset("pA_off", 0.5 * OFFSET_TOLERANCE_PA, 1e3, True).state == "inside"  # within calibration
+    assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e5, True).state == "inside"  # z = 2.5: not shown
+    assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, math.nan, True).state == "not_testable"
+
+
+def _block(t0: float, n: int, dt: float = 1e-3) -> Samples:
+    t = t0 + dt * np.arange(n)
+    return Samples(np.round(t * 1e9).astype(np.int64), {"x": np.sin(t)})
+
+
+def test_the_window_keeps_the_last_seconds_whatever_the_blocks():
+    w = Window(2.0)
+    for k in range(10):
+        w.add(_block(0.7 * k, 700))
+    s = w.samples()
+    assert s.t_ns[-1] == pytest.approx(6.999e9, abs=1)
+    assert (int(s.t_ns[-1]) - int(s.t_ns[0])) * 1e-9 == pytest.approx(2.0, abs=1.5e-3)
+    assert w.span_s() >= 2.0
+
+
+def test_statuses_before_any_window_say_untested_and_the_status_event_carries_test_times():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    assert cd.statuses() == {"p": "untested"} and cd.tested == {"p": None}
+    ev = StatusEvent(rig="r", t_ns=1, state="running", parameters={"p": "not_testable"}, tested={"p": 12.5})
+    back = StatusEvent.from_dict(ev.to_dict())
+    assert back.tested == {"p": 12.5} and back.parameters == {"p": "not_testable"}
+    assert "tested" not in StatusEvent(rig="r", t_ns=1, state="running").to_dict()  # as before without them
+    from fpdd.errors import DataError
+
+    with pytest.raises(DataError, match=r"StatusEvent\.tested\.p: -1\.0 must be >= 0"):
+        StatusEvent.from_dict({**ev.to_dict(), "tested": {"p": -1.0}})
+
+
+def test_sensor_verdicts_of_the_filter_follow_the_windows():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    filt = {"x": "noisy", "pA": "offset", "pB": "stuck"}
+    assert cd.sensor_status(filt) == filt  # no window yet: the filter's word stands
+    cd.adequate = False  # the model does not represent the rig: its model-based verdicts are not the sensors'
+    assert cd.sensor_status(filt) == {"x": "ok", "pA": "ok", "pB": "stuck"}
+    cd.adequate = True
+    cd.sensor_level["pB"] = "warning"
+    assert cd.sensor_status({"x": "ok", "pA": "ok", "pB": "ok"})["pB"] == "offset"
+
+
+def test_two_confirmations_warn_three_alarm_not_testable_keeps_count_inside_returns():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    high = decide("p", 200.0, 0.05, BAND, True)
+    idle = decide("p", 200.0, 0.05, BAND, False)
+    inside = decide("p", 110.0, 0.05, BAND, True)
+    low = decide("p", 50.0, 0.05, BAND, True)
+
+    def apply(v, t):
+        return [(e.level, e.kind) for e in cd._apply("p", v, int(t * 1e9), t, "scheduled")]
+
+    assert apply(high, 4.0) == []  # one window: not yet
+    assert cd.statuses() == {"p": "ok"} and cd.tested["p"] == 4.0
+    assert apply(idle, 8.0) == [] and cd.statuses() == {"p": "not_testable"} and cd.tested["p"] == 4.0
+    assert apply(high, 12.0) == [("warning", "raised")]  # the untestable window between did not reset the count
+    assert apply(low, 16.0) == []  # the other side starts again
+    assert apply(low, 20.0) == [] and cd.level["p"] == "warning"
+    assert apply(low, 24.0) == [("alarm", "escalated")]
+    assert apply(inside, 28.0) == [("ok", "returned")] and cd.count["p"] == 0
+    assert apply(high, 32.0) == [] and apply(inside, 36.0) == [] and apply(high, 40.0) == []  # inside resets
+
+
+def test_a_systematic_error_of_one_window_is_not_an_event():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    high = decide("p", 200.0, 0.05, BAND, True)
+    idle = decide("p", 200.0, 0.05, BAND, False)
+    events = cd._apply("p", high, 1, 5.0, "scheduled")
+    for k in range(6):
+        events += cd._apply("p", idle, 1, 9.0 + 4 * k, "scheduled")
+    assert events == [] and cd.count["p"] == 1 and cd.statuses() == {"p": "not_testable"}

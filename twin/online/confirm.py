@@ -1,0 +1,438 @@
+"""Alarms confirmed by the data: a batch re-fit of the recent window decides every warning and alarm.
+
+The tracker's filter is the fast, continuous estimate; its drift test (:class:`twin.online.drift.DriftMonitor`,
+a CUSUM on the filter's estimates) is only the *trigger*.  A warning or an alarm on a parameter is raised when
+the product's own output-error fit (:func:`twin.estimation.fit.fit`, the fit of ``twin fit``, with its
+heteroskedasticity- and autocorrelation-consistent standard errors and the adequacy test of the fitted model,
+:func:`twin.estimation.diagnose.check.judge`) of the last :data:`WINDOW_S` seconds of samples says so:
+
+* the window's fit must be adequate (the adequacy test of ``twin fit`` at its level): a window the model does
+  not represent (an un-modelled load, a chirp beyond what the model reaches) tests nothing: every parameter is
+  ``not_testable`` and the status says "the model does not represent the rig now";
+* the parameter's window standard error (relative) must be at most :data:`RESOLVE` times the half-width of its
+  healthy band in log units (the drift test's own ``resolve``): a window that does not inform a parameter gives
+  ``not_testable``, never an alarm;
+* the fitted value must lie outside the healthy band **and** differ from the commissioning baseline by the
+  two-sample test ``z = log(theta_w / theta_0) / sqrt(s_w^2 + s_0^2)`` at the two-sided level :data:`ALPHA`
+  (``s_w``: the window's relative standard error, ``s_0``: the commissioning fit's, 0 for a configured value).
+
+Two confirmations on one side, on disjoint windows with none between them finding the parameter inside its band
+(:data:`WARN_CONFIRMATIONS`), raise a **warning**; three (:data:`ALARM_CONFIRMATIONS`, or two while the filter's
+drift test is at alarm) the **alarm**; a window that finds the parameter inside its band returns it.  A window
+that cannot test it changes nothing: the parameter is ``not_testable`` now, its level and count stay.
+
+The window is fitted twice, from the filter's current estimate and from the baseline (a wear in progress moves
+the filter ahead of the baseline; a diverged filter is far from both), and the lower cost is kept.  The fit
+frees the catalogue's pressure-transducer offsets too (``pA_off``, ``pB_off``): an offset drifting on a
+transducer is fitted as what it is, and a significant one beyond :data:`OFFSET_TOLERANCE_PA` becomes a
+*sensor* event on the offset (``pA_off``), never a parameter's alarm.
+
+When the fits run: a **triggered** fit when the filter's drift test leaves ``ok`` on a parameter (and again
+every window while it stays there unconfirmed), and a **scheduled** fit every :data:`PERIOD_S` seconds whatever
+the filter says: a drift the filter froze or followed slowly is found at most one period plus one window after
+it left its band, and no parameter goes untested for longer (:attr:`ConfirmedDrift.tested`: the record time of
+each parameter's last test).  The fits run in the caller's thread once per block at most, amortised over the
+samples between them (``python -m benchmarks.tracker`` measures the cost per sample).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from statistics import NormalDist
+
+import numpy as np
+
+from twin.online.baseline import Baseline
+from twin.online.drift import DriftMonitor
+from twin.online.events import ALARM_LEVELS, AlarmEvent
+
+#: seconds of samples each re-fit reads: short against a wear (a wn decay of 30 % over 20 s moves 6 % in it),
+#: long against the slowest loop dynamics (a 0.2 Hz multisine line has most of a period in it)
+WINDOW_S = 4.0
+#: seconds between scheduled re-fits
+PERIOD_S = 20.0
+#: two-sided level of each parameter's two-sample test (z = 3.29)
+ALPHA = 1e-3
+#: a window standard error (relative) above this share of the band's log half-width: ``not_testable``
+RESOLVE = 0.5
+#: the pressure transducers' offsets the window fit frees beside the rig's parameters (the catalogue's effect)
+SENSOR_EFFECT = "pressure_sensor_offset"
+SENSOR_PARAMS = {"pA_off": "pA", "pB_off": "pB"}
+#: an offset smaller than this is within a transducer's calibration (0.5 % of a 25 MPa span, a common
+#: tolerance class of industrial pressure transducers): no sensor event below it
+OFFSET_TOLERANCE_PA = 0.125e6
+#: windows confirming a parameter on one side, with no window between them finding it inside, that raise a
+#: warning and an alarm (each confirmation at the level ALPHA; a systematic error of one window, a fit that
+#: landed on the wrong side of a ridge on a chirp, is not repeated by the next)
+WARN_CONFIRMATIONS = 2
+ALARM_CONFIRMATIONS = 3
+#: the fit's budget per start (function evaluations of the trust-region refinement)
+MAX_NFEV = 25
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """What one window says of one parameter: ``state`` ``inside``, ``high``, ``low`` or ``not_testable``."""
+
+    name: str
+    state: str
+    value: float = math.nan
+    rel_std: float = math.nan
+    z: float = math.nan
+    why: str = ""
+
+
+def critical_z(alpha: float = ALPHA) -> float:
+    """The two-sided standard normal quantile of ``alpha``."""
+    return NormalDist().inv_cdf(1.0 - 0.5 * alpha)
+
+
+def decide(name: str, value: float, rel_std: float, base: Baseline, adequate: bool, base_rel_std: float = 0.0,
+           alpha: float = ALPHA, resolve: float = RESOLVE) -> Verdict:
+    """The window's verdict on one parameter (module docstring): ``not_testable`` when the window's fit is not
+    adequate or its standard error is too wide for the band; ``high``/``low`` when the value lies outside the band
+    and the two-sample test rejects the baseline at ``alpha``; else ``inside``."""
+    if not adequate:
+        return Verdict(name, "not_testable", value, rel_std, why="the model does not represent the rig now")
+    half = 0.5 * math.log(base.hi / base.lo)
+    if not (value > 0 and math.isfinite(value) and math.isfinite(rel_std) and rel_std >= 0):
+        return Verdict(name, "not_testable", value, rel_std, why="the window's fit gives it no standard error")
+    if rel_std > resolve * half:
+        return Verdict(name, "not_testable", value, rel_std,
+                       why=f"the window informs it to +-{100 * rel_std:.0f} % only (at most "
+                           f"{100 * resolve * half:.0f} % tests its band)")
+    s0 = base_rel_std if math.isfinite(base_rel_std) else 0.0
+    z = math.log(value / base.value) / math.sqrt(rel_std * rel_std + s0 * s0)
+    zc = critical_z(alpha)
+    if value > base.hi and z > zc:
+        return Verdict(name, "high", value, rel_std, z)
+    if value < base.lo and z < -zc:
+        return Verdict(name, "low", value, rel_std, z)
+    return Verdict(name, "inside", value, rel_std, z)
+
+
+def decide_offset(name: str, value: float, std: float, adequate: bool, alpha: float = ALPHA,
+                  tolerance: float = OFFSET_TOLERANCE_PA) -> Verdict:
+    """A transducer offset (Pa) against zero: ``high``/``low`` when beyond ``tolerance`` and significant at
+    ``alpha``; ``not_testable`` when the window is not adequate or gives no standard error; else ``inside``."""
+    if not adequate:
+        return Verdict(name, "not_testable", value, why="the model does not represent the rig now")
+    if not (math.isfinite(value) and math.isfinite(std) and std > 0):
+        return Verdict(name, "not_testable", value, why="the window's fit gives it no standard error")
+    z = value / std
+    if abs(value) > tolerance and abs(z) > critical_z(alpha):
+        return Verdict(name, "high" if value > 0 else "low", value, std, z)
+    return Verdict(name, "inside", value, std, z)
+
+
+@dataclasses.dataclass
+class WindowFit:
+    """One window's re-fit: the verdicts, the fit's time and cost, the adequacy's reasons."""
+
+    t_s: float
+    t_ns: int
+    verdicts: dict[str, Verdict]
+    sensors: dict[str, Verdict]
+    adequate: bool
+    reasons: list[str]
+    estimate: dict[str, float]
+    std: dict[str, float]
+    start: str
+    seconds: float
+
+
+class Window:
+    """The last ``seconds`` of samples (blocks kept, trimmed by sample time)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = float(seconds)
+        self._blocks: list = []
+
+    def add(self, samples) -> None:
+        if len(samples) == 0:
+            return
+        self._blocks.append(samples)
+        end = int(samples.t_ns[-1])
+        keep_ns = int(round(self.seconds * 1e9))
+        while len(self._blocks) > 1 and int(self._blocks[1].t_ns[0]) <= end - keep_ns:
+            self._blocks.pop(0)
+
+    def span_s(self) -> float:
+        if not self._blocks:
+            return 0.0
+        return (int(self._blocks[-1].t_ns[-1]) - int(self._blocks[0].t_ns[0])) * 1e-9
+
+    def samples(self):
+        """The last ``seconds`` of samples in one block."""
+        from replay.base import Samples
+
+        s = Samples.concat(self._blocks)
+        k = int(np.searchsorted(s.t_ns, int(s.t_ns[-1]) - int(round(self.seconds * 1e9)), side="left"))
+        return s.slice(k, len(s)) if k > 0 else s
+
+    def clear(self) -> None:
+        self._blocks = []
+
+
+def window_record(samples, tracker):
+    """The window's samples as a :class:`twin.record.Record` of the signals the fit reads."""
+    from twin.record import Record
+
+    t_ns = np.asarray(samples.t_ns)
+    dt = tracker.dt or float(np.median(np.diff(t_ns))) * 1e-9
+    sig = {k: np.asarray(v, float) for k, v in samples.signals.items() if k in ("x_ref", "u", "x", "pA", "pB")}
+    return Record(dt, sig, "window")
+
+
+def fit_window(rec, tracker, names: Sequence[str], start: Mapping[str, float], sensors: bool = True,
+               max_nfev: int = MAX_NFEV):
+    """The window's output-error fit of ``names`` (and the transducer offsets when ``sensors``) from ``start``,
+    with the rig's known values, noise and timing of ``tracker``; ``None`` when the fit cannot run."""
+    from twin.estimation.fit import fit
+
+    model = tracker.model
+    effects = (SENSOR_EFFECT,) if sensors and SENSOR_EFFECT in model.EFFECTS else ()
+    base = model.params(effects, **tracker.ps.as_dict())
+    free = tuple(names) + (tuple(SENSOR_PARAMS) if effects else ())
+    noise = {o: v for o, v in tracker.noise_nominal.items() if o in rec}
+    st = {}
+    for n in names:
+        v = float(start.get(n, math.nan))
+        lo, hi = tracker.bounds[n]
+        if math.isfinite(v) and lo < v < hi:
+            st[n] = v
+    try:
+        return fit(model, [rec], free, base=base, start=st, noise=noise or None, timing=tracker.timing,
+                   n_starts=1, n_refine=1, loop_noise=False, max_nfev=max_nfev)
+    except (ValueError, ArithmeticError):  # a malformed window: no verdict from this start
+        return None
+
+
+class ConfirmedDrift:
+    """The drift decision of one rig: the filter's drift test triggers, window re-fits decide (module docstring).
+
+    Feed it each block with :meth:`update` (the samples, the tracker's :class:`~twin.online.tracker.TrackBlock`,
+    the record times); it returns the confirmed events.  ``base_std``: each parameter's relative standard error
+    at commissioning (0 for configured values).
+    """
+
+    def __init__(self, rig: str, baseline: Mapping[str, Baseline], model: str, window_s: float = WINDOW_S,
+                 period_s: float = PERIOD_S, alpha: float = ALPHA, sensors: bool = True,
+                 base_std: Mapping[str, float] | None = None, settle_s: float = 2.0) -> None:
+        self.rig = rig
+        self.baseline = dict(baseline)
+        self.trigger = DriftMonitor(rig, baseline, model=model, settle_s=settle_s)
+        self.window = Window(window_s)
+        self.window_s, self.period_s, self.alpha = float(window_s), float(period_s), float(alpha)
+        self.sensors = sensors
+        self.base_std = {n: float((base_std or {}).get(n, 0.0)) for n in baseline}
+        self.level = {n: "ok" for n in baseline}
+        self.side = {n: "" for n in baseline}
+        self.count = {n: 0 for n in baseline}
+        self.state = {n: "untested" for n in baseline}
+        #: record time (s) of each parameter's last test that could test it (None: not yet)
+        self.tested: dict[str, float | None] = {n: None for n in baseline}
+        self.sensor_level = {o: "ok" for o in SENSOR_PARAMS.values()}
+        self.adequate = True
+        self.reasons: list[str] = []
+        self.fits: list[WindowFit] = []
+        self._t_first: float | None = None
+        self._next_scheduled: float | None = None
+        self._last_fit_t = -math.inf
+        self.fit_seconds = 0.0
+
+    # -- what the status says ------------------------------------------------------------------
+    def statuses(self) -> dict[str, str]:
+        """Per parameter: its confirmed level when not ok, else what the last window said (``ok``,
+        ``not_testable``) or ``untested`` before the first window."""
+        return {n: (self.level[n] if self.level[n] != "ok" else self.state[n]) for n in self.baseline}
+
+    @property
+    def guard(self) -> str:
+        """The filter's consistency (the trigger's), or that the model does not represent the rig now."""
+        if not self.adequate:
+            return "model_does_not_represent_the_rig_now"
+        return self.trigger.guard
+
+    def sensor_status(self, filter_status: Mapping[str, str]) -> dict[str, str]:
+        """The filter's sensor statuses as the window re-fits decide them: a transducer offset the last windows
+        confirmed is ``offset``; a verdict of the filter that rests on its model (``offset``, ``noisy``) is
+        ``ok`` once a window tested it and found none, and while the model does not represent the rig (the
+        window's adequacy test failed: a load the model lacks is not three faulty sensors); a signal's own
+        faults (``stuck``, ``clipped``, ``missing``, ``wrong_unit``) stay."""
+        out = dict(filter_status)
+        for o, s in filter_status.items():
+            if s in ("offset", "noisy") and (not self.adequate or (o in self.sensor_level and self.fits)):
+                out[o] = "ok"
+        for o, lv in self.sensor_level.items():
+            if lv != "ok" and o in out:
+                out[o] = "offset"
+        return out
+
+    # -- the decision ------------------------------------------------------------------------------
+    def update(self, samples, out, t_s: np.ndarray, tracker) -> list[AlarmEvent]:
+        """One block: the trigger on the filter's estimates, then a window re-fit when one is due."""
+        if len(out.t_ns) == 0:
+            return []
+        self.window.add(samples)
+        triggers = self.trigger.update_block(tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
+                                             out.frozen, out.hold, out.guard)
+        now = float(t_s[-1])
+        if self._t_first is None:
+            self._t_first = float(t_s[0])
+            self._next_scheduled = self._t_first + self.window_s
+        assert self._next_scheduled is not None
+        pending = {e.parameter for e in triggers if e.level != "ok"}
+        pending |= {n for n, q in self.trigger.params.items() if q.level != "ok" and self.level[n] == "ok"}
+        # a parameter confirmed once, or at a level, is re-tested on each next disjoint window
+        pending |= {n for n in self.baseline if self.level[n] != "ok" or self.count[n] > 0}
+        full = self.window.span_s() >= self.window_s - 2 * (tracker.dt or 0.0)
+        disjoint = now - self._last_fit_t >= self.window_s
+        reason = ""
+        if full and now >= self._next_scheduled:
+            reason = "scheduled"
+        elif full and pending and disjoint:
+            reason = "triggered by " + ", ".join(sorted(pending))
+        if not reason:
+            return []
+        return self._test(int(out.t_ns[-1]), now, tracker, reason)
+
+    def _test(self, t_ns: int, now: float, tracker, reason: str) -> list[AlarmEvent]:
+        import time
+
+        t0 = time.perf_counter()
+        from twin.estimation.diagnose.check import judge
+
+        names = [n for n in tracker.tracked if n in self.baseline]
+        rec = window_record(self.window.samples(), tracker)
+        est = {n: v for n, (v, _) in tracker.estimate().items()}
+        runs = []  # (label, fit, parameter verdicts, sensor verdicts)
+        for label, start in (("filter", est), ("baseline", {n: self.baseline[n].value for n in names})):
+            res = fit_window(rec, tracker, names, start, self.sensors)
+            if res is None:
+                continue
+            judge(res, tracker.model, [rec], timing=tracker.timing)
+            runs.append((label, res, *self._verdicts(res, names, tracker.bounds)))
+            # a second start only where the first finds something to confirm: a verdict needs both to agree
+            if not any(v.state in ("high", "low") for v in (*runs[-1][2].values(), *runs[-1][3].values())):
+                break
+        elapsed = time.perf_counter() - t0
+        self.fit_seconds += elapsed
+        self._last_fit_t = now
+        if reason == "scheduled" or now >= (self._next_scheduled or now):
+            self._next_scheduled = now + self.period_s
+        if not runs:
+            return []
+        which, res, verdicts, sensors = min(runs, key=lambda r: r[1].cost)
+        for other in runs:  # the starts disagree: the window's fit is not unique, it does not decide
+            for mine, theirs in ((verdicts, other[2]), (sensors, other[3])):
+                for n, v in list(mine.items()):
+                    if v.state in ("high", "low") and theirs[n].state != v.state:
+                        mine[n] = dataclasses.replace(v, state="not_testable",
+                                                      why="fits of the window from the filter's estimate and "
+                                                          "from the baseline disagree")
+        adequacy = getattr(res, "adequacy", None) or {}
+        adequate = bool(adequacy.get("adequate", True))
+        self.adequate = adequate
+        self.reasons = list(adequacy.get("reasons", []))
+        self.fits.append(WindowFit(now, t_ns, verdicts, sensors, adequate, self.reasons, dict(res.estimate),
+                                   dict(res.std), which, elapsed))
+        events = []
+        for n, vd in verdicts.items():
+            events += self._apply(n, vd, t_ns, now, reason)
+        for p, vd in sensors.items():
+            events += self._apply_sensor(p, vd, t_ns, now)
+        return events
+
+    def _verdicts(self, res, names, bounds) -> tuple[dict[str, Verdict], dict[str, Verdict]]:
+        adequate = bool((getattr(res, "adequacy", None) or {}).get("adequate", True))
+        verdicts = {}
+        for n in names:
+            v = float(res.estimate[n])
+            sd = float(res.std.get(n, math.nan))
+            lo, hi = bounds[n]
+            if adequate and not lo < v < hi:  # beyond what the filter may hold for this rig: the fit ran off
+                verdicts[n] = Verdict(n, "not_testable", v, why="the window's fit left the parameter's physical "
+                                                                f"range ({lo:.3g} .. {hi:.3g})")
+                continue
+            verdicts[n] = decide(n, v, sd / v if v > 0 else math.nan, self.baseline[n], adequate,
+                                 self.base_std.get(n, 0.0), self.alpha)
+        sensors = {p: decide_offset(p, float(res.estimate[p]), float(res.std.get(p, math.nan)), adequate,
+                                    self.alpha) for p in SENSOR_PARAMS if p in res.estimate}
+        return verdicts, sensors
+
+    def _event(self, name: str, level: str, kind: str, vd: Verdict, t_ns: int, now: float, base: Baseline,
+               msg: str) -> AlarmEvent:
+        v = vd.value if math.isfinite(vd.value) else base.value
+        sd = abs(v) * vd.rel_std if math.isfinite(vd.rel_std) else 0.0
+        return AlarmEvent(rig=self.rig, parameter=name, level=level, kind=kind, t_ns=t_ns, t_s=now, estimate=v,
+                          std=sd, baseline=base.value, band_lo=base.lo, band_hi=base.hi,
+                          statistic=vd.z if math.isfinite(vd.z) else 0.0, message=msg)
+
+    def _apply(self, n: str, vd: Verdict, t_ns: int, now: float, reason: str) -> list[AlarmEvent]:
+        base = self.baseline[n]
+        if vd.state == "not_testable":
+            self.state[n] = "not_testable"
+            return []
+        self.tested[n] = now
+        self.state[n] = "ok"
+        old = self.level[n]
+        if vd.state == "inside":
+            self.count[n] = 0
+            self.side[n] = ""
+            if old == "ok":
+                return []
+            self.level[n] = "ok"
+            return [self._event(n, "ok", "returned", vd, t_ns, now, base,
+                                f"{n} back inside its band (re-fit of the last {self.window_s:g} s)")]
+        side = "high" if vd.state == "high" else "low"
+        self.count[n] = self.count[n] + 1 if self.side[n] == side else 1
+        self.side[n] = side
+        filt = self.trigger.params[n].level if n in self.trigger.params else "ok"
+        c = self.count[n]
+        new = ("alarm" if c >= ALARM_CONFIRMATIONS or (c >= WARN_CONFIRMATIONS and filt == "alarm") else
+               "warning" if c >= WARN_CONFIRMATIONS else "ok")
+        if ALARM_LEVELS.index(new) <= ALARM_LEVELS.index(old):
+            return []
+        self.level[n] = new
+        kind = "escalated" if old == "warning" else "raised"
+        where = "above" if side == "high" else "below"
+        msg = (f"{n} {where} its healthy band, confirmed by {c} re-fits of {self.window_s:g} s windows "
+               f"(last {reason}; two-sample z {vd.z:+.1f} against the baseline, level {self.alpha:g} each)")
+        return [self._event(n, new, kind, vd, t_ns, now, base, msg)]
+
+    def _apply_sensor(self, p: str, vd: Verdict, t_ns: int, now: float) -> list[AlarmEvent]:
+        o = SENSOR_PARAMS[p]
+        if vd.state == "not_testable":
+            return []
+        old = self.sensor_level[o]
+        band = Baseline(0.0, -OFFSET_TOLERANCE_PA, OFFSET_TOLERANCE_PA)
+        vd_abs = dataclasses.replace(vd, rel_std=vd.rel_std / abs(vd.value) if vd.value else math.nan)
+        if vd.state == "inside":
+            if old == "ok":
+                return []
+            self.sensor_level[o] = "ok"
+            return [self._event(p, "ok", "returned", vd_abs, t_ns, now, band,
+                                f"sensor {o}: offset back within {OFFSET_TOLERANCE_PA * 1e-6:g} MPa")]
+        if old != "ok":
+            return []
+        self.sensor_level[o] = "warning"
+        return [self._event(p, "warning", "raised", vd_abs, t_ns, now, band,
+                            f"sensor {o} reads {vd.value * 1e-6:+.3f} MPa off (a sensor event, not the rig: "
+                            f"re-fit of the last {self.window_s:g} s, z {vd.z:+.1f})")]
+
+
+def track_confirmed(samples, tracker, baseline: Mapping[str, Baseline], chunk: int = 1000,
+                    **options) -> tuple[ConfirmedDrift, list[AlarmEvent]]:
+    """A whole record through ``tracker`` and a :class:`ConfirmedDrift` (``options``) in blocks of ``chunk``
+    samples, as the service runs a rig: the confirmation and its events."""
+    cd = ConfirmedDrift("rig", baseline, tracker.model.name, **options)
+    events: list[AlarmEvent] = []
+    t0 = int(samples.t_ns[0])
+    for i in range(0, len(samples), chunk):
+        block = samples.slice(i, min(i + chunk, len(samples)))
+        out = tracker.process(block)
+        events += cd.update(block, out, (out.t_ns - t0) * 1e-9, tracker)
+    return cd, events
