@@ -209,6 +209,11 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
         by_start[s] = _per_hour(sum(len(_raised(d)) for d in ds), sum(d["duration_s"] for d in ds) / 3600.0)
     fig["false_alarms_by_start"] = by_start
     fig["false_alarm_parameters"] = {p: sum(e["parameter"] == p for e in ev) for p in TRACKED}
+    # the rig is healthy too before a wear's or a sensor drift's onset (not a specimen's: it is there from the start)
+    before = [d for d in draws if d["kind"] in ("wear", "sensor")]
+    onset = {d["seed"]: d["scenario"][d["kind"]]["t0"] for d in before}
+    k_before = sum(1 for d in before for e in _raised(d) if e["t_s"] < onset[d["seed"]])
+    fig["false_alarms_with_onsets"] = _per_hour(len(ev) + k_before, hours + sum(onset.values()) / 3600.0)
     early = sum(1 for d in healthy for e in d["events"] if e["level"] == "early" and e["kind"] == "raised")
     fig["early_alarms_healthy"] = _per_hour(early, hours)
     # wear
@@ -251,7 +256,13 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
         drifted = d["scenario"]["sensor"]["sensor"] if d["scenario"].get("sensor") else None
         return any(name != drifted for name in d["sensor_faulty"])
 
+    def states(d):
+        drifted = d["scenario"]["sensor"]["sensor"] if d["scenario"].get("sensor") else None
+        return [v["state"] for name, v in d["sensor_faulty"].items() if name != drifted]
+
     fig["healthy_sensor_called_faulty"] = _prop(sum(wrongly_faulty(d) for d in draws), len(draws))
+    fig["healthy_sensor_states"] = {st: sum(st in states(d) for d in draws) for st in
+                                    sorted({st for d in draws for st in states(d)})}
     fig["healthy_sensor_called_faulty_healthy_draws"] = _prop(sum(wrongly_faulty(d) for d in healthy), len(healthy))
     # early warning
     fc = [d["forecast"] for d in wears if d.get("forecast")]
@@ -288,7 +299,8 @@ def table(res: dict[str, Any]) -> str:
              + ", ".join(f"{k} {n}" for k, n in f["by_kind"].items()),
              "figure                                   rate [95 % interval] (count)",
              f"false alarm events, healthy draws        {_ph(f['false_alarms'])}",
-             f"healthy draws with any event             {_pct(f['healthy_draws_with_event'])}"]
+             f"healthy draws with any event             {_pct(f['healthy_draws_with_event'])}",
+             f"  with the healthy stretch before onsets {_ph(f['false_alarms_with_onsets'])}"]
     for k, r in f["false_alarms_by_excitation"].items():
         lines.append(f"  during {k:<32} {_ph(r)}")
     for k, r in f["false_alarms_by_start"].items():
@@ -310,6 +322,8 @@ def table(res: dict[str, Any]) -> str:
               f"  after the specimen's change            {_pct(f['specimen_after_change'])}",
               f"healthy sensor called faulty, all draws  {_pct(f['healthy_sensor_called_faulty'])}",
               f"  healthy draws                          {_pct(f['healthy_sensor_called_faulty_healthy_draws'])}",
+              "  first state called (draws)             "
+              + (", ".join(f"{k} {n}" for k, n in f["healthy_sensor_states"].items()) or "-"),
               f"forecast coverage (last third, 90 %)     {_pct(f['forecast_coverage'])} over "
               f"{f['forecast_coverage']['records']} wears",
               f"first early alarm >= wear / 4 before exit {_pct(f['lead_quarter'])}"]
