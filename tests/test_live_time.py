@@ -21,7 +21,8 @@ import pytest
 from twin.models.simulate import excite
 from twin.online.events import StatusEvent
 from twin.service.config import parse_config
-from twin.service.live_time import TIME_JUMP_S
+from twin.service.journal import AlarmJournal
+from twin.service.live_time import CLOCK_STEP_SAMPLES, TIME_JUMP_S
 from twin.service.serve import serve
 from twin.service.checkpoint_file import checkpoint_path, read_checkpoints
 
@@ -178,7 +179,8 @@ def test_a_fresh_rig_whose_first_block_is_from_the_future_is_not_blinded(tmp_pat
 
 @pytest.mark.slow
 def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):
-    """A block half the tolerance ahead is processed (a clock glitch below it costs the samples before it)."""
+    """A block half the tolerance ahead is processed; the correct samples after it are behind it: about
+    CLOCK_STEP_SAMPLES of them are dropped, then the rig's clock is re-based on them (not blinded for 2.5 s)."""
     samples = _samples(4.0, seed=1022)
     cfg = _config(tmp_path, free_port())
     lead = int(TIME_JUMP_S / 2 * 1e9)
@@ -188,11 +190,13 @@ def test_samples_ahead_by_less_than_the_tolerance_are_not_a_jump(tmp_path):
         watch.until(lambda s: s.counters.get("samples") == 2000)
         _write(sink, _ahead(samples.slice(2000, 2100), lead))
         _write(sink, samples.slice(2100, 4000))
-        return watch.until(lambda s: s.counters.get("time_backwards") == 1900)
+        return watch.until(lambda s: s.counters.get("clock_steps") == 1
+                           and s.counters["samples"] + s.counters["time_backwards"] == 4000)
 
     summary, status = _run(cfg, feed)
-    assert summary.time_jump == 0 and summary.time_backwards == 1900 and summary.samples == 2100
-    assert "time_jump" not in status.counters
+    assert summary.time_jump == 0 and 0 < summary.time_backwards <= 2 * CLOCK_STEP_SAMPLES
+    assert summary.samples == 4000 - summary.time_backwards and "time_jump" not in status.counters
+    assert "the input's clock stepped back 2.5 s" in status.message
 
 
 def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
@@ -212,13 +216,18 @@ def test_a_sender_faster_than_real_time_is_no_jump(tmp_path):
     assert summary.time_jump == 0 and summary.time_backwards == 0 and "time_jump" not in status.counters
 
 
-@pytest.mark.slow
-def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
-    """A sender whose clock stepped an hour ahead and stays there: after CLOCK_STEP_S (2 s here) of nothing but
-    samples from the future its time is adopted (counted), and the rig goes on."""
-    import twin.service.live_time as live_time
+def _step_noted(tmp_path, way: str) -> list[str]:
+    """The clock steps the rig's journal noted."""
+    with AlarmJournal(tmp_path / "journal" / f"{RIG}.db") as journal:
+        notes = journal.notes(RIG)
+    assert all(kind == "clock_step" for _, kind, _ in notes)
+    return [text for _, _, text in notes if f"clock stepped {way}" in text]
 
-    monkeypatch.setattr(live_time, "CLOCK_STEP_S", 2.0)
+
+@pytest.mark.slow
+def test_a_clock_that_stays_ahead_is_adopted(tmp_path):
+    """A sender whose clock stepped an hour ahead and stays there: after CLOCK_STEP_SAMPLES samples in a row from
+    the future its time is adopted (counted, said in the status and the journal), and the rig goes on."""
     samples = _samples(6.0, seed=1025)
     cfg = _config(tmp_path, free_port())
 
@@ -230,36 +239,41 @@ def test_a_clock_that_stays_ahead_is_adopted(tmp_path, monkeypatch):
                            and s.counters["samples"] + s.counters["time_jump"] == 6000)
 
     summary, status = _run(cfg, feed)
-    assert summary.clock_steps == 1 and summary.time_jump > 0 and summary.samples > 1000
+    assert summary.clock_steps == 1 and 0 < summary.time_jump <= 2 * CLOCK_STEP_SAMPLES and summary.samples > 5000
     assert summary.samples + summary.time_jump == 6000 and summary.input_gaps == 1
+    assert "clock step #1: the input's clock stepped forward 3600.0 s" in status.message
+    assert len(_step_noted(tmp_path, "forward")) == 1
 
 
 @pytest.mark.slow
-def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_path, monkeypatch):
-    """A rig controller that restarts its clock an hour back: after CLOCK_STEP_S (2 s here) of nothing but
-    samples before the last processed one, its time is adopted; the events' record time t_s runs on."""
-    import twin.service.live_time as live_time
-
-    monkeypatch.setattr(live_time, "CLOCK_STEP_S", 2.0)
+@pytest.mark.parametrize("step_ns", [30 * 10**9, HOUR_NS])
+def test_a_clock_that_stepped_back_is_adopted_and_the_record_time_runs_on(tmp_path, step_ns):
+    """A rig controller that restarts its clock 30 s or an hour back: after CLOCK_STEP_SAMPLES samples in a row
+    before the last processed one, its time is adopted; the rig keeps tracking and the events' record time t_s
+    runs on; the status and the journal say so."""
     samples = _samples(6.0, seed=1027)
     cfg = _config(tmp_path, free_port())
 
     def feed(watch, sink):
         _write(sink, samples.slice(0, 1000), speed=1.0)
         watch.until(lambda s: s.counters.get("samples") == 1000)
-        _write(sink, _ahead(samples.slice(1000, 6000), -HOUR_NS), speed=1.0)
-        watch.until(lambda s: s.counters.get("clock_steps") == 1
-                    and s.counters["samples"] + s.counters["time_backwards"] == 6000)
+        _write(sink, _ahead(samples.slice(1000, 6000), -step_ns), speed=1.0)
+        status = watch.until(lambda s: s.counters.get("clock_steps") == 1
+                             and s.counters["samples"] + s.counters["time_backwards"] == 6000)
         with watch._lock:
-            return list(watch.estimates), list(watch.t_s)
+            return list(watch.estimates), list(watch.t_s), status
 
-    summary, (t_ns, t_s) = _run(cfg, feed)
-    assert summary.clock_steps == 1 and summary.time_backwards > 0 and summary.samples > 1000
+    summary, (t_ns, t_s, status) = _run(cfg, feed)
+    assert summary.clock_steps == 1 and 0 < summary.time_backwards <= 2 * CLOCK_STEP_SAMPLES and summary.samples > 5000
     assert summary.samples + summary.time_backwards == 6000 and summary.time_jump == 0
     assert summary.stats.estimates == summary.samples // 100
     later = [s for t, s in zip(t_ns, t_s) if t < int(samples.t_ns[0])]  # estimates on the new clock
     assert later and min(later) > max(s for t, s in zip(t_ns, t_s) if t >= int(samples.t_ns[0]))
     assert all(b > a for a, b in zip(t_s, t_s[1:])), "the record time runs on across the step"
+    said = f"the input's clock stepped back {step_ns * 1e-9:.1f} s"
+    assert f"clock step #1: {said}" in status.message
+    noted = _step_noted(tmp_path, "back")
+    assert len(noted) == 1 and noted[0].startswith(said)
 
 
 @pytest.mark.slow

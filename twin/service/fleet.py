@@ -16,9 +16,9 @@ A rig never stops silently:
   sample) and past the last processed time is dropped as ``time_jump`` (a clock
   glitch of the sender, :mod:`twin.service.live_time`); neither moves the rig's time
   nor reaches a checkpoint, so the correct samples that follow are processed. A
-  rig whose every sample is stamped ahead, or behind the last processed, for
-  ``CLOCK_STEP_S`` stepped its clock: that time is adopted (``clock_steps``, the
-  filter restarts as after a gap, the events' record time runs on);
+  rig whose samples are stamped ahead, or behind the last processed, for
+  ``CLOCK_STEP_SAMPLES`` in a row stepped its clock: that time is adopted (``clock_steps``,
+  the filter restarts as after a gap, the events' record time runs on, the journal notes it);
 * a **replayed log** is paced in blocks of ``block_s`` (:mod:`twin.service.pacing`)
   and ends normally (state ``finished``);
 * an unrecoverable error (a log that cannot be read, a filter that diverged,

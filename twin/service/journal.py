@@ -315,6 +315,17 @@ class AlarmJournal:
 
     # ------------------------------------------------------------------ reading
 
+    def note(self, rig: str, kind: str, text: str) -> None:
+        """Keep one line about the rig in the journal (a failed write is logged: a note is no alarm)."""
+        try:
+            self.store.add_note(rig, kind, text)
+        except SourceError as exc:
+            log.warning("rig %s: note not journaled (%s): %s", rig, exc, text)
+
+    def notes(self, rig: str) -> list[tuple[int, str, str]]:
+        """The rig's notes, oldest first: ``(wall_ns, kind, text)``."""
+        return self.store.notes(rig)
+
     def epoch(self, rig: str) -> str:
         """The epoch of ``rig``'s alarm numbering in this journal (made when the rig has none yet;
         :mod:`twin.service.store`); ``""`` while it cannot be written."""

@@ -166,6 +166,8 @@ class LiveInput(RunnerCore):
         twin.health.state = "stale_input"
         twin.health.counters["stale_ms"] = int(quiet * 1000)
         twin.health.message = f"no input from {self.rig.source} for {quiet:.1f} s" + (f" ({why})" if why else "")
+        if self._step_note:  # said for the rest of the run
+            twin.health.message = f"{self._step_note}; {twin.health.message}"
         twin.publish_status(force=True)
         self.outbox.flush()
         self._commission(wait=False)

@@ -1,8 +1,16 @@
 """A live sample's time judged before it is processed: one at or before the last processed (or not increasing)
 is dropped as ``time_backwards``; a run of samples that leaps more than ``TIME_JUMP_S`` past the rig's present
 is dropped as ``time_jump`` (a clock glitch of the sender); neither moves the rig's time nor reaches a
-checkpoint. A rig whose every sample is stamped ahead, or behind the last processed, for ``CLOCK_STEP_S``
-stepped its clock: that time is adopted (``clock_steps``, the filter restarts as after a gap)."""
+checkpoint.
+
+A clock *step* is told from a glitch by the samples themselves, not by the wall clock: once
+``CLOCK_STEP_SAMPLES`` samples in a row, in order among themselves, lie all behind the last processed one (or
+all beyond the rig's present), the input's clock stepped and its new time is adopted (:meth:`LiveTime._step`):
+the rig's clock is re-based there, the filter restarts as after a gap, the events' record time ``t_s`` runs
+on, ``clock_steps`` is counted, the status says so and the journal keeps a note of it. A step, back or forward,
+of any size costs about ``CLOCK_STEP_SAMPLES`` samples (at most those and the rest of a block that holds both
+clocks: the step is adopted with the first block wholly on the new one); a glitch shorter than that costs only
+its own."""
 
 from __future__ import annotations
 
@@ -21,19 +29,19 @@ log = logging.getLogger("twin.serve")
 #: jitter and the corrections a synchronised clock makes (milliseconds); an accepted sample at most this far
 #: ahead costs the correct samples of at most this long (they come before it).
 TIME_JUMP_S = 5.0
-#: A live input whose every sample is stamped ahead (``time_jump``) for this long stepped its clock: the new
-#: time is adopted (counted ``clock_steps``) rather than blinding the rig for ever [s].
-CLOCK_STEP_S = 30.0
-
+#: Samples in a row, in order among themselves, all behind the last processed one or all beyond the rig's
+#: present: the input's clock stepped, its time is adopted (0.5 s at the rigs' 1 kHz; a burst of mis-stamped
+#: samples shorter than this is a glitch and costs only itself) [samples].
+CLOCK_STEP_SAMPLES = 500
 
 
 class LiveTime(RunnerCore):
-    """The live samples a runner cannot use, masked and counted (:meth:`_clean`)."""
+    """The live samples a runner cannot use, masked and counted (:meth:`_clean`); a clock step adopted."""
 
     def _clean(self, block: Samples) -> Samples | None:
         """A live block without the samples it cannot use, each counted: stamped far in the future
         (``time_jump``, :meth:`_future`), at or before the last one processed or not increasing
-        (``time_backwards``), without a finite drive (``bad_samples``)."""
+        (``time_backwards``), without a finite drive (``bad_samples``); a persisting step adopted (:meth:`_step`)."""
         t = block.t_ns
         assert self.twin is not None  # made by _open
         last = self.twin.last_t_ns
@@ -44,8 +52,7 @@ class LiveTime(RunnerCore):
             start = np.iinfo(np.int64).min if last is None else int(last)
             tk = t[ok]
             back[ok] = tk <= np.maximum.accumulate(np.concatenate((np.array([start], dtype=np.int64), tk[:-1])))
-        if len(t) and back.all() and self._stepped_back(t, last):
-            back[:] = False
+        self._step(t, jump, back, last)
         keep = ~(jump | back)
         drive = [block.signals[k] for k in ("u", "x_ref") if k in block.signals]
         no_drive = keep & ~np.any(np.isfinite(np.stack(drive)), axis=0) if drive else np.zeros(len(t), dtype=bool)
@@ -66,27 +73,51 @@ class LiveTime(RunnerCore):
             block = Samples(t[keep], {k: v[keep] for k, v in block.signals.items()})
         return block if len(block) else None
 
-    def _stepped_back(self, t: np.ndarray, last: int | None) -> bool:
-        """A block all before the last processed sample: after ``CLOCK_STEP_S`` of nothing else (and the block in
-        order), the input's clock stepped back (a rig controller restarted, say): its time is adopted (the
-        filter restarts, the record time runs on, ``clock_steps`` counted) and ``True`` returned."""
-        now = time.monotonic()
-        if self._back_since is None:
-            self._back_since = now
-            return False
-        if now - self._back_since < CLOCK_STEP_S or last is None or not bool(np.all(np.diff(t) > 0)):
-            return False
+    def _step(self, t: np.ndarray, jump: np.ndarray, back: np.ndarray, last: int | None) -> None:
+        """Count the samples in a row on another clock (the block's trailing run of rejected samples, all one
+        way and in order, continuing the previous block's run); at ``CLOCK_STEP_SAMPLES`` adopt the new time
+        (the masks of that run's samples in this block are cleared: they are processed)."""
+        n = len(t)
+        rejected = jump | back
+        if not n or not rejected[-1]:
+            self._step_run = 0
+            return
+        kept = np.flatnonzero(~rejected)
+        first = int(kept[-1]) + 1 if kept.size else 0
+        seg = t[first:]
+        way = "ahead" if jump[first:].all() else "back" if back[first:].all() else ""
+        if not way or (len(seg) > 1 and not bool(np.all(np.diff(seg) > 0))):
+            self._step_run = 0
+            return
+        continues = (first == 0 and self._step_way == way and self._step_last is not None
+                     and int(seg[0]) > self._step_last)
+        if not continues:
+            self._step_run, self._step_first = 0, int(seg[0])
+        self._step_run += len(seg)
+        self._step_way, self._step_last = way, int(seg[-1])
+        if self._step_run < CLOCK_STEP_SAMPLES or first > 0:
+            return  # adopted with a block wholly on the new clock: the samples before the run are processed first
         twin = self.twin
         assert twin is not None  # made by _open
-        back_s = (int(last) - int(t[0])) * 1e-9
-        twin.step_clock(int(t[0]))
-        self._restart_filter(f"the input's clock stepped back {back_s:.1f} s (every sample for {CLOCK_STEP_S:.0f} s "
-                             "was before the last one processed); its time is adopted")
+        lost = self._step_run - len(seg)
+        size_s = (self._step_first - int(last)) * 1e-9 if last is not None else 0.0
+        line = (f"the input's clock stepped {'back' if way == 'back' else 'forward'} {abs(size_s):.1f} s at "
+                f"t_ns={self._step_first} ({self._step_run} samples in a row on the new clock; the first {lost} "
+                "dropped); its time is adopted")
+        if way == "back":
+            twin.step_clock(int(seg[0]))
+            self._restart_filter(line)
+        else:
+            self._notes = line
+            log.warning("rig %s: %s", self.rig.name, line)
         if self._live_lag is not None:
             self._live_lag.rebase()
-        self._back_since = None
+        jump[first:] = False
+        back[first:] = False
+        self._step_run, self._step_way, self._step_last = 0, "", None
         self.summary.clock_steps += 1
-        return True
+        self._step_note = f"clock step #{self.summary.clock_steps}: {line}"
+        self.journal.note(self.rig.name, "clock_step", line)
 
     def _future(self, t: np.ndarray, last: int | None) -> np.ndarray:
         """Mask of live samples stamped more than ``TIME_JUMP_S`` after the rig's present (as the best delay
@@ -95,9 +126,8 @@ class LiveTime(RunnerCore):
         samples without a gap (``GAP_S`` or 20 sample periods) is dropped when its first sample is beyond that
         bound, kept when it started within it (a sender faster than real time). Before this run processed a
         sample (no offset learnt yet) the rig's present is the host's UNIX time (a rig stamping UNIX time,
-        as a live input should; other clocks are far behind it and never judged so). A rig whose every sample
-        is ahead for ``CLOCK_STEP_S`` stepped its clock (or disagrees with ours): its time is adopted
-        (nothing is masked, the lag re-based, ``clock_steps`` counted)."""
+        as a live input should; other clocks are far behind it and never judged so). A run that stays ahead is
+        a clock step (:meth:`_step`)."""
         none = np.zeros(len(t), dtype=bool)
         if not len(t):
             return none
@@ -121,18 +151,6 @@ class LiveTime(RunnerCore):
         leaped = np.zeros(run[-1] + 1, dtype=bool)
         leaped[run[first]] = beyond[first]
         jump = leaped[run]
-        if not jump.any():
-            return none
-        self._lead_s = (float(t[jump].max()) - present) * 1e-9
-        if self._jump_since is None:
-            self._jump_since = now
-        elif now - self._jump_since >= CLOCK_STEP_S and not (~jump).any():
-            if lag is not None:
-                lag.rebase()
-            self._jump_since = None
-            self.summary.clock_steps += 1
-            log.warning("rig %s: every sample for %.0f s is stamped ahead (the last %.1f s): its clock stepped; "
-                        "that time is adopted", self.rig.name, CLOCK_STEP_S, self._lead_s)
-            return none
+        if jump.any():
+            self._lead_s = (float(t[jump].max()) - present) * 1e-9
         return jump
-

@@ -33,7 +33,7 @@ class RigSummary:
     time_jump: int = 0
     """Live samples stamped far ahead of the rig's present (dropped, see ``TIME_JUMP_S``)."""
     clock_steps: int = 0
-    """Times the live input's clock stepped ahead and its new time was adopted (``CLOCK_STEP_S``)."""
+    """Times the live input's clock stepped (back or ahead) and its new time was adopted (``CLOCK_STEP_SAMPLES``)."""
     input_gaps: int = 0
     filter_resets: int = 0
     input_dropped: int = 0

@@ -70,6 +70,11 @@ class RunnerCore(abc.ABC):
         self._lead_s = 0.0  # how far the last time_jump was ahead of the rig's present [s]
         self._jump_blocks = 0  # blocks with a time_jump (the first few and every 100th are logged)
         self._back_since: float | None = None  # monotonic time of the first block all time_backwards since then
+        self._step_run = 0  # samples in a row on another clock (twin.service.live_time: a clock step)
+        self._step_way = ""  # "back" or "ahead"
+        self._step_last: int | None = None  # the last sample of that run
+        self._step_first = 0  # and its first
+        self._step_note = ""  # the last clock step adopted, said in every status after it
         self.takeover: dict | None = None  # set when this run took the rig over (twin.service.failover)
         self._maintenance_log: MaintenanceLog | None = None  # the rig's maintenance log, opened on first use
 
@@ -164,6 +169,8 @@ class RunnerCore(abc.ABC):
             log.warning("rig %s: %s", self.rig.name, "; ".join(warn))
         h.state = state
         h.message = "; ".join(warn) or self._notes
+        if self._step_note and self._step_note not in h.message:  # said for the rest of the run
+            h.message = "; ".join(m for m in (self._step_note, h.message) if m)
         if self.takeover is not None:  # said for the rest of the run
             h.counters.update(self.takeover["counters"])
             h.message = "; ".join(m for m in (self.takeover["note"], h.message) if m)

@@ -7,6 +7,8 @@ One database per rig (``<journal_dir>/<rig>.db``) holds
   ``(rig, parameter, level, kind, t_ns)``: the same alarm is never stored
   twice, whatever re-processing raised it again. Each row carries the JSON
   payload and its CRC-32;
+* ``notes``: what happened to a rig's input that its alarms depend on (a clock step adopted, ...), one
+  line each with the wall-clock time;
 * ``meta``: schema version, the journal's id (random, made with the journal),
   each rig's *epoch* (``epoch:<rig>``) and the record of a legacy journal imported.
 
@@ -91,6 +93,7 @@ CREATE TABLE IF NOT EXISTS alarms (
     PRIMARY KEY (rig, seq),
     UNIQUE (rig, parameter, level, kind, t_ns)
 );
+CREATE TABLE IF NOT EXISTS notes (rig TEXT NOT NULL, wall_ns INTEGER NOT NULL, kind TEXT NOT NULL, text TEXT NOT NULL);
 """
 
 
@@ -314,7 +317,7 @@ class Store:
     def _check_integrity(self) -> None:
         rows = self._conn().execute("PRAGMA quick_check").fetchall()
         if [r[0] for r in rows] != ["ok"]:
-            detail = "; ".join(str(r[0]) for r in rows[:3])
+            detail = "; ".join(" ".join(str(r[0]).split()) for r in rows[:3])  # one line
             raise LogFormatError(f"{self.path}: the journal is corrupt (quick_check: {detail}); left untouched: "
                                  "restore it from a backup or move it aside")
 
@@ -596,6 +599,25 @@ class Store:
         with self._lock:
             row = self._read(lambda db: db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone())
         return row[0] if row else None
+
+    def add_note(self, rig: str, kind: str, text: str) -> None:
+        """Keep one line about the rig (``kind``: e.g. ``clock_step``), committed and folded.
+
+        :raises SourceError: the write failed (naming the file).
+        """
+        with self._lock:
+            db = self._conn()
+            try:
+                db.execute("INSERT INTO notes VALUES (?, ?, ?, ?)", (rig, time.time_ns(), kind, text))
+                self._fold()
+            except sqlite3.Error as exc:
+                raise self._error(exc, "cannot write to") from exc
+
+    def notes(self, rig: str) -> list[tuple[int, str, str]]:
+        """The rig's notes, oldest first: ``(wall_ns, kind, text)``."""
+        with self._lock:
+            return [tuple(r) for r in self._read(lambda db: db.execute(
+                "SELECT wall_ns, kind, text FROM notes WHERE rig=? ORDER BY rowid", (rig,)).fetchall())]
 
     @property
     def secret(self) -> bytes:
