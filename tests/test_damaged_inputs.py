@@ -398,8 +398,9 @@ add(Case("csv-short-row", csv_edit(lambda ls: ls.__setitem__(90, "1700000000.5,1
 add(Case("csv-bad-byte-in-a-row", bad_byte_line, kept=(N_REF - 1, N_REF - 1), skipped={"bad_row": 1},
          problem="line 78: field"))
 add(Case("csv-pressures-in-bar", csv_edit(bar_pressures), error="the values look like bar"))
+# a ';'-separated export is read as one (its ',' in numbers would be decimal commas): nothing lost
 add(Case("csv-semicolons", csv_edit(lambda ls: ls.__setitem__(slice(None), [x.replace(",", ";") for x in ls])),
-         error="no time column 't' (s) and no column that is a known signal"))
+         kept=(N_REF, N_REF), lossy=False))
 add(Case("csv-oscillator-time-in-ms", lambda tmp: csv_text(tmp, "o.csv", "t,u,y\n" + "".join(
     f"{i * 10},{0.0},{1e-5 * i}\n" for i in range(50))), error="look like ms (100 Hz)"))
 add(Case("csv-directory", lambda tmp: (tmp / "dir.csv").mkdir() or tmp / "dir.csv", error="is a directory"))

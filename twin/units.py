@@ -181,3 +181,38 @@ def param_spec(model: str | None, name: str):
         return _specs(model).get(name)
     except Exception:  # an unknown model name: shown in SI
         return None
+
+
+def check_lengths(model, ps, signals, name: str = "record") -> None:
+    """Refuse (:class:`~fpdd.errors.DataError`, one line) a length signal whose values lie beyond the rig's
+    physical range (``model.filter_map(ps).ranges``: the position within the stroke) but within it read in mm:
+    a column logged in mm read as metres.  The message names the peak, the range and the two ways to give the
+    unit (``--map x=x:mm``, a header ``x[mm]``).  A model that declares no range is not checked."""
+    import numpy as np
+
+    from fpdd.errors import DataError
+
+    try:
+        ranges = dict(model.filter_map(ps).ranges)
+    except Exception:  # a model the online twin does not run: no declared range
+        return
+    for sig, values in signals.items():
+        spec = SIGNALS.get(sig)
+        rng = ranges.get(sig, ranges.get("x") if sig == "x_ref" else None)
+        if spec is None or spec.unit != "m" or "*" in spec.accepts or rng is None:
+            continue
+        v = np.asarray(values, dtype=np.float64)
+        v = v[np.isfinite(v)]
+        if not v.size:
+            continue
+        lo, hi = float(rng[0]), float(rng[1])
+        peak_lo, peak_hi = float(v.min()), float(v.max())
+        if lo <= peak_lo and peak_hi <= hi:
+            continue
+        if lo <= peak_lo * 1e-3 and peak_hi * 1e-3 <= hi:
+            peak = peak_hi if abs(peak_hi) >= abs(peak_lo) else peak_lo
+            raise DataError(
+                f"{name}: {sig} reaches {peak:g} m, beyond the {model.name} rig's physical range {lo * 1e3:g} .. "
+                f"{hi * 1e3:g} mm ({ps.spec('stroke').show(ps['stroke']) + ' stroke' if 'stroke' in ps else 'declared'}"
+                f"): it reads like a column in mm ({peak:g} mm) read as metres; give its unit: --map {sig}={sig}:mm "
+                f"or a header {sig}[mm] (a bare column is SI)")

@@ -80,6 +80,10 @@ def parse_map(items: Sequence[str] | None, *, option: str = "--map") -> dict[str
             swapped = f"{column}={name}" + (f":{unit}" if unit else "")
             raise DataError(f"{option} {item!r}: {name!r} is not a signal name but {column!r} is; the syntax is "
                             f"NAME=COLUMN[:UNIT]: did you mean {option} {swapped}?")
+        if unit and unit not in UNITS and is_flow(unit):
+            raise DataError(f"{option} {item!r}: {unit!r} is a flow (a volume per time), and no signal of a record is "
+                            f"a flow (the signals: {expected_columns()}); leave the column unmapped (it is kept as an "
+                            "extra signal, unchecked) or drop it")
         if unit and unit not in UNITS:
             raise DataError(f"{option} {item!r}: unknown unit {unit!r}; known units: {', '.join(UNITS)}")
         if (gain or offset) and name == TIME_COLUMN:
@@ -222,6 +226,24 @@ def parse_mapping(file: str, mapping: ColumnMap | None,
                             f"but {name!r} is in {expected}")
         out[column] = (name, unit)
     return out
+
+
+#: units a logged flow is written in (a flow is no signal of a record; pint is asked about any other unit)
+FLOW_UNITS = ("l/min", "L/min", "lpm", "LPM", "l/s", "L/s", "m^3/s", "m3/s", "gpm", "cc/s", "ml/s", "ml/min", "cm^3/s")
+
+
+def is_flow(unit: str) -> bool:
+    """Whether ``unit`` is a unit of flow (volume per time): ``l/min``, ``lpm``, ``m^3/s``, ``gpm``, ..."""
+    unit = unit.strip()
+    if unit in FLOW_UNITS:
+        return True
+    try:
+        from fpdd.units import _registry
+
+        ureg = _registry()
+        return bool(ureg.Unit(unit).dimensionality == ureg.Unit("m^3/s").dimensionality)
+    except Exception:  # not a unit pint knows
+        return False
 
 
 def expected_columns() -> str:

@@ -20,6 +20,9 @@ Layout::
   line (a longer line is one bad row, never held whole); a last line without line end
   is dropped and counted (it may be cut); a header with no rows is refused.
 * The oscillator contract is the same layout with the columns ``t, u, y``.
+* A ``;``-separated export (a header without ``,`` but with ``;``) is read as such, its ``,`` in numbers as
+  decimal commas (``0,001;2,5``); a column whose header unit is a flow (``Q[l/min]``) is kept as an extra signal
+  and said to be no signal of a record.
 * ``mapping`` renames foreign columns and converts units at ingest, e.g.
   ``{"pos_mm": ("x", "mm"), "p_a_bar": ("pA", "bar"), "time": ("t", "ms")}``; a plain
   string renames only.  Units: :data:`fpdd.units.UNITS`.  On the command line
@@ -61,8 +64,8 @@ from fpdd.units import SIGNALS, UNITS, to_si
 from replay.base import Problem, ReadReport, Samples, Source
 from replay.quality import ACCEPTED_RATE_HZ, QualityGate, QualityOptions, add_skips, require_signals
 from fpdd.errors import DataError, LogFormatError, SourceError
-from replay.csvio.columns import (MAP_SYNTAX, MAX_COLUMNS, TIME_COLUMN, ColumnMap, expected_columns, parse_mapping,
-                                  show_columns, sniff_text, split_unit, suggest_map)
+from replay.csvio.columns import (MAP_SYNTAX, MAX_COLUMNS, TIME_COLUMN, UNIT_IN_NAME, ColumnMap, expected_columns,
+                                  is_flow, parse_mapping, show_columns, sniff_text, split_unit, suggest_map)
 
 #: Sample rates a rig record plausibly has (Hz); a time column outside is taken as a wrong unit.
 PLAUSIBLE_RATE_HZ = (10.0, 200.0e3)
@@ -214,6 +217,12 @@ class CsvSource(Source):
                 self.path, "header", f"column(s) {show_columns(skipped, 8)} not read: neither a known signal nor "
                 f"mapped (map them with {MAP_SYNTAX} to read them)"))
         extra = [columns[j] for j in self._use if names[j] not in known and columns[j] not in mapped]
+        flows = [c for c in extra if (m := UNIT_IN_NAME.match(c)) and is_flow(m.group("unit"))]
+        if flows:  # a flow is no signal of a record: said plainly, no --map offered for it
+            extra = [c for c in extra if c not in flows]
+            self.report.problems.append(Problem(
+                self.path, "header", f"column(s) {show_columns(flows, 8)}: a flow (volume per time) is no signal of "
+                "a record; kept as extra signals, unchecked"))
         if extra:
             hint = suggest_map(extra, [n for n in (TIME_COLUMN, *SIGNALS) if n not in counts])
             self.report.problems.append(Problem(
@@ -316,6 +325,9 @@ class CsvSource(Source):
         if "\ufffd" in text:
             raise LogFormatError(f"{self.path}: line {line_no}: header is not UTF-8 text ({text[:60]!r}); "
                                  "expected a header row naming the columns (e.g. 't,x_ref,u,x,pA,pB')")
+        if self._delimiter == "," and "," not in text and text.count(";") >= 1:
+            self._delimiter = ";"  # a ';'-separated export (a locale with decimal commas), found from its header
+        self._decimal_comma = self._delimiter == ";"  # ';' separates the fields: a ',' in a number is its decimal
         n = text.count(self._delimiter) + 1
         if n > MAX_COLUMNS:
             raise LogFormatError(f"{self.path}: line {line_no}: header has {n} columns, more than {MAX_COLUMNS}; "
@@ -418,6 +430,8 @@ class CsvSource(Source):
         ncol = len(self._columns)
         some = len(self._use) < ncol
         row0 = self._row
+        if self._decimal_comma:
+            lines = [ln.replace(",", ".") for ln in lines]
         try:
             if "\0" in lines or lines[-1].startswith(_CUT):
                 raise ValueError("over-long or unterminated line")
@@ -497,6 +511,7 @@ class CsvSource(Source):
         return t_ns, table, labels
 
     _rate_checked = False
+    _decimal_comma = False
 
     def _strip(self, line: str, right: bool = False) -> str:
         """``line`` without its surrounding blanks; with a tab delimiter only spaces and line ends go (a trailing

@@ -64,6 +64,7 @@ from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, ParamSpec, check_names
 from twin.record import Record
+from twin.units import check_lengths
 from fpdd.units import NOMINAL_NOISE
 from twin.estimation.fit_result import FitResult
 from twin.estimation.fit_stats import hac_covariance, likelihood_ratio
@@ -295,6 +296,7 @@ def make_problem(model: Model | str, records: Sequence[Record], free: Sequence[s
     for r in records:
         r.require(outputs, f"fitting outputs {', '.join(outputs)}")
         model.check_record(base, r.signals, r.name)
+        check_lengths(model, base, r.signals, r.name)  # a column in mm read as metres
         drives.append(model.drive_signal(r.signals, drive))
     check_names(model.INIT, estimate_init, f"initial-state quantity of {model.name}")
     if init is None:

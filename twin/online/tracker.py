@@ -355,6 +355,9 @@ class OnlineTracker:
         sig = samples.signals
         assert self.dt is not None  # process() learns it first
         self.model.check_record(self.ps, sig, "the tracked signals")
+        from twin.units import check_lengths
+
+        check_lengths(self.model, self.ps, sig, "the tracked signals")  # a column in mm read as metres
         if len(samples) >= 8:
             init = self.model.initial_from_data({k: v for k, v in sig.items() if k in self.outputs
                                                  and np.all(np.isfinite(v[:8]))}, self.dt)
