@@ -21,7 +21,7 @@ def generate() -> str:
             if package == "replay" and name in twin._EXPORTS:
                 continue  # the error tree is one, listed under twin
             parts.append(f"### `{package}.{name}`\n\nDefined in `{module}`.\n\n::: {module}.{name}\n"
-                         "    options:\n      show_root_heading: false\n      heading_level: 4\n")
+                         "    options:\n      show_root_heading: false\n      show_root_toc_entry: false\n      heading_level: 4\n")
     return "\n".join(parts)
 
 
