@@ -272,12 +272,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return _run(parser, args)
+        rc = _run(parser, args)
+        sys.stdout.flush()  # a closed pipe is found here, not in the interpreter's last flush
+        return rc
     except TwinError as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
     except KeyboardInterrupt:
         print("replay: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (``replay info LOG | head``): not an error of ours
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing more to flush at exit
+        return 0
     except OSError as exc:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"replay: error: {where}{exc.strerror or exc}", file=sys.stderr)

@@ -106,7 +106,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if note:
         print(note, file=sys.stderr, flush=True)
     try:
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe is found here, not in the interpreter's last flush
+        return rc
     except TwinError as exc:
         print(f"twin {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -129,6 +129,22 @@ class TopState:
             r[kind] = d
         self.changed.set()
 
+    def _order(self, name: str) -> tuple[int, str]:
+        """Where ``name`` stands among the model's parameters (its declared order: the phenomenological ones as
+        ``twin params`` lists them), names the model does not know last, alphabetically."""
+        if self._names is None:
+            try:
+                from twin.models import DEFAULT_MODEL, get_model
+
+                m = get_model(self.model or DEFAULT_MODEL)
+                ps = m.params()
+                self._names = [*m.PHENOMENOLOGICAL, *ps.names, *(n for e in m.EFFECTS.values() for n in e.names)]
+            except Exception:  # an unknown model: alphabetical
+                self._names = []
+        return (self._names.index(name) if name in self._names else len(self._names), name)
+
+    _names: list[str] | None = None
+
     def _shown(self, name: str, unit: str | None) -> Shown:
         return Shown(name, self.model, unit)
 
@@ -171,6 +187,7 @@ class TopState:
                 params.setdefault(name, {"status": ""})["forecast"] = f
             for name, m in ((r.get("forecast") or {}).get("maintenance") or {}).items():
                 params.setdefault(name, {"status": ""})["maintenance"] = m
+            params = {n: params[n] for n in sorted(params, key=self._order)}  # the model's order (payloads sort)
             soonest = min((f for f in fcs.values() if f["t_exit"] is not None),
                           key=lambda f: (f["t_exit"], f["parameter"]), default=None)
             presence, age = self.presence(rig, now)

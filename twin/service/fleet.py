@@ -141,7 +141,10 @@ class BusFront:
                     if sp is None:
                         from twin.service.live_view import signals_key
 
-                        sp = self._signal_pubs[rig] = self._session.declare_publisher(signals_key(rig))
+                        import zenoh
+
+                        sp = self._signal_pubs[rig] = self._session.declare_publisher(  # its payload is JSON
+                            signals_key(rig), encoding=zenoh.Encoding.APPLICATION_JSON)
                     sp.put(item[1])
                 elif kind == "checkpoint":  # replicated to the standbys (twin.service.replication)
                     if self.replicate is not None:
