@@ -103,8 +103,14 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
     std_in = doc.get("std", {}) or {}
     if not isinstance(std_in, Mapping):
         raise ConfigError(f"{source}: std must be an object of standard errors")
-    known = get_model(model).params().names
-    specs = {sp.name: sp for sp in get_model(model).params().specs}
+    effects = tuple(doc.get("effects") or ())
+    unknown = [e for e in effects if not isinstance(e, str) or e not in get_model(model).EFFECTS]
+    if unknown:
+        raise ConfigError(f"{source}: effects: {unknown[0]!r} is no effect of the {model} model; known: "
+                          f"{', '.join(get_model(model).EFFECTS)}")
+    extended = get_model(model).params(effects)  # an extended model is a model: its effects' parameters too
+    known = extended.names
+    specs = {sp.name: sp for sp in extended.specs}
     params, fitted = {}, {}
     for n, v in params_in.items():
         if isinstance(v, Mapping):  # FitResult.saved() / to_dict(): {"value", "unit"[, "std"]} in SI
@@ -122,8 +128,10 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
             raise ConfigError(f"{source}: params.{n}: the {model} model has no parameter {n!r}")
         params[n] = val
     noise = {}
+    filt = get_model(model).FILTER
+    measured = tuple(filt.measures) if filt is not None else NOISE_KEYS
     for k, v in (doc.get("noise") or {}).items():
-        if k not in NOISE_KEYS:
+        if k not in measured:
             continue
         val = _number(source, f"noise.{k}.value", v.get("value")) if isinstance(v, Mapping) else \
             _number(source, f"noise.{k}", v)
@@ -137,7 +145,6 @@ def from_dict(doc: Mapping, source: str = "<fit>") -> Commission:
             timing = Timing(t.get("controller", "digital"), t.get("rate_hz"), t.get("intersample"))
         except ParameterError as exc:
             raise ConfigError(f"{source}: timing: {exc}") from None
-    effects = tuple(doc.get("effects") or ())
     warnings = doc.get("warnings") or []
     if not (isinstance(warnings, list) and all(isinstance(w, str) for w in warnings)):
         raise ConfigError(f"{source}: warnings must be a list of strings (the fit's warnings)")
@@ -188,10 +195,9 @@ def saved_map(params_path: str | None, data_path: str) -> list[str]:
 
 
 def tracker_params(c: Commission, tracked: Sequence[str]) -> tuple[dict[str, float], dict[str, float]]:
-    """(known parameters, starting values of the tracked ones) from a commissioning fit."""
-    if c.effects:
-        raise ConfigError(f"{c.source}: effects {list(c.effects)}: the tracker follows the nominal rig model; "
-                          "refit without effects, or correct the rig (e.g. re-zero the pressure sensors) first")
+    """(known parameters, starting values of the tracked ones) from a commissioning fit; the parameters of the
+    fit's effects (``c.effects``: an extended model) are among the known ones, held at the fitted values unless
+    tracked."""
     params = {k: v for k, v in c.params.items()}
     return params, {t: params[t] for t in tracked if t in params}
 
@@ -366,17 +372,21 @@ def tracker_for(rig, dt: float | None = None, start: Mapping[str, float] | None 
     timing = getattr(rig, "timing", None)
     com = getattr(rig, "commission", None)
     st: dict[str, float] = {}
+    effects: tuple[str, ...] = ()
     if isinstance(com, str) and com:
         com = load_fit(com)
     if isinstance(com, Commission):
         p, st = tracker_params(com, tracked)
         params = {**p, **params}
+        effects = com.effects
         noise.update(com.noise)
         timing = timing or com.timing
     noise.update(dict(getattr(rig, "noise", None) or {}))
     if isinstance(timing, str):
         timing = Timing.parse(timing)
     kw: dict[str, Any] = {"params": params, "dt": dt, "noise": noise or None, "timing": timing}
+    if effects:
+        kw["effects"] = effects
     if tracked:
         kw["tracked"] = tracked
     try:

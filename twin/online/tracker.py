@@ -140,7 +140,9 @@ class OnlineTracker:
     ``outputs``: which of the model's measured outputs to use when present (default: all); ``noise``: sensor noise
     standard deviations (SI) per output; ``timing``: the loop's
     :class:`~twin.models.base.Timing` (or its spelling ``"continuous"``,
-    ``"digital:5000"``); ``guard``: overrides of :data:`DEFAULT_GUARD`.
+    ``"digital:5000"``); ``guard``: overrides of :data:`DEFAULT_GUARD`; ``effects``: effects of the model's
+    catalogue switched on (an extended model, e.g. a commissioning fit's ``specimen_stiffness``), their
+    parameters in ``params``.
     ``points``: a sigma-point object (:class:`~twin.online.sigma.SigmaPoints`: Merwe's scaled points
     from ``alpha, beta, kappa`` by default; filterpy's ``MerweScaledSigmaPoints`` or
     ``JulierSigmaPoints`` are taken as they are).
@@ -155,13 +157,13 @@ class OnlineTracker:
                  tau_excite: float = 0.5, gate_p: float = 1e-9, max_gated: int = 5,
                  noise: Mapping[str, float] | None = None, timing=None, adapt_noise: bool = True,
                  guard: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
-                 noise_colour: Mapping[str, float] | None = None):
+                 noise_colour: Mapping[str, float] | None = None, effects: Sequence[str] = ()):
         self.model = get_model(model)
         if not self.model.TRACKABLE or self.model.FILTER is None:
             raise ParameterError(f"the online twin does not run the {model} model; it runs: "
                                  f"{', '.join(trackable_models())}")
         spec = self.model.FILTER
-        self.ps = self.model.params((), **dict(params or {}))
+        self.ps = self.model.params(tuple(effects), **dict(params or {}))  # an extended model: effects switched on
         self.tracked = tuple(self.model.PHENOMENOLOGICAL if tracked is None else tracked)
         bad = [t for t in self.tracked if t not in self.model.trackable]
         if bad or not self.tracked:
