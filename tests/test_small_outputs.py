@@ -6,6 +6,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 HERE = pathlib.Path(__file__).parent / "data"
 
 
@@ -39,3 +41,31 @@ def test_a_closed_pipe_ends_replay_and_twin_quietly():
         done = _closed_pipe(cmd)
         assert b"Broken pipe" not in done.stderr and b"BrokenPipeError" not in done.stderr, done.stderr
         assert done.returncode == 0, (cmd, done.stderr)
+
+
+@pytest.mark.slow
+def test_the_diagnose_caption_names_no_extended_model_when_there_is_none(tmp_path):
+    sys.path.insert(0, str(pathlib.Path(__file__).parent))
+    from diag_helpers import OSC, record
+    from twin.estimation.diagnose import diagnose
+    from twin.reports import diagnose_report
+
+    rec = record(OSC, (), seed=3, duration_s=3.0)  # the nominal model is the truth: nothing to add
+    diag = diagnose(OSC, [rec], seed=0, candidates=["coulomb_friction"])
+    assert diag.causes == []
+    page = pathlib.Path(diagnose_report(diag, str(tmp_path / "d"))).read_text(encoding="utf-8")
+    assert "no effect was found, so there is no extended model" in page
+    assert "extended model (orange" not in page
+
+
+def test_a_trend_plot_takes_its_range_from_the_converged_estimates():
+    """The start-up samples, whose +-2 sigma is wider than the healthy band, do not set the y-range."""
+    import numpy as np
+
+    from twin.online.baseline import Baseline
+    from twin.reports.plots import settled_mask
+
+    band = Baseline(50.0, 40.0, 60.0)
+    stds = np.array([80.0, 30.0, 6.0, 4.0, 2.0, 2.5, 1.0])  # 4 std <= 20 first at index 3
+    assert settled_mask(stds, band).tolist() == [False, False, False, True, True, True, True]
+    assert settled_mask(np.full(6, 50.0), band).tolist() == [False] * 3 + [True] * 3  # never converged: later half

@@ -102,9 +102,11 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
                          "models": models, "title": f"{o}: held-out part, measured vs nominal"
                          + (" vs extended" if len(models) > 1 else "")})
         fig = views.compare_figure(t[sl], outs)
+        lines = ("nominal model (blue), extended model (orange, dashed)" if compare.get("extended") is not None
+                 else "nominal model (blue; no effect was found, so there is no extended model)")
         body.append(P.figure(fig, "Held-out part of the first record (not used by the fits): measured (grey), "
-                             "nominal model (blue), extended model (orange, dashed); errors under each. Right: "
-                             f"a zoom where the error is largest, {views.zoom_text(fig)}."))
+                             f"{lines}; errors under each. Right: a zoom where the error is largest, "
+                             f"{views.zoom_text(fig)}."))
     else:
         body.append(P.note("the records are not in a diagnosis read from JSON: pass the Diagnosis object (or "
                            "compare=...) for the before/after plot"))
@@ -118,7 +120,8 @@ def diagnose_report(diagnosis: Any, out_dir: str, *, compare: Mapping | None = N
                      "held-out Fit, extended": pct(a.get("fit_pct")) if a else "—",
                      "NRMSE, nominal": fmt(b.get("nrmse"), 4), "NRMSE, extended": fmt(a.get("nrmse"), 4) if a else "—"})
     body.append(P.table(rows))
-    pg.add("compare", "Nominal vs extended model (before / after)", "\n".join(body))
+    pg.add("compare", "Nominal vs extended model (before / after)" if d.get("extended") else
+           "The nominal model on held-out data (no extended model: nothing to add)", "\n".join(body))
 
     # the simulation error per output with its noise band
     noise = ((d.get("nominal") or {}).get("residuals") or {}).get("noise") or {}

@@ -105,6 +105,18 @@ def paper_table(rows: list[dict], out_dir: str) -> str:
     return p
 
 
+def settled_mask(stds: np.ndarray, band) -> np.ndarray:
+    """The samples of a tracked parameter's history from the first whose +-2 sigma fits within its healthy band
+    (``4 std <= hi - lo``) on: before it the filter has not converged enough to tell the band, and its
+    start-up swings must not set the plot's y-range.  A history that never gets there: its later half."""
+    stds = np.asarray(stds, dtype=np.float64)
+    ok = np.flatnonzero(np.isfinite(stds) & (4.0 * stds <= band.hi - band.lo))
+    first = int(ok[0]) if ok.size else stds.size // 2
+    mask = np.zeros(stds.size, dtype=bool)
+    mask[first:] = True
+    return mask
+
+
 def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
                      title: str = "Tracked parameters (cf. paper Fig. 4)") -> str:
     """Estimates with +-2 sigma (log-normal), the healthy band, alarm events and optionally the truth
@@ -128,8 +140,8 @@ def parameter_trends(twin, baseline, path: str, t_truth=None, truth=None,
             ax.plot(hist["t_s"], v, color="C0", lw=1.2, label="estimate")
             ax.fill_between(hist["t_s"], v * np.exp(-2 * rel), v * np.exp(2 * rel), color="C0", alpha=0.2, lw=0,
                             label="±2σ")
-            settled = hist["t_s"] > 2.0
-            if settled.any():  # scale to the settled estimates, the band and the truth, not the start
+            settled = settled_mask(hist["stds"][:, j], b)
+            if settled.any():  # scale to the settled estimates, the band and the truth, not the start-up
                 true_max = np.max(truth[:, model.kernel_index(name)]) * sc if truth is not None else 0.0
                 top = max(np.max(v[settled]), b.hi * sc, true_max)
                 bot = min(np.min(v[settled]), b.lo * sc)
