@@ -70,3 +70,16 @@ def test_plain_fit_does_not_free_what_set_holds(free_mass, capsys):
     d = json.loads(capsys.readouterr().out)
     assert set(d["params"]) == {"d"}
     assert d["params"]["d"]["value"] == pytest.approx(DAMPING, rel=0.01)
+
+
+def test_diagnose_holds_what_set_holds(free_mass, capsys):
+    """``twin diagnose --set k=0`` keeps the spring at 0 in its nominal fit (before, k was freed); with every
+    nominal parameter held and no --free it says so in one line."""
+    code = cli.main(["diagnose", str(free_mass), "--model", "oscillator", "--set", "k=0", "--free", "m,d",
+                     "--controller", "digital", "--json", "-q"])
+    assert code in (0, 3)
+    d = json.loads(capsys.readouterr().out)
+    assert set(d["nominal"]["params"]) == {"m", "d"}
+    assert d["nominal"]["params"]["m"]["value"] == pytest.approx(MASS, rel=0.05)
+    assert cli.main(["diagnose", str(free_mass), "--model", "oscillator", "--set", "k=0,d=1", "-q"]) == 2
+    assert "--set holds every nominal free parameter of oscillator (d, k)" in capsys.readouterr().err

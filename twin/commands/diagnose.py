@@ -55,9 +55,16 @@ def run(args) -> int:
         records.extend(load_records(path, model=model.name, reports=reports, **source_options(args, path)))
     lost = loss_lines("diagnose", reports)
     base = model.params(effects=_names(args.effects), **_kv(args.set))
+    # without --free: the phenomenological parameters less those --set holds (the oscillator's k=0 stays 0)
+    free = _names(args.free) or tuple(n for n in model.PHENOMENOLOGICAL if n not in _kv(args.set))
+    if not free:
+        from fpdd.errors import ParameterError
+
+        raise ParameterError(f"--set holds every nominal free parameter of {model.name} "
+                             f"({', '.join(model.PHENOMENOLOGICAL)}): name those to fit with --free")
     quiet = getattr(args, "quiet", False)
     progress = None if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    diag = diagnose(model, records, outputs=_names(args.outputs) or None, free=_names(args.free) or None,
+    diag = diagnose(model, records, outputs=_names(args.outputs) or None, free=free,
                     base=base, candidates=_names(args.candidates) or None, holdout=args.holdout,
                     alpha=ALPHA if args.alpha is None else args.alpha, max_effects=args.max_effects,
                     noise=_kv(args.noise_levels),
