@@ -364,6 +364,11 @@ def html(res: dict[str, Any], out_dir: str) -> str:
                                                                [r["delay_s"]["hi"] - r["delay_s"]["median"]]],
                         fmt="s", color="k", capsize=3)
     ax.axhline(0.0, color="grey", lw=0.8)
+    for i, r in enumerate(f["detection"].values()):
+        lb = r["left_band"]
+        ax.annotate(f"{lb['k']}/{lb['n']} alarmed", (i, 0.0), xycoords=("data", "axes fraction"),
+                    xytext=(0, 4), textcoords="offset points", ha="center", fontsize=8)
+    ax.set_xlim(-0.5, len(f["detection"]) - 0.5)
     ax.set_xticks(range(len(f["detection"])), list(f["detection"]))
     ax.set_xlabel("worn parameter (-)")
     ax.set_ylabel("alarm delay after the truth left the band (s)")
