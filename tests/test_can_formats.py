@@ -536,6 +536,13 @@ def test_own_dbc_without_map_names_what_was_looked_for(tmp_path, capsys):
     assert replay_cli.main(["info", str(log), "--dbc", str(dbc), "--map", "x=MyPosSignal:bar"]) != 0
     assert "but 'x' is in m" in capsys.readouterr().err
     assert len(err.strip().splitlines()) <= 2  # one line (and argparse's pointer to --help)
+    # twin's commands take --dbc too; a record mapped without a drive says what its DBC has
+    from twin import cli as twin_cli
+
+    assert twin_cli.main(["fit", str(log), "--dbc", str(dbc), "--map", "pA=ChamberA", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "missing a drive" in err and "MyPosSignal (no unit, in AxisPosition)" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.slow

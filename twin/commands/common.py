@@ -132,13 +132,17 @@ def add_map_argument(p) -> None:
     from replay.options import MAP_HELP
 
     p.add_argument("--map", action="append", metavar="NAME=COLUMN[:UNIT][*GAIN][+OFFSET]", help=MAP_HELP)
+    if "--dbc" not in p._option_string_actions:  # a CAN log's DBC, its signals mapped with --map
+        p.add_argument("--dbc", metavar="FILE", help="DBC for CAN logs (default: the MSP25 DBC shipped); your own "
+                       "DBC's signals are mapped with --map, e.g. --map x=MyPosSignal:mm")
     from replay.options import add_rate_options
 
     add_rate_options(p)
 
 
 def source_options(args, path: str) -> dict:
-    """Reader options for ``path`` from ``--map`` (a column mapping) and ``--rate``/``--dt``, checked."""
+    """Reader options for ``path`` from ``--map`` (a column mapping), ``--dbc`` (a CAN log's DBC) and
+    ``--rate``/``--dt``, checked."""
     from replay.options import rate_options
 
     try:
@@ -147,6 +151,15 @@ def source_options(args, path: str) -> dict:
         from fpdd.errors import DataError
 
         raise DataError(str(exc)) from None
+    from replay import formats
+
+    if getattr(args, "dbc", None):
+        if not formats.is_can_log(path):
+            from fpdd.errors import DataError
+
+            raise DataError(f"{path}: --dbc decodes CAN logs ({', '.join(formats.CAN_LOG_SUFFIXES)}); this file is "
+                            "not one")
+        rate = {**rate, "dbc": args.dbc}
     items = getattr(args, "map", None)
     if not items:  # the map a commissioning file (--params) was fitted through, with its units
         from twin.online.commission import saved_map
@@ -154,8 +167,6 @@ def source_options(args, path: str) -> dict:
         items = saved_map(getattr(args, "params", None), path)
     if not items:
         return rate
-    from replay import formats
-
     if not formats.takes_map(path):
         from fpdd.errors import DataError
 

@@ -75,13 +75,10 @@ def _read(path: str, opts: dict, reports: list, model: str):
     """Blocks of the log; its signals checked first against ``model`` (:func:`twin.models.records.check_signals`,
     naming the models whose signals the log has when it is not ``model``'s), its read report kept."""
     from replay.factory import open_source
-    from replay.quality import QualityOptions
-    from twin.models.records import check_signals, signal_specs
+    from twin.models.records import check_source, reader_options
 
-    if str(path).lower().endswith((".csv", ".csv.gz", ".mcap")) and "quality" not in opts:
-        opts = {**opts, "quality": QualityOptions(specs=signal_specs(model))}
-    with open_source(path, **opts) as src:
-        check_signals(path, src.signals, model, suggest=True)
+    with open_source(path, **reader_options(path, model, opts)) as src:
+        check_source(path, src, model, suggest=True)
         try:
             yield from src.chunks(10000)
         finally:  # the report of the reading itself (a CAN log's reader starts a fresh one for each reading)

@@ -86,6 +86,29 @@ def check_signals(path: str, names, model: str = DEFAULT_MODEL, needed=(), sugge
     raise DataError(f"{path}: {'; '.join(parts)}; the record has {', '.join(names) or 'no signals'}{hint}")
 
 
+def reader_options(path: str, model: str, options: dict) -> dict:
+    """``options`` for reading ``path`` as ``model``'s record: a file of samples (CSV, MCAP, MATLAB, text) is
+    checked against the model's own signal vocabulary (:func:`signal_specs`: the oscillator's ``u`` is a force)."""
+    from replay import formats
+    from replay.quality import QualityOptions
+
+    if formats.suffix_of(path) in formats.SAMPLE_SUFFIXES and "quality" not in options:
+        return {**options, "quality": QualityOptions(specs=signal_specs(model))}
+    return options
+
+
+def check_source(path: str, src, model: str = DEFAULT_MODEL, suggest: bool = False) -> None:
+    """:func:`check_signals` of an open source; for a CAN log the refusal also says what was looked for and what
+    its DBC has (``VectorCodec.describe_lookup``)."""
+    try:
+        check_signals(path, src.signals, model, suggest=suggest)
+    except DataError as exc:
+        codec = getattr(src, "codec", None)
+        if codec is None:
+            raise
+        raise DataError(f"{exc}; {codec.describe_lookup()}") from None
+
+
 def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL, reports: list | None = None, *,
                  map=None, **options) -> list[Record]:  # noqa: A002
     """Read any source ``replay`` knows (CSV, MCAP, CAN logs) into uniform records of ``model``.
@@ -102,7 +125,6 @@ def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL,
     """
     from replay import formats
     from replay.factory import open_source
-    from replay.quality import QualityOptions
 
     if map:
         from replay.csvio import parse_map
@@ -114,16 +136,8 @@ def load_records(path: str, name: str | None = None, model: str = DEFAULT_MODEL,
                                                      else list(map))
         options["mapping"] = parse_map(items, option="map")
 
-    if formats.suffix_of(path) in formats.SAMPLE_SUFFIXES and "quality" not in options:
-        options["quality"] = QualityOptions(specs=signal_specs(model))
-    with open_source(path, **options) as src:
-        try:
-            check_signals(str(path), src.signals, model)
-        except DataError as exc:
-            codec = getattr(src, "codec", None)  # a CAN log: what was looked for and what its DBC has
-            if codec is None:
-                raise
-            raise DataError(f"{exc}; {codec.describe_lookup()}") from None
+    with open_source(path, **reader_options(path, model, options)) as src:
+        check_source(str(path), src, model)
         samples = src.read_all()
         report = src.report
     if reports is not None:
