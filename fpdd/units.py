@@ -118,7 +118,9 @@ class SignalSpec:
         return display(self.unit)
 
 
-#: The rig signals every source maps onto, SI units.
+#: The signal names every reader recognises, SI units: the readers' common vocabulary.  A model declares its own
+#: signals (role, unit, range: ``twin.models.base.Model.SIGNALS``), and the records of a model are read and
+#: checked against its table over this one (``twin.models.records.signal_specs``).
 SIGNALS: dict[str, SignalSpec] = {
     s.name: s
     for s in (
@@ -130,8 +132,8 @@ SIGNALS: dict[str, SignalSpec] = {
         SignalSpec("F", "N", -1.0e6, 1.0e6, "rod force (load cell)"),
         SignalSpec("T_oil", "K", 233.15, 423.15, "oil temperature"),
         SignalSpec("pP", "Pa", -1.0e6, 60.0e6, "supply pressure"),
-        # the oscillator's signals (the paper's basic demonstration)
-        SignalSpec("y", "m", -10.0, 10.0, "oscillator output (displacement, or any quantity: volts "
+        # a generic measured output (a displacement, or any quantity: volts of a circuit)
+        SignalSpec("y", "m", -10.0, 10.0, "measured output (displacement, or any quantity: volts "
                    "of a circuit)", accepts=("*",), noise=1e-6),
     )
 }

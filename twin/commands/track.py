@@ -74,15 +74,42 @@ def parse_maintenance(text: str, tracked) -> tuple[float, list[str], str]:
 def _read(path: str, opts: dict, reports: list, model: str):
     """Blocks of the log; its signals checked first against ``model`` (:func:`twin.models.records.check_signals`,
     naming the models whose signals the log has when it is not ``model``'s), its read report kept."""
+    from fpdd.errors import DataError
     from replay.factory import open_source
     from twin.models.records import check_source, reader_options
 
-    with open_source(path, **reader_options(path, model, opts)) as src:
+    try:
+        src = open_source(path, **reader_options(path, model, opts))
+    except DataError as exc:  # e.g. a force in N where the model's drive is a voltage: whose record is it?
+        other = _model_of_record(path, opts, model)
+        if other is None:
+            raise
+        raise DataError(f"{exc}; it reads as a record of the {other} model, not of the {model} model: "
+                        f"--model {other}") from None
+    with src:
         check_source(path, src, model, suggest=True)
         try:
             yield from src.chunks(10000)
         finally:  # the report of the reading itself (a CAN log's reader starts a fresh one for each reading)
             reports.append(src.report)
+
+
+def _model_of_record(path: str, opts: dict, model: str) -> str | None:
+    """The first other trackable model whose signals the log at ``path`` has, read with that model's table."""
+    from fpdd.errors import DataError
+    from replay.factory import open_source
+    from twin.models.records import check_source, reader_options
+
+    for other in trackable_models():
+        if other == model:
+            continue
+        try:
+            with open_source(path, **reader_options(path, other, opts)) as src:
+                check_source(path, src, other)
+        except DataError:
+            continue
+        return other
+    return None
 
 
 def run(args) -> int:

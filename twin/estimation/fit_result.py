@@ -155,7 +155,9 @@ class FitResult:
             raise ConfigError(f"{path}: expected the JSON object twin fit --save writes (model, params, ...)")
         nan = math.nan
         try:
-            model = get_model(str(doc.get("model", "msp25")))
+            from twin.models import DEFAULT_MODEL
+
+            model = get_model(str(doc.get("model", DEFAULT_MODEL)))
             ps = model.params(effects=tuple(doc.get("effects") or ()))
             values: dict[str, float | str] = {}
             std: dict[str, float] = {}

@@ -1,6 +1,6 @@
 """Healthy baselines of the drift test: each tracked parameter's value and band.
 
-From the rig's values (:func:`default_baseline`: the paper's Table 9 for the MSP25, each band as wide as the
+From the rig's values (:func:`default_baseline`: the model's nominal values, each band as wide as the
 parameter's tracking band declared beside its spec, :class:`twin.params.Tracking`), or from a commissioning
 fit (:func:`baseline_from_fit`).  Light to import: the rig configuration reads it."""
 
@@ -36,7 +36,7 @@ def default_band(model_name: str, name: str) -> float:
 
 def default_baseline(model_name: str, params: Mapping[str, float] | None = None,
                      names: Sequence[str] | None = None) -> dict[str, Baseline]:
-    """Bands around the rig's values (the paper's Table 9 for the MSP25), each as wide as its spec's
+    """Bands around the rig's values (the model's nominal ones), each as wide as its spec's
     tracking band."""
     model = get_model(model_name)
     ps = model.params((), **dict(params or {}))

@@ -45,7 +45,7 @@ statistic is capped at ``3 h_alarm`` so a parameter that comes back is
 declared returned within a bounded time.
 
 Baselines (:class:`twin.online.baseline.Baseline`) come from the rig's values (:func:`~twin.online.baseline.default_baseline`:
-the paper's Table 9 for the MSP25, with each parameter's healthy band declared
+the model's nominal values, with each parameter's healthy band declared
 beside its spec in the model, :class:`twin.params.Tracking`), the rig
 configuration, or a commissioning fit (:func:`~twin.online.baseline.baseline_from_fit`).
 """

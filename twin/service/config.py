@@ -417,10 +417,11 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     else:
         baseline = default_baseline(model_name, params, track)
     noise: dict[str, float] = {}
+    measured = tuple(model.FILTER.measures) if model.FILTER is not None else NOISE_KEYS  # the rig model's outputs
     for k, v in _get(r, "noise", dict, where, {}).items():
-        if k not in NOISE_KEYS:
-            raise ConfigError(f"{where}.noise: unknown output {k!r}; known: {', '.join(NOISE_KEYS)}"
-                              f"{suggest(k, NOISE_KEYS)}")
+        if k not in measured:
+            raise ConfigError(f"{where}.noise: unknown output {k!r} of the {model_name} model; known: "
+                              f"{', '.join(measured)}{suggest(k, measured)}")
         if isinstance(v, str):
             from twin.units import to_si
 

@@ -1,6 +1,6 @@
 """Diagnose what a simulation gets wrong: name the physical cause, extend the model, measure the gain.
 
-The method (``twin diagnose DATA --model msp25|oscillator``):
+The method (``twin diagnose DATA --model NAME``, any registered model):
 
 1. **Split** every record: the first ``1 - holdout`` (75 %) is fitting data, the
    rest is held out; held-out figures come from simulating the whole record
