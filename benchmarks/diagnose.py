@@ -60,7 +60,7 @@ def _reference_records(duration_s: float):
         from diag_reference import reference_record
     except ImportError:
         return []
-    out = []
+    out: list[tuple] = []
     for label, effects, ctrl, expect in (("reference, healthy", (), "digital", []),
                                          ("reference, one effect", ("viscous_friction",), "digital",
                                           ["viscous_friction"]),
@@ -87,7 +87,7 @@ def _emps_case():
 
 
 def _cases(duration_s: float, quick: bool):
-    cases = [("product, one effect", "msp25", _product_record(("viscous_friction",), duration_s, 12),
+    cases: list[tuple] = [("product, one effect", "msp25", _product_record(("viscous_friction",), duration_s, 12),
               ["viscous_friction"], {})]
     if not quick:
         cases += _reference_records(duration_s) + _emps_case()
