@@ -420,12 +420,13 @@ def test_mcap_layout_is_what_foxglove_plots(tmp_path: Path) -> None:
             assert (ch.message_encoding, schema.encoding, schema.name) == ("json", "jsonschema", schema_name)
             assert ch.metadata["signals"] == "x,pA" and ch.metadata["units"] == "m,Pa"
         props = json.loads(summary.schemas[topics[SIGNALS_TOPIC].schema_id].data)["properties"]
-        assert set(props) == {"t", "timestamp", "x", "pA"} and props["timestamp"]["title"] == "time"
+        assert set(props) == {"t", "timestamp", "rig", "x", "pA", "display"} and props["timestamp"]["title"] == "time"
         counts = summary.statistics.channel_message_counts
         assert counts[topics[SIGNALS_TOPIC].id] == 1500 and counts[topics[BLOCK_TOPIC].id] == 2
         _, _, msg = next(reader.iter_messages(topics=[SIGNALS_TOPIC]))
         first = json.loads(msg.data)
-        assert set(first) == {"t", "timestamp", "x", "pA"} and first["t"] == msg.log_time * 1e-9
+        assert set(first) == {"t", "timestamp", "rig", "x", "pA", "display"} and first["t"] == msg.log_time * 1e-9
+        assert first["rig"] == "layout" and first["display"] == {"x": first["x"] * 1e3, "pA": first["pA"] * 1e-6}
         assert first["timestamp"]["sec"] * 10**9 + first["timestamp"]["nsec"] == msg.log_time
         # each flush is its own chunks: block chunks hold no per-sample messages
         block_chunks = [ci for ci in summary.chunk_indexes if topics[BLOCK_TOPIC].id in ci.message_index_offsets]

@@ -42,7 +42,8 @@ def _log(path, duration, drifts, seed=0):
 
 def test_demo_end_to_end(tmp_path):
     lines = []
-    s = run_demo(str(tmp_path / "demo"), duration_s=40.0, speed=0.0, t_start=10.0, t_end=30.0, say=lines.append)
+    s = run_demo(str(tmp_path / "demo"), duration_s=40.0, speed=0.0, factor=30.0, t_start=10.0, t_end=30.0,
+                 shape="ramp", say=lines.append)
     leak = [a for a in s["alarms"] if a["parameter"] == "CdAleak" and a["level"] == "alarm"]
     assert leak and 0.0 <= s["detection_delay_s"] <= 5.0
     assert s["false_alarms"] == []
@@ -60,6 +61,26 @@ def test_demo_end_to_end(tmp_path):
         topics = {ch.topic for _, ch, _ in make_reader(f).iter_messages()}
     assert {"/twin/estimate", "/twin/alarm", "/twin/status"} <= topics
     assert [a["seq"] for a in alarms] == [a["seq"] for a in s["alarms"]]
+
+
+@pytest.mark.slow
+def test_demo_warns_early_and_its_files_fill_the_foxglove_layout(tmp_path):
+    """The demo as shipped (150 s, the leakage growing geometrically from 30 s): the forecast's early warning comes
+    before the leakage leaves its band, the alarm after; the twin's MCAP fills every panel of the demo's layout,
+    the forecast's too."""
+    from test_recorded_layout import check_file
+
+    s = run_demo(str(tmp_path / "demo"), speed=0.0, say=lambda _: None)
+    cross = s["truth"]["crosses_band_at_s"]
+    assert s["early_warning_s"] is not None and s["early_warning_s"] < cross < s["first_alarm_s"]
+    fc = s["first_forecast"]
+    assert fc["parameter"] == "CdAleak" and fc["t"] < cross and fc["t_exit_lo"] <= cross <= fc["t_exit_hi"]
+    assert s["false_alarms"] == [] and s["received_by_subscriber"] == len(s["alarms"])
+    layout = json.loads(Path(s["files"]["foxglove_layout"]).read_text(encoding="utf-8"))
+    counts = check_file(s["files"]["twin_mcap"], layout)
+    assert counts["/twin/forecast"] >= 1 and counts["/twin/alarm_log"] == len(s["alarms"])
+    check_file(s["files"]["rig_mcap"], layout, every=500, optional_panels=tuple(
+        p for p in layout["configById"] if p not in ("Plot!position", "Plot!pressures")))
 
 
 def test_twin_track_json_names_the_fault_and_its_time(tmp_path, capsys):

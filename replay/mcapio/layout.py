@@ -10,15 +10,18 @@ convention of :mod:`replay.base`).
 
 ``/rig/signals`` -- schema ``fpdd.RigSignals``, one message per sample::
 
-    {"t": 12.345, "timestamp": {"sec": 12, "nsec": 345000000},
-     "x_ref": 0.01, "u": 0.2, "x": 0.0099, "pA": 2.1e6, "pB": 1.9e6}
+    {"t": 12.345, "timestamp": {"sec": 12, "nsec": 345000000}, "rig": "hall1-a",
+     "x_ref": 0.01, "u": 0.2, "x": 0.0099, "pA": 2.1e6, "pB": 1.9e6,
+     "display": {"x_ref": 10.0, "u": 0.2, "x": 9.9, "pA": 2.1, "pB": 1.9}}
 
   ``t`` is the sample time in seconds (``log_time / 1e9``, for plotting only: readers
   take the exact time from ``log_time``), ``timestamp`` the same time exactly as the
   Foxglove ``time`` type (:data:`TIME_SCHEMA`), every other field a signal in its SI unit
   (:data:`fpdd.units.SIGNALS`; a non-finite value is written as ``null``).  Foxglove
-  plots ``/rig/signals.x`` directly.  The channel metadata ``signals`` and ``units``
-  list the fields in order (comma separated).
+  plots ``/rig/signals.x`` directly.  ``rig`` is the rig's name (the layout of the live view selects
+  ``/rig/signals{rig==$rig}``) and ``display`` the same signals in display units (x in mm, pressures in MPa:
+  :data:`fpdd.units.DISPLAY`), which the layout's plots read.  The channel metadata ``signals`` and ``units``
+  list the fields in order (comma separated), ``rig`` and ``display_units`` the rest.
 
 ``/rig/signals_block`` -- schema ``fpdd.RigSignalsBlock``, one message per block of
 samples (at most one flush period, 1 s by default), the same samples as

@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from fpdd.units import SIGNALS
+from fpdd.units import SIGNALS, display
 from replay.base import Samples, Sink
 from fpdd.errors import DataError, SourceError
 from replay.mcapio.layout import (BLOCK_TOPIC, LAYOUT_METADATA, LAYOUT_VERSION, SIGNALS_TOPIC, TIME_FIELD,
@@ -43,7 +43,7 @@ class McapSink(Sink):
     def __init__(self, path: str | os.PathLike, signals: Sequence[str] | None = None, *,
                  per_sample: bool = True, block: bool = True, flush_period_s: float = 1.0,
                  flush_messages: int = 10_000, compression: str = "zstd",
-                 metadata: Mapping[str, str] | None = None) -> None:
+                 metadata: Mapping[str, str] | None = None, rig: str | None = None) -> None:
         if not flush_period_s > 0:
             raise ValueError(f"flush_period_s (={flush_period_s}) must be > 0 s")
         if flush_messages < 1:
@@ -53,6 +53,7 @@ class McapSink(Sink):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression {compression!r} unknown, expected one of {sorted(_COMPRESSION)}")
         self.path = str(path)
+        self.rig = str(rig or (metadata or {}).get("rig") or _stem(self.path))
         self._signals: tuple[str, ...] | None = tuple(signals) if signals is not None else None
         self._per_sample = per_sample
         self._block = block
@@ -76,6 +77,7 @@ class McapSink(Sink):
         self._layout_written = False
         self._unflushed = 0  # messages since the last flush
         self._closed = False
+        self._rows_by_message = False  # /rig/signals written as messages (a twin's decimated signals)
 
     # -- channels ------------------------------------------------------------------------------
 
@@ -95,10 +97,12 @@ class McapSink(Sink):
             self._writer.add_metadata(LAYOUT_METADATA, {
                 "version": LAYOUT_VERSION, "signals_topic": SIGNALS_TOPIC if self._per_sample else "",
                 "block_topic": BLOCK_TOPIC if self._block else "", "block_max_span_ns": str(self._period_ns)})
-        meta = {"signals": ",".join(self._signals),
-                "units": ",".join(SIGNALS[s].unit if s in SIGNALS else "" for s in self._signals)}
+        units = [SIGNALS[s].unit if s in SIGNALS else "" for s in self._signals]
+        meta = {"signals": ",".join(self._signals), "units": ",".join(units)}
         block = self._channel(BLOCK_TOPIC, block_schema(self._signals), meta) if self._block else None
-        per = self._channel(SIGNALS_TOPIC, signals_schema(self._signals), meta) if self._per_sample else None
+        per = self._channel(SIGNALS_TOPIC, row_schema(self._signals), {
+            **meta, "rig": self.rig, "display_units": ",".join(display(u)[0] for u in units)}) \
+            if self._per_sample else None
         return block, per
 
     # -- Sink ----------------------------------------------------------------------------------
@@ -107,6 +111,9 @@ class McapSink(Sink):
         """Buffer a block of samples (time ordered); flush every period of sample time."""
         if self._closed:
             raise SourceError(f"{self.path}: write after close")
+        if self._rows_by_message:
+            raise DataError(f"{self.path}: {SIGNALS_TOPIC} is written message by message (write_message) in "
+                            "this file, not by write()")
         if self._signals is None:
             self._signals = samples.names
             self._sample_channels()
@@ -143,20 +150,25 @@ class McapSink(Sink):
             i += cut
 
     def write_message(self, topic: str, t_ns: int, payload: Mapping[str, Any], *,
-                      schema: Mapping[str, Any] | None = None) -> None:
+                      schema: Mapping[str, Any] | None = None, metadata: Mapping[str, str] | None = None) -> None:
         """Write one JSON message on ``topic`` at ``t_ns`` (ns).
 
         The schema is registered on first use of the topic: ``schema`` (a JSON Schema
         dict) or one derived from the payload's fields, titled ``fpdd`` + topic with
-        dots (``/twin/alarm`` -> ``fpdd.twin.alarm``).
+        dots (``/twin/alarm`` -> ``fpdd.twin.alarm``); ``metadata``: the channel's, on first use.
+        ``/rig/signals`` may be written so (a twin's decimated signals, as the live view shows them, the
+        channel's ``signals`` metadata naming the signal fields) in a file whose samples :meth:`write` does not
+        write.
         """
         if self._closed:
             raise SourceError(f"{self.path}: write after close")
-        if topic in (SIGNALS_TOPIC, BLOCK_TOPIC):
+        if topic == BLOCK_TOPIC or (topic == SIGNALS_TOPIC and self._signals is not None):
             raise DataError(f"{self.path}: topic {topic!r} is written by write(), not write_message()")
+        if topic == SIGNALS_TOPIC:
+            self._rows_by_message = True
         if topic not in self._channels:
             title = "fpdd" + topic.replace("/", ".")
-            self._channel(topic, with_time_schema(schema or generic_schema(title, payload)))
+            self._channel(topic, with_time_schema(schema or generic_schema(title, payload)), metadata)
         t_ns = int(t_ns)
         if TIME_FIELD not in payload:
             payload = {**payload, TIME_FIELD: foxglove_time(t_ns)}
@@ -210,23 +222,49 @@ class McapSink(Sink):
         if per_ch is not None:
             add = self._writer.add_message
             for t, data in zip(t_ns.tolist(), _json_rows(t_ns, [block.signals[k] for k in self._signals],
-                                                          self._signals)):
+                                                          self._signals, self.rig)):
                 add(per_ch, t, data, t)
         self._unflushed += len(block)
         self._last_flush_ns = int(t_ns[-1])
         self._latest_ns = self._last_flush_ns if self._latest_ns is None else max(self._latest_ns, self._last_flush_ns)
 
 
-def _json_rows(t_ns: np.ndarray, cols: list[np.ndarray], names: Sequence[str]) -> list[bytes]:
-    """One compact JSON object per sample, floats in shortest round-trip form."""
-    fmt = '{"t":%s,"timestamp":{"sec":%d,"nsec":%d}' + "".join(f',"{k}":%s' for k in names) + "}"
+def _stem(path: str) -> str:
+    name = os.path.basename(path)
+    return name[:-5] if name.lower().endswith(".mcap") else name
+
+
+def row_schema(signals: Sequence[str]) -> dict:
+    """JSON Schema of the ``/rig/signals`` rows :class:`McapSink` writes: :func:`signals_schema` with the rig's
+    name (``rig``) and the signals in display units (``display``: x in mm, pressures in MPa, as the live
+    view's ``/rig/signals`` and Foxglove's layout read them)."""
+    out = signals_schema(signals)
+    shown = {}
+    for name in signals:
+        spec = SIGNALS.get(name)
+        shown[name] = {"type": ["number", "null"],
+                       "description": f"{spec.meaning}, {display(spec.unit)[0]}" if spec else "extra signal"}
+    out["properties"] = {**out["properties"], "rig": {"type": "string", "description": "the rig's name"},
+                         "display": {"type": "object", "properties": shown, "required": list(signals),
+                                     "description": "the signals in display units (SI x the display scale of "
+                                                    "fpdd.units.DISPLAY: x in mm, pressures in MPa)"}}
+    out["required"] = [*out["required"], "rig", "display"]
+    return out
+
+
+def _json_rows(t_ns: np.ndarray, cols: list[np.ndarray], names: Sequence[str], rig: str = "") -> list[bytes]:
+    """One compact JSON object per sample, floats in shortest round-trip form: the time, the rig's name, the
+    signals in SI, and the same in display units under ``display``."""
+    fmt = ('{"t":%s,"timestamp":{"sec":%d,"nsec":%d},"rig":' + json.dumps(rig).replace("%", "%%")
+           + "".join(f',"{k}":%s' for k in names) + ',"display":{'
+           + ",".join(f'"{k}":%s' for k in names) + "}}")
     sec, nsec = np.divmod(t_ns, 1_000_000_000)
     strs = [list(map(repr, (t_ns * 1e-9).tolist())), sec.tolist(), nsec.tolist()]
-    for c in cols:
+    scales = [display(SIGNALS[k].unit)[1] if k in SIGNALS else 1.0 for k in names]
+    for c in [*cols, *(c * k if k != 1.0 else c for c, k in zip(cols, scales))]:
         s = list(map(repr, c.tolist()))
         bad = np.flatnonzero(~np.isfinite(c))
         for i in bad.tolist():
             s[i] = "null"
         strs.append(s)
     return [(fmt % row).encode() for row in zip(*strs)]
-

@@ -1,8 +1,11 @@
 """``twin demo``: the end-to-end main job on an embedded default, nothing to install beyond the package.
 
-1. Simulate an MSP25 rig (the paper's Table 9) running a multisine test while
-   its piston seal wears: the cross-piston leakage ``CdAleak`` grows 30-fold
-   (toward a litre per minute at 10 MPa); sensors with realistic noise.
+1. Simulate an MSP25 rig (the paper's Table 9) running a multisine test for
+   150 s while its piston seal wears: after 30 s of healthy running the
+   cross-piston leakage ``CdAleak`` grows geometrically, 6-fold by the end, so
+   that it leaves its healthy band (3x) at 104 s; sensors with realistic noise.
+   The wear is slow enough for the early warning to speak first: the forecast
+   needs 30 s to settle and a minute of trend.
 2. Log it to MCAP, as a rig's recorder would.
 3. Start the service on an in-process Zenoh peer (loopback, explicit endpoint,
    multicast scouting off) and replay the log through it in real time or
@@ -10,8 +13,9 @@
 4. A subscriber on a second Zenoh session prints the alarms as they arrive
    (history first, then live).
 5. Write the report: parameter trends with the healthy band and the alarms
-   (PNG, like the paper's Fig. 4), an HTML page, and the twin's MCAP
-   (estimates, alarms, statuses) that Foxglove plots.
+   (PNG, like the paper's Fig. 4), an HTML page, the twin's MCAP (estimates,
+   alarms, statuses, forecasts, the alarms' lines and the decimated signals)
+   and the Foxglove layout of the rig (``foxglove-layout.json``) that plots it.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float):
+def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_end: float, shape: str = "exp"):
     from twin.models import DEFAULT_MODEL, get_model
     from twin.models.scenario import Drift, simulate_wear
     from fpdd.units import NOMINAL_NOISE
@@ -45,14 +49,14 @@ def make_record(duration_s: float, seed: int, factor: float, t_start: float, t_e
 
     model = get_model(DEFAULT_MODEL)
     name, xr = excite(model, duration_s, 1e-3, seed=seed)
-    drift = Drift("CdAleak", factor, t_start, t_end, "ramp")
+    drift = Drift("CdAleak", factor, t_start, t_end, shape)
     noise = {k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}
     rec, P = simulate_wear(model.params(), xr, 1e-3, [drift], noise=noise, seed=seed, name="demo-rig")
     return rec, P, drift
 
-def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.0, seed: int = 0,
-        factor: float = 30.0, t_start: float = 15.0, t_end: float = 45.0, rig_name: str = "msp25-demo",
-        say=print) -> dict:
+def run(out_dir: str = "fpdd-demo", duration_s: float = 150.0, speed: float = 20.0, seed: int = 0,
+        factor: float = 6.0, t_start: float = 30.0, t_end: float = 150.0, rig_name: str = "msp25-demo",
+        say=print, shape: str = "exp") -> dict:
     import zenoh
 
     from replay.mcapio import McapSink
@@ -65,14 +69,15 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
 
     os.makedirs(out_dir, exist_ok=True)
     t0 = time.perf_counter()
-    say(f"1/5 simulating {duration_s:.0f} s of an MSP25 at 1 kHz; CdAleak ramps x{factor:g} "
+    grows = "grows geometrically" if shape == "exp" else {"ramp": "ramps", "step": "steps"}.get(shape, shape)
+    say(f"1/5 simulating {duration_s:.0f} s of an MSP25 at 1 kHz; CdAleak {grows} x{factor:g} "
         f"from t={t_start:g} s to {t_end:g} s")
-    rec, P, drift = make_record(duration_s, seed, factor, t_start, t_end)
+    rec, P, drift = make_record(duration_s, seed, factor, t_start, t_end, shape)
     from twin.online.tracker import OnlineTracker
 
     OnlineTracker().process(rec.to_samples().slice(0, 10))  # compile (or load) the filter before the clock runs
     log_path = os.path.join(out_dir, "rig.mcap")
-    with McapSink(log_path) as sink:
+    with McapSink(log_path, rig=rig_name) as sink:
         sink.write(rec.to_samples())
     say(f"2/5 logged {len(rec)} samples to {log_path}")
 
@@ -120,6 +125,8 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
     say(f"5/5 report: {paths['html']}")
     t_cross = drift.crossing(get_model(DEFAULT_MODEL).NOMINAL["CdAleak"], baseline["CdAleak"].lo, baseline["CdAleak"].hi, rec.t_s)
     first = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "alarm"), None)
+    early = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "early"), None)
+    forecast = next((f for f in twin.forecasts if f.parameter == "CdAleak"), None)
     summary = {
         "rig": rig_name, "samples": stats[rig_name].samples, "duration_s": duration_s, "speed": speed,
         "truth": {"parameter": "CdAleak", "factor": factor, "t_start_s": t_start, "t_end_s": t_end,
@@ -128,6 +135,9 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 60.0, speed: float = 20.
         "received_by_subscriber": len(received),
         "first_alarm_s": first.t_s if first else None,
         "detection_delay_s": (first.t_s - t_cross) if (first and t_cross is not None) else None,
+        "first_forecast": forecast.to_dict() if forecast is not None else None,
+        "early_warning_s": early.t_s if early else None,
+        "forecasts": len(twin.forecasts),
         "false_alarms": [a.parameter for a in alarms if a.parameter != "CdAleak" and a.level != "ok"],
         "final": twin.final_estimates(),
         "service_us_per_sample": 1e6 * stats[rig_name].busy_s / max(stats[rig_name].samples, 1),
@@ -164,18 +174,23 @@ def report(out_dir, rec, P, twin, drift, baseline) -> dict:
               "std": fmt(shown(n, d["unit"])(d["std"]), 2), "unit": shown(n, d["unit"]).unit_text}
              for n, d in twin.final_estimates().items()]
     html = html_report.write(os.path.join(out_dir, "report.html"), "fpdd-twin demo: a wearing MSP25 rig", [
-        ("Scenario", f"<p>Cross-piston leakage CdAleak grows x{drift.factor:g} from t = {drift.t_start:g} s "
+        ("Scenario", f"<p>Cross-piston leakage CdAleak grows x{drift.factor:g} "
+                     f"({'geometrically' if drift.shape == 'exp' else drift.shape}) from t = {drift.t_start:g} s "
                      f"to {drift.t_end:g} s; sensors: x 2 µm, pA/pB 20 kPa noise; 1 kHz.</p>"),
         ("Alarms (as journaled and published over Zenoh)", html_report.table(rows)),
         ("Parameter trends", html_report.image(png, "estimates ±2σ, truth dashed, healthy band shaded")),
         ("Final estimates", html_report.table(final)),
     ])
+    from twin.service.live_view.layout import write_layout
+
+    layout = write_layout(os.path.join(out_dir, "foxglove-layout.json"), rig=twin.rig.name, model=twin.rig.model)
     return {"html": html, "trends_png": png, "rig_mcap": os.path.join(out_dir, "rig.mcap"),
-            "twin_mcap": os.path.join(out_dir, f"{twin.rig.name}.twin.mcap")}
+            "twin_mcap": os.path.join(out_dir, f"{twin.rig.name}.twin.mcap"), "foxglove_layout": layout}
 
 def add_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="fpdd-demo", help="report directory (default fpdd-demo)")
-    p.add_argument("--duration", type=float, default=60.0, help="simulated seconds (default 60)")
+    p.add_argument("--duration", type=float, default=150.0,
+                   help="simulated seconds (default 150: the wear starts at 30 s, leaves the band at 104 s)")
     p.add_argument("--speed", type=float, default=20.0, help="replay speed, x real time (default 20; 0 = as fast as possible)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -191,11 +206,19 @@ def run_demo(args) -> int:
     print("\nfinal estimates:")
     for n, d in summary["final"].items():
         print("  " + fmt_estimate(n, d["value"], d["std"]))
+    if summary["early_warning_s"] is not None:
+        fc = summary["first_forecast"]
+
+        def at(v) -> str:
+            return "never" if v is None else f"{v:.0f}"
+        print(f"early warning at t = {summary['early_warning_s']:.2f} s: CdAleak forecast to leave its band at "
+              f"t = {at(fc['t_exit'])} s (90 % interval {at(fc['t_exit_lo'])} .. {at(fc['t_exit_hi'])} s)")
     if summary["detection_delay_s"] is not None:
         print(f"CdAleak left its healthy band at t = {summary['truth']['crosses_band_at_s']:.2f} s; "
               f"alarm at t = {summary['first_alarm_s']:.2f} s ({summary['detection_delay_s']:.2f} s later)")
     print(f"false alarms: {summary['false_alarms'] or 'none'}; service busy {summary['service_us_per_sample']:.1f} "
           "us per sample (filter, drift test, publishing); "
           f"demo took {summary['wall_s']:.1f} s")
-    print(f"report: {summary['files']['html']}")
+    print(f"report: {summary['files']['html']}; in Foxglove: {summary['files']['twin_mcap']} with the layout "
+          f"{summary['files']['foxglove_layout']}")
     return 0

@@ -318,6 +318,8 @@ class RigTwin(Sink):
         t_start = time.perf_counter()
         if self._t0_ns is None:
             self._t0_ns = int(samples.t_ns[0])
+        if self.recorder is not None and hasattr(self.recorder, "signals"):  # the live view's decimated signals
+            self.recorder.signals(samples)
         out = self.tracker.process(samples)
         if len(out.t_ns):
             self._last_row = (out.estimates[-1], out.interval_stds[-1])

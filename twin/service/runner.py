@@ -84,9 +84,10 @@ class RigRunner(LiveInput, LiveTime, Commissioner, Checkpoints):
 
     def _open(self) -> None:
         if self.cfg.out_dir:
-            from replay.mcapio import McapSink
+            from twin.service.live_view.record import TwinRecording
 
-            self.recorder = McapSink(_free_name(Path(self.cfg.out_dir), f"{self.rig.name}.twin", ".mcap"))
+            self.recorder = TwinRecording(_free_name(Path(self.cfg.out_dir), f"{self.rig.name}.twin", ".mcap"),
+                                          self.rig.name, self.rig.model, parameters=self.rig.track)
         saved = self._saved_commission()
         self.twin = make_twin(self.rig, self.outbox, self.recorder, self.cfg.estimate_every)
         if self.keep is not None:

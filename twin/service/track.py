@@ -124,8 +124,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``map``: a log's columns under other names or units, as ``--map`` (``{"x": "pos_mm:mm", "t": "time:ms"}`` or
     ``["x=pos_mm:mm"]``); default the map the commissioning fit was read with (``twin fit --map ... --save``).
     """
-    from replay.mcapio import McapSink
     from twin.online.baseline import default_baseline
+    from twin.service.live_view.record import TwinRecording
     from twin.service.config import RigConfig
     from twin.models import DEFAULT_MODEL, get_model
     from twin.service.rig import RigTwin
@@ -147,7 +147,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     rec = None
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)
-        rec = McapSink(os.path.join(out_dir, f"{rig_name}.twin.mcap"))
+        rec = TwinRecording(os.path.join(out_dir, f"{rig_name}.twin.mcap"), rig_name, model, parameters=tracked,
+                            layout=os.path.join(out_dir, f"{rig_name}.foxglove-layout.json"))
     every = max(1, int(estimate_every))
     twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
     if noise or timing is not None or commission is not None:

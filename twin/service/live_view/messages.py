@@ -160,6 +160,16 @@ def estimate_message(ev) -> dict:
     return {**ev.to_dict(), "timestamp": foxglove_time(ev.t_ns)}
 
 
+def alarm_log_message(ev, model: str = DEFAULT_MODEL) -> dict:
+    """The ``/twin/alarm_log`` message (``foxglove.Log``, :data:`LOG_SCHEMA`) of an
+    :class:`~twin.online.events.AlarmEvent`: the line a person reads (display units,
+    :func:`twin.online.events.format_alarm`), live and in the twin's MCAP alike."""
+    from twin.online.events import format_alarm
+
+    return {"timestamp": foxglove_time(ev.t_ns), "level": LOG_LEVEL.get(ev.level, 2),
+            "message": format_alarm(ev, model=model), "name": ev.rig, "file": "", "line": 0}
+
+
 class SignalFields:
     """How one rig's signals become ``/rig/signals`` messages (:func:`signals_schema`): per signal its SI unit
     and its display unit and scale, for the signals of a block (``names``) of ``model``'s records."""

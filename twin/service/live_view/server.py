@@ -14,8 +14,8 @@ from twin.service.publisher import Publisher
 if TYPE_CHECKING:
     from twin.online.events import AlarmEvent, EstimateEvent, StatusEvent
     from foxglove.websocket import WebSocketServer
-from twin.service.live_view.messages import (LOG_LEVEL, SUBPROTOCOLS, SignalFields, estimate_message, foxglove_time,
-                                             topics)
+from twin.service.live_view.messages import (SUBPROTOCOLS, SignalFields, alarm_log_message, estimate_message,
+                                             foxglove_time, topics)
 from twin.service.live_view.signals import signals_from_json, signals_key
 
 
@@ -173,13 +173,12 @@ class LiveView:
         """An :class:`~twin.online.events.AlarmEvent` (or its dict): on ``/twin/alarm`` the event's message (SI,
         unit beside, with the Foxglove ``timestamp``), on ``/twin/alarm_log`` the line a person reads (display
         units, :func:`twin.online.events.format_alarm`); its band becomes the rig's."""
-        from twin.online.events import AlarmEvent, format_alarm
+        from twin.online.events import AlarmEvent
 
         e = ev if isinstance(ev, AlarmEvent) else AlarmEvent.from_dict(_as_dict(ev))
         self.set_band(e.rig, e.parameter, (e.band_lo, e.band_hi, e.baseline))
         stamp = foxglove_time(e.t_ns)
-        log = {"timestamp": stamp, "level": LOG_LEVEL.get(e.level, 2), "message": format_alarm(e, model=self.model),
-               "name": e.rig, "file": "", "line": 0}
+        log = alarm_log_message(e, self.model)
         with self._lock:
             self._log("alarm", {**e.to_dict(), "timestamp": stamp}, e.t_ns)
             self._log("alarm_log", log, e.t_ns)
