@@ -71,6 +71,10 @@ def open_source(path_or_uri: str | os.PathLike, **options: Any) -> Source:
     """
     text = os.fspath(path_or_uri)
     scheme = _scheme(text)
+    if scheme == "can" and options.get("mapping"):  # a live bus decoded with your own DBC's names mapped
+        from replay.can.codec import VectorCodec
+
+        options["dbc"] = VectorCodec(options.get("dbc"), mapping=options.pop("mapping"))
     if scheme in URI_SCHEMES:
         return formats.load(URI_SCHEMES[scheme])(text, **options)
     if scheme is not None:

@@ -566,3 +566,14 @@ def test_twin_track_reads_own_dbc_through_map(tmp_path, capsys):
     assert runs[0]["samples"] == runs[1]["samples"] == len(samples)
     for name, d in runs[1]["final"].items():
         assert runs[0]["final"][name]["value"] == pytest.approx(d["value"], rel=1e-9), name
+
+
+def test_live_bus_takes_the_same_map(tmp_path):
+    """``can://`` with your own DBC: the same --map (rigs.toml ``map``) names its signals."""
+    from replay.factory import open_source
+
+    dbc = _foreign_dbc(tmp_path / "vendor.dbc")
+    with open_source("can://virtual/own_dbc_map", dbc=str(dbc), timeout_s=0.1,
+                     mapping={"MyPosSignal": ("x", "mm"), "ValveCmd": "u", "ChamberA": ("pA", "bar")}) as src:
+        assert src.codec.rig_signals == ("u", "x", "pA")
+        assert src.codec.message_of("x").name == "AxisPosition"
