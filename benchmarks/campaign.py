@@ -276,7 +276,31 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
     fig["lead_fraction"] = {"median": med, "lo": lo, "hi": hi, "with_early_alarm": sum(v is not None for v in leads),
                             "records": len(leads)}
     fig["commission_refused"] = sum(d["commission_refused"] is not None for d in draws)
+    fig["composition"] = composition(draws)
     return fig
+
+
+def composition(draws: Sequence[dict[str, Any]]) -> dict[str, dict[str, int]]:
+    """How many draws had each controller, start, geometry, noise colour and excitation kind (a draw counts once
+    per kind it runs)."""
+    def count(key) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for d in draws:
+            for k in key(d["scenario"]):
+                out[k] = out.get(k, 0) + 1
+        return dict(sorted(out.items()))
+
+    return {
+        "controller": count(lambda s: [s["controller"]["type"] + " " + ("analog" if s["controller"]["timing"] == "analog"
+                                                                         else f"{s['controller']['rate_hz'] / 1e3:g} kHz")]),
+        "start": count(lambda s: [s["start"]]),
+        "geometry": count(lambda s: [s["rig"]["geometry"]]),
+        "noise": count(lambda s: ["AR(1)" if s["noise"]["tau"] > 0 else "white"]),
+        "excitation": count(lambda s: sorted(set(s["excitation"]["order"]))),
+        "event": count(lambda s: [s["wear"]["parameter"] + " " + s["wear"]["shape"] if s["wear"] else
+                                  "sensor " + s["sensor"]["sensor"] + " " + s["sensor"]["term"] if s["sensor"] else
+                                  "specimen " + s["specimen"]["change"] if s["specimen"] else "healthy"]),
+    }
 
 
 # --- output -------------------------------------------------------------------------------------------------------
@@ -332,6 +356,8 @@ def table(res: dict[str, Any]) -> str:
         lines.append(f"  lead / wear median {lf['median']:.2f} [{lf['lo']:.2f}, {lf['hi']:.2f}] over "
                      f"{lf['with_early_alarm']} of {lf['records']} wears with an early alarm")
     lines.append(f"commissioning refused (started cold)     {f['commission_refused']}")
+    for k, c in f.get("composition", {}).items():
+        lines.append(f"draws by {k}: " + ", ".join(f"{n} {v}" for n, v in c.items()))
     for d in f.get("failed", []):
         lines.append(f"failed draw: seed {d['seed']} ({d['what']}): {d['error']}")
     return "\n".join(lines)
