@@ -14,6 +14,13 @@ from replay.can.codec import EFF_FLAG, Frames, VectorCodec
 from fpdd.errors import DataError
 
 
+#: Nominal values of a status message's rig signals, for a record that carries some of the message's signals but
+#: not these (a CAN frame carries all its fields): the MSP25's supply pressure (28 MPa) and its oil at the
+#: temperature its parameters hold at (``T_ref``, 40 degC), the model's own defaults, so that a log read back gives
+#: the model what it assumes without them. A record with none of a message's signals gets no such message.
+NOMINAL_STATUS: dict[str, float] = {"pP": 28e6, "T_oil": 313.15}
+
+
 class FrameScheduler:
     """Turns sample blocks into CAN frames following the DBC (shared by log and bus sinks).
 
@@ -21,8 +28,9 @@ class FrameScheduler:
     sent on the first sample of every P-long slot counted from the first sample) or on
     every sample (``decimate=False``).  All frames of one sample carry its timestamp,
     in id order.  Rolling counters count up per frame sent.  A message is sent only if
-    the samples carry all its rig signals; a frame with a non-finite value is not sent
-    (counted in ``skipped``).
+    the samples carry all its rig signals, or some of them and a nominal value
+    (:data:`NOMINAL_STATUS`) for each of the others (the MSP25's ``HPU_Status``: ``T_oil`` and ``pP``); a
+    frame with a non-finite value is not sent (counted in ``skipped``).
     """
 
     def __init__(self, codec: VectorCodec, decimate: bool = True, source: str = "") -> None:
@@ -55,6 +63,12 @@ class FrameScheduler:
             have = [r for r in rig if r in names]
             if not have:
                 continue
+            missing = [r for r in rig if r not in names]
+            if missing and all(r in NOMINAL_STATUS for r in missing):
+                fill = {r: np.full(n, NOMINAL_STATUS[r]) for r in missing}
+                samples = Samples(samples.t_ns, {**samples.signals, **fill})
+                names |= set(missing)
+                have = list(rig)
             if len(have) != len(rig):
                 raise DataError(f"{self.source}: message {lay.label} needs {', '.join(rig)}; the samples carry "
                                 f"{', '.join(have)} but not {', '.join(r for r in rig if r not in names)}")

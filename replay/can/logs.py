@@ -521,6 +521,10 @@ class CanLogSource(Source):
 
 # --- writing logs ---------------------------------------------------------------------------
 
+#: Sample times from here on (2000-01-01T00:00Z, ns) are wall-clock times; earlier ones count from a record's start.
+WALL_CLOCK_NS = 946_684_800 * 10**9
+
+
 class CanLogSink(Sink):
     """Samples written as the rig's CAN frames to a log (ASC, BLF, candump ``.log``, TRC).
 
@@ -528,10 +532,17 @@ class CanLogSink(Sink):
     :param dbc: DBC path, database or :class:`VectorCodec` (default: MSP25).
     :param decimate: send each message at its DBC period (True) or on every sample.
     :param channel: channel written into the log (python-can numbering from 0; ``can0`` for candump).
+    :param start_ns: the record's start as wall-clock time (ns since the epoch) for samples whose times count from
+        the record's start (before :data:`WALL_CLOCK_NS`, 2000-01-01); default the time the first samples are
+        written. Samples already on the wall clock keep their times. The log's header (ASC date, BLF and TRC
+        start) and every frame carry the wall-clock time, as a logger on the rig's bus writes them.
     """
 
-    def __init__(self, path: str | Path, dbc=None, *, decimate: bool = True, channel: int | str = 0) -> None:
+    def __init__(self, path: str | Path, dbc=None, *, decimate: bool = True, channel: int | str = 0,
+                 start_ns: int | None = None) -> None:
         self.path = Path(path)
+        self.start_ns = start_ns
+        self._shift: int | None = None
         suf = _suffix(self.path)
         self.codec = as_codec(dbc)
         self.scheduler = FrameScheduler(self.codec, decimate, str(self.path))
@@ -557,6 +568,13 @@ class CanLogSink(Sink):
         return self.scheduler.skipped
 
     def write(self, samples: Samples) -> None:
+        if len(samples) and self._shift is None:
+            import time
+
+            on_wall = int(samples.t_ns[0]) >= WALL_CLOCK_NS
+            self._shift = 0 if on_wall else (self.start_ns if self.start_ns is not None else time.time_ns())
+        if self._shift:
+            samples = Samples(samples.t_ns + self._shift, samples.signals)
         fr = self.scheduler.frames(samples)
         write = self.writer.on_message_received
         for msg in frames_to_messages(fr, channel=self.channel if not isinstance(self.channel, str) else None):
