@@ -361,6 +361,30 @@ def _print_before(a: dict) -> None:
           f"{'OK' if a['target_current<=12us'] else 'MISSED'} (load average {a['load_average_1min']})")
 
 
+def confirm_cost(duration: float = 60.0) -> dict:
+    """The tracker alone against the tracker with its alarms confirmed by window re-fits
+    (:class:`twin.online.confirm.ConfirmedDrift`: scheduled every period, triggered by the drift test) on the same
+    record, CPU time per sample, in the same run."""
+    from twin.online.baseline import default_baseline
+    from twin.online.confirm import PERIOD_S, WINDOW_S, track_confirmed
+    from twin.online.tracker import OnlineTracker
+
+    s = _record(duration).to_samples()
+    OnlineTracker().process(s.slice(0, 2000))  # compiled before timing
+    t0 = time.process_time()
+    tr = OnlineTracker()
+    for i in range(0, len(s), 1000):
+        tr.process(s.slice(i, min(len(s), i + 1000)))
+    alone = (time.process_time() - t0) / len(s) * 1e6
+    t0 = time.process_time()
+    cd, _ = track_confirmed(s, OnlineTracker(), default_baseline("msp25"))
+    both = (time.process_time() - t0) / len(s) * 1e6
+    return {"seconds": duration, "window_s": WINDOW_S, "period_s": PERIOD_S, "refits": len(cd.fits),
+            "tracker_cpu_us_per_sample": alone, "confirmed_cpu_us_per_sample": both,
+            "cpu_s_per_refit": (both - alone) * len(s) * 1e-6 / max(len(cd.fits), 1), "ratio": both / alone,
+            "load_average_1min": round(os.getloadavg()[0], 2)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.tracker", description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter records")
@@ -373,8 +397,20 @@ def main(argv=None) -> int:
                     help="only time the tracker on the user's rig (two areas, filtered PID, logged warming oil) "
                          "against the paper's rig")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (before/after)")
+    ap.add_argument("--confirm", action="store_true",
+                    help="only the cost of confirming alarms by window re-fits, against the tracker alone")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.confirm:
+        c = confirm_cost(20.0 if args.quick else 60.0)
+        if args.json:
+            print(json.dumps(c, indent=2))
+            return 0
+        print(f"tracker alone {c['tracker_cpu_us_per_sample']:.1f} us/sample CPU; with confirmed alarms "
+              f"({c['refits']} re-fits of {c['window_s']:g} s windows, scheduled every {c['period_s']:g} s, in "
+              f"{c['seconds']:g} s) {c['confirmed_cpu_us_per_sample']:.1f} us/sample: ratio {c['ratio']:.1f}, "
+              f"{c['cpu_s_per_refit']:.2f} s CPU per re-fit (load average {c['load_average_1min']})")
+        return 0
     if args.new_models:
         nm = new_models(args.repeats, 10.0 if args.quick else 20.0)
         if args.json:

@@ -131,3 +131,25 @@ def test_a_systematic_error_of_one_window_is_not_an_event():
     for k in range(6):
         events += cd._apply("p", idle, 1, 9.0 + 4 * k, "scheduled")
     assert events == [] and cd.count["p"] == 1 and cd.statuses() == {"p": "not_testable"}
+
+
+def test_a_window_the_filter_does_not_back_decides_nothing():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    high = decide("p", 200.0, 0.05, BAND, True)
+    assert cd._apply("p", high, 1, 4.0, "scheduled", filtered=120.0) == []  # the filter is inside its band
+    assert cd._apply("p", high, 1, 8.0, "scheduled", filtered=60.0) == []  # ... or beyond it on the other side
+    assert cd.count["p"] == 0 and cd.tested["p"] == 8.0
+    cd._apply("p", high, 1, 12.0, "scheduled", filtered=180.0)
+    assert [e.level for e in cd._apply("p", high, 1, 16.0, "scheduled", filtered=190.0)] == ["warning"]
+
+
+def test_an_offset_becomes_a_sensor_event_in_two_windows_and_returns():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    off = decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e3, True)
+    within = decide_offset("pA_off", 0.1 * OFFSET_TOLERANCE_PA, 1e3, True)
+    assert cd._apply_sensor("pA_off", off, 1, 4.0) == []
+    ev = cd._apply_sensor("pA_off", off, 1, 8.0)
+    assert [(e.parameter, e.level, e.kind) for e in ev] == [("pA_off", "warning", "raised")]
+    assert ev[0].estimate == pytest.approx(2 * OFFSET_TOLERANCE_PA) and "sensor pA" in ev[0].message
+    assert cd.sensor_status({"pA": "ok"}) == {"pA": "offset"}
+    assert [e.kind for e in cd._apply_sensor("pA_off", within, 1, 12.0)] == ["returned"]

@@ -16,7 +16,11 @@ heteroskedasticity- and autocorrelation-consistent standard errors and the adequ
   two-sample test ``z = log(theta_w / theta_0) / sqrt(s_w^2 + s_0^2)`` at the two-sided level :data:`ALPHA`
   (``s_w``: the window's relative standard error, ``s_0``: the commissioning fit's, 0 for a configured value).
 
-Two confirmations on one side, on disjoint windows with none between them finding the parameter inside its band
+A window's verdict counts as a confirmation when the filter's estimate at the window's end lies beyond the band
+on the same side too (the filter is the trigger, the window its check; holds of the filter's drift test do not
+matter here): two estimators of different kinds, each wrong at times (the filter diverging under a fast chirp,
+a short window's fit biased by what the model lacks under one demand), must agree.  Two confirmations on one
+side, on disjoint windows with none between them finding the parameter inside its band
 (:data:`WARN_CONFIRMATIONS`), raise a **warning**; three (:data:`ALARM_CONFIRMATIONS`, or two while the filter's
 drift test is at alarm) the **alarm**; a window that finds the parameter inside its band returns it.  A window
 that cannot test it changes nothing: the parameter is ``not_testable`` now, its level and count stay.
@@ -24,8 +28,9 @@ that cannot test it changes nothing: the parameter is ``not_testable`` now, its 
 The window is fitted twice, from the filter's current estimate and from the baseline (a wear in progress moves
 the filter ahead of the baseline; a diverged filter is far from both), and the lower cost is kept.  The fit
 frees the catalogue's pressure-transducer offsets too (``pA_off``, ``pB_off``): an offset drifting on a
-transducer is fitted as what it is, and a significant one beyond :data:`OFFSET_TOLERANCE_PA` becomes a
-*sensor* event on the offset (``pA_off``), never a parameter's alarm.
+transducer is fitted as what it is, and a significant one beyond :data:`OFFSET_TOLERANCE_PA` in two windows
+(no window between them finding it within) becomes a *sensor* event on the offset (``pA_off``), never a
+parameter's alarm.
 
 When the fits run: a **triggered** fit when the filter's drift test leaves ``ok`` on a parameter (and again
 every window while it stays there unconfirmed), and a **scheduled** fit every :data:`PERIOD_S` seconds whatever
@@ -235,6 +240,7 @@ class ConfirmedDrift:
         #: record time (s) of each parameter's last test that could test it (None: not yet)
         self.tested: dict[str, float | None] = {n: None for n in baseline}
         self.sensor_level = {o: "ok" for o in SENSOR_PARAMS.values()}
+        self.sensor_count = {o: 0 for o in SENSOR_PARAMS.values()}
         self.adequate = True
         self.reasons: list[str] = []
         self.fits: list[WindowFit] = []
@@ -288,6 +294,7 @@ class ConfirmedDrift:
         pending |= {n for n, q in self.trigger.params.items() if q.level != "ok" and self.level[n] == "ok"}
         # a parameter confirmed once, or at a level, is re-tested on each next disjoint window
         pending |= {n for n in self.baseline if self.level[n] != "ok" or self.count[n] > 0}
+        pending |= {o for o in self.sensor_level if self.sensor_level[o] != "ok" or self.sensor_count[o] > 0}
         full = self.window.span_s() >= self.window_s - 2 * (tracker.dt or 0.0)
         disjoint = now - self._last_fit_t >= self.window_s
         reason = ""
@@ -341,7 +348,7 @@ class ConfirmedDrift:
                                    dict(res.std), which, elapsed))
         events = []
         for n, vd in verdicts.items():
-            events += self._apply(n, vd, t_ns, now, reason)
+            events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         for p, vd in sensors.items():
             events += self._apply_sensor(p, vd, t_ns, now)
         return events
@@ -371,7 +378,10 @@ class ConfirmedDrift:
                           std=sd, baseline=base.value, band_lo=base.lo, band_hi=base.hi,
                           statistic=vd.z if math.isfinite(vd.z) else 0.0, message=msg)
 
-    def _apply(self, n: str, vd: Verdict, t_ns: int, now: float, reason: str) -> list[AlarmEvent]:
+    def _apply(self, n: str, vd: Verdict, t_ns: int, now: float, reason: str,
+               filtered: float = math.nan) -> list[AlarmEvent]:
+        """One window's verdict on ``n``; ``filtered``: the filter's estimate at the window's end (NaN: not known,
+        the window decides alone)."""
         base = self.baseline[n]
         if vd.state == "not_testable":
             self.state[n] = "not_testable"
@@ -379,6 +389,9 @@ class ConfirmedDrift:
         self.tested[n] = now
         self.state[n] = "ok"
         old = self.level[n]
+        if vd.state in ("high", "low") and math.isfinite(filtered) and not (
+                filtered > base.hi if vd.state == "high" else filtered < base.lo):
+            return []  # the window alone says so, the filter does not: no decision (the count stays)
         if vd.state == "inside":
             self.count[n] = 0
             self.side[n] = ""
@@ -411,12 +424,14 @@ class ConfirmedDrift:
         band = Baseline(0.0, -OFFSET_TOLERANCE_PA, OFFSET_TOLERANCE_PA)
         vd_abs = dataclasses.replace(vd, rel_std=vd.rel_std / abs(vd.value) if vd.value else math.nan)
         if vd.state == "inside":
+            self.sensor_count[o] = 0
             if old == "ok":
                 return []
             self.sensor_level[o] = "ok"
             return [self._event(p, "ok", "returned", vd_abs, t_ns, now, band,
                                 f"sensor {o}: offset back within {OFFSET_TOLERANCE_PA * 1e-6:g} MPa")]
-        if old != "ok":
+        self.sensor_count[o] += 1
+        if old != "ok" or self.sensor_count[o] < WARN_CONFIRMATIONS:
             return []
         self.sensor_level[o] = "warning"
         return [self._event(p, "warning", "raised", vd_abs, t_ns, now, band,
