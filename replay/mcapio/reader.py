@@ -363,10 +363,27 @@ class McapSource(SampleDecoding, Source):
             keep &= table.t0 < max(int(end_ns), 0) if end_ns <= top else True
         idxs = np.array([k for k in np.flatnonzero(keep)
                          if wanted is None or not (ch := table.channels(int(k))) or wanted & ch], dtype=np.int64)
-        idxs = idxs[np.lexsort((table.offset[idxs], table.t0[idxs]))]
         rank = np.empty(len(table), dtype=np.int64)
         rank[np.argsort(table.offset, kind="stable")] = np.arange(len(table))
         channels = self._channels_by_id
+        in_file = idxs[np.argsort(table.offset[idxs], kind="stable")]
+        if wanted is not None and _time_goes_back(table, in_file, wanted):
+            # The log time of these topics jumps back in the file: read them in file order, as the file has
+            # them, so the jump is seen (and counted by the quality gate) rather than sorted away.
+            for ck in in_file:
+                ci = table[int(ck)]
+                try:
+                    records = self._read_chunk(ci)
+                except DAMAGE as exc:
+                    yield None, self._lost_chunk(ci, int(rank[ck]), exc, wanted, report)
+                    continue
+                for r in records:
+                    if isinstance(r, Message) and r.channel_id in wanted and r.channel_id in channels \
+                            and (start_ns is None or r.log_time >= start_ns) \
+                            and (end_ns is None or r.log_time < end_ns):
+                        yield channels[r.channel_id], r
+            return
+        idxs = idxs[np.lexsort((table.offset[idxs], table.t0[idxs]))]
         heap: list[tuple[int, int, int, Message]] = []
         seq = 0
         for k, ck in enumerate(idxs):
@@ -557,3 +574,13 @@ def inspect(path: str | os.PathLike) -> dict:
                 "report": src.report.to_dict(), "lossy": src.report.lossy,
                 "loss_line": src.report.loss_line()}
 
+
+def _time_goes_back(table, in_file: np.ndarray, wanted: set[int]) -> bool:
+    """Whether a chunk holding only ``wanted`` channels starts, in file order, before an earlier such chunk
+    ended: the log time of those topics jumps back in the file (a writer's clock stepped back)."""
+    own = [int(k) for k in in_file if (ch := table.channels(int(k))) and ch <= wanted]
+    if len(own) < 2:
+        return False
+    t0 = table.t0[own].astype(np.float64)
+    t1 = table.t1[own].astype(np.float64)
+    return bool(np.any(t0[1:] < np.maximum.accumulate(t1)[:-1]))
