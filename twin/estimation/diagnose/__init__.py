@@ -75,7 +75,10 @@ The method (``twin diagnose DATA --model NAME``, any registered model):
    - is significant against the noise (a Diebold-Mariano-type test on the
    relative scale, HAC variance, Bonferroni over the catalogue at ``alpha``:
    :func:`.adequacy._holdout_test`), and its parameters lie within 10 times
-   the effect's typical deviation from neutral.  The effect's own signature
+   the effect's typical deviation from neutral.  While the extended model
+   stays inadequate it must remove the majority (``min_share``) of the
+   current model's held-out simulation misfit above the noise floor.  The
+   effect's own signature
    must be where the residuals have it (:func:`.naming._signature`): the
    errors it leaves are regressed on its signature led and lagged by 1-16
    samples; when that is significant and explains again over half of its

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 #: significance level of the screen, the LR test and the adequacy tests (family-wise, after Holm/Bonferroni)
 ALPHA = 1e-3
-#: share of the current model's excess misfit an extension must remove, with its own signature, to be named
-#: while the model stays inadequate: the majority (the named cause is the larger part of the error; what it
-#: leaves is the smaller, reported as "partly explained"); also the share of an extension's gain that its
-#: signature moved in time may explain again in what it leaves (``naming._signature``)
+#: share of the current model's held-out simulation misfit above the noise floor an extension must remove to be
+#: named while the model stays inadequate (or beside an adequate model's names): the majority (the named cause is
+#: the larger part of the error; what it leaves is the smaller, reported as "partly explained"); also the share
+#: of an extension's gain that its signature moved in time may explain again in what it leaves
+#: (``naming._signature``)
 MIN_SHARE = 0.5
 #: multiples of an effect's typical magnitude used as secant probes in the screen
 SECANTS = (0.3, 1.0, 3.0)
@@ -40,6 +41,9 @@ GROW_FRACTION = 0.25
 #: a candidate whose screen LM is below this fraction of an accepted trial's LR is not fitted in that round
 #: (its linearised gain cannot reach the accepted one's AICc; the margin covers nonlinear effects)
 PRUNE = 0.1
+#: accepted extensions whose AICc lie within this of the lowest are not told apart by the data (Burnham and
+#: Anderson's "substantial support" band): the first in the catalogue's order is named in that round
+AICC_TIE = 2.0
 #: a named effect's parameters lie within this multiple of the effect's typical deviation from neutral
 PLAUSIBLE = 10.0
 #: shifts (samples, each way) of an extension's own signature regressed on the errors it leaves: an effect that

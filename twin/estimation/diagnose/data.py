@@ -161,6 +161,7 @@ def _holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
     """Held-out Fit %, NRMSE per output and the weighted squared error, on the records' tails."""
     out: dict = {}
     cost = 0.0
+    excess = 0.0
     for o in data.outputs:
         y = np.concatenate([r[o][n:] for r, n in zip(data.records, data.n_fit)])
         yh = np.concatenate([p[o][n:] for p, n in zip(pred, data.n_fit)])
@@ -169,8 +170,14 @@ def _holdout(data: _Data, pred: list[dict[str, np.ndarray]]) -> dict:
         out[o] = {"fit_pct": 100.0 * (1.0 - float(np.linalg.norm(e)) / den) if den > 0 else float("nan"),
                   "nrmse": float(np.sqrt(np.mean(e * e)) / np.std(y)) if np.std(y) > 0 else float("nan"),
                   "rms": float(np.sqrt(np.mean(e * e)))}
-        cost += float(np.sum((e / data.sigma[o]) ** 2))
+        w = e / data.sigma[o]
+        cost += float(np.sum(w * w))
+        # above the noise floor (the scatter of the error's increments: a smooth model error has little)
+        nz = float(np.std(np.diff(w)) / math.sqrt(2.0)) if w.size > 2 else 0.0
+        excess += max(float(np.sum(w * w)) - w.size * nz * nz, 0.0)
     out["weighted_sse"] = cost
+    out["weighted_excess"] = excess
+    out["n"] = sum(len(r) - n for r, n in zip(data.records, data.n_fit)) * len(data.outputs)
     return out
 
 

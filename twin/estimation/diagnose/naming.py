@@ -19,8 +19,7 @@ from twin.estimation.diagnose.results import Trial
 def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelState, min_share: float) -> Trial:
     lr, p, df, d_aicc = _lr(cur, st, data)
     ht = _holdout_test(cur, st, data)
-    floor = math.sqrt(2.0 * cur.fit.n_obs)
-    share = (cur.fit.cost - st.fit.cost) * 2.0 / max(cur.excess, floor)
+    share = holdout_share(cur, st)
     t = Trial(effects, st, lr, p, df, d_aicc, ht["gain"], (ht["lo"], ht["hi"]), share, p_adjusted=p,
               holdout_test=ht, holdout_p_adjusted=ht["p"])
     t.implausible = _implausible(data, effects, st)
@@ -28,8 +27,21 @@ def _judge(data: _Data, effects: tuple[str, ...], cur: ModelState, st: ModelStat
                       and all(np.all(np.isfinite(p[o])) for p in st.predicted for o in data.outputs))
     if not t.diverged:
         t.signature = _signature(data, cur, st)
-    _verdict(t, data.alpha, min_share)
+    _verdict(t, data.alpha, min_share, judge_share=share_rule(data, cur))
     return t
+
+
+def holdout_share(cur: ModelState, st: ModelState) -> float:
+    """The share of ``cur``'s held-out simulation misfit above the noise floor that ``st`` removes (weighted
+    squared simulation errors on the records' held-out tails; the floor from the scatter of the errors'
+    increments): what a name accounts for of the error the model had where it was not fitted."""
+    h0, h1 = cur.holdout, st.holdout
+    sse0, sse1 = float(h0.get("weighted_sse", math.nan)), float(h1.get("weighted_sse", math.nan))
+    if not (math.isfinite(sse0) and math.isfinite(sse1)):
+        return -math.inf
+    # at least the chance fluctuation of a sum of n squared unit errors (a model at the noise floor)
+    floor = max(float(h0.get("weighted_excess", 0.0)), math.sqrt(2.0 * max(int(h0.get("n", 1)), 1)))
+    return (sse0 - sse1) / floor
 
 
 def _signature(data: _Data, cur: ModelState, st: ModelState) -> dict:
@@ -96,7 +108,19 @@ def _implausible(data: _Data | Model, effects: Sequence[str], st: ModelState) ->
     return out
 
 
-def _verdict(t: Trial, alpha: float, min_share: float) -> None:
+def share_rule(data: _Data, cur: ModelState) -> str:
+    """When an extension of ``cur`` must remove ``min_share`` (the majority) of its held-out misfit above the
+    noise: ``"no"`` for an adequate nominal model (the screen found something the adequacy tests did not),
+    ``"unless_adequate"`` while ``cur`` is not adequate (an extension that leaves the model adequate is exempt:
+    what it leaves is noise), ``"always"`` for an adequate model that already names something (a further name
+    must account for most of what is left, not for a slight mismatch of a formulation: a linear droop beside a
+    turbulent line loss)."""
+    if not cur.adequate:
+        return "unless_adequate"
+    return "always" if (cur.effects or cur.timing != data.timing) else "no"
+
+
+def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str = "no") -> None:
     """One criterion for every kind of name (an effect, a pair, a timing): the whitened LR test significant
     after Holm over the catalogue, a lower AICc, the held-out gain significant against the noise (the
     Diebold-Mariano test of :func:`.adequacy._holdout_test`, one-sided, Bonferroni over the catalogue: both at
@@ -123,5 +147,11 @@ def _verdict(t: Trial, alpha: float, min_share: float) -> None:
     if misplaced > 1.0 - min_share:
         reasons.append(f"its own signature is misplaced: led or lagged a few samples it explains again "
                        f"{100 * misplaced:.0f} % of its gain in what it leaves (an error of other dynamics)")
+    # the majority: a name accounts for the larger part of the error the model makes where it was not fitted,
+    # unless what it leaves is adequate (the rest is noise)
+    if judge_share == "always" or (judge_share == "unless_adequate" and not t.state.adequate):
+        if not t.share >= min_share:
+            reasons.append(f"removes only {100 * t.share:.0f} % of the held-out misfit above the noise"
+                           + ("" if judge_share == "always" else " and leaves the model inadequate"))
     t.accepted = not reasons
     t.reason = "; ".join(reasons)

@@ -15,12 +15,12 @@ from twin.models import Model, get_model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.params import ParameterSet, check_names
 from twin.record import Record
-from twin.estimation.diagnose.constants import ALPHA, MIN_SHARE, PRUNE, TIMING_EFFECTS
+from twin.estimation.diagnose.constants import AICC_TIE, ALPHA, MIN_SHARE, PRUNE, TIMING_EFFECTS
 from twin.estimation.diagnose.data import _Data, holm
 from twin.estimation.diagnose.adequacy import _gain
 from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
 from twin.estimation.diagnose.screen import screen
-from twin.estimation.diagnose.naming import _verdict
+from twin.estimation.diagnose.naming import _verdict, share_rule
 from twin.estimation.diagnose.extend import _fit_state, _try, _try_pair
 from twin.estimation.diagnose.timing import _try_timing
 
@@ -126,7 +126,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
             t.holdout_p_adjusted = min(1.0, float(t.holdout_test.get("p", 1.0)) * len(pool))
-            _verdict(t, alpha, min_share)
+            _verdict(t, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  {t.effect}: LR={t.lr:.4g} p_Holm={t.p_adjusted:.3g} dAICc={t.delta_aicc:.4g} held-out gain "
                 f"{100 * t.holdout_gain:.2f}% [{100 * t.gain_interval[0]:.2f}, {100 * t.gain_interval[1]:.2f}] "
                 f"share {t.share:.3f} {'accepted' if t.accepted else 'rejected: ' + t.reason}")
@@ -149,7 +149,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             pair, each = _try_pair(data, cur, a, b, seed, min_share, base)
             pair.p_adjusted = min(1.0, pair.p * len(pool))
             pair.holdout_p_adjusted = min(1.0, float(pair.holdout_test.get("p", 1.0)) * len(pool))
-            _verdict(pair, alpha, min_share)
+            _verdict(pair, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  pair {pair.effect}: LR={pair.lr:.4g} p={pair.p:.3g} dAICc={pair.delta_aicc:.4g} "
                 f"held-out gain {100 * pair.holdout_gain:.2f}% share {pair.share:.3f} "
                 f"each significant: {each} -> {'accepted' if pair.accepted and each else 'rejected'}")
@@ -166,11 +166,18 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             cur = pair.state
             path.append(cur)
             continue
-        win = min(ok, key=lambda t: t.delta_aicc)
+        # the lowest AICc wins; extensions within AICC_TIE of it are not told apart by the data (an input and an
+        # output offset of a linear spring are the same error): the first in the catalogue's order is taken, so
+        # the choice does not hang on round-off (the same record in other units names them in the same order)
+        low = min(t.delta_aicc for t in ok)
+        order = {e: i for i, e in enumerate(list(model.EFFECTS) + list(TIMING_EFFECTS))}
+        win = min((t for t in ok if t.delta_aicc <= low + AICC_TIE),
+                  key=lambda t: (order.get(t.effects[0], len(order)), t.delta_aicc))
         for t in ok:
             if t is not win:
                 t.accepted = False
-                t.reason = f"higher AICc than {win.effect}"
+                t.reason = (f"higher AICc than {win.effect}" if t.delta_aicc > win.delta_aicc + AICC_TIE else
+                            f"not told apart from {win.effect} (AICc within {AICC_TIE:g}), which comes first")
         gains[win.effect] = _gain(cur, win.state, data) | {"share": win.share, "p_adjusted": win.p_adjusted}
         causes.append(win.effect)
         cur = win.state
