@@ -208,6 +208,11 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
         ds = [d for d in healthy if d["scenario"]["start"] == s]
         by_start[s] = _per_hour(sum(len(_raised(d)) for d in ds), sum(d["duration_s"] for d in ds) / 3600.0)
     fig["false_alarms_by_start"] = by_start
+    by_ctrl: dict[str, Any] = {}
+    for c in ("P", "PI", "PID"):
+        ds = [d for d in healthy if d["scenario"]["controller"]["type"] == c]
+        by_ctrl[c] = _per_hour(sum(len(_raised(d)) for d in ds), sum(d["duration_s"] for d in ds) / 3600.0)
+    fig["false_alarms_by_controller"] = by_ctrl
     fig["false_alarm_parameters"] = {p: sum(e["parameter"] == p for e in ev) for p in TRACKED}
     # the rig is healthy too before a wear's or a sensor drift's onset (not a specimen's: it is there from the start)
     before = [d for d in draws if d["kind"] in ("wear", "sensor")]
@@ -329,6 +334,8 @@ def table(res: dict[str, Any]) -> str:
         lines.append(f"  during {k:<32} {_ph(r)}")
     for k, r in f["false_alarms_by_start"].items():
         lines.append(f"  {k + ' start':<38} {_ph(r)}")
+    for k, r in f.get("false_alarms_by_controller", {}).items():
+        lines.append(f"  {k + ' controller':<38} {_ph(r)}")
     lines.append("  parameters of the events               "
                  + ", ".join(f"{p} {n}" for p, n in f["false_alarm_parameters"].items()))
     lines.append(f"early alarms, healthy draws              {_ph(f['early_alarms_healthy'])}")
