@@ -12,8 +12,15 @@
 * after it, in the same worker, its first tracker: the rig model's filter kernel loaded from numba's on-disk cache
   and the first samples filtered (compiles instead when the cache is cold; run once to warm it).
 
+Per command (``--commands``): ``twin --help`` and ``twin CMD --help`` for every command, and for the commands that
+read an input file (``fit``, ``track``, ``diagnose`` a 1 s record, ``serve`` its rigs.toml; ``simulate`` until it opens
+its output; ``params`` the whole command) the start-up to the moment the process opens that file (an audit hook on
+``open`` in the fresh interpreter), as the process's CPU time and wall time from the parent's launch, and which heavy
+modules (numba, scipy, the diagnosis) were imported by then.  With ``--baseline REV`` the same commands run in the same
+run from the tree of ``REV`` (``git archive``, first on ``PYTHONPATH``), their ratio printed beside.
+
 Medians of ``--repeats`` runs; the machine's load average is printed beside them: the figures are wall times on a
-machine that may be shared.
+machine that may be shared (the CPU times are less sensitive to the load).
 """
 
 from __future__ import annotations
@@ -124,11 +131,144 @@ def run(repeats: int = 5) -> dict:
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
+#: the modules a command should not pay for unless it runs them
+HEAVY = ("numba", "scipy", "scipy.optimize", "scipy.stats", "scipy.signal", "twin.estimation.diagnose", "matplotlib",
+         "pint")
+
+#: runs in a fresh interpreter: ``sys.argv[1]`` the file whose opening ends the start-up ('' for none: the command's
+#: end), ``sys.argv[2]`` the heavy modules looked for, the rest the command line; prints ``cpu_s wall_end heavy,modules`` on stderr's last line
+_PROBE = r"""
+import os, sys, time
+target = os.path.abspath(sys.argv[1]) if sys.argv[1] else None
+HEAVY = sys.argv[2].split(",")
+
+def _report():
+    heavy = ",".join(m for m in HEAVY if m in sys.modules)
+    sys.stderr.write(f"\nSTARTUP {time.process_time():.6f} {time.time():.6f} {heavy or '-'}\n")
+    sys.stderr.flush()
+
+def _hook(event, args):
+    if event == "open" and target is not None and isinstance(args[0], (str, bytes)):
+        path = os.fsdecode(args[0])
+        if os.path.abspath(path) == target:
+            _report()
+            os._exit(0)
+
+sys.addaudithook(_hook)
+import twin.cli
+try:
+    rc = twin.cli.main(sys.argv[3:])
+except SystemExit as exc:
+    rc = exc.code
+_report()
+os._exit(0)
+"""
+
+
+def _command_once(tree: str, target: str, argv: list[str], env: dict) -> tuple[float, float, list[str]]:
+    """CPU seconds of the fresh process to ``target``'s opening (or its end), wall seconds from the launch, the heavy
+    modules imported by then."""
+    t0 = time.time()
+    out = subprocess.run([sys.executable, "-c", _PROBE, target, ",".join(HEAVY), *argv], cwd=tree, env=env, capture_output=True,
+                         text=True, timeout=600)
+    line = [ln for ln in out.stderr.splitlines() if ln.startswith("STARTUP ")]
+    if not line:
+        raise RuntimeError(f"twin {' '.join(argv)}: no start-up report; stderr: {out.stderr[-2000:]}")
+    _, cpu, wall_end, heavy = line[-1].split()
+    return float(cpu), float(wall_end) - t0, ([] if heavy == "-" else heavy.split(","))
+
+
+def _export(rev: str, into: str) -> str:
+    """The tree of ``rev`` unpacked into ``into`` (its numba cache builds there on first use)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    os.makedirs(into, exist_ok=True)
+    archive = subprocess.run(["git", "-C", root, "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", into], input=archive, check=True)
+    return into
+
+
+def _command_cases(d: str) -> list[tuple[str, str, list[str]]]:
+    """(label, file whose opening ends the start-up, argv) for every command."""
+    from twin.cli import COMMANDS
+
+    rec = os.path.join(d, "rec1.csv")
+    if not os.path.exists(rec):
+        subprocess.run([sys.executable, "-m", "twin.cli", "-q", "simulate", "-o", rec, "--duration", "1"], check=True,
+                       capture_output=True)
+    cfg = os.path.join(d, "rigs.toml")
+    with open(cfg, "w") as f:
+        f.write(f'[service]\njournal_dir = "{d}/journal"\n\n[[rig]]\nname = "rig-1"\nsource = "{rec}"\n')
+    cases = [("twin --help", "", ["--help"])]
+    cases += [(f"twin {c} --help", "", [c, "--help"]) for c in COMMANDS]
+    cases += [("twin fit REC (to reading it)", rec, ["-q", "fit", rec]),
+              ("twin track REC (to reading it)", rec, ["-q", "track", rec, "--out", os.path.join(d, "t")]),
+              ("twin diagnose REC (to reading it)", rec, ["-q", "diagnose", rec]),
+              ("twin serve --config (to reading it)", cfg, ["-q", "serve", "--config", cfg]),
+              ("twin simulate (to opening its output)", os.path.join(d, "sim.csv"),
+               ["-q", "simulate", "-o", os.path.join(d, "sim.csv"), "--duration", "1"]),
+              ("twin params (whole command)", "", ["params"])]
+    return cases
+
+
+def run_commands(repeats: int = 3, baseline: str | None = None) -> dict:
+    """Start-up per command (medians of ``repeats``), beside the same commands of ``baseline``'s tree."""
+    import numpy as np
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as d:
+        trees = {"now": root}
+        if baseline:
+            trees["baseline"] = _export(baseline, os.path.join(d, "baseline"))
+        work = os.path.join(d, "work")
+        os.makedirs(work)
+        cases = _command_cases(work)
+        rows = []
+        for label, target, argv in cases:
+            row: dict = {"command": label}
+            for which, tree in trees.items():
+                env = dict(os.environ, PYTHONPATH=tree)
+                runs = [_command_once(tree, target, argv, env) for _ in range(repeats + 1)][1:]  # first: warm-up
+                row[which] = {"cpu_s": float(np.median([r[0] for r in runs])),
+                              "wall_s": float(np.median([r[1] for r in runs])), "heavy": runs[-1][2]}
+            if "baseline" in row:
+                row["cpu_ratio"] = row["baseline"]["cpu_s"] / row["now"]["cpu_s"]
+            rows.append(row)
+    return {"commands": rows, "baseline": baseline, "repeats": repeats,
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+
+
+def print_commands(r: dict) -> None:
+    base = r["baseline"]
+    print(f"start-up per command, CPU s (wall s from launch), median of {r['repeats']}"
+          + (f"; baseline: the tree of {base} in the same run" if base else "")
+          + f" (load average {r['load_average_1min']}):")
+    for row in r["commands"]:
+        now = row["now"]
+        line = (f"  {row['command']:<40} {now['cpu_s']:6.3f} ({now['wall_s']:6.3f})  "
+                f"heavy: {','.join(now['heavy']) or '-':<36}")
+        if "baseline" in row:
+            b = row["baseline"]
+            line += f" | baseline {b['cpu_s']:6.3f} ({b['wall_s']:6.3f}) {row['cpu_ratio']:5.1f}x"
+            line += f"  heavy: {','.join(b['heavy']) or '-'}"
+        print(line)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.startup", description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--commands", action="store_true",
+                    help="only the start-up of every twin command (to reading its input), not the worker's")
+    ap.add_argument("--baseline", metavar="REV",
+                    help="with --commands: also run the commands from the tree of this git revision, same run")
     args = ap.parse_args(argv)
+    if args.commands:
+        rc = run_commands(args.repeats, args.baseline)
+        if args.json:
+            print(json.dumps(rc, indent=2))
+        else:
+            print_commands(rc)
+        return 0
     r = run(args.repeats)
     if args.json:
         print(json.dumps(r, indent=2))

@@ -42,7 +42,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from twin.estimation.diagnose import ALPHA, diagnose
     from twin.models import get_model
     from twin.models.base import DEFAULT_TIMING
     from twin.record import Record
@@ -51,8 +50,10 @@ def run(args) -> int:
     model = get_model(args.model)
     records: list[Record] = []
     reports: list = []
-    for path in args.data:
+    for path in args.data:  # read (and refused) before the diagnosis's libraries are imported
         records.extend(load_records(path, model=model.name, reports=reports, **source_options(args, path)))
+    from twin.estimation.diagnose import ALPHA, diagnose
+
     lost = loss_lines("diagnose", reports)
     base = model.params(effects=_names(args.effects), **_kv(args.set))
     # without --free: the phenomenological parameters less those --set holds (the oscillator's k=0 stays 0)

@@ -52,15 +52,16 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.estimation.fit_checked import fit
     from twin.models import get_model
     from twin.models.records import load_records
 
     model = get_model(args.model)
     records = []
     reports: list = []
-    for path in args.data:
+    for path in args.data:  # read (and refused) before the fit's libraries are imported
         records.extend(load_records(path, model=model.name, reports=reports, **source_options(args, path)))
+    from twin.estimation.fit_checked import fit
+
     lost = loss_lines("fit", reports)
     base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
                                           with_timing=True)

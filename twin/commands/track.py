@@ -9,9 +9,7 @@ import sys
 from replay.options import EXIT_LOSS
 from twin.commands.common import (add_map_argument, add_timing_arguments, dump, kv, loss_lines, names, source_options,
                                   timing_of)
-from twin.online.events import format_alarm
-from twin.models import DEFAULT_MODEL, trackable_models
-from twin.service.track import track
+from twin.models import DEFAULT_MODEL, MODELS, trackable_models
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = EXIT_HELP
     p.add_argument("log", help="CSV, MCAP or CAN log (ASC, BLF, candump .log, TRC)")
     p.add_argument("--rig", default="rig", help="rig name in events (default rig)")
-    p.add_argument("--model", choices=trackable_models(), default=None,
+    p.add_argument("--model", choices=MODELS, default=None,
                    help=f"the rig model to track (default the --config rig's, the --params fit's, else "
                         f"{DEFAULT_MODEL})")
     p.add_argument("--track", help="parameters to track (default the model's phenomenological ones, e.g. "
@@ -115,7 +113,9 @@ def _model_of_record(path: str, opts: dict, model: str) -> str | None:
 def run(args) -> int:
     from twin.service.config import load_config
     from twin.models import get_model
+    from twin.online.events import format_alarm
     from twin.reports.plots import parameter_trends
+    from twin.service.track import track
 
     horizon = getattr(args, "forecast_horizon", None)
     if horizon is not None and not (horizon > 0 and horizon < float("inf")):

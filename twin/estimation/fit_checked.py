@@ -14,7 +14,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from twin.estimation.diagnose.check import judge
 from twin.estimation.fit import fit as fit_alone
 from twin.estimation.fit_result import FitResult
 from twin.models import Model, get_model
@@ -40,6 +39,8 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
     t0 = time.perf_counter()
     res = fit_alone(model, records, free, **options)
     if adequacy:
+        from twin.estimation.diagnose.check import judge  # imported only by a fit that runs the test
+
         m = get_model(model) if isinstance(model, str) else model
         recs = [records] if isinstance(records, Record) else list(records)
         judge(res, m, recs, drive=options.get("drive", "auto"), timing=options.get("timing") or DEFAULT_TIMING)

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fpdd.units import SIGNAL_UNITS
-from twin.estimation.fit import FitResult
+from twin.estimation.fit_result import FitResult
 from twin.models import Model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.estimation.noise_model import (NoiseModel)
