@@ -79,8 +79,9 @@ def test_round_trip_through_json(make) -> None:
 def test_schema_lists_every_serialised_field(cls) -> None:
     sample = {AlarmEvent: make_alarm, EstimateEvent: make_estimate, StatusEvent: make_status}[cls]()
     schema = cls.SCHEMA
-    # in the payload only when set: a signature, an announced epoch, the times of confirmed tests
-    optional = {AlarmEvent: {"signature", "epoch"}, StatusEvent: {"epoch", "signature", "tested"}}.get(cls, set())
+    # in the payload only when set: a signature, an announced epoch, the owner's term, the times of confirmed tests
+    optional = {AlarmEvent: {"signature", "epoch", "term"}, EstimateEvent: {"term"},
+                StatusEvent: {"epoch", "signature", "tested", "term"}}.get(cls, set())
     assert set(schema["required"]) == set(sample.to_dict()) == set(schema["properties"]) - optional
     json.dumps(schema)  # the schema itself is plain JSON
     validate(sample.to_dict(), schema, cls.__name__)

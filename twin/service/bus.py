@@ -108,6 +108,9 @@ _JSON = zenoh.Encoding.APPLICATION_JSON
 _RIG_RE = re.compile(RIG_PATTERN)
 #: A rig's forecast is put when it changes (:class:`ForecastGate`) and at least this often while it is made [s].
 FORECAST_S = 3.0
+#: Another owner's status seen within this long: the rig is run twice (a split network), said in ours: three
+#: status periods (statuses come at least once a second) [s].
+SPLIT_S = 3.0
 
 
 def _check_rig(rig: str, *, wildcard: bool) -> str:
@@ -262,6 +265,9 @@ class TwinPublisher(_Declarations, Publisher):
         (lets advanced subscribers notice a missed last estimate/status).
     :param signer: the rig's private key (:func:`twin.service.signing.load_signer`): every alarm put and
         every history reply carries its signature. ``None``: alarms go out unsigned.
+    :param term: this service's ownership term of the rig (:mod:`twin.service.ownership`): stamped on every
+        estimate and status it puts (0: none); a status of the rig under another term seen on the bus (another
+        owner: a split network) is said in this one's statuses for ``SPLIT_S``.
     :param put_mark: the file that records how far the journal's alarms were put
         (:mod:`twin.service.put_mark`; :meth:`put_unsent` puts those after it). ``None``: not recorded.
     :raises ConfigError: ``rig`` is not a valid rig id.
@@ -278,9 +284,12 @@ class TwinPublisher(_Declarations, Publisher):
         heartbeat_s: float = 1.0,
         signer: Signer | None = None,
         put_mark: str | Path | None = None,
+        term: int = 0,
     ) -> None:
         from twin.service.put_mark import PutMark
 
+        self.term = int(term)
+        self._rival: tuple[int, float] | None = None  # another owner's term and when its status was seen
         self.rig = _check_rig(rig, wildcard=False)
         self._mark = PutMark(put_mark, rig) if put_mark is not None else None
         self.keys = RigKeys(rig)
@@ -331,6 +340,8 @@ class TwinPublisher(_Declarations, Publisher):
             self._keep(
                 session.declare_queryable(self.keys.forecast, lambda q: self._on_latest(q, "forecast"))
             )
+            if self.term:  # another owner's statuses of this rig: a split network (said in ours)
+                self._keep(session.declare_subscriber(self.keys.status, self._on_rival_status))
             # The token last: a subscriber seeing the twin alive can query its history at once.
             self._keep(session.liveliness().declare_token(self.keys.twin))
         except zenoh.ZError as exc:
@@ -427,8 +438,10 @@ class TwinPublisher(_Declarations, Publisher):
         """Put an estimate or status already serialised (by a rig's worker) and keep it as the latest value; a
         status is signed when the rig has a key (it announces the rig's epoch)."""
         pub = {"estimate": self._estimate_pub, "status": self._status_pub}[what]
-        if what == "status" and self._signer is not None:
-            payload = self._signer.sign_status(payload)
+        if what == "status":
+            payload = self._stamp_status(payload)
+        elif self.term and payload.endswith("}") and '"term":' not in payload[-40:]:
+            payload = f'{payload[:-1]},"term":{self.term}}}'  # an estimate: its term appended, the text as written
         with self._latest_lock:
             self._latest[what] = payload
         try:
@@ -493,9 +506,7 @@ class TwinPublisher(_Declarations, Publisher):
             counters["alarm_seq"] = self._history.last_seq(self.rig)
         epoch = event.epoch or getattr(self._history, "epoch", lambda _rig: "")(self.rig)
         event = replace(event, counters=counters, epoch=epoch)
-        payload = event_to_json(event)
-        if self._signer is not None:
-            payload = self._signer.sign_status(payload)
+        payload = self._stamp_status(event_to_json(event))
         with self._latest_lock:
             self._latest["status"] = payload
         try:
@@ -503,6 +514,40 @@ class TwinPublisher(_Declarations, Publisher):
         except zenoh.ZError as exc:
             raise SourceError(f"rig {self.rig!r}: cannot publish status: {exc}") from exc
         return event
+
+    def _on_rival_status(self, sample: zenoh.Sample) -> None:
+        """A status of this rig on the bus: another term than ours is another owner (a split network)."""
+        try:
+            term = json.loads(sample.payload.to_string()).get("term")
+        except (ValueError, AttributeError):
+            return
+        if isinstance(term, int) and term and term != self.term:
+            if self._rival is None or self._rival[0] != term:
+                log.warning("rig %s: another service runs it too (term %d; this one: term %d): the network was split",
+                            self.rig, term, self.term)
+            self._rival = (term, time.monotonic())
+
+    def split_note(self) -> str:
+        """One line while another owner's status was seen within ``SPLIT_S`` (``""`` otherwise)."""
+        rival = self._rival
+        if rival is None or time.monotonic() - rival[1] > SPLIT_S:
+            return ""
+        return (f"split: rig {self.rig} is run by two owners at once (terms {min(rival[0], self.term)} and "
+                f"{max(rival[0], self.term)}; this one: term {self.term}): the network was split")
+
+    def _stamp_status(self, payload: str) -> str:
+        """A status payload with this service's term and split note, signed when the rig has a key."""
+        if self.term:
+            data = json.loads(payload)
+            data["term"] = self.term
+            note = self.split_note()
+            if note and not str(data.get("message", "")).startswith("split: "):
+                data["message"] = "; ".join(m for m in (note, data.get("message", "")) if m)
+                data.setdefault("counters", {})["split"] = 1
+            from fpdd import jsonio
+
+            payload = jsonio.dumps(data, indent=None, sort_keys=True)
+        return self._signer.sign_status(payload) if self._signer is not None else payload
 
     # ------------------------------------------------------------------ queryables
 

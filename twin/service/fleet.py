@@ -96,7 +96,8 @@ class BusFront:
     """The service's side of the bus: a :class:`~twin.service.bus.TwinPublisher` per rig, fed by the runners."""
 
     def __init__(self, session, histories: dict[str, Any],
-                 on_alarm: Callable[[AlarmEvent], None] | None = None, signing_keys: dict[str, str] | None = None) -> None:
+                 on_alarm: Callable[[AlarmEvent], None] | None = None, signing_keys: dict[str, str] | None = None,
+                 terms: dict[str, int] | None = None) -> None:
         from twin.service.bus import TwinPublisher
         from twin.service.put_mark import put_mark_path
         from twin.service.signing import load_signer
@@ -114,7 +115,8 @@ class BusFront:
                 path = getattr(history, "path", None)
                 self._pubs[rig] = TwinPublisher(session, rig, history=history,
                                                 signer=load_signer(key, rig) if key else None,
-                                                put_mark=put_mark_path(path) if path is not None else None)
+                                                put_mark=put_mark_path(path) if path is not None else None,
+                                                term=(terms or {}).get(rig, 0))
             for rig, pub in self._pubs.items():  # what a killed service journaled and never put, first
                 try:
                     pub.put_unsent()
@@ -207,7 +209,10 @@ class Fleet:
         from twin.service.bus import StoreHistory
 
         cfg = self.cfg
+        from twin.service.ownership import new_term
+
         journals: dict[str, AlarmJournal] = {}
+        terms: dict[str, int] = {}
         histories: dict[str, Any] = {}
         front = None
         procs: list[tuple[BaseProcess, list[str]]] = []
@@ -222,13 +227,15 @@ class Fleet:
             for rig in cfg.rigs:
                 journals[rig.name] = AlarmJournal(journal_path(cfg, rig.name), legacy=legacy_journal_path(cfg, rig.name),
                                                   witnesses=[commission_path(cfg, rig.name)], bind=_binding(rig))
+                terms[rig.name] = new_term()  # this run of the rig: an ownership term (twin.service.ownership)
+                journals[rig.name].begin_term(rig.name, terms[rig.name])
             for group in self.remote:
                 for rig in group:
                     journals.pop(rig.name).close()
                     histories[rig.name] = StoreHistory(journal_path(cfg, rig.name))
             histories.update(journals)
             front = BusFront(self.session, histories, self.on_alarm,
-                             {r.name: r.signing_key for r in cfg.rigs if r.signing_key})
+                             {r.name: r.signing_key for r in cfg.rigs if r.signing_key}, terms)
             front.replicate = self.replicate
             if self.session is not None:  # fpdd/<rig>/maintenance: recorded here, applied by each rig's runner
                 from twin.service.maintenance import maintenance_queryables

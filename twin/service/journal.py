@@ -315,6 +315,17 @@ class AlarmJournal:
 
     # ------------------------------------------------------------------ reading
 
+    def begin_term(self, rig: str, term: int) -> None:
+        """This service runs ``rig`` from now in ownership ``term``: its alarms carry it (:mod:`twin.service.ownership`).
+
+        :raises SourceError: it cannot be written (naming the file).
+        """
+        self.store.set_meta({f"term:{rig}": str(int(term))})
+
+    def term(self, rig: str) -> int:
+        """The ownership term the rig runs in here (0: none)."""
+        return self.store.term(rig)
+
     def note(self, rig: str, kind: str, text: str) -> None:
         """Keep one line about the rig in the journal (a failed write is logged: a note is no alarm)."""
         try:

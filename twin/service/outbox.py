@@ -36,6 +36,7 @@ class Outbox(Publisher):
         self._last_flush = time.monotonic()
         self._seq = journal.last_seq(rig)
         journal.epoch(rig)  # made now if the rig has none: its first status announces it
+        self.term = journal.term(rig)  # the ownership term this run publishes in (twin.service.ownership)
 
     def publish_alarm(self, event: AlarmEvent) -> AlarmEvent | None:
         recorded = self.journal.record(event)
@@ -83,6 +84,8 @@ class Outbox(Publisher):
             event = dataclasses.replace(event, counters={**event.counters, **self.status_counters()})
         if not event.epoch:  # the numbering the alarms count in, announced (and signed by the bus front)
             event = dataclasses.replace(event, epoch=self.journal.epoch(self.rig))
+        if self.term and not event.term:
+            event = dataclasses.replace(event, term=self.term)
         self._batch.append(("status", event_to_json(event), event.state, event.message))
         return event
 

@@ -13,6 +13,11 @@ it declares its owner token, waits ``claim_s`` and runs the rig unless an owner 
 appeared meanwhile (then it withdraws). An owner that sees another owner ranked before it (two sides of a
 split network that joined again) stands down; so does one that sees a ``prefer`` token ranked before it. A
 service never takes a rig from a live owner otherwise: a returning service stands by.
+
+Terms (fencing): every run of a rig by a service is an ownership *term*, numbered by :func:`new_term` (the
+wall-clock time it began, in ms: a later owner has a larger term without any message between them). The
+term is in every alarm, estimate and status the owner publishes; two terms publishing at once are two
+owners (a split network): the owners' statuses, ``twin alarms`` and ``twin top`` say so in one line.
 """
 
 from __future__ import annotations
@@ -88,6 +93,13 @@ def parse_failover(doc: dict, path: str, journal_dir: str) -> FailoverConfig | N
     if not 0.05 <= claim <= 10.0:
         raise ConfigError(f"{where}.claim_s: {claim:g} seconds; expected 0.05 to 10")
     return FailoverConfig(sid, prio, _get(f, "prefer", bool, where, False), lease, claim)
+
+
+def new_term() -> int:
+    """A new ownership term: the wall-clock time now in ms (later owners have larger terms)."""
+    import time
+
+    return time.time_ns() // 1_000_000
 
 
 def token_key(rig: str, role: str, priority: int, service_id: str) -> str:

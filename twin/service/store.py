@@ -409,7 +409,8 @@ class Store:
                     elif event.seq != nxt:
                         raise DataError(f"AlarmEvent.seq: {event.seq} for rig {event.rig!r} where {nxt} "
                                         f"(the next journal number) or 0 (assign) was expected")
-                    event = dataclasses.replace(event, epoch=self._stamp_epoch(db, event, nxt == 1))
+                    event = dataclasses.replace(event, epoch=self._stamp_epoch(db, event, nxt == 1),
+                                                term=event.term or self.term(event.rig))
                     payload = event_to_json(event)
                     db.execute("INSERT INTO alarms VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                                (event.rig, event.seq, event.parameter, event.level, event.kind, event.t_ns,
@@ -515,6 +516,12 @@ class Store:
             self._epochs.pop(event.rig, None)
         self._epochs[event.rig] = want
         return want
+
+    def term(self, rig: str) -> int:
+        """The ownership term the rig runs in (:func:`twin.service.ownership.new_term`, set by :meth:`set_meta`
+        ``term:<rig>`` when a service starts running it); 0: none."""
+        text = self.meta(f"term:{rig}")
+        return int(text) if text and text.isdigit() else 0
 
     def epoch(self, rig: str) -> str:
         """The rig's epoch (a writer makes it when the rig has none yet; a reader returns ``""`` then).

@@ -19,7 +19,7 @@ import zenoh
 from fpdd.zenohconf import zenoh_text
 from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, StatusEvent
-from twin.service.bus import RigKeys, _Declarations, _open_error, _ranges
+from twin.service.bus import SPLIT_S, RigKeys, _Declarations, _open_error, _ranges
 from twin.service.signing import FORGED, STATUS_DOMAIN, UNVERIFIED, VERIFIED, TrustStore, Verdict
 
 log = logging.getLogger("twin.service.bus")
@@ -130,6 +130,9 @@ class AlarmSubscriber(_Declarations):
         self.replayed = 0
         """Alarms refused as replays: of an earlier epoch, or a number received live before."""
         self._live: set[tuple[str, int]] = set()
+        self.splits = 0
+        """Times two ownership terms of one rig were seen publishing at once (a split network), each reported."""
+        self._terms: dict[str, dict[int, tuple[float, float]]] = {}  # rig -> term -> (first, last seen)
         self.forged = 0
         """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
         self.conflicts = 0
@@ -212,7 +215,8 @@ class AlarmSubscriber(_Declarations):
         got = self._status_of(sample.payload.to_string(), sample.key_expr)
         if got is not None:
             status, verdict = got
-            self._inbox.put(("status", (status.rig, status.counters.get("alarm_seq"), status.epoch, verdict)))
+            self._inbox.put(("status", (status.rig, status.counters.get("alarm_seq"), status.epoch, verdict,
+                                        status.term)))
 
     def _ask_status(self, rig: str) -> None:
         """Learn the epochs the rigs' owners announce (their latest status) before the history is judged."""
@@ -336,6 +340,8 @@ class AlarmSubscriber(_Declarations):
         if once and line in self._reported:
             return
         self._reported.add(line)
+        if kind == "split":
+            self.splits += 1
         if kind == "forged":
             self.forged += count
         elif kind == "conflict":
@@ -570,7 +576,26 @@ class AlarmSubscriber(_Declarations):
         self._learn_epoch(rig, event.epoch, f"alarm seq {event.seq} on {RigKeys(rig).alarm}")
         return True
 
-    def _on_alarm_seq(self, rig: str, alarm_seq: int | None, epoch: str = "", status: str = UNVERIFIED) -> None:
+    def _on_term(self, rig: str, term: int) -> None:
+        """Two owners at once: a lower term's status seen after a higher term began publishing (within
+        ``SPLIT_S``); reported once per pair of terms."""
+        now = time.monotonic()
+        seen = self._terms.setdefault(rig, {})
+        first = seen.get(term, (now, now))[0]
+        seen[term] = (first, now)
+        for t in [t for t, (_, last) in seen.items() if now - last > SPLIT_S]:
+            del seen[t]
+        newer = [t for t in seen if t > term]
+        if newer or any(t < term and seen[t][1] >= first for t in seen):
+            pair = (min(seen), max(seen))
+            self._report("split", f"rig {rig} is published by two owners at once (terms {pair[0]} and {pair[1]}): "
+                         "the network was split; alarms of both are shown, a number claimed by both is a conflict",
+                         once=True)
+
+    def _on_alarm_seq(self, rig: str, alarm_seq: int | None, epoch: str = "", status: str = UNVERIFIED,
+                      term: int = 0) -> None:
+        if term:
+            self._on_term(rig, term)
         if epoch:
             known = self.epochs.get(rig)
             if known is not None and epoch < known:

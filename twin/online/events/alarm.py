@@ -54,6 +54,9 @@ _ALARM_SCHEMA: dict[str, Any] = {
         "epoch": {"type": "string", "pattern": "^[0-9a-f]{1,64}$",
                   "description": "optional: the epoch of the rig's alarm numbering (a random identity made with its "
                   "journal, its creation time first: a later epoch sorts after an earlier one); seq counts within it"},
+        "term": {"type": "integer", "minimum": 1, "maximum": INT64_MAX,
+                 "description": "optional: the ownership term of the service that published it (fencing: a "
+                                "later owner has a larger term; two terms at once: a split network)"},
     },
 }
 
@@ -102,6 +105,7 @@ class AlarmEvent(FromJson):
     :ivar wall_ns: wall-clock time the journal recorded it [ns since the epoch]; ``None``: not journaled or unknown.
     :ivar epoch: the epoch of the rig's numbering (set by the journal, :mod:`twin.service.store`); ``""``: unknown
         (the field is then left out of the payload).
+    :ivar term: the ownership term that raised it (:mod:`twin.service.ownership`); 0: none (left out).
     """
 
     rig: str
@@ -122,6 +126,7 @@ class AlarmEvent(FromJson):
     signature: str = ""
     wall_ns: int | None = None
     epoch: str = ""
+    term: int = 0
 
     SCHEMA: ClassVar[dict[str, Any]] = _ALARM_SCHEMA
 
@@ -164,6 +169,8 @@ class AlarmEvent(FromJson):
             data["signature"] = self.signature
         if self.epoch:  # likewise an alarm of a journal without epochs
             data["epoch"] = self.epoch
+        if self.term:  # and one raised outside an ownership term
+            data["term"] = self.term
         return data
 
     @classmethod

@@ -97,6 +97,9 @@ _ESTIMATE_SCHEMA: dict[str, Any] = {
         },
         "nis": {"type": ["number", "null"], "minimum": 0, "description": "normalised innovation squared of this step, null before the first update"},
         "status": {"type": "string", "pattern": STATUS_PATTERN, "description": "filter status: ok, gated, repaired_covariance, stale_input, ..."},
+        "term": {"type": "integer", "minimum": 1, "maximum": INT64_MAX,
+                 "description": "optional: the ownership term of the service that published it (fencing: a "
+                                "later owner has a larger term; two terms at once: a split network)"},
     },
 }
 

@@ -52,6 +52,9 @@ _STATUS_SCHEMA: dict[str, Any] = {
         "epoch": {"type": "string", "pattern": "^[0-9a-f]{1,64}$",
                   "description": "optional: the epoch of the rig's alarm numbering in the owner's journal "
                   "(AlarmEvent.epoch): announced so that a subscriber refuses alarms of an earlier epoch"},
+        "term": {"type": "integer", "minimum": 1, "maximum": INT64_MAX,
+                 "description": "optional: the ownership term of the service that published it (fencing: a "
+                                "later owner has a larger term; two terms at once: a split network)"},
         "signature": {"type": "string", "description": "optional: base64 Ed25519 signature of the rig's key over "
                       "the canonical JSON of every other field (twin.service.signing, domain fpdd-status-v1)"},
         "tested": {
@@ -83,6 +86,7 @@ class StatusEvent(FromJson):
     :ivar consistency: ``consistent`` or why the filter is not consistent with the data.
     :ivar epoch: the epoch of the rig's alarm numbering (``""``: not announced; left out of the payload).
     :ivar signature: the rig key's signature (:mod:`twin.service.signing`; ``""``: unsigned, left out).
+    :ivar term: the ownership term of the service that published it (0: none, left out).
     :ivar tested: parameter -> record time [s] of the last window re-fit that tested it (confirmed alarms,
         :mod:`twin.online.confirm`; empty: left out of the payload).
     """
@@ -97,6 +101,7 @@ class StatusEvent(FromJson):
     consistency: str = "consistent"
     epoch: str = ""
     signature: str = ""
+    term: int = 0
     tested: Mapping[str, float] = field(default_factory=dict)
 
     SCHEMA: ClassVar[dict[str, Any]] = _STATUS_SCHEMA
@@ -121,7 +126,7 @@ class StatusEvent(FromJson):
             "sensors": dict(self.sensors),
             "consistency": self.consistency,
         }
-        for name in ("epoch", "signature"):  # optional: a payload without them is as before they existed
+        for name in ("epoch", "signature", "term"):  # optional: a payload without them is as before they existed
             if getattr(self, name):
                 data[name] = getattr(self, name)
         if self.tested:
