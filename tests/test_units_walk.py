@@ -45,7 +45,7 @@ DIMENSIONLESS = frozenset({
     # counts and indices
     "samples", "n", "n_obs", "n_par", "nfev", "status", "iteration", "start", "seq", "df", "lags", "order",
     "ar_order", "n_tests", "n_innovations", "raises", "records_read", "samples_out", "samples_lost", "seed", "messages",
-    "blocks", "duplicates", "estimates", "statuses", "alarms", "received_by_subscriber", "level", "line",
+    "blocks", "duplicates", "estimates", "statuses", "alarms", "forecasts", "received_by_subscriber", "level", "line",
     "speed", "factor",  # a replay speed (x real time), a drift's factor
     # ratios and relative values
     "ratio", "power_ratio", "share", "excess", "nrmse", "r2", "r2_excess", "ar1", "holdout_fraction",

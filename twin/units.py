@@ -187,11 +187,13 @@ def check_lengths(model, ps, signals, name: str = "record") -> None:
     """Refuse (:class:`~fpdd.errors.DataError`, one line) a length signal whose values lie beyond the rig's
     physical range (``model.filter_map(ps).ranges``: the position within the stroke) but within it read in mm:
     a column logged in mm read as metres.  The message names the peak, the range and the two ways to give the
-    unit (``--map x=x:mm``, a header ``x[mm]``).  A model that declares no range is not checked."""
+    unit (``--map x=x:mm``, a header ``x[mm]``).  A model that declares no range is not checked.
+    Within the range the rig's own loop tells (:func:`check_loop_scale`)."""
     import numpy as np
 
     from fpdd.errors import DataError
 
+    check_loop_scale(ps, signals, name)
     try:
         ranges = dict(model.filter_map(ps).ranges)
     except Exception:  # a model the online twin does not run: no declared range
@@ -216,3 +218,66 @@ def check_lengths(model, ps, signals, name: str = "record") -> None:
                 f"{hi * 1e3:g} mm ({ps.spec('stroke').show(ps['stroke']) + ' stroke' if 'stroke' in ps else 'declared'}"
                 f"): it reads like a column in mm ({peak:g} mm) read as metres; give its unit: --map {sig}={sig}:mm "
                 f"or a header {sig}[mm] (a bare column is SI)")
+
+
+#: How far (decades) a loop's scale may be from 1000 and still be read as a column in mm: a factor of 3 either way.
+#: On simulated MSP25 records (seeds 1-3, nominal noise) the fitted gain is KP within 0.02 % and x_ref/x within
+#: 0.2 %, so a healthy record sits three decades away from the refusal; a drive with feed-forward or a gain retuned
+#: since commissioning moves it by far less than 0.5 decade.
+LOOP_SCALE_DECADES = 0.5
+
+
+def check_loop_scale(ps, signals, name: str = "record") -> None:
+    """Refuse (:class:`~fpdd.errors.DataError`, one line) a position in mm read as metres whose values stay inside
+    the stroke, which no range can tell: in closed loop the demand ``x_ref`` and the measured ``x`` share one scale,
+    and the controller's drive is ``u = KP (x_ref - x)`` (``KP`` of ``ps``). With ``x`` and ``x_ref`` in the record,
+    the least-squares scale ``s = <x_ref, x> / <x, x>`` near 1/1000 (or 1000) names ``x`` (or ``x_ref``); with ``u``
+    too, the gain ``g = <u, e> / <e, e>`` of ``e = x_ref - x`` near ``KP / 1000`` names both. Near means within
+    :data:`LOOP_SCALE_DECADES` of three decades."""
+    import numpy as np
+
+    from fpdd.errors import DataError
+
+    if "x" not in signals or "x_ref" not in signals:
+        return
+    x = np.asarray(signals["x"], dtype=np.float64)
+    r = np.asarray(signals["x_ref"], dtype=np.float64)
+    ok = np.isfinite(x) & np.isfinite(r)
+    u = np.asarray(signals["u"], dtype=np.float64) if "u" in signals else None
+    if u is not None:
+        ok &= np.isfinite(u)
+    if ok.sum() < 100:
+        return
+    x, r = x[ok], r[ok]
+
+    def thousand(ratio: float) -> int:
+        """+1 for ~1000, -1 for ~1/1000, 0 otherwise."""
+        if not (ratio > 0 and np.isfinite(ratio)):
+            return 0
+        d = np.log10(ratio)
+        return 1 if abs(d - 3) <= LOOP_SCALE_DECADES else -1 if abs(d + 3) <= LOOP_SCALE_DECADES else 0
+
+    def refuse(sig: str, why: str) -> None:
+        raise DataError(f"{name}: {sig} {why}: it reads like a column in mm read as metres; give its unit: "
+                        f"--map {sig}={sig}:mm or a header {sig}[mm] (a bare column is SI)")
+
+    xx, rr = float(np.dot(x, x)), float(np.dot(r, r))
+    if xx > 0 and rr > 0:
+        k = thousand(float(np.dot(r, x)) / xx)
+        if k == -1:
+            refuse("x", f"is {xx / float(np.dot(r, x)):.3g} times larger than the demand x_ref it tracks")
+        if k == 1:
+            refuse("x_ref", f"is {float(np.dot(r, x)) / xx:.3g} times larger than the position x that tracks it")
+    try:
+        kp = float(ps["KP"])
+    except Exception:  # a model with no proportional gain
+        return
+    if u is None or not kp > 0:
+        return
+    e = r - x
+    ee = float(np.dot(e, e))
+    if ee > 0 and thousand(kp * ee / float(np.dot(u[ok], e))) == 1:
+        g = float(np.dot(u[ok], e)) / ee
+        raise DataError(f"{name}: x and x_ref drive the loop as if its gain were {g:.3g} V/m, about 1000 times less "
+                        f"than KP = {kp:g} V/m: they read like columns in mm read as metres; give their units: "
+                        "--map x=x:mm --map x_ref=x_ref:mm or headers x[mm], x_ref[mm] (a bare column is SI)")

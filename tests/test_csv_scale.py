@@ -1,0 +1,55 @@
+"""A position column in mm whose values stay inside the stroke (below 0.25) is not read as metres: the rig's loop
+tells (x_ref and x share a scale; the drive u is KP times their difference), and fit and track refuse it in one
+line naming the column and the --map fix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twin import cli
+from twin.models import get_model
+from twin.models.scenario import simulate_wear
+from twin.models.simulate import excite
+from fpdd.units import NOMINAL_NOISE
+
+
+@pytest.fixture(scope="module")
+def record():
+    m = get_model("msp25")
+    _, xr = excite(m, 3.0, 1e-3, seed=21)
+    rec, _ = simulate_wear(m.params(), xr, 1e-3, [], noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
+                           seed=21)
+    # a small-amplitude test (+-0.2 mm): position, demand and drive scaled alike, so u = KP (x_ref - x) still holds
+    k = 0.02
+    return type(rec)(rec.dt, {**rec.signals, **{n: rec.signals[n] * k for n in ("x_ref", "u", "x")}}, rec.name)
+
+
+def _csv(path, rec, mm=()):
+    cols = {k: rec.signals[k] * (1e3 if k in mm else 1.0) for k in ("x_ref", "u", "x", "pA", "pB")}
+    np.savetxt(path, np.column_stack([rec.t_s, *cols.values()]), delimiter=",", comments="",
+               header="t," + ",".join(cols), fmt="%.17g")
+    return str(path)
+
+
+@pytest.mark.parametrize("mm, named", [(("x",), "x is"), (("x_ref",), "x_ref is"), (("x", "x_ref"), "x and x_ref")])
+def test_a_position_in_mm_inside_the_stroke_is_refused(tmp_path, capsys, record, mm, named):
+    path = _csv(tmp_path / "run.csv", record, mm)
+    assert np.abs(record.signals["x"]).max() * 1e3 < 0.25  # inside the stroke read as metres: no range tells
+    rc = cli.main(["fit", path, "--free", "Ffric"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(err) == 1 and "Traceback" not in err[0]
+    assert named in err[0] and "read as metres" in err[0] and f"--map {mm[0]}={mm[0]}:mm" in err[0]
+    if len(mm) == 2:
+        assert "--map x_ref=x_ref:mm" in err[0]
+
+
+def test_the_same_record_with_its_units_given_is_read(tmp_path, capsys, record):
+    from twin.units import check_loop_scale
+
+    path = _csv(tmp_path / "run.csv", record, ("x", "x_ref"))
+    from twin.models.records import load_records
+
+    rec = load_records(path, map=["x=x:mm", "x_ref=x_ref:mm"])[0]
+    check_loop_scale(get_model("msp25").params(), rec.signals, path)  # no refusal: SI again
+    assert np.allclose(rec.signals["x"], record.signals["x"], rtol=1e-12, atol=1e-15)
