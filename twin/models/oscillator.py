@@ -17,13 +17,15 @@ from the data's own second-order response (:meth:`Oscillator.starts_from_data`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 
 import numba as nb
 import numpy as np
 
-from fpdd.errors import DataError
+from fpdd.errors import DataError, ParameterError
+from fpdd.units import text_to_si
 from twin.models.base import (DEFAULT_TIMING, INTERSAMPLE_CODE, Experiment, FilterMap, FilterSpec, Model, Signal,
                               SimResult, check_drive, start_of)
 from twin.models.intersample import input_at
@@ -35,11 +37,30 @@ from twin.models.jitcache import keep_fresh
 # the machine code cached for this module inlines these modules' compiled code and constants
 keep_fresh(__file__, _intersample_src.__file__, _base_src.__file__)
 
+@dataclasses.dataclass(frozen=True)
+class SpringSpec(ParamSpec):
+    """The spring's spec: a fit moves k in log coordinates over [lo, hi] (scale-free: a circuit's k in volts is
+    far from 3947.8 N/m), and k may also be held at exactly 0, a free mass with damping (a positioning axis:
+    ``--set k=0``)."""
+
+    def check(self, value: float | str) -> float:
+        try:
+            return super().check(value)
+        except ParameterError:
+            try:
+                v = text_to_si(self.name, value, self.unit) if isinstance(value, str) else float(value)
+            except (ParameterError, TypeError, ValueError):
+                v = float("nan")
+            if v == 0.0:
+                return 0.0
+            raise
+
+
 BASE = (
     ParamSpec("m", "kg", 1e-9, 1e6, "physical", "mass", typical=1.0),
     ParamSpec("d", "N s/m", 0.0, 1e6, "phenomenological", "viscous damping", typical=0.1,
               tracking=Tracking(band=0.5, drift_rate=0.01, bounds=(1 / 20, 20.0), excited_by="rod_motion")),
-    ParamSpec("k", "N/m", 0.0, 1e9, "phenomenological", "stiffness", typical=3947.8,
+    SpringSpec("k", "N/m", 1e-9, 1e9, "phenomenological", "stiffness (or exactly 0: a free mass)", typical=3947.8,
               tracking=Tracking(band=0.3, drift_rate=0.002, bounds=(1 / 4, 4.0), excited_by="rod_motion")),
 )
 NOMINAL = {"m": 1.0, "d": 0.1, "k": 3947.8}
