@@ -53,3 +53,25 @@ def test_the_same_record_with_its_units_given_is_read(tmp_path, capsys, record):
     rec = load_records(path, map=["x=x:mm", "x_ref=x_ref:mm"])[0]
     check_loop_scale(get_model("msp25").params(), rec.signals, path)  # no refusal: SI again
     assert np.allclose(rec.signals["x"], record.signals["x"], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller, known, pid, seed", [
+    ("analog", None, None, 1), ("digital", {"KI": 200.0}, None, 2), ("digital", {"KD": 2.0}, None, 3),
+    ("digital", None, {"Kff": 0.5}, 4), ("digital", {"KP": 250.0}, None, 5)])
+def test_reference_loops_pass_and_their_mm_copies_are_refused(controller, known, pid, seed):
+    """On the independent simulator (truth drawn, its noise; P, PI, PD, feed-forward, another KP) a record in SI
+    passes and the same record with x, x_ref or both in mm is refused, naming them."""
+    from fpdd.errors import DataError
+    from reference import msp25_spec
+    from conftest import get_records
+
+    from twin.units import check_loop_scale
+
+    spec = msp25_spec(seed, duration=4.0, controller=controller, truth="draw", known=known, pid=pid)
+    sig = dict(get_records([spec], workers=1)[0].signals)
+    ps = get_model("msp25").params().replace(KP=(known or {}).get("KP", 400.0))
+    check_loop_scale(ps, sig, "ref")  # SI: no refusal
+    for mm, named in ((("x",), "ref: x is"), (("x_ref",), "ref: x_ref is"), (("x", "x_ref"), "ref: x and x_ref")):
+        with pytest.raises(DataError, match=f"^{named}"):
+            check_loop_scale(ps, {**sig, **{n: sig[n] * 1e3 for n in mm}}, "ref")
