@@ -68,7 +68,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from fpdd import jsonio
-from fpdd.units import SIGNALS
+from fpdd.units import SIGNALS, display
 
 SIGNALS_TOPIC = "/rig/signals"
 SIGNALS_SCHEMA = "fpdd.RigSignals"
@@ -84,15 +84,24 @@ TIME_FIELDS = frozenset({"t", "t_ns", "timestamp"})
 # --- schemas -------------------------------------------------------------------------------
 
 def signals_schema(signals: Sequence[str]) -> dict:
-    """JSON Schema of ``/rig/signals`` for these signals."""
+    """JSON Schema of ``/rig/signals`` for these signals: the time, the rig's name, each signal in SI and under
+    ``display`` in its display unit (x in mm, pressures in MPa, as the live view's ``/rig/signals``)."""
     props: dict[str, Any] = {"t": {"type": "number", "description": "sample time, s (log_time / 1e9)"},
-                             "timestamp": TIME_SCHEMA}
+                             "timestamp": TIME_SCHEMA,
+                             "rig": {"type": "string", "description": "the rig's name (Foxglove's layout selects "
+                                                                      "/rig/signals{rig==$rig})"}}
+    shown: dict[str, Any] = {}
     for name in signals:
         spec = SIGNALS.get(name)
         desc = f"{spec.meaning}, {spec.unit}" if spec else "extra signal, SI unit"
         props[name] = {"type": ["number", "null"], "description": desc}
+        shown[name] = {"type": ["number", "null"],
+                       "description": f"{spec.meaning}, {display(spec.unit)[0]}" if spec else "extra signal"}
+    props["display"] = {"type": "object", "properties": shown, "required": list(signals),
+                        "description": "the signals in display units (SI times the factor of "
+                                       "fpdd.units.DISPLAY: x in mm, pressures in MPa)"}
     return {"title": SIGNALS_SCHEMA, "type": "object", "properties": props,
-            "required": ["t", "timestamp", *signals]}
+            "required": ["t", "timestamp", "rig", *signals, "display"]}
 
 
 def block_schema(signals: Sequence[str]) -> dict:

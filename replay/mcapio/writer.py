@@ -100,7 +100,7 @@ class McapSink(Sink):
         units = [SIGNALS[s].unit if s in SIGNALS else "" for s in self._signals]
         meta = {"signals": ",".join(self._signals), "units": ",".join(units)}
         block = self._channel(BLOCK_TOPIC, block_schema(self._signals), meta) if self._block else None
-        per = self._channel(SIGNALS_TOPIC, row_schema(self._signals), {
+        per = self._channel(SIGNALS_TOPIC, signals_schema(self._signals), {
             **meta, "rig": self.rig, "display_units": ",".join(display(u)[0] for u in units)}) \
             if self._per_sample else None
         return block, per
@@ -232,24 +232,6 @@ class McapSink(Sink):
 def _stem(path: str) -> str:
     name = os.path.basename(path)
     return name[:-5] if name.lower().endswith(".mcap") else name
-
-
-def row_schema(signals: Sequence[str]) -> dict:
-    """JSON Schema of the ``/rig/signals`` rows :class:`McapSink` writes: :func:`signals_schema` with the rig's
-    name (``rig``) and the signals in display units (``display``: x in mm, pressures in MPa, as the live
-    view's ``/rig/signals`` and Foxglove's layout read them)."""
-    out = signals_schema(signals)
-    shown = {}
-    for name in signals:
-        spec = SIGNALS.get(name)
-        shown[name] = {"type": ["number", "null"],
-                       "description": f"{spec.meaning}, {display(spec.unit)[0]}" if spec else "extra signal"}
-    out["properties"] = {**out["properties"], "rig": {"type": "string", "description": "the rig's name"},
-                         "display": {"type": "object", "properties": shown, "required": list(signals),
-                                     "description": "the signals in display units (SI x the display scale of "
-                                                    "fpdd.units.DISPLAY: x in mm, pressures in MPa)"}}
-    out["required"] = [*out["required"], "rig", "display"]
-    return out
 
 
 def _json_rows(t_ns: np.ndarray, cols: list[np.ndarray], names: Sequence[str], rig: str = "") -> list[bytes]:
