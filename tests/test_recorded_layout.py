@@ -110,8 +110,8 @@ def test_converted_rig_log_fills_the_signal_panels(tmp_path):
     with open(out, "rb") as f:  # the display numbers are the SI ones in mm and MPa
         for _, _, m in make_reader(f).iter_messages(topics=["/rig/signals"]):
             row = json.loads(m.data)
-            assert row["display"]["x"] == pytest.approx(row["x"] * 1e3)
-            assert row["display"]["pA"] == pytest.approx(row["pA"] * 1e-6)
+            assert row["display"]["x"] == pytest.approx(row["x"] * 1e3, rel=1e-6, abs=1e-12)
+            assert row["display"]["pA"] == pytest.approx(row["pA"] * 1e-6, rel=1e-6)
     with McapSource(str(out)) as src:  # and the file still reads back as the samples it was given
         back = Samples.concat(list(src.chunks()))
     assert back.names == tuple(sig) and np.array_equal(back.signals["x"], sig["x"])

@@ -426,7 +426,8 @@ def test_mcap_layout_is_what_foxglove_plots(tmp_path: Path) -> None:
         _, _, msg = next(reader.iter_messages(topics=[SIGNALS_TOPIC]))
         first = json.loads(msg.data)
         assert set(first) == {"t", "timestamp", "rig", "x", "pA", "display"} and first["t"] == msg.log_time * 1e-9
-        assert first["rig"] == "layout" and first["display"] == {"x": first["x"] * 1e3, "pA": first["pA"] * 1e-6}
+        assert first["rig"] == "layout" and first["display"] == {"x": pytest.approx(first["x"] * 1e3, rel=1e-6),
+                                                                 "pA": pytest.approx(first["pA"] * 1e-6, rel=1e-6)}
         assert first["timestamp"]["sec"] * 10**9 + first["timestamp"]["nsec"] == msg.log_time
         # each flush is its own chunks: block chunks hold no per-sample messages
         block_chunks = [ci for ci in summary.chunk_indexes if topics[BLOCK_TOPIC].id in ci.message_index_offsets]

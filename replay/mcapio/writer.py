@@ -234,19 +234,35 @@ def _stem(path: str) -> str:
     return name[:-5] if name.lower().endswith(".mcap") else name
 
 
+#: Significant digits of the display numbers of ``/rig/signals`` (a plot's; the SI numbers are exact, ``repr``):
+#: x to 1e-6 mm at 10 mm, pressures to 1e-5 MPa; twice as fast to write as ``repr``.
+DISPLAY_DIGITS = 7
+
+
 def _json_rows(t_ns: np.ndarray, cols: list[np.ndarray], names: Sequence[str], rig: str = "") -> list[bytes]:
-    """One compact JSON object per sample, floats in shortest round-trip form: the time, the rig's name, the
-    signals in SI, and the same in display units under ``display``."""
-    fmt = ('{"t":%s,"timestamp":{"sec":%d,"nsec":%d},"rig":' + json.dumps(rig).replace("%", "%%")
-           + "".join(f',"{k}":%s' for k in names) + ',"display":{'
-           + ",".join(f'"{k}":%s' for k in names) + "}}")
-    sec, nsec = np.divmod(t_ns, 1_000_000_000)
-    strs = [list(map(repr, (t_ns * 1e-9).tolist())), sec.tolist(), nsec.tolist()]
+    """One compact JSON object per sample: the time, the rig's name, the signals in SI (shortest round-trip form,
+    ``repr``) and the same in display units under ``display`` (:data:`DISPLAY_DIGITS` significant digits); a
+    non-finite value is ``null``."""
     scales = [display(SIGNALS[k].unit)[1] if k in SIGNALS else 1.0 for k in names]
-    for c in [*cols, *(c * k if k != 1.0 else c for c, k in zip(cols, scales))]:
-        s = list(map(repr, c.tolist()))
-        bad = np.flatnonzero(~np.isfinite(c))
-        for i in bad.tolist():
-            s[i] = "null"
-        strs.append(s)
-    return [(fmt % row).encode() for row in zip(*strs)]
+    values = [*cols, *(c * k if k != 1.0 else c for c, k in zip(cols, scales))]
+    head = '{"t":%r,"timestamp":{"sec":%d,"nsec":%d},"rig":' + json.dumps(rig).replace("%", "%%")
+
+    def template(si: str, shown: str) -> str:
+        return (head + "".join(f',"{k}":{si}' for k in names) + ',"display":{'
+                + ",".join(f'"{k}":{shown}' for k in names) + "}}")
+
+    sec, nsec = np.divmod(t_ns, 1_000_000_000)
+    columns = [(t_ns * 1e-9).tolist(), sec.tolist(), nsec.tolist(), *(v.tolist() for v in values)]
+    fmt = template("%r", f"%.{DISPLAY_DIGITS}g")
+    rows = [(fmt % row).encode() for row in zip(*columns)]
+    if values:
+        bad = np.flatnonzero(~np.isfinite(np.vstack(values)).all(axis=0))
+        if bad.size:  # the rare row with a non-finite value: null in its place
+            slow = template("%s", "%s")
+            n = len(names)
+            for i in bad.tolist():
+                row = [columns[0][i], columns[1][i], columns[2][i]]
+                row += [("null" if not np.isfinite(c[i]) else repr(c[i]) if j < n else f"{c[i]:.{DISPLAY_DIGITS}g}")
+                        for j, c in enumerate(columns[3:])]
+                rows[i] = (slow % tuple(row)).encode()
+    return rows
