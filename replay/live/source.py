@@ -15,7 +15,7 @@ from replay.can.decode import CanStream, split_block, make_plan, probe_plan
 from replay.can.codec import Frames, VectorCodec
 from replay.quality import QualityGate, QualityOptions
 from fpdd.errors import DataError, SourceError, TwinError
-from replay.live.payloads import CAN_MAGIC, PayloadError, json_to_samples, payload_to_frames
+from replay.live.payloads import CAN_MAGIC, SAMPLES_FORMAT, PayloadError, json_to_samples, payload_to_frames
 from replay.live.sinks import open_live_session, parse_zenoh_uri
 from replay.live.payloads import MAX_BLOCK, MAX_PAYLOAD_BYTES, MAX_QUEUE
 from replay.live.watch import Live
@@ -55,6 +55,8 @@ class ZenohSource(Live, Source):
         self.max_payload_bytes = int(max_payload_bytes)
         self.max_block = int(max_block)
         self._queue: queue.Queue[tuple[int, bytes] | None] = queue.Queue(maxsize=max(1, int(max_queue)))
+        self._shed = 0  # payloads shed unparsed by the callback under a burst (see _on_sample)
+        self._shed_counted = 0
         self._first: list[tuple[str, object]] = []  # payloads received while finding `signals`
         self._kind: str | None = None
         self._stream: CanStream | None = None
@@ -83,8 +85,15 @@ class ZenohSource(Live, Source):
                 self._drop("oversized", f"payload {n}", f"{size} bytes, at most {self.max_payload_bytes} accepted; "
                                                         "dropped unread")
                 return
+            data = sample.payload.to_bytes()
+            if not _plausible(data) and self._queue.qsize() >= self._queue.maxsize // 2:
+                # Under a burst, what is plainly not a payload is shed here, unparsed and uncounted but for one
+                # integer (folded into the report by the consumer): it never takes the place of a good payload
+                # in the queue, and costs the callback (which every key of the session shares) next to nothing.
+                self._shed += 1
+                return
             try:
-                self._queue.put_nowait((n, sample.payload.to_bytes()))
+                self._queue.put_nowait((n, data))
             except queue.Full:
                 self._drop("flood", f"payload {n}", f"{self._queue.maxsize} payloads already waiting: the input "
                                                     "comes faster than it is consumed; dropped")
@@ -145,15 +154,27 @@ class ZenohSource(Live, Source):
             try:
                 got = self._queue.get(timeout=max(0.0, min(left, self.poll_s)))
             except queue.Empty:
+                self._count_shed()
                 if time.monotonic() >= deadline:
                     return None
                 continue
             if got is None:  # close() wakes the consumer
                 return None
+            self._count_shed()
             item = self._parse(*got)
             if item is not None:
                 return item
         return None
+
+    def _count_shed(self) -> None:
+        """Fold the payloads the callback shed into the report (one drop line per ``LOG_EVERY_S``)."""
+        shed = self._shed
+        if shed > self._shed_counted:
+            n, self._shed_counted = shed - self._shed_counted, shed
+            with self._lock:
+                self.report.skipped["shed"] += n
+            self._log_drop("shed", n, f"payloads that are neither {SAMPLES_FORMAT} JSON nor fpdd.can/1 frames, "
+                                      "arriving faster than they were consumed: dropped unparsed")
 
     def _take_first(self, item: tuple[str, object]) -> None:
         """Keep a first payload for the stream and learn the signals from it (samples, or CAN frames)."""
@@ -273,3 +294,14 @@ class ZenohSource(Live, Source):
         self.subscriber.undeclare()
         if self._owned:
             self.session.close()
+
+
+_FORMAT_BYTES = SAMPLES_FORMAT.encode()
+
+
+def _plausible(data: bytes) -> bool:
+    """Whether a payload may be one (``fpdd.can/1`` frames, or a JSON object naming ``fpdd.samples/1``): a
+    check of a few bytes and one substring search, no parse."""
+    if data[:4] == CAN_MAGIC:
+        return True
+    return data.lstrip()[:1] == b"{" and _FORMAT_BYTES in data

@@ -1,0 +1,92 @@
+"""A burst of malformed payloads on one rig's live key costs only those payloads: the rig's own good samples
+that arrive during it are all processed (what is plainly not a payload is shed unparsed under the burst and
+counted), and the neighbouring rig of the same service gets every sample. Real Zenoh sessions on loopback."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+import zenoh
+
+from net_helpers import free_port
+from replay.base import Samples
+from replay.live import ZenohSampleSink
+from fpdd.units import NOMINAL_NOISE
+from fpdd.zenohconf import zenoh_config
+from twin.models import msp25 as M
+from twin.models.scenario import simulate_wear
+from twin.models.simulate import excite
+from twin.service.config import parse_config
+from twin.service.serve import serve
+
+RIGS = ("rig-a", "rig-b")
+SECONDS = 12.0
+BURST = 100_000
+
+
+def _samples(seed: int) -> Samples:
+    _, xr = excite(M.MODEL, SECONDS, 1e-3, seed=seed)
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, (), noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")},
+                           seed=seed)
+    s = rec.to_samples()
+    return Samples(s.t_ns + (time.time_ns() // 10**6 - 60_000) * 10**6, s.signals)
+
+
+def _keeper(latest: dict, rig: str):
+    def keep(sample: zenoh.Sample) -> None:
+        latest[rig] = json.loads(sample.payload.to_string())["counters"]
+    return keep
+
+
+@pytest.mark.slow
+def test_a_burst_of_malformed_payloads_costs_only_itself(tmp_path) -> None:
+    port = free_port()
+    cfg = parse_config({"zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+                        "service": {"journal_dir": str(tmp_path / "journal"), "stale_s": 0.3, "estimate_every": 100},
+                        "rig": [{"name": r, "source": f"zenoh://fpdd/{r}/samples"} for r in RIGS]}, "<burst>")
+    data = {r: _samples(1041 + i) for i, r in enumerate(RIGS)}
+    n = len(data["rig-a"])
+    stop = threading.Event()
+    summaries: dict = {}
+    service = threading.Thread(target=serve, args=(cfg, stop), kwargs={"summaries": summaries})
+    service.start()
+    try:
+        with zenoh.open(zenoh_config("peer", connect=list(cfg.listen))) as session:
+            latest: dict[str, dict] = {}  # rig -> the counters of its last status
+            watch = [session.declare_subscriber(f"fpdd/{r}/status", _keeper(latest, r)) for r in RIGS]
+            sinks = {r: ZenohSampleSink(f"fpdd/{r}/samples", session=session, end_marker=False, max_block=100)
+                     for r in RIGS}
+            try:
+                for sink in sinks.values():
+                    assert sink.wait_for_subscriber(20.0), "the service did not subscribe to its input"
+                attacker = session.declare_publisher("fpdd/rig-a/samples")
+                start = time.monotonic()
+                for i in range(0, n, 100):
+                    for r, sink in sinks.items():
+                        sink.write(data[r].slice(i, i + 100))
+                    if i == n // 3:  # a third in: malformed payloads as fast as they can be put
+                        for k in range(BURST):
+                            attacker.put(b"garbage" if k % 2 else b'{"t_ns": "bad", "x": 1}')
+                    time.sleep(max(0.0, start + (i + 100) * 1e-3 - time.monotonic()))
+                attacker.undeclare()
+                deadline = time.monotonic() + 60.0
+                while latest.get("rig-b", {}).get("samples", 0) < n:  # the neighbour caught up
+                    assert time.monotonic() < deadline, latest
+                    time.sleep(0.05)
+                settle = time.monotonic() + 5.0  # the target's last blocks (what was dropped never comes)
+                while latest.get("rig-a", {}).get("samples", 0) < n and time.monotonic() < settle:
+                    time.sleep(0.05)
+            finally:
+                for sink in sinks.values():
+                    sink.close()
+                for w in watch:
+                    w.undeclare()
+    finally:
+        stop.set()
+        service.join(timeout=60.0)
+    assert not service.is_alive()
+    assert latest["rig-b"]["samples"] == n, latest  # the neighbour: every sample
+    assert latest["rig-a"]["samples"] == n, latest  # the target: every good sample, none dropped for the burst
