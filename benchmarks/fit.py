@@ -191,6 +191,71 @@ def _five_parameter_command(sim_args=(), fit_args=()) -> dict:
             "ratio": t_fit / t_cmd, "target": "<= 5 s", "ok": t_cmd <= 5.0}
 
 
+#: the paper's hard case as a command: zeta and CdAleak from x alone, an analog controller, starts at zeta 0.6 and
+#: CdAleak x3 (the nominal CdAleak is 3.2863e-9 m^2)
+HARD_FIT = ["--free", "zeta,CdAleak", "--outputs", "x", "--controller", "continuous", "--start",
+            "zeta=0.6,CdAleak=0.0098589mm^2", "--json"]
+
+
+def _command_cpu(tree: str, argv: list[str]) -> tuple[float, float, dict]:
+    """CPU seconds (user + system) and wall seconds of ``python -m twin.cli ARGV`` run from ``tree``, its JSON."""
+    import os
+    import subprocess
+
+    env = dict(os.environ, PYTHONPATH=tree)
+    t0 = time.perf_counter()
+    p = subprocess.Popen([sys.executable, "-m", "twin.cli", *argv], cwd=tree, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.DEVNULL)
+    out = p.stdout.read() if p.stdout else b""
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    if status != 0:
+        raise RuntimeError(f"twin {' '.join(argv)} (from {tree}) exited with status {status}")
+    return ru.ru_utime + ru.ru_stime, wall, json.loads(out)
+
+
+def hard_fit_command(repeats: int = 3, baseline: str | None = None, duration: float = 40.0) -> dict:
+    """The whole ``twin fit`` command on the paper's hard case (:data:`HARD_FIT`, a ``duration`` s record of the
+    product's simulator, analog controller, default noise, seed 3), CPU and wall medians of ``repeats`` runs; with
+    ``baseline`` the same command from that git revision's tree, interleaved in the same run (one warm-up run each
+    first: the numba cache of a fresh tree compiles)."""
+    import os
+    import subprocess
+    import tempfile
+
+    from benchmarks.startup import _export
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "hard.csv")
+        subprocess.run([sys.executable, "-m", "twin.cli", "-q", "simulate", "-o", path, "--duration", str(duration),
+                        "--seed", "3", "--controller", "continuous"], check=True, capture_output=True)
+        trees = {"now": root}
+        if baseline:
+            trees["baseline"] = _export(baseline, os.path.join(d, "baseline"))
+        argv = ["-q", "fit", path, *HARD_FIT]
+        runs: dict[str, list[tuple[float, float]]] = {k: [] for k in trees}
+        est: dict[str, dict] = {}
+        for tree in trees.values():
+            _command_cpu(tree, argv)
+        for _ in range(repeats):
+            for which, tree in trees.items():
+                cpu, wall, res = _command_cpu(tree, argv)
+                runs[which].append((cpu, wall))
+                est[which] = {p: v["value"] for p, v in res["params"].items()} | {"nfev": res.get("nfev"),
+                                                                                   "adequate": res["adequacy"].get(
+                                                                                       "adequate")}
+    out: dict = {"name": f"hard two-parameter fit, {duration:g} s record, analog controller: whole twin fit command",
+                 "repeats": repeats, "baseline": baseline, "estimates": est,
+                 "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+    for which, rs in runs.items():
+        out[which] = {"cpu_s": float(np.median([r[0] for r in rs])), "wall_s": float(np.median([r[1] for r in rs])),
+                      "cpu_runs": [r[0] for r in rs]}
+    if baseline:
+        out["cpu_ratio"] = out["baseline"]["cpu_s"] / out["now"]["cpu_s"]
+    return out
+
+
 def _others(quick: bool) -> list[dict]:
     rows = []
     for mod in ("benchmarks.tracker", "benchmarks.diagnose", "benchmarks.replay", "benchmarks.failover"):
@@ -214,7 +279,24 @@ def main(argv=None) -> int:
     ap.add_argument("--user-rig", type=int, default=0, metavar="N",
                     help="only the 40 s five-parameter twin fit command on the user's rig against the paper's, "
                          "N interleaved runs each")
+    ap.add_argument("--hard-command", type=int, default=0, metavar="N",
+                    help="only the whole twin fit command on the paper's hard case (40 s, analog controller), N runs")
+    ap.add_argument("--baseline", metavar="REV", help="with --hard-command: the same command from this git "
+                    "revision's tree too, interleaved in the same run")
     args = ap.parse_args(argv)
+    if args.hard_command:
+        h = hard_fit_command(args.hard_command, args.baseline)
+        if args.json:
+            print(json.dumps(h, indent=2))
+            return 0
+        line = f"{h['name']}: {h['now']['cpu_s']:.2f} s CPU ({h['now']['wall_s']:.2f} s wall)"
+        if args.baseline:
+            b = h["baseline"]
+            line += (f"; the tree of {args.baseline} in the same run {b['cpu_s']:.2f} s CPU ({b['wall_s']:.2f} s "
+                     f"wall): {h['cpu_ratio']:.2f}x")
+        print(line + f"; median of {h['repeats']}, load average {h['load_average_1min']:.1f}")
+        print("estimates:", json.dumps(h["estimates"]))
+        return 0
     if args.user_rig:
         r = user_rig_command(args.user_rig)
         if args.json:

@@ -479,6 +479,9 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
 
     history: list[dict] = []
     nfev_total = 0
+    #: residuals (and their finite-difference neighbours) of the last points evaluated under the current problem:
+    #: the result's Jacobian at the solution is one of them, not simulated again
+    evaluated: dict[bytes, np.ndarray] = {}
 
     def refine(z_start: np.ndarray, rank: int):
         cache: dict = {}
@@ -489,6 +492,9 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
                 cache.clear()
                 Zb = np.vstack([z, z + FD_STEP * np.eye(prob.n_z)])
                 cache[key] = prob.residuals(Zb)
+                evaluated[key] = cache[key]
+                while len(evaluated) > 4:
+                    evaluated.pop(next(iter(evaluated)))
             return cache[key][0]
 
         def jac(z):
@@ -529,6 +535,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         if any(d is not None for d in dither):
             # the controller read the noisy sensor: refine again with that noise in the simulated loop
             prob.dither = dither
+            evaluated.clear()  # another problem: those residuals were without the loop noise
             if progress:
                 progress("refining with the loop noise read off the displacement residual")
             try:
@@ -537,13 +544,18 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
                 best = res
             except (ValueError, np.linalg.LinAlgError, FloatingPointError):
                 prob.dither = []
-    return _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start)
+                evaluated.clear()
+    return _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start,
+                   evaluated.get(np.asarray(best.x).tobytes()))
 
 
-def _result(prob: _Problem, res, history, starts_info, nfev, elapsed) -> FitResult:
+def _result(prob: _Problem, res, history, starts_info, nfev, elapsed, R: np.ndarray | None = None) -> FitResult:
+    """The fit's result at ``res.x``; ``R``: the residuals there and at its finite-difference neighbours when the
+    refinement evaluated them already."""
     z = res.x
     theta, init = prob.from_z(z)
-    R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
+    if R is None:
+        R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
     r = R[0]
     J = ((R[1:] - r) / FD_STEP).T
     N = prob.n_measured()

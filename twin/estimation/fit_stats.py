@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import stats
+from scipy.special import chdtrc  # chi2.sf, without importing scipy.stats (a second of start-up)
 
 from twin.estimation.hac import bartlett_lag
 
@@ -52,4 +52,4 @@ def likelihood_ratio(nested: FitResult, extended: FitResult) -> tuple[float, flo
     """LR statistic, p-value and degrees of freedom of ``extended`` against ``nested``."""
     df = extended.n_par - nested.n_par
     lr = max(0.0, 2.0 * (extended.loglik - nested.loglik))
-    return lr, float(stats.chi2.sf(lr, max(df, 1))), df
+    return lr, float(chdtrc(max(df, 1), lr)), df

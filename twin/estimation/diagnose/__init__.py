@@ -106,14 +106,35 @@ tests), :mod:`.timing` (the loop's timing search), :mod:`.extend` (fitting an ex
 naming rules), :mod:`.results` (screen rows, trials, the :class:`Diagnosis`), :mod:`.search` (the greedy search).
 """
 
+from typing import TYPE_CHECKING, Any
+
 from twin.estimation.diagnose.constants import (ALPHA, CONTROLLER_RATE, FORCE_EFFECTS, INPUT_INTERSAMPLE, MIN_SHARE,
                                                 SIGNATURE_AXIS, TIMING_EFFECTS)
-from twin.estimation.diagnose.data import ModelState, holm
-from twin.estimation.diagnose.adequacy import _gain
-from twin.estimation.diagnose.naming import _implausible
-from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
-from twin.estimation.diagnose.screen import screen
-from twin.estimation.diagnose.search import diagnose
+
+if TYPE_CHECKING:
+    from twin.estimation.diagnose.data import ModelState, holm
+    from twin.estimation.diagnose.adequacy import _gain
+    from twin.estimation.diagnose.naming import _implausible
+    from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
+    from twin.estimation.diagnose.screen import screen
+    from twin.estimation.diagnose.search import diagnose
+
+#: the package's names imported on first use: a fit's adequacy test (:mod:`.check`) loads its own modules only,
+#: not the search, the screen and their statistics
+_LAZY = {"ModelState": "data", "holm": "data", "_gain": "adequacy", "_implausible": "naming",
+         "Diagnosis": "results", "ScreenRow": "results", "Trial": "results", "screen": "screen",
+         "diagnose": "search"}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    for n, mod in _LAZY.items():  # all at once: a submodule's import binds its name (screen) to the module
+        globals()[n] = getattr(importlib.import_module(f"{__name__}.{mod}"), n)
+    return globals()[name]
+
 
 __all__ = ["ALPHA", "CONTROLLER_RATE", "FORCE_EFFECTS", "INPUT_INTERSAMPLE", "MIN_SHARE",
            "SIGNATURE_AXIS", "TIMING_EFFECTS", "Diagnosis", "ModelState", "ScreenRow", "Trial",
