@@ -430,7 +430,7 @@ def configs() -> list[Config]:
                    ("fpdd-all", "zenoh://fpdd/**"), ("all", "zenoh://**"), ("alarms", "zenoh://fpdd/*/alarm"),
                    ("history", "zenoh://fpdd/msp25-a/alarm/history"), ("status", "zenoh://fpdd/$*/status"),
                    ("bad-keyexpr", "zenoh://a//b"), ("bad-star", "zenoh://fp*d/x"), ("ftp", "ftp://host/x"),
-                   ("no-suffix", "ROOT/rig"), ("txt", "ROOT/rig.txt")):
+                   ("no-suffix", "ROOT/rig"), ("xyz", "ROOT/rig.xyz")):
         sub(f"source-{tag}", 'source = "LOG"', f'source = "{v}"')
     sub("source-can-virtual", 'source = "LOG"', 'source = "can://virtual/rig1"', valid=True)
     sub("source-zenoh-samples", 'source = "LOG"', 'source = "zenoh://fpdd/msp25-a/samples"', valid=True)
