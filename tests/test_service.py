@@ -310,7 +310,9 @@ speed = 1.0
 """)
     assert cli.main(["serve", "--config", str(p)]) == 2
     err = capsys.readouterr().err
-    assert "twin serve: error: rig bad failed:" in err and "'u' or the demand 'x_ref'" in err
+    assert "twin serve: error: rig bad failed:" in err
+    assert "missing a drive (the controller output (servo-valve voltage) 'u' or the demanded rod displacement " \
+           "'x_ref'); the record has x" in err  # the model's own words for its signals
     assert "summary bad: failed" in err and "summary good: stopped" in err  # the other rig stopped cleanly
     assert "Traceback" not in err
 
