@@ -14,6 +14,7 @@ import zenoh
 
 from event_helpers import T0_NS, alarm
 from net_helpers import connected
+from twin.cli import main as twin_main
 from twin.commands.alarms import add_arguments, run
 from twin.online.events import EstimateEvent, StatusEvent, event_to_json
 from twin.service.bus import TwinPublisher
@@ -120,10 +121,14 @@ def test_alarms_cli_says_split_in_one_line(hub, endpoint, tmp_path: Path, capsys
         feeder.start()
         try:
             assert run(parser.parse_args(["--rig", "r1", "--connect", endpoint, "--for", "2"])) == 0
+            err = capsys.readouterr().err.splitlines()
+            assert twin_main(["top", "--rig", "r1", "--connect", endpoint, "--once", "--json"]) == 0
+            shown = json.loads(capsys.readouterr().out)
         finally:
             stop.set()
             feeder.join(WAIT_S)
-    err = capsys.readouterr().err.splitlines()
+    text = json.dumps(shown)
+    assert f"split: rig r1 is run by two owners at once (terms {first} and {first + 700}" in text  # twin top
     split = [line for line in err if line.startswith("split: ")]
     assert len(split) == 1 and split[0].startswith(f"split: rig r1 is published by two owners at once (terms {first} "
                                                    f"and {first + 700})")
