@@ -152,4 +152,8 @@ def test_an_offset_becomes_a_sensor_event_in_two_windows_and_returns():
     assert [(e.parameter, e.level, e.kind) for e in ev] == [("pA_off", "warning", "raised")]
     assert ev[0].estimate == pytest.approx(2 * OFFSET_TOLERANCE_PA) and "sensor pA" in ev[0].message
     assert cd.sensor_status({"pA": "ok"}) == {"pA": "offset"}
-    assert [e.kind for e in cd._apply_sensor("pA_off", within, 1, 12.0)] == ["returned"]
+    assert cd._apply_sensor("pA_off", within, 1, 12.0) == []  # one window within: not yet
+    assert cd._apply_sensor("pA_off", off, 1, 16.0) == [] and cd.sensor_status({"pA": "ok"}) == {"pA": "offset"}
+    assert cd._apply_sensor("pA_off", within, 1, 20.0) == []
+    assert [e.kind for e in cd._apply_sensor("pA_off", within, 1, 24.0)] == ["returned"]
+    assert cd.sensor_status({"pA": "ok"}) == {"pA": "ok"}

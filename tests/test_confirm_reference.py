@@ -135,8 +135,9 @@ def test_drifting_pressure_transducer_is_a_sensor_event_not_a_friction_alarm(ref
     ev = events[0]
     assert ev.level == "warning" and 0.1e6 < ev.estimate < 0.2e6
     assert cd.sensor_status({"x": "ok", "pA": "ok", "pB": "ok"}) == {"x": "ok", "pA": "offset", "pB": "ok"}
-    offsets = [(f.t_s, f.sensors["pA_off"].value) for f in cd.fits if f.adequate]
-    assert offsets and all(abs(v - 0.5e6 * (t - 0.5 * WINDOW_S) / 200.0) < 0.03e6 for t, v in offsets), offsets
+    # the windows read the transducers' differential offset (the common one trades with the leakage) to 10 kPa
+    diff = [(f.t_s, f.sensors["pA_off"].value - f.sensors["pB_off"].value) for f in cd.fits if f.adequate]
+    assert len(diff) >= 5 and all(abs(v - 0.5e6 * (t - 0.5 * WINDOW_S) / 200.0) < 0.01e6 for t, v in diff), diff
 
 
 @pytest.mark.slow

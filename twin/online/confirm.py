@@ -30,7 +30,8 @@ the filter ahead of the baseline; a diverged filter is far from both), and the l
 frees the catalogue's pressure-transducer offsets too (``pA_off``, ``pB_off``): an offset drifting on a
 transducer is fitted as what it is, and a significant one beyond :data:`OFFSET_TOLERANCE_PA` in two windows
 (no window between them finding it within) becomes a *sensor* event on the offset (``pA_off``), never a
-parameter's alarm.
+parameter's alarm; it returns when two windows in a row find it within.  While a transducer's offset is confirmed or suspected (one window), the parameters are
+``not_testable``: the filter, whose estimate each confirmation needs, reads that transducer as it is.
 
 When the fits run: a **triggered** fit when the filter's drift test leaves ``ok`` on a parameter (and again
 every window while it stays there unconfirmed), and a **scheduled** fit every :data:`PERIOD_S` seconds whatever
@@ -73,6 +74,9 @@ OFFSET_TOLERANCE_PA = 0.125e6
 #: landed on the wrong side of a ridge on a chirp, is not repeated by the next)
 WARN_CONFIRMATIONS = 2
 ALARM_CONFIRMATIONS = 3
+#: a parameter whose window estimate shares more than this correlation with a transducer offset's is not told
+#: apart from the sensor by the window (R^2 0.81: most of its uncertainty is the offset's): not testable
+SENSOR_CORR = 0.9
 #: the fit's budget per start (function evaluations of the trust-region refinement)
 MAX_NFEV = 25
 
@@ -144,6 +148,7 @@ class WindowFit:
     reasons: list[str]
     estimate: dict[str, float]
     std: dict[str, float]
+    corr: np.ndarray
     start: str
     seconds: float
 
@@ -345,12 +350,17 @@ class ConfirmedDrift:
         self.adequate = adequate
         self.reasons = list(adequacy.get("reasons", []))
         self.fits.append(WindowFit(now, t_ns, verdicts, sensors, adequate, self.reasons, dict(res.estimate),
-                                   dict(res.std), which, elapsed))
+                                   dict(res.std), np.asarray(res.corr), which, elapsed))
         events = []
-        for n, vd in verdicts.items():
-            events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         for p, vd in sensors.items():
             events += self._apply_sensor(p, vd, t_ns, now)
+        off = [o for o in self.sensor_level if self.sensor_level[o] != "ok" or self.sensor_count[o] > 0]
+        for n, vd in verdicts.items():
+            if off and vd.state != "not_testable":  # the filter, half of each confirmation, reads that sensor
+                vd = dataclasses.replace(vd, state="not_testable",
+                                         why=f"the {', '.join(off)} transducer reads off: the filter's estimates "
+                                             "are not the rig's until it is fixed")
+            events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         return events
 
     def _verdicts(self, res, names, bounds) -> tuple[dict[str, Verdict], dict[str, Verdict]]:
@@ -363,6 +373,12 @@ class ConfirmedDrift:
             if adequate and not lo < v < hi:  # beyond what the filter may hold for this rig: the fit ran off
                 verdicts[n] = Verdict(n, "not_testable", v, why="the window's fit left the parameter's physical "
                                                                 f"range ({lo:.3g} .. {hi:.3g})")
+                continue
+            shared = [p for p in SENSOR_PARAMS if p in res.free and abs(float(
+                res.corr[res.free.index(n), res.free.index(p)])) > SENSOR_CORR]
+            if adequate and shared:
+                verdicts[n] = Verdict(n, "not_testable", v, sd / v if v > 0 else math.nan,
+                                      why=f"the window cannot tell it from the offset of {', '.join(shared)}")
                 continue
             verdicts[n] = decide(n, v, sd / v if v > 0 else math.nan, self.baseline[n], adequate,
                                  self.base_std.get(n, 0.0), self.alpha)
@@ -424,13 +440,14 @@ class ConfirmedDrift:
         band = Baseline(0.0, -OFFSET_TOLERANCE_PA, OFFSET_TOLERANCE_PA)
         vd_abs = dataclasses.replace(vd, rel_std=vd.rel_std / abs(vd.value) if vd.value else math.nan)
         if vd.state == "inside":
-            self.sensor_count[o] = 0
-            if old == "ok":
+            self.sensor_count[o] = min(self.sensor_count[o], 0) - 1  # windows in a row finding it within
+            if old == "ok" or -self.sensor_count[o] < WARN_CONFIRMATIONS:
                 return []
+            self.sensor_count[o] = 0
             self.sensor_level[o] = "ok"
             return [self._event(p, "ok", "returned", vd_abs, t_ns, now, band,
                                 f"sensor {o}: offset back within {OFFSET_TOLERANCE_PA * 1e-6:g} MPa")]
-        self.sensor_count[o] += 1
+        self.sensor_count[o] = max(self.sensor_count[o], 0) + 1
         if old != "ok" or self.sensor_count[o] < WARN_CONFIRMATIONS:
             return []
         self.sensor_level[o] = "warning"
