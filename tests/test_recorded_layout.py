@@ -133,3 +133,18 @@ def test_twin_track_mcap_fills_every_panel_but_the_forecast(tmp_path):
     assert layout["globalVariables"]["rig"] == "bay-3"
     counts = check_file(str(out / "bay-3.twin.mcap"), layout, optional_panels=("Plot!forecast",))
     assert counts["/twin/alarm_log"] >= 1 and counts["/rig/signals"] >= 8 * 40  # 50 per second of record
+
+
+@pytest.mark.slow
+def test_the_layout_of_another_model_plots_its_own_signals(tmp_path):
+    """twin track of the oscillator writes a layout whose panels are the oscillator's parameters and its signals
+    u and y, and its MCAP fills them."""
+    rec = tmp_path / "osc.csv"
+    assert cli.main(["simulate", "--model", "oscillator", "-o", str(rec), "--duration", "6", "--seed", "4"]) == 0
+    out = tmp_path / "out"
+    assert cli.main(["track", str(rec), "--model", "oscillator", "--rig", "osc", "--out", str(out), "--json"]) == 0
+    layout = json.loads((out / "osc.foxglove-layout.json").read_text(encoding="utf-8"))
+    paths = {fp for ps in panels(layout).values() for _, fp in ps}
+    assert {"display.u", "display.y"} <= paths and "display.pA" not in paths
+    counts = check_file(str(out / "osc.twin.mcap"), layout, optional_panels=("Plot!forecast", "Log!alarms"))
+    assert counts["/rig/signals"] >= 6 * 40

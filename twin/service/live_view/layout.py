@@ -51,11 +51,23 @@ def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str 
     config["Plot!forecast"] = _plot("time until each parameter leaves its band, median and 90 % interval [s]",
                                     series, ylabel="remaining time [s]")
     sig = f"/rig/signals{sel}.display"
-    x_unit, p_unit = (pretty_unit(signal_unit(n, model)[0]) for n in ("x", "pA"))
-    config["Plot!position"] = _plot(f"position x, demand x_ref [{x_unit}]", [(f"{sig}.x", "x", "#0072BD"),
-                                                                            (f"{sig}.x_ref", "x_ref", "#8c8c8c")])
-    config["Plot!pressures"] = _plot(f"chamber pressures [{p_unit}]", [(f"{sig}.pA", "pA", "#D95319"),
-                                                                      (f"{sig}.pB", "pB", "#7E2F8E")])
+    own = _model_signals(model)
+    signal_plots = []
+    if "x" in own:
+        x_unit = pretty_unit(signal_unit("x", model)[0])
+        config["Plot!position"] = _plot(f"position x, demand x_ref [{x_unit}]", [
+            (f"{sig}.{n}", n, c) for n, c in (("x", "#0072BD"), ("x_ref", "#8c8c8c")) if n in own])
+        signal_plots.append("Plot!position")
+    if "pA" in own:
+        p_unit = pretty_unit(signal_unit("pA", model)[0])
+        config["Plot!pressures"] = _plot(f"chamber pressures [{p_unit}]", [
+            (f"{sig}.{n}", n, c) for n, c in (("pA", "#D95319"), ("pB", "#7E2F8E")) if n in own])
+        signal_plots.append("Plot!pressures")
+    if not signal_plots:  # a model of other signals (the oscillator's u and y): one plot of them all
+        config["Plot!signals"] = _plot(
+            "signals [" + ", ".join(f"{n} {pretty_unit(signal_unit(n, model)[0])}" for n in own) + "]",
+            [(f"{sig}.{n}", n, colors[i % len(colors)]) for i, n in enumerate(own)])
+        signal_plots.append("Plot!signals")
     config["Log!alarms"] = {"searchTerms": [], "minLogLevel": 1, "topicToRender": "/twin/alarm_log",
                             "nameFilter": {}, "fontSize": 12}
     config["RawMessages!status"] = {"topicPath": f"/twin/status{sel}", "diffEnabled": False, "diffMethod": "custom",
@@ -68,12 +80,22 @@ def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str 
                 "splitPercentage": 100.0 / len(ids)}
 
     layout = {"first": stack(plots), "second": {
-        "first": stack(["Plot!forecast", "Plot!position", "Plot!pressures"]),
+        "first": stack(["Plot!forecast", *signal_plots]),
         "second": {"first": "Log!alarms", "second": "RawMessages!status", "direction": "column",
                    "splitPercentage": 60},
         "direction": "column", "splitPercentage": 50}, "direction": "row", "splitPercentage": 55}
     return {"configById": config, "globalVariables": {"rig": rig}, "userNodes": {}, "playbackConfig": {"speed": 1},
             "layout": layout}
+
+
+def _model_signals(model: str) -> tuple[str, ...]:
+    """The signals ``model``'s records carry (its ``SIGNALS``; the rig's five when it does not say)."""
+    try:
+        from twin.models import get_model
+
+        return tuple(s.name for s in get_model(model).SIGNALS)
+    except Exception:  # a model name the registry does not know: the hydraulic rig's signals
+        return ("x_ref", "u", "x", "pA", "pB")
 
 
 def write_layout(path: str, rig: str = EXAMPLE_RIG, model: str = DEFAULT_MODEL) -> str:
