@@ -71,7 +71,8 @@ def parse_maintenance(text: str, tracked) -> tuple[float, list[str], str]:
 
 def _read(path: str, opts: dict, reports: list, model: str):
     """Blocks of the log; its signals checked first against ``model`` (:func:`twin.models.records.check_signals`,
-    naming the models whose signals the log has when it is not ``model``'s), its read report kept."""
+    naming the models whose signals the log has when it is not ``model``'s), its read report kept.  The log is
+    opened and checked here, before the tracker is imported; its blocks are read as they are iterated."""
     from fpdd.errors import DataError
     from replay.factory import open_source
     from twin.models.records import check_source, reader_options
@@ -84,8 +85,16 @@ def _read(path: str, opts: dict, reports: list, model: str):
             raise
         raise DataError(f"{exc}; it reads as a record of the {other} model, not of the {model} model: "
                         f"--model {other}") from None
-    with src:
+    try:
         check_source(path, src, model, suggest=True)
+    except BaseException:
+        src.close()
+        raise
+    return _blocks(src, reports)
+
+
+def _blocks(src, reports: list):
+    with src:
         try:
             yield from src.chunks(10000)
         finally:  # the report of the reading itself (a CAN log's reader starts a fresh one for each reading)
@@ -113,9 +122,7 @@ def _model_of_record(path: str, opts: dict, model: str) -> str | None:
 def run(args) -> int:
     from twin.service.config import load_config
     from twin.models import get_model
-    from twin.online.events import format_alarm
     from twin.reports.plots import parameter_trends
-    from twin.service.track import track
 
     horizon = getattr(args, "forecast_horizon", None)
     if horizon is not None and not (horizon > 0 and horizon < float("inf")):
@@ -168,7 +175,11 @@ def run(args) -> int:
         opts["dbc"] = args.dbc
     reports: list = []
     maint = [parse_maintenance(m, tracked or model.PHENOMENOLOGICAL) for m in args.maintenance]
-    twin = track(_read(args.log, opts, reports, model_name), args.rig, params, tracked, baseline, args.out,
+    blocks = _read(args.log, opts, reports, model_name)  # opened and checked before the tracker is imported
+    from twin.online.events import format_alarm
+    from twin.service.track import track
+
+    twin = track(blocks, args.rig, params, tracked, baseline, args.out,
                  progress=say, noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon,
                  maintenance=maint, model=model_name)
     if say:
