@@ -38,6 +38,8 @@ class TwinRecording(McapSink):
         self.model = model
         self._decimate = SignalDecimator(signals_hz) if signals_hz > 0 else None
         self._fields: SignalFields | None = None
+        self._meta: dict[str, str] = {}
+        self._schema: dict | None = None
         self._t0_ns: int | None = None
         self._parameters = tuple(parameters) if parameters is not None else None
         self._layout = os.fspath(layout) if layout is not None else None
@@ -53,12 +55,15 @@ class TwinRecording(McapSink):
             return 0
         if self._fields is None or self._fields.names != tuple(kept.signals):
             self._fields = SignalFields(kept.signals, self.model)
+            self._meta = {"signals": ",".join(self._fields.names), "rig": self.rig,
+                          "units": ",".join(self._fields.units[n] for n in self._fields.names)}
         f = self._fields
-        meta = {"signals": ",".join(f.names), "units": ",".join(f.units[n] for n in f.names), "rig": self.rig}
+        if self._schema is None:
+            self._schema = signals_schema(self.model)
         cols = [kept.signals[n].tolist() for n in f.names]
         for i, t in enumerate(kept.t_ns.tolist()):
             msg = f.message(self.rig, t, (t - self._t0_ns) * 1e-9, [c[i] for c in cols])
-            self.write_message("/rig/signals", t, msg, schema=signals_schema(self.model), metadata=meta)
+            self.write_message("/rig/signals", t, msg, schema=self._schema, metadata=self._meta)
         return len(kept)
 
     def write_message(self, topic: str, t_ns: int, payload: Mapping[str, Any], *,
