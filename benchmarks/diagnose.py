@@ -30,8 +30,8 @@ import time
 from typing import Any
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-if ROOT not in sys.path:
-    sys.path.insert(0, ROOT)
+if ROOT not in sys.path:  # appended: the sources of --against REV, first on PYTHONPATH, stay first
+    sys.path.append(ROOT)
 
 from twin.estimation.diagnose import diagnose  # noqa: E402
 from twin.estimation.fit import fit  # noqa: E402
@@ -86,15 +86,19 @@ def _emps_case():
     return [("EMPS (real, 24.8 s)", "oscillator", rec, ["input_offset", "coulomb_friction"], opts)]
 
 
-def _cases(duration_s: float, quick: bool):
+def _cases(duration_s: float, quick: bool, only: list[str] | None = None):
     cases: list[tuple] = [("product, one effect", "msp25", _product_record(("viscous_friction",), duration_s, 12),
               ["viscous_friction"], {})]
     if not quick:
         cases += _reference_records(duration_s) + _emps_case()
+    if only:
+        cases = [c for c in cases if any(o.lower() in c[0].lower() for o in only)]
     return cases
 
 
 def _time_diagnoses(cases) -> list[dict]:
+    import twin
+
     diagnose("msp25", _product_record(("viscous_friction",), 2.0, 0))  # compile / load the kernels
     out = []
     for label, model, rec, expect, opts in cases:
@@ -104,11 +108,11 @@ def _time_diagnoses(cases) -> list[dict]:
         d = diagnose(model, rec, **opts)
         out.append({"case": label, "seconds": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
                     "causes": d.causes, "unexplained": d.unexplained,
-                    "correct": sorted(d.causes) == sorted(expect)})
+                    "correct": sorted(d.causes) == sorted(expect), "sources": os.path.dirname(twin.__file__)})
     return out
 
 
-def _against(rev: str, duration_s: float, quick: bool) -> list[dict] | str:
+def _against(rev: str, duration_s: float, quick: bool, only: list[str] | None = None) -> list[dict] | str:
     """The same cases diagnosed by the project at ``rev`` (a subprocess with its sources first on the path)."""
     with tempfile.TemporaryDirectory() as tmp:
         try:
@@ -122,15 +126,21 @@ def _against(rev: str, duration_s: float, quick: bool) -> list[dict] | str:
         cmd = [sys.executable, os.path.abspath(__file__), "--cases-only", "--duration", str(duration_s)]
         if quick:
             cmd.append("--quick")
+        for o in only or ():
+            cmd += ["--case", o]
         p = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp)
         if p.returncode != 0:
             return f"the diagnosis at {rev} failed: {p.stderr.strip().splitlines()[-1:] or p.returncode}"
-        return json.loads(p.stdout)
+        rows = json.loads(p.stdout)
+        if any(not r["sources"].startswith(tmp) for r in rows):
+            return f"the diagnosis at {rev} ran the checkout's sources, not the revision's"
+        return rows
 
 
-def run(duration_s: float = 20.0, quick: bool = False, against: str | None = None) -> dict:
+def run(duration_s: float = 20.0, quick: bool = False, against: str | None = None,
+        only: list[str] | None = None) -> dict:
     """Time the diagnosis of ``duration_s`` records; rows with CPU and wall seconds, baselines and findings."""
-    cases = _cases(duration_s, quick)
+    cases = _cases(duration_s, quick, only)
     rows: list[dict[str, Any]] = _time_diagnoses(cases)
     for row, (_label, model, rec, expect, opts) in zip(rows, cases):
         m = get_model(model)
@@ -141,7 +151,7 @@ def run(duration_s: float = 20.0, quick: bool = False, against: str | None = Non
                     "target_cpu_s": TARGET_CPU_S * len(rec) * rec.dt / 20.0})
         row["within_target"] = row["cpu_s"] <= row["target_cpu_s"]
         row["ratio_to_fit"] = row["cpu_s"] / row["baseline_fit_cpu_s"]
-    old = _against(against, duration_s, quick) if against else None
+    old = _against(against, duration_s, quick, only) if against else None
     if isinstance(old, list):
         for row, o in zip(rows, old):
             row["against"] = {"rev": against, "cpu_s": o["cpu_s"], "seconds": o["seconds"], "causes": o["causes"],
@@ -157,13 +167,14 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="record length in s (default 20)")
     ap.add_argument("--quick", action="store_true", help="only the product's one-effect record")
     ap.add_argument("--against", metavar="REV", help="also time the diagnosis of git revision REV on the same records")
+    ap.add_argument("--case", action="append", metavar="TEXT", help="only the cases whose label contains TEXT")
     ap.add_argument("--cases-only", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if args.cases_only:  # the subprocess of --against: the diagnoses alone, as JSON
-        print(json.dumps(_time_diagnoses(_cases(args.duration, args.quick))))
+        print(json.dumps(_time_diagnoses(_cases(args.duration, args.quick, args.case))))
         return 0
-    out = run(args.duration, args.quick, args.against)
+    out = run(args.duration, args.quick, args.against, args.case)
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
