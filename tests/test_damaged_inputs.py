@@ -79,6 +79,22 @@ def mcap(tmp: Path, name: str = "rig.mcap", **kw: Any) -> Path:
     return p
 
 
+def mcap_stepped_back(at: int, back_ms: int, block: bool = True) -> Callable[[Path], Path]:
+    """The reference MCAP written as a logger whose clock steps back ``back_ms`` before sample ``at`` (its log
+    time goes back in the file)."""
+    def make(tmp: Path) -> Path:
+        good = ref_mcap()
+        t = good.t_ns.copy()
+        t[at:] -= back_ms * 1_000_000
+        stepped = Samples(t, good.signals)
+        p = tmp / "stepped.mcap"
+        with McapSink(p, flush_period_s=0.001, block=block) as sink:  # each write its own chunks, in file order
+            for i in range(0, len(t), 10):
+                sink.write(stepped.slice(i, min(i + 10, len(t))))
+        return p
+    return make
+
+
 def chunks_of(path: Path, topic: str) -> list:
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
@@ -295,6 +311,12 @@ CASES: list[Case] = []
 add = CASES.append
 
 # MCAP
+for at in (60, 100, 140):  # a logger's clock stepped back: the jump is read in file order and counted
+    for back_ms, block in ((30, True), (30, False), (1000, True), (1000, False)):
+        n_back = min(back_ms, N_REF - at)  # samples behind the last one kept (the rest runs on past it)
+        add(Case(f"mcap-log-time-back-{back_ms}ms-at-{at}-{'block' if block else 'rows'}",
+                 mcap_stepped_back(at, back_ms, block), kept=(N_REF - n_back - 1, N_REF - n_back),
+                 skipped={"time_backwards": n_back - 1}, lossy=True, same_times=False))
 for k in range(4):
     add(Case(f"mcap-block-chunk-{k}-flipped", mcap_flip((BLOCK_TOPIC,), k), kept=(N_REF, N_REF),
              skipped={"damaged_chunk": 1}, problem=f"chunk {2 * k} at bytes", lossy=True, samples_lost=0))
