@@ -204,7 +204,7 @@ def _command_cases(d: str) -> list[tuple[str, str, list[str]]]:
               ("twin track REC (to reading it)", rec, ["-q", "track", rec, "--out", os.path.join(d, "t")]),
               ("twin diagnose REC (to reading it)", rec, ["-q", "diagnose", rec]),
               ("twin serve --config (to reading it)", cfg, ["-q", "serve", "--config", cfg]),
-              ("twin simulate (to opening its output)", os.path.join(d, "sim.csv"),
+              ("twin simulate 1 s (to its output: simulated first)", os.path.join(d, "sim.csv"),
                ["-q", "simulate", "-o", os.path.join(d, "sim.csv"), "--duration", "1"]),
               ("twin params (whole command)", "", ["params"])]
     return cases

@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal as sps
 
 from fpdd.errors import DataError
 
@@ -46,6 +45,8 @@ def multisine(duration_s: float, dt: float, f_lo: float, f_hi: float, amplitude:
 def chirp(duration_s: float, dt: float, f_lo: float, f_hi: float, amplitude: float,
           ramp_s: float = 0.2) -> np.ndarray:
     """Linear sweep from ``f_lo`` to ``f_hi`` Hz, peak ``amplitude``."""
+    from scipy import signal as sps  # here: scipy.signal costs about a second of import
+
     t = _grid(duration_s, dt)
     return amplitude * sps.chirp(t, f_lo, t[-1], f_hi, method="linear", phi=-90) * _ramp(t, ramp_s)
 
@@ -62,6 +63,8 @@ def random_steps(duration_s: float, dt: float, amplitude: float, hold_s: tuple[f
         x[i:i + n] = rng.uniform(-amplitude, amplitude)
         i += n
     x[: max(1, int(hold_s[0] / dt))] = 0.0
+    from scipy import signal as sps  # here: scipy.signal costs about a second of import
+
     b, a = sps.butter(2, bandwidth_hz * 2 * dt)
     return sps.lfilter(b, a, x)
 
