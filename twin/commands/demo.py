@@ -124,6 +124,8 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 150.0, speed: float = 20
     paths = report(out_dir, rec, P, twin, drift, baseline)
     say(f"5/5 report: {paths['html']}")
     t_cross = drift.crossing(get_model(DEFAULT_MODEL).NOMINAL["CdAleak"], baseline["CdAleak"].lo, baseline["CdAleak"].hi, rec.t_s)
+    from twin.online.events.forecast import FORECAST_UNITS
+
     first = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "alarm"), None)
     early = next((a for a in alarms if a.parameter == "CdAleak" and a.level == "early"), None)
     forecast = next((f for f in twin.forecasts if f.parameter == "CdAleak"), None)
@@ -135,7 +137,9 @@ def run(out_dir: str = "fpdd-demo", duration_s: float = 150.0, speed: float = 20
         "received_by_subscriber": len(received),
         "first_alarm_s": first.t_s if first else None,
         "detection_delay_s": (first.t_s - t_cross) if (first and t_cross is not None) else None,
-        "first_forecast": forecast.to_dict() if forecast is not None else None,
+        "first_forecast": {**forecast.to_dict(), "units": {k: u for k, u in FORECAST_UNITS.items()
+                                                           if k in forecast.to_dict()}}
+        if forecast is not None else None,
         "early_warning_s": early.t_s if early else None,
         "forecasts": len(twin.forecasts),
         "false_alarms": [a.parameter for a in alarms if a.parameter != "CdAleak" and a.level != "ok"],
