@@ -22,12 +22,14 @@ def add_arguments(p) -> None:
     p.epilog = EXIT_HELP
     p.add_argument("data", nargs="+", help="records (CSV, MCAP, CAN logs); parameters are shared")
     p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS)
-    p.add_argument("--free", help="free parameters (default: the phenomenological ones)")
+    p.add_argument("--free", help="free parameters, exactly these (default: the phenomenological ones and the "
+                   "own parameters of the effects --effects switches on, less those --set holds)")
     p.add_argument("--outputs", help="outputs fitted, e.g. x or x,pA,pB (default: all present)")
     p.add_argument("--params", metavar="FILE", help="parameter set (JSON of twin fit/diagnose --save)")
     p.add_argument("--set", help="known parameter values NAME=VALUE,..., with a unit or SI (e.g. Fext=15kN)")
     p.add_argument("--start", help="start values of free parameters NAME=VALUE,..., with a unit or SI (e.g. wn=40Hz)")
-    p.add_argument("--effects", help="effects to switch on by name")
+    p.add_argument("--effects", help="effects to switch on by name; their own parameters are fitted too unless "
+                   "--set holds them or --free lists the free parameters")
     p.add_argument("--drive", default="auto", choices=("auto", "x_ref", "u"),
                    help="closed loop from x_ref or open loop from u (default: x_ref if logged)")
     p.add_argument("--estimate-init", help="initial-state quantities to estimate per record, e.g. x0,dp0 "
@@ -51,6 +53,17 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true")
 
 
+def free_names(model, free: tuple[str, ...], known, effects: tuple[str, ...]) -> tuple[str, ...]:
+    """The parameters ``twin fit`` frees: ``free`` (``--free``) exactly as listed when given; else the model's
+    phenomenological parameters and the own parameters of ``effects`` (``--effects``: an effect switched on is
+    fitted, as ``--compare`` fits its candidates'), less those ``known`` holds (``--set``; a spring held at 0
+    stays 0).  A ``--params`` file's effects keep their saved values unless named here."""
+    if free:
+        return free
+    own = tuple(n for e in effects if e in model.EFFECTS for n in model.EFFECTS[e].names)
+    return tuple(dict.fromkeys(n for n in (*model.PHENOMENOLOGICAL, *own) if n not in known))
+
+
 def run(args) -> int:
     from twin.models import get_model
     from twin.models.records import load_records
@@ -66,8 +79,7 @@ def run(args) -> int:
     base, saved_timing = load_params_file(model, args.params, _kv(args.set), _names(args.effects),
                                           with_timing=True)
     timing = timing_of(args, saved_timing)
-    # without --free: the phenomenological parameters less those --set holds (k=0 stays 0)
-    free = _names(args.free) or tuple(n for n in model.PHENOMENOLOGICAL if n not in _kv(args.set))
+    free = free_names(model, _names(args.free), _kv(args.set), _names(args.effects))
     outputs = _names(args.outputs) or None
     if args.compare:
         from twin.commands.compare import run_compare
