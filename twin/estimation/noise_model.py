@@ -218,10 +218,19 @@ def long_run_variance(g: np.ndarray, lag: int | None = None) -> float:
     n = g.size
     if n == 0:
         return 0.0
-    L = bartlett_lag(g) if lag is None else int(lag)
-    s = float(g @ g)
-    for k in range(1, L + 1):
-        s += 2.0 * (1.0 - k / (L + 1.0)) * float(g[k:] @ g[:-k])
+    L = min(bartlett_lag(g) if lag is None else int(lag), n - 1)
+    if L <= 64:
+        s = float(g @ g)
+        for k in range(1, L + 1):
+            s += 2.0 * (1.0 - k / (L + 1.0)) * float(g[k:] @ g[:-k])
+        return max(s, 0.0) / n
+    # many lags (a simulation error's memory: thousands of samples): the autocovariances by one FFT, zero-padded
+    # against the wrap-around, instead of a product per lag (the same sums to rounding)
+    m = 1 << int(math.ceil(math.log2(n + L + 1)))
+    f = np.fft.rfft(g, m)
+    ac = np.fft.irfft(f.real * f.real + f.imag * f.imag, m)[: L + 1]
+    k = np.arange(1, L + 1)
+    s = float(ac[0]) + 2.0 * float(np.sum((1.0 - k / (L + 1.0)) * ac[1:]))
     return max(s, 0.0) / n
 
 
