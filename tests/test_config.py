@@ -144,7 +144,7 @@ def test_values_with_units_in_params_and_baselines(tmp_path):
     ('[rig.baseline.Ffric]\nvalue = "50 bar"', r"baseline\.Ffric\.value: expected a number or a value with a unit, got '50 bar': '50 bar' is not in a unit of N"),
     ('[rig.params]\nA = "2000 kg"', r"params\.A: expected a number or a value with a unit, got '2000 kg': '2000 kg' is not in a unit of m\^2"),
     ('map = ["pos_mm=x:mm"]', r"rig 'r'\.map item 'pos_mm=x:mm': 'pos_mm' is not a signal name but 'x' is"),
-    ('map = ["x=pos_mm:mm"]', r"rig 'r'\.map: renames CSV columns; the source 'rig.mcap' is not a CSV log"),
+    ('map = ["x=pos_mm:mm"]', r"rig 'r'\.map: maps the columns of CSV, .* the source 'rig.mcap' names its signals"),
     ('dbc = "missing.dbc"', r"rig 'r'\.dbc: .*missing\.dbc is not a file"),
 ])
 def test_bad_units_maps_and_dbcs_name_the_key(tmp_path, lines, message):
@@ -187,3 +187,42 @@ def test_a_csv_rig_with_foreign_columns_is_read_through_its_map(tmp_path):
         for k in cols[1:]:
             np.testing.assert_allclose(got.signals[k], want.signals[k], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose((got.t_ns - got.t_ns[0]) * 1e-9, (want.t_ns - want.t_ns[0]) * 1e-9, atol=1e-6)
+
+
+def test_a_spring_held_at_zero_is_held_not_tracked(tmp_path):
+    """``k = 0`` in rigs.toml is the oscillator's free mass, as ``twin fit --set k=0``: accepted, held and left out
+    of the default tracked parameters (before, the rig failed when it started: 'start value of k (0) is outside its
+    physical bounds'); naming it in ``track`` is refused in one line."""
+    from twin.models import get_model
+
+    phen = get_model("oscillator").PHENOMENOLOGICAL
+    for value in ("0", '"0N/m"'):
+        rig = _rig(tmp_path, f'model = "oscillator"\n[rig.params]\nk = {value}\nm = 2.5', source="rig.csv")
+        assert rig.params["k"] == 0.0
+        assert rig.track == tuple(n for n in phen if n != "k") and "k" not in rig.baseline
+    with pytest.raises(ConfigError, match=r"rig 'r'\.track: k is held at exactly 0 by params\.k; a parameter at 0 "
+                                          r"is not tracked .*: drop it from track or give it a positive value"):
+        _rig(tmp_path, 'model = "oscillator"\ntrack = ["d", "k"]\n[rig.params]\nk = 0', source="rig.csv")
+    with pytest.raises(ConfigError, match=r"params: every trackable parameter \(d, k\) is held at 0"):
+        _rig(tmp_path, 'model = "oscillator"\n[rig.params]\nk = 0\nd = 0', source="rig.csv")
+
+
+@pytest.mark.slow
+def test_serve_runs_a_free_mass_held_at_k_zero(tmp_path):
+    """The rig with ``k = 0`` runs in the service: every sample read, estimates, no alarm on a record of that rig
+    (the oscillator simulated with k = 0, m = 2.5 kg, d = 8 N s/m)."""
+    from net_helpers import free_port
+
+    from twin import cli
+    from twin.service.serve import serve
+
+    log = tmp_path / "free_mass.csv"
+    assert cli.main(["simulate", "--model", "oscillator", "--set", "k=0,m=2.5,d=8", "--duration", "5",
+                     "--seed", "3", "-o", str(log), "-q"]) == 0
+    (tmp_path / "rigs.toml").write_text(
+        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n'
+        f'[service]\njournal_dir = "{tmp_path / "journal"}"\n'
+        f'[[rig]]\nname = "mass"\nmodel = "oscillator"\nsource = "{log}"\nspeed = 0\n'
+        '[rig.params]\nk = 0\nm = 2.5\nd = 8\n', encoding="utf-8")
+    stats = serve(load_config(str(tmp_path / "rigs.toml")))
+    assert stats["mass"].samples == 5000 and stats["mass"].estimates > 0 and stats["mass"].alarms == 0

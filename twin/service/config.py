@@ -26,8 +26,9 @@ Example (every key but ``rig.name`` and ``rig.source`` has a default)::
     model = "..."                       # a registered model the online twin runs (default the product's rig)
     source = "can://socketcan/can0"     # or zenoh://KEYEXPR, or a log file (replayed)
     dbc = ""                            # default: the DBC shipped with replay (relative to this file)
-    map = ["x=pos_mm:mm", "t=time:ms"]  # a CSV log's columns under other names or units (as --map;
-                                        #   or a table: map = { x = "pos_mm:mm", t = "time:ms" })
+    map = ["x=pos_mm:mm", "t=time:ms"]  # a log's columns (CSV, text, MATLAB) or CAN signals (logs, can://)
+                                        #   under other names, units, gains (as --map; or a table:
+                                        #   map = { x = "pos_mm:mm", t = "time:ms", u = "vir*35.15N/V" })
     speed = 1.0                         # replay speed for log sources (0 = as fast as possible)
     track = ["Ffric", "CdAleak", "Cd", "zeta", "wn"]
     commission = "commissioning.json"   # a `twin fit --save` file (relative to this file): bands
@@ -109,7 +110,8 @@ class RigConfig:
     signing_key: str | None = None
     """The rig's private Ed25519 key file: its alarms are signed (``None``: unsigned; see twin.service.signing)."""
     map: tuple[str, ...] = ()
-    """A CSV log's column mapping, ``NAME=COLUMN[:UNIT]`` items as ``--map`` takes them."""
+    """The source's columns (CSV, text, MATLAB files) or CAN signals (CAN logs, ``can://``) mapped onto the rig's
+    signals, ``NAME=COLUMN[:UNIT][*GAIN][+OFFSET]`` items as ``--map`` takes them."""
 
     def source_options(self) -> dict:
         """Reader options of the rig's source from ``dbc`` and ``map``."""
@@ -361,7 +363,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     import re
 
     from replay.factory import FILE_SUFFIXES, URI_SCHEMES
-    from replay.formats import suffix_of
+    from replay.formats import suffix_of, takes_map
 
     where = f"{path}: rig[{i}]"
     if not isinstance(r, dict):
@@ -391,28 +393,43 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         model.params(**params)
     except ParameterError as exc:
         raise ConfigError(f"{where}.params: {exc}") from None
-    track = tuple(_strings(r, "track", where) or list(model.PHENOMENOLOGICAL))
-    if "track" in r and not r["track"]:
-        raise ConfigError(f"{where}.track: the list is empty; name at least one of "
-                          f"{', '.join(model.PHENOMENOLOGICAL)}")
-    bad = [t for t in track if t not in model.PHENOMENOLOGICAL]
-    if bad:
-        raise ConfigError(f"{where}.track: {bad} not among the trackable {', '.join(model.PHENOMENOLOGICAL)}"
-                          f"{suggest(bad[0], model.PHENOMENOLOGICAL) if len(bad) == 1 else ''}")
-    if len(set(track)) != len(track):
-        raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
     commission = _path(r, "commission", where, "") or None
     commission_s = _number(r, "commission_s", where, None, lo=MIN_COMMISSION_S,
                            what=" seconds (the commissioning fit needs a few periods of the demand)")
     if commission is not None and commission_s is not None:
         raise ConfigError(f"{where}: give either commission (a saved fit) or commission_s (commission on the "
                           "first seconds in service), not both")
+    com = None
     if commission is not None:
         from twin.online.commission import load_fit
 
         if not os.path.isabs(commission):
             commission = os.path.join(os.path.dirname(os.path.abspath(path)), commission)
         com = load_fit(commission)
+    # a parameter held at exactly 0 (the oscillator's spring: a free mass, as twin fit --set k=0) is held, not
+    # tracked: the twin follows a parameter relative to its value
+    known = {**(com.params if com is not None else {}), **params}
+    held = tuple(n for n in model.PHENOMENOLOGICAL if known.get(n) == 0 and n not in (com.fitted if com else {}))
+    track = tuple(_strings(r, "track", where) or [n for n in model.PHENOMENOLOGICAL if n not in held])
+    if "track" in r and not r["track"]:
+        raise ConfigError(f"{where}.track: the list is empty; name at least one of "
+                          f"{', '.join(model.PHENOMENOLOGICAL)}")
+    if not track:
+        raise ConfigError(f"{where}.params: every trackable parameter ({', '.join(model.PHENOMENOLOGICAL)}) is held "
+                          "at 0; nothing is left to track")
+    bad = [t for t in track if t not in model.PHENOMENOLOGICAL]
+    if bad:
+        raise ConfigError(f"{where}.track: {bad} not among the trackable {', '.join(model.PHENOMENOLOGICAL)}"
+                          f"{suggest(bad[0], model.PHENOMENOLOGICAL) if len(bad) == 1 else ''}")
+    if len(set(track)) != len(track):
+        raise ConfigError(f"{where}.track: {list(track)} names a parameter twice")
+    zero = [t for t in track if t in held]
+    if zero:
+        src = f"params.{zero[0]}" if zero[0] in params else f"the commissioning fit {commission}"
+        raise ConfigError(f"{where}.track: {zero[0]} is held at exactly 0 by {src}; a parameter at 0 is not "
+                          f"tracked (the twin follows a parameter relative to its value): drop it from track or "
+                          f"give it a positive value")
+    if com is not None:
         baseline = com.baseline(track)
     else:
         baseline = default_baseline(model_name, params, track)
@@ -495,9 +512,9 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
     elif suffix_of(source) not in FILE_SUFFIXES:
         raise ConfigError(f"{where}.source: {source!r} is not a log of a known format "
                           f"({', '.join(FILE_SUFFIXES)}) nor a can:// or zenoh:// URI")
-    if col_map and (source.lower().startswith(("can://", "zenoh://")) or not source.lower().endswith((".csv", ".csv.gz"))):
-        raise ConfigError(f"{where}.map: renames CSV columns; the source {source!r} is not a CSV log (its "
-                          "signals are named by its format)")
+    if col_map and not (source.lower().startswith("can://") or ("://" not in source and takes_map(source))):
+        raise ConfigError(f"{where}.map: maps the columns of CSV, text and MATLAB files and the signals of CAN logs "
+                          f"and can:// buses; the source {source!r} names its signals itself")
     horizon = _number(r, "forecast_horizon_s", where, 3600.0, lo=0.0, lo_open=True,
                       what=" seconds (the early warning's horizon)")
     return RigConfig(name, model_name, source, dbc, speed, track, params, baseline, noise, timing, commission,
@@ -523,7 +540,8 @@ def _signing_keys(rigs: list[RigConfig], directory: str | None, path: str) -> li
 
 
 def _map(r: dict, where: str) -> tuple[str, ...]:
-    """``map``: ``["x=pos_mm:mm", ...]`` or ``{x = "pos_mm:mm", ...}`` as ``NAME=COLUMN[:UNIT]`` items, checked."""
+    """``map``: ``["x=pos_mm:mm", ...]`` or ``{x = "pos_mm:mm", ...}`` as ``NAME=COLUMN[:UNIT][*GAIN][+OFFSET]``
+    items, checked."""
     if "map" not in r:
         return ()
     raw = r["map"]
@@ -531,7 +549,7 @@ def _map(r: dict, where: str) -> tuple[str, ...]:
         items = []
         for k, v in raw.items():
             if not isinstance(v, str):
-                raise ConfigError(f"{where}.map.{k}: expected \"COLUMN[:UNIT]\", got {v!r}")
+                raise ConfigError(f"{where}.map.{k}: expected \"COLUMN[:UNIT][*GAIN][+OFFSET]\", got {v!r}")
             items.append(f"{k}={v}")
     else:
         items = _strings(r, "map", where)
