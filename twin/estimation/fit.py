@@ -10,11 +10,11 @@
 * Multi-start: a seeded Latin hypercube of physically sensible starts around
   the configured values, as many drawn log-uniformly over the free
   parameters' whole physical ranges (where a range spans decades), and the
-  starts the model reads off the data (an oscillator's own second-order
-  response) are screened by cost in one batch; the best few are refined with
-  trust-region least squares and the best result is kept.  A start far from
-  the nominal values (a circuit in volts is an oscillator of mass 5e-6) is so
-  found without the user's help.
+  starts the model reads off the data (a second-order plant's own response,
+  ``Model.starts_from_data``) are screened by cost in one batch; the best few are
+  refined with trust-region least squares and the best result is kept.  A start
+  far from the nominal values (a circuit in volts modelled as a mass of 5e-6)
+  is so found without the user's help.
 * Several records share the parameters; optional initial-state estimation adds
   per-record initial quantities (rod position, pressure difference).
 * Residuals of each output are weighted by its noise level, so x [m] and

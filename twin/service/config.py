@@ -406,7 +406,7 @@ def _parse_rig(r: Any, i: int, path: str, seen: set[str]) -> RigConfig:
         if not os.path.isabs(commission):
             commission = os.path.join(os.path.dirname(os.path.abspath(path)), commission)
         com = load_fit(commission)
-    # a parameter held at exactly 0 (the oscillator's spring: a free mass, as twin fit --set k=0) is held, not
+    # a parameter held at exactly 0 (a spring of 0: a free mass, as twin fit --set k=0) is held, not
     # tracked: the twin follows a parameter relative to its value
     known = {**(com.params if com is not None else {}), **params}
     held = tuple(n for n in model.PHENOMENOLOGICAL if known.get(n) == 0 and n not in (com.fitted if com else {}))

@@ -30,7 +30,7 @@ kind of message, each with its JSON schema:
   wall-clock time first); the Log panel lists them.
 
 Every message carries ``rig`` (several rigs share the topics; Foxglove filters
-with ``/twin/estimate{rig=="msp25-hall1-a"}``) and ``timestamp`` as Foxglove
+with ``/twin/estimate{rig=="hall1-a"}``) and ``timestamp`` as Foxglove
 time ``{sec, nsec}``; its log time is the sample's ``t_ns``.  The layout
 ``deploy/foxglove-layout.json`` plots each parameter's trend with its band and
 interval, the remaining time until each parameter leaves its band with its 90 % interval, the rig's
@@ -56,8 +56,9 @@ from twin.models import DEFAULT_MODEL
 
 SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
 """The subprotocol names the live view accepts: the documented one first, then foxglove-sdk's own."""
-EXAMPLE_RIG = "msp25-hall1-a"
-"""The first rig of ``deploy/rigs.example.toml``: the shipped layout's default ``rig``."""
+EXAMPLE_RIG = f"{DEFAULT_MODEL}-hall1-a"
+"""The first rig of ``deploy/rigs.example.toml`` (a rig of the default model): the shipped layout's default
+``rig``."""
 
 _TIME = {"type": "object", "title": "time", "description": "Foxglove time: seconds and nanoseconds since the epoch "
          "(of the ingest clock: a replayed log's own time)",
@@ -68,9 +69,10 @@ _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}
 
 def signals_schema(model: str = DEFAULT_MODEL) -> dict:
-    """The schema of ``/rig/signals`` for ``model``'s records (:func:`twin.record.signal_specs`: the oscillator's
-    ``u`` is a force): every signal in its SI unit, named in ``units`` and in its description; under ``display``
-    the same numbers in the display unit (:func:`twin.reports.units.signal_unit`), named in ``display.units``."""
+    """The schema of ``/rig/signals`` for ``model``'s records (:func:`twin.record.signal_specs`: each model
+    declares its signals, a drive ``u`` may be a voltage or a force): every signal in its SI unit, named in
+    ``units`` and in its description; under ``display`` the same numbers in the display unit
+    (:func:`twin.reports.units.signal_unit`), named in ``display.units``."""
     from twin.models.records import signal_specs
     from twin.reports.units import signal_unit
 
