@@ -208,9 +208,11 @@ def test_a_spring_held_at_zero_is_held_not_tracked(tmp_path):
 
 
 @pytest.mark.slow
-def test_serve_runs_a_free_mass_held_at_k_zero(tmp_path):
+def test_serve_runs_a_free_mass_held_at_k_zero(tmp_path, capsys):
     """The rig with ``k = 0`` runs in the service: every sample read, estimates, no alarm on a record of that rig
     (the oscillator simulated with k = 0, m = 2.5 kg, d = 8 N s/m)."""
+    import json
+
     from net_helpers import free_port
 
     from twin import cli
@@ -226,3 +228,8 @@ def test_serve_runs_a_free_mass_held_at_k_zero(tmp_path):
         '[rig.params]\nk = 0\nm = 2.5\nd = 8\n', encoding="utf-8")
     stats = serve(load_config(str(tmp_path / "rigs.toml")))
     assert stats["mass"].samples == 5000 and stats["mass"].estimates > 0 and stats["mass"].alarms == 0
+    # twin track --set k=0 the same (before: 'start value of k (0) is outside its physical bounds')
+    assert cli.main(["track", str(log), "--model", "oscillator", "--set", "k=0,m=2.5,d=8", "--out",
+                     str(tmp_path / "out"), "--json", "-q"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples"] == 5000 and set(out["final"]) == {"d"} and not out["alarms"]

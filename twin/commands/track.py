@@ -159,6 +159,9 @@ def run(args) -> int:
         over = kv(args.set)
         model.params(commission.effects if commission is not None else (), **over)  # checks names and ranges
         params.update(over)
+        held = [n for n in model.PHENOMENOLOGICAL if over.get(n) == 0]
+        if tracked is None and held:  # held at exactly 0 by --set (a free mass's spring): held, not tracked
+            tracked = tuple(n for n in model.PHENOMENOLOGICAL if n not in held) or None
     noise = kv(args.noise_levels) if args.noise_levels else None
     if noise:
         measured = tuple(model.FILTER.measures) if model.FILTER is not None else model.OUTPUTS
