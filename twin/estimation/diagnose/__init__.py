@@ -77,7 +77,7 @@ The method (``twin diagnose DATA --model NAME``, any registered model):
    :func:`.adequacy._holdout_test`), and its parameters lie within 10 times
    the effect's typical deviation from neutral.  While the extended model
    stays inadequate it must remove the majority (``min_share``) of the
-   current model's held-out simulation misfit above the noise floor.  The
+   current model's simulation misfit above the noise floor (whole records).  The
    effect's own signature
    must be where the residuals have it (:func:`.naming._signature`): the
    errors it leaves are regressed on its signature led and lagged by 1-16

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 #: significance level of the screen, the LR test and the adequacy tests (family-wise, after Holm/Bonferroni)
 ALPHA = 1e-3
-#: share of the current model's held-out simulation misfit above the noise floor an extension must remove to be
+#: share of the current model's simulation misfit above the noise floor (whole records) an extension must remove to be
 #: named while the model stays inadequate (or beside an adequate model's names): the majority (the named cause is
 #: the larger part of the error; what it leaves is the smaller, reported as "partly explained"); also the share
 #: of an extension's gain that its signature moved in time may explain again in what it leaves
