@@ -63,7 +63,7 @@ def foxglove_layout(parameters=PARAMETERS, model: str = DEFAULT_MODEL, rig: str 
         config["Plot!pressures"] = _plot(f"chamber pressures [{p_unit}]", [
             (f"{sig}.{n}", n, c) for n, c in (("pA", "#D95319"), ("pB", "#7E2F8E")) if n in own])
         signal_plots.append("Plot!pressures")
-    if not signal_plots:  # a model of other signals (the oscillator's u and y): one plot of them all
+    if not signal_plots:  # a model of other signals (a force u and a displacement y): one plot of them all
         config["Plot!signals"] = _plot(
             "signals [" + ", ".join(f"{n} {pretty_unit(signal_unit(n, model)[0])}" for n in own) + "]",
             [(f"{sig}.{n}", n, colors[i % len(colors)]) for i, n in enumerate(own)])
