@@ -249,6 +249,8 @@ class ConfirmedDrift:
         self.adequate = True
         self.reasons: list[str] = []
         self.fits: list[WindowFit] = []
+        #: the filter's drift test's own events (triggers, never published): what it would have raised alone
+        self.triggered: list[AlarmEvent] = []
         self._t_first: float | None = None
         self._next_scheduled: float | None = None
         self._last_fit_t = -math.inf
@@ -290,6 +292,7 @@ class ConfirmedDrift:
         self.window.add(samples)
         triggers = self.trigger.update_block(tracker.tracked, out.t_ns, t_s, out.estimates, out.log_std,
                                              out.frozen, out.hold, out.guard)
+        self.triggered += triggers
         now = float(t_s[-1])
         if self._t_first is None:
             self._t_first = float(t_s[0])
