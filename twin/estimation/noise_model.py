@@ -229,8 +229,8 @@ def long_run_variance(g: np.ndarray, lag: int | None = None) -> float:
     m = 1 << int(math.ceil(math.log2(n + L + 1)))
     f = np.fft.rfft(g, m)
     ac = np.fft.irfft(f.real * f.real + f.imag * f.imag, m)[: L + 1]
-    k = np.arange(1, L + 1)
-    s = float(ac[0]) + 2.0 * float(np.sum((1.0 - k / (L + 1.0)) * ac[1:]))
+    lags = np.arange(1, L + 1)
+    s = float(ac[0]) + 2.0 * float(np.sum((1.0 - lags / (L + 1.0)) * ac[1:]))
     return max(s, 0.0) / n
 
 
