@@ -197,12 +197,15 @@ HARD_FIT = ["--free", "zeta,CdAleak", "--outputs", "x", "--controller", "continu
             "zeta=0.6,CdAleak=0.0098589mm^2", "--json"]
 
 
-def _command_cpu(tree: str, argv: list[str]) -> tuple[float, float, dict]:
-    """CPU seconds (user + system) and wall seconds of ``python -m twin.cli ARGV`` run from ``tree``, its JSON."""
+def _command_cpu(tree: str, argv: list[str], threads: int | None = None) -> tuple[float, float, dict]:
+    """CPU seconds (user + system) and wall seconds of ``python -m twin.cli ARGV`` run from ``tree``, its JSON;
+    ``threads``: numba's threads (``NUMBA_NUM_THREADS``; default numba's, one per core)."""
     import os
     import subprocess
 
     env = dict(os.environ, PYTHONPATH=tree)
+    if threads:
+        env["NUMBA_NUM_THREADS"] = str(threads)
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "twin.cli", *argv], cwd=tree, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.DEVNULL)
@@ -214,11 +217,13 @@ def _command_cpu(tree: str, argv: list[str]) -> tuple[float, float, dict]:
     return ru.ru_utime + ru.ru_stime, wall, json.loads(out)
 
 
-def hard_fit_command(repeats: int = 3, baseline: str | None = None, duration: float = 40.0) -> dict:
+def hard_fit_command(repeats: int = 3, baseline: str | None = None, duration: float = 40.0,
+                     threads: int | None = None) -> dict:
     """The whole ``twin fit`` command on the paper's hard case (:data:`HARD_FIT`, a ``duration`` s record of the
     product's simulator, analog controller, default noise, seed 3), CPU and wall medians of ``repeats`` runs; with
     ``baseline`` the same command from that git revision's tree, interleaved in the same run (one warm-up run each
-    first: the numba cache of a fresh tree compiles)."""
+    first: the numba cache of a fresh tree compiles).  ``threads=1`` makes the CPU time the work alone: the
+    batched simulations' parallel loop otherwise adds its threads' waiting, which varies with the machine's load."""
     import os
     import subprocess
     import tempfile
@@ -237,16 +242,16 @@ def hard_fit_command(repeats: int = 3, baseline: str | None = None, duration: fl
         runs: dict[str, list[tuple[float, float]]] = {k: [] for k in trees}
         est: dict[str, dict] = {}
         for tree in trees.values():
-            _command_cpu(tree, argv)
+            _command_cpu(tree, argv, threads)
         for _ in range(repeats):
             for which, tree in trees.items():
-                cpu, wall, res = _command_cpu(tree, argv)
+                cpu, wall, res = _command_cpu(tree, argv, threads)
                 runs[which].append((cpu, wall))
                 est[which] = {p: v["value"] for p, v in res["params"].items()} | {"nfev": res.get("nfev"),
                                                                                    "adequate": res["adequacy"].get(
                                                                                        "adequate")}
     out: dict = {"name": f"hard two-parameter fit, {duration:g} s record, analog controller: whole twin fit command",
-                 "repeats": repeats, "baseline": baseline, "estimates": est,
+                 "repeats": repeats, "baseline": baseline, "estimates": est, "numba_threads": threads,
                  "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
     for which, rs in runs.items():
         out[which] = {"cpu_s": float(np.median([r[0] for r in rs])), "wall_s": float(np.median([r[1] for r in rs])),
@@ -283,9 +288,11 @@ def main(argv=None) -> int:
                     help="only the whole twin fit command on the paper's hard case (40 s, analog controller), N runs")
     ap.add_argument("--baseline", metavar="REV", help="with --hard-command: the same command from this git "
                     "revision's tree too, interleaved in the same run")
+    ap.add_argument("--numba-threads", type=int, metavar="N",
+                    help="with --hard-command: numba's threads in the commands (1: CPU time without the waiting)")
     args = ap.parse_args(argv)
     if args.hard_command:
-        h = hard_fit_command(args.hard_command, args.baseline)
+        h = hard_fit_command(args.hard_command, args.baseline, threads=args.numba_threads)
         if args.json:
             print(json.dumps(h, indent=2))
             return 0
@@ -294,7 +301,11 @@ def main(argv=None) -> int:
             b = h["baseline"]
             line += (f"; the tree of {args.baseline} in the same run {b['cpu_s']:.2f} s CPU ({b['wall_s']:.2f} s "
                      f"wall): {h['cpu_ratio']:.2f}x")
-        print(line + f"; median of {h['repeats']}, load average {h['load_average_1min']:.1f}")
+        runs = "; runs " + ", ".join(f"{c:.2f}" for c in h["now"]["cpu_runs"])
+        if args.baseline:
+            runs += " against " + ", ".join(f"{c:.2f}" for c in h["baseline"]["cpu_runs"])
+        print(line + f"; median of {h['repeats']}{runs} s CPU; numba threads {h['numba_threads'] or 'default'}; "
+              f"load average {h['load_average_1min']:.1f}")
         print("estimates:", json.dumps(h["estimates"]))
         return 0
     if args.user_rig:
