@@ -210,11 +210,14 @@ class _Problem:
             return [None] * len(self.records)
         rng = np.random.default_rng(seed)
         out: list[np.ndarray | None] = []
-        for r, pr in enumerate(self.predict(z)):
-            rec = self.records[r]
+        preds = None  # simulated only when a record needs them (an analog controller's never does)
+        for r, rec in enumerate(self.records):
             if self.drives[r][0] != "x_ref" or self.timing.ticks(rec.dt) != 1:
                 out.append(None)  # no simulated controller, or one reading the sensor between logged samples
                 continue
+            if preds is None:
+                preds = self.predict(z)
+            pr = preds[r]
             n = len(rec)
             w = np.pi * np.arange(n // 2 + 1) / (n // 2)  # rfft frequencies, rad per sample
             band = w >= LOOP_NOISE_BAND * np.pi
