@@ -1,8 +1,9 @@
 """``twin.fit``: the fit (:func:`twin.estimation.fit.fit`) and the adequacy test of the fitted model.
 
 What ``twin fit`` and a commissioning run: a free parameter that an un-modelled effect of the catalogue can mimic
-(:func:`mimicry_warnings`: a transducer gain and Cd) is warned of in ``warnings`` (the text, the JSON and the
-report show them); a model that does not represent its record (its one-step prediction
+(:func:`mimicry_warnings`: a transducer gain and Cd) is said in ``caveats`` (the text, the JSON, the saved file and
+the report show them: the data cannot tell the two apart, so it is said beside every such fit, apart from the
+``warnings`` that say a fit or a model failed its record); a model that does not represent its record (its one-step prediction
 errors follow the drive, stay predictable or grow on the record's tail; :mod:`twin.estimation.diagnose.check`) is
 fitted all the same and said so, in ``warnings``, ``message`` and ``adequacy``; never a silently biased fit.  The
 diagnosis's own fits, which judge adequacy their own way, call the fit alone.
@@ -47,8 +48,8 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         res.time_s = time.perf_counter() - t0
     m = get_model(model) if isinstance(model, str) else model
     for w in mimicry_warnings(m, free, effects=getattr(options.get("base"), "effects", ())):
-        if w not in res.warnings:
-            res.warnings.append(w)
+        if w not in res.caveats:
+            res.caveats.append(w)
     return res
 
 

@@ -48,6 +48,10 @@ class FitResult:
     timing: dict = dataclasses.field(default_factory=dict)
     #: what the text, the JSON and the report must say beside a converged fit (e.g. an output barely fitted)
     warnings: list[str] = dataclasses.field(default_factory=list)
+    #: what the fit cannot tell apart, whatever the record (a free parameter that an un-modelled effect of the
+    #: catalogue can mimic: a transducer gain and Cd): said beside every such fit, healthy or not, so apart from
+    #: ``warnings`` (which say the fit or the model failed this record)
+    caveats: list[str] = dataclasses.field(default_factory=list)
     #: the noise level (SI std) that weighted each output's residuals: the sensor noise the fit assumed
     noise: dict[str, float] = dataclasses.field(default_factory=dict)
     #: the adequacy tests of the fitted model (:func:`twin.estimation.diagnose.check.fit_adequacy`; empty when
@@ -80,7 +84,7 @@ class FitResult:
             "loglik": self.loglik, "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "fpe": self.fpe,
             "n_obs": self.n_obs, "n_par": self.n_par, "cost": self.cost,
             "success": self.success, "status": self.status, "message": self.message, "nfev": self.nfev,
-            "warnings": self.warnings, "adequacy": self.adequacy or None,
+            "warnings": self.warnings, "caveats": self.caveats, "adequacy": self.adequacy or None,
             "time_s": self.time_s, "init": self.init, "init_unit": init_units,
             "starts": [dict(d, theta_unit=theta_unit) for d in self.starts],
             "history": [dict(d, theta_unit=theta_unit) for d in self.history],
@@ -112,6 +116,8 @@ class FitResult:
                          for o in self.outputs}}
         if self.warnings:  # a commissioning read back says what the fit warned
             out["warnings"] = list(self.warnings)
+        if self.caveats:
+            out["caveats"] = list(self.caveats)
         out["fit_pct"] = {o: float(v) for o, v in self.fit_pct.items()}
         out["corr"] = {"names": list(self.free), "matrix": np.round(np.asarray(self.corr, dtype=float), 6).tolist()}
         out["n_obs"], out["success"], out["message"] = int(self.n_obs), bool(self.success), str(self.message)
@@ -204,7 +210,7 @@ class FitResult:
                    bic=nan, fpe=nan, n_obs=int(doc.get("n_obs", 0)), n_par=len(free), cost=nan,
                    success=bool(doc.get("success", True)), status=0, message=str(doc.get("message", f"loaded from {path}")),
                    nfev=0, history=[], starts=[], init=[], time_s=nan, timing=dict(timing),
-                   warnings=list(doc.get("warnings") or ()), noise=noise,
+                   warnings=list(doc.get("warnings") or ()), caveats=list(doc.get("caveats") or ()), noise=noise,
                    source=dict(doc["source"]) if isinstance(doc.get("source"), dict) else {})
 
     def table(self) -> str:
@@ -219,6 +225,7 @@ class FitResult:
                     f"N={self.n_obs} p={self.n_par} nfev={self.nfev} {self.time_s:.2f}s "
                     f"{'converged' if self.success else 'NOT CONVERGED'}: {self.message}")
         rows.extend(f"WARNING: {w}" for w in self.warnings)
+        rows.extend(f"CAVEAT: {c}" for c in self.caveats)
         return "\n".join(rows)
 
 

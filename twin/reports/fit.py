@@ -77,6 +77,8 @@ def fit_report(result, records: Sequence, model, out_dir: str, *, title: str | N
              "converged": "yes" if success else "NO"}
     for i, w in enumerate(_get(result, "warnings") or []):
         facts[f"WARNING {i + 1}" if i else "WARNING"] = str(w)
+    for i, c in enumerate(_get(result, "caveats") or []):
+        facts[f"CAVEAT {i + 1}" if i else "CAVEAT"] = str(c)
     pg = P.Page(title or f"twin fit: {model_name}", facts, kind="fit")
 
     # compare
