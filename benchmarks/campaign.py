@@ -487,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="calibration (seeds 0-999: for looking at constants) or verification (seeds from 1000: "
                     "for quoting figures; default)")
     ap.add_argument("--first", type=int, default=None, help="the first seed (default: the set's first)")
-    ap.add_argument("--minutes", type=float, default=1.5, help="length of each draw's record [min] (default 1.5)")
+    ap.add_argument("--minutes", type=float, default=1.0, help="length of each draw's record [min] (default 1)")
     ap.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--kinds", default=",".join(KINDS),
                     help=f"only draws of these kinds, comma-separated (default all: {','.join(KINDS)})")
