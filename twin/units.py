@@ -232,8 +232,9 @@ def check_loop_scale(ps, signals, name: str = "record") -> None:
     the stroke, which no range can tell: in closed loop the demand ``x_ref`` and the measured ``x`` share one scale,
     and the controller's drive is ``u = KP (x_ref - x)`` (``KP`` of ``ps``). With ``x`` and ``x_ref`` in the record,
     the least-squares scale ``s = <x_ref, x> / <x, x>`` near 1/1000 (or 1000) names ``x`` (or ``x_ref``); with ``u``
-    too, the gain ``g = <u, e> / <e, e>`` of ``e = x_ref - x`` near ``KP / 1000`` names both. Near means within
-    :data:`LOOP_SCALE_DECADES` of three decades."""
+    too, on a loop that tracks its demand (``s`` within a factor 2 of 1), the gain ``g = <u, e> / <e, e>`` of
+    ``e = x_ref - x`` near ``KP / 1000``, with the drive explained better by ``KP e / 1000`` than by ``KP e``, names
+    both. Near means within :data:`LOOP_SCALE_DECADES` of three decades."""
     import numpy as np
 
     from fpdd.errors import DataError
@@ -274,10 +275,18 @@ def check_loop_scale(ps, signals, name: str = "record") -> None:
         return
     if u is None or not kp > 0:
         return
+    if not (xx > 0 and rr > 0 and 0.5 <= float(np.dot(r, x)) / xx <= 2.0):
+        return  # the gain is read only off a loop that tracks its demand (x and x_ref on one scale)
     e = r - x
-    ee = float(np.dot(e, e))
-    if ee > 0 and thousand(kp * ee / float(np.dot(u[ok], e))) == 1:
-        g = float(np.dot(u[ok], e)) / ee
+    ee, ue = float(np.dot(e, e)), float(np.dot(u[ok], e))
+    if not (ee > 0 and ue > 0):
+        return
+    # the drive read as mm explains it better than read as SI (the residuals of u = KP e against u = KP e / 1000),
+    # and the fitted gain is three decades below KP
+    sse_si = float(np.sum((u[ok] - kp * e) ** 2))
+    sse_mm = float(np.sum((u[ok] - kp * e / 1000.0) ** 2))
+    if sse_mm < sse_si and thousand(kp * ee / ue) == 1:
+        g = ue / ee
         raise DataError(f"{name}: x and x_ref drive the loop as if its gain were {g:.3g} V/m, about 1000 times less "
                         f"than KP = {kp:g} V/m: they read like columns in mm read as metres; give their units: "
                         "--map x=x:mm --map x_ref=x_ref:mm or headers x[mm], x_ref[mm] (a bare column is SI)")
