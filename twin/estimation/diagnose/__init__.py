@@ -73,7 +73,7 @@ The method (``twin diagnose DATA --model NAME``, any registered model):
    correction over the catalogue, its (whitened) AICc is lower, its held-out
    gain - the relative reduction of the held-out innovations' sum of squares
    - is significant against the noise (a Diebold-Mariano-type test on the
-   relative scale, HAC variance, Bonferroni over the catalogue at ``alpha``:
+   relative scale, HAC variance, one-sided at ``HOLDOUT_LEVEL``:
    :func:`.adequacy._holdout_test`), and its parameters lie within 10 times
    the effect's typical deviation from neutral.  While the extended model
    stays inadequate it must remove the majority (``min_share``) of the

@@ -10,7 +10,7 @@ import numpy as np
 from twin.models import Model
 from scipy import stats
 
-from twin.estimation.diagnose.constants import PLAUSIBLE, SIGNATURE_SHIFTS, TIMING_EFFECTS
+from twin.estimation.diagnose.constants import HOLDOUT_LEVEL, PLAUSIBLE, SIGNATURE_SHIFTS, TIMING_EFFECTS
 from twin.estimation.diagnose.data import ModelState, _Data, _blocks
 from twin.estimation.diagnose.adequacy import _holdout_test, _innovations, _lr
 from twin.estimation.diagnose.results import Trial
@@ -134,18 +134,18 @@ def share_rule(data: _Data, cur: ModelState) -> str:
 def _verdict(t: Trial, alpha: float, min_share: float, judge_share: str = "no") -> None:
     """One criterion for every kind of name (an effect, a pair, a timing): the whitened LR test significant
     after Holm over the catalogue, a lower AICc, the held-out gain significant against the noise (the
-    Diebold-Mariano test of :func:`.adequacy._holdout_test`, one-sided, Bonferroni over the catalogue: both at
-    the family's level ``alpha``), a plausible size and the effect's own signature where the residuals have it
+    Diebold-Mariano-type test of :func:`.adequacy._holdout_test`, one-sided at ``HOLDOUT_LEVEL``: a replication
+    of the LR test's discovery on data the fit did not see), a plausible size and the effect's own signature where the residuals have it
     (a misplaced signature explaining over ``1 - min_share`` of its gain again: an error of other dynamics)."""
     reasons = ["diverged (its simulation of the record is not finite)"] if t.diverged else []
     if not t.p_adjusted < alpha:
         reasons.append(f"LR p_Holm={t.p_adjusted:.3g} >= {alpha:g}")
     if not t.delta_aicc < 0:
         reasons.append("AICc not lower")
-    if not t.holdout_p_adjusted < alpha:
+    if not t.holdout_p_adjusted < HOLDOUT_LEVEL:
         z = float(t.holdout_test.get("z", 0.0))
         reasons.append(f"held-out gain {100 * t.holdout_gain:.2f} % not significant against the noise "
-                       f"(Diebold-Mariano z={z:.3g}, p_adj={t.holdout_p_adjusted:.3g} >= {alpha:g})")
+                       f"(Diebold-Mariano z={z:.3g}, p={t.holdout_p_adjusted:.3g} >= {HOLDOUT_LEVEL:g})")
     if t.implausible:
         reasons.append(f"implausible size ({', '.join(t.implausible)}: over {PLAUSIBLE:g} x the typical)")
     # the effect's own signature must be where the residuals have it: the part of its gain that its signature

@@ -61,7 +61,7 @@ class Trial:
     diverged: bool = False     # its fit or its simulation of the record went non-finite
     signature: dict = dataclasses.field(default_factory=dict)  # is the effect's own signature in the residuals
     holdout_test: dict = dataclasses.field(default_factory=dict)  # Diebold-Mariano test of the held-out gain
-    holdout_p_adjusted: float = 1.0  # its p-value, Bonferroni over the catalogue
+    holdout_p_adjusted: float = 1.0  # its one-sided p-value (judged at HOLDOUT_LEVEL)
 
     @property
     def effect(self) -> str:

@@ -125,7 +125,6 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
         adj = dict(zip([e for e, _ in pool], holm([p for _, p in pool])))
         for t in trials:
             t.p_adjusted = adj.get(t.effects[0], t.p)
-            t.holdout_p_adjusted = min(1.0, float(t.holdout_test.get("p", 1.0)) * len(pool))
             _verdict(t, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  {t.effect}: LR={t.lr:.4g} p_Holm={t.p_adjusted:.3g} dAICc={t.delta_aicc:.4g} held-out gain "
                 f"{100 * t.holdout_gain:.2f}% [{100 * t.gain_interval[0]:.2f}, {100 * t.gain_interval[1]:.2f}] "
@@ -148,7 +147,6 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             a, b = sig[0], sig[1]
             pair, each = _try_pair(data, cur, a, b, seed, min_share, base)
             pair.p_adjusted = min(1.0, pair.p * len(pool))
-            pair.holdout_p_adjusted = min(1.0, float(pair.holdout_test.get("p", 1.0)) * len(pool))
             _verdict(pair, alpha, min_share, judge_share=share_rule(data, cur))
             say(f"  pair {pair.effect}: LR={pair.lr:.4g} p={pair.p:.3g} dAICc={pair.delta_aicc:.4g} "
                 f"held-out gain {100 * pair.holdout_gain:.2f}% share {pair.share:.3f} "
