@@ -46,13 +46,15 @@ DIMENSIONLESS = frozenset({
     "samples", "n", "n_obs", "n_par", "nfev", "status", "iteration", "start", "seq", "df", "lags", "order",
     "ar_order", "n_tests", "n_innovations", "raises", "records_read", "samples_out", "samples_lost", "seed", "messages",
     "blocks", "duplicates", "estimates", "statuses", "alarms", "forecasts", "received_by_subscriber", "level", "line",
+    "term",  # an ownership term's number (fencing)
     "speed", "factor",  # a replay speed (x real time), a drift's factor
     # ratios and relative values
     "ratio", "power_ratio", "share", "excess", "nrmse", "r2", "r2_excess", "ar1", "holdout_fraction",
     "holdout_gain", "acf_band",
     # statistics, probabilities and noise-normalised figures
     "p", "p_adjusted", "p_effect", "p_min_bonferroni", "alpha", "z", "Q", "lm", "lr", "delta_aicc", "loglik", "aic",
-    "aicc", "bic", "fpe", "cost", "final_cost", "weighted_sse", "innovations_ss", "nis", "p_within_horizon",
+    "aicc", "bic", "fpe", "cost", "final_cost", "weighted_sse", "weighted_excess", "innovations_ss", "nis",
+    "p_within_horizon", "holdout_p_adjusted",
     "snr", "error_to_noise",  # a signal's or an error's RMS over the noise's
     "misplaced",  # the share of an effect's gain its shifted signature explains again
 })
@@ -62,6 +64,7 @@ DIMENSIONLESS_TREES = frozenset({
     "xcorr",  # cross-correlations of residual and input: coefficients, their band, lags in samples
     "innovation_std",  # of the noise-normalised residuals
     "signature",  # the naming rule's regression on an effect's shifted signature: sums of noise-normalised squares
+    "holdout_test",  # the held-out gain's test: relative gains, their interval, the HAC lag in samples
 })
 
 
