@@ -72,7 +72,12 @@ class Checkpoints(RunnerCore):
         now (sealed under the journal's key: :mod:`twin.service.checkpoint_file`)."""
         where = self.journal.checkpoint_path
         epoch = self.journal.epoch(self.rig.name)
-        if cp.epoch and epoch and cp.epoch != epoch:
+        if cp.epoch and epoch and cp.epoch != epoch and self.journal.adopt_epoch(
+                self.rig.name, cp.epoch, replica=self.cfg.failover is not None):
+            # no alarm of the rig numbered here yet, or a standby of a failover group resuming the owner's replicated
+            # checkpoint: its numbering is the checkpoint's (the owner's)
+            log.info("rig %s: numbering its alarms in the checkpoint's epoch %s", self.rig.name, cp.epoch)
+        elif cp.epoch and epoch and cp.epoch != epoch:
             raise RigFailure(f"its checkpoint in {where} was taken in epoch {cp.epoch} of the rig's alarms, the journal "
                              f"numbers them in epoch {epoch}; refused: move the checkpoint aside to start the rig "
                              "afresh from its journal")

@@ -346,6 +346,16 @@ class AlarmJournal:
             self._failed(exc)
             return ""
 
+    def adopt_epoch(self, rig: str, epoch: str, *, replica: bool = False) -> bool:
+        """Take ``epoch`` as the numbering of ``rig``'s alarms here while none is journaled or pending, or, with
+        ``replica``, in any case (a standby that resumes the owner's replicated checkpoint continues the owner's
+        numbering, whatever its replica journaled before); False (nothing changed) otherwise."""
+        with self._lock:
+            if self._last_seq_locked(rig) and not replica:
+                return False
+            self.store.adopt_epoch(rig, epoch)
+            return True
+
     def _last_seq_locked(self, rig: str) -> int:
         mine = [p.seq for p in self._pending if p.rig == rig]
         return max(mine) if mine else self.store.last_seq(rig)

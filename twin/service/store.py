@@ -634,6 +634,15 @@ class Store:
         text = self.meta("checkpoint_key")
         return bytes.fromhex(text) if text else b""
 
+    def adopt_epoch(self, rig: str, epoch: str) -> None:
+        """Number ``rig``'s alarms in ``epoch`` from now on (the caller makes sure none is journaled here yet).
+
+        :raises SourceError: the write failed (naming the file).
+        """
+        self.set_meta({f"epoch:{rig}": epoch})
+        with self._lock:
+            self._epochs[rig] = epoch
+
     def set_meta(self, values: Mapping[str, str]) -> None:
         """Set ``values`` in the meta table in one transaction, folded into the main file.
 
