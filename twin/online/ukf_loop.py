@@ -456,12 +456,16 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
         du = abs(u_exc - fs[F_R1]) / max(dtk, dt0) if fs[F_UPREV_OK] > 0.0 and math.isfinite(u_exc) else 0.0
         alpha = min(1.0, max(dtk, dt0) / tau_excite)
         e0 = 0.0
+        e1 = 0.0
         e2 = 0.0
-        for i in range(ns):  # the model's excitation channels: rod motion, (the drive's rate,) a load
-            e0 += setup.excitation[0, i] * (x[i] * scale[i])
+        by_state = False
+        for i in range(ns):  # the model's excitation channels: rod motion, the command (its state, or else the
+            e0 += setup.excitation[0, i] * (x[i] * scale[i])  # drive's rate), a load
+            e1 += setup.excitation[1, i] * (x[i] * scale[i])
             e2 += setup.excitation[2, i] * (x[i] * scale[i])
+            by_state = by_state or setup.excitation[1, i] != 0.0
         fs[F_EXC0] += alpha * (abs(e0) - fs[F_EXC0])
-        fs[F_EXC1] += alpha * (du - fs[F_EXC1])
+        fs[F_EXC1] += alpha * ((abs(e1) if by_state else du) - fs[F_EXC1])
         fs[F_EXC2] += alpha * (abs(e2) - fs[F_EXC2])
         if math.isfinite(u_exc):
             fs[F_R1] = u_exc
