@@ -17,6 +17,11 @@ Key space (one set of keys per rig; ``<rig>`` is one key chunk, see
     fpdd/<rig>/alarm/history   get    every journaled AlarmEvent of the rig, one reply per alarm,
                                       in seq order; selector parameters (``;``-separated):
                                       ``since_seq=N`` (seq >= N), ``since_t_ns=T`` (t_ns >= T)
+    fpdd/<rig>/alarm/handover  get    an owner that stood down after a split network hands over the alarms it
+                                      raised in its term (payload {"rig", "term", "alarms": [...]}); the owner
+                                      journals those it does not hold under its next numbers, marked, puts them
+                                      and replies {"term", "epoch", "alarms": [{"seq", "now", "held"}]}
+                                      (:meth:`TwinPublisher.adopt`, :mod:`twin.service.handover`)
     fpdd/<rig>/twin            liveliness token, present while the twin serves the rig
 
 Payloads are UTF-8 JSON (encoding ``application/json``) following the schemas in
@@ -130,10 +135,11 @@ class RigKeys:
     :ivar forecast: ``fpdd/<rig>/forecast``
     :ivar alarm: ``fpdd/<rig>/alarm``
     :ivar history: ``fpdd/<rig>/alarm/history``
+    :ivar handover: ``fpdd/<rig>/alarm/handover`` (an owner that stood down hands its alarms over)
     :ivar twin: ``fpdd/<rig>/twin`` (liveliness)
     """
 
-    __slots__ = ("rig", "estimate", "status", "forecast", "alarm", "history", "twin")
+    __slots__ = ("rig", "estimate", "status", "forecast", "alarm", "history", "handover", "twin")
 
     def __init__(self, rig: str) -> None:
         self.rig = _check_rig(rig, wildcard=True)
@@ -143,6 +149,7 @@ class RigKeys:
         self.forecast = f"{base}/forecast"
         self.alarm = f"{base}/alarm"
         self.history = f"{base}/alarm/history"
+        self.handover = f"{base}/alarm/handover"
         self.twin = f"{base}/twin"
 
     @staticmethod
@@ -342,6 +349,8 @@ class TwinPublisher(_Declarations, Publisher):
             )
             if self.term:  # another owner's statuses of this rig: a split network (said in ours)
                 self._keep(session.declare_subscriber(self.keys.status, self._on_rival_status))
+                if journal is not None:  # the alarms an owner that stood down raised meanwhile
+                    self._keep(session.declare_queryable(self.keys.handover, self._on_handover))
             # The token last: a subscriber seeing the twin alive can query its history at once.
             self._keep(session.liveliness().declare_token(self.keys.twin))
         except zenoh.ZError as exc:
@@ -549,6 +558,59 @@ class TwinPublisher(_Declarations, Publisher):
             payload = jsonio.dumps(data, indent=None, sort_keys=True)
         return self._signer.sign_status(payload) if self._signer is not None else payload
 
+    # ------------------------------------------------------------------ a split network's alarms
+
+    def adopt(self, events: list[AlarmEvent], term: int) -> list[dict[str, Any]]:
+        """Journal and put, under this owner's next numbers, the alarms another owner of the rig raised in its
+        ``term`` while the network was split and this journal does not hold (by identity); each is marked in its
+        message (:func:`split_mark`: the term and number it had, when it was raised) and keeps its term and raise
+        time. Returns, per alarm in the other owner's order, ``{"seq": its number there, "now": its number here,
+        "held": whether this journal held it already}``."""
+        if self._journal is None:
+            raise ConfigError(f"rig {self.rig!r}: this publisher has no journal to adopt alarms into")
+        out: list[dict[str, Any]] = []
+        for ev in sorted(events, key=lambda e: e.seq):
+            self._check_event_rig(ev)
+            raised_in = ev.term or term
+            marked = replace(ev, seq=0, epoch="", signature="", term=raised_in,
+                             message="; ".join(m for m in (split_mark(raised_in, ev.seq, ev.wall_ns, self.term),
+                                                           ev.message) if m))
+            recorded = self._journal.record(marked)
+            if recorded.new and recorded.durable:
+                self.put_alarm(recorded.event)
+            out.append({"seq": ev.seq, "now": recorded.event.seq, "held": not recorded.new})
+        adopted = [f"{o['seq']}->{o['now']}" for o in out if not o["held"]]
+        log.warning("rig %s: %d alarm(s) of term %d (the other side of a split network) handed over: %s journaled "
+                    "under this term's numbers, %d held already", self.rig, len(out), term,
+                    ", ".join(adopted) or "none", len(out) - len(adopted))
+        return out
+
+    def _on_handover(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                doc = json.loads(query.payload.to_string()) if query.payload is not None else None
+                if not isinstance(doc, dict) or doc.get("rig") != self.rig or not isinstance(doc.get("alarms"), list) \
+                        or not isinstance(doc.get("term"), int) or doc["term"] <= 0:
+                    raise DataError(f'expected {{"rig": "{self.rig}", "term": <int>, "alarms": [...]}}')
+                if doc["term"] == self.term:
+                    raise DataError(f"term {doc['term']} is this owner's own")
+                events = []
+                for data in doc["alarms"]:
+                    if self._signer is not None and not signed_by(self._signer, data):
+                        raise DataError(f"an alarm handed over does not verify with the key of rig {self.rig!r}")
+                    events.append(AlarmEvent.from_dict(data))
+                moved = self.adopt(events, doc["term"])
+            except (DataError, ValueError, TypeError, AttributeError) as exc:
+                log.warning("rig %s: alarms handed over on %s refused: %s", self.rig, self.keys.handover, exc)
+                query.reply_err(json.dumps({"error": f"{self.keys.handover}: {exc}"}), encoding=_JSON)
+                return
+            except (SourceError, ConfigError) as exc:
+                query.reply_err(json.dumps({"error": str(exc)}), encoding=_JSON)
+                return
+            epoch = getattr(self._history, "epoch", lambda _rig: "")(self.rig)
+            query.reply(self.keys.handover, json.dumps({"term": self.term, "epoch": epoch, "alarms": moved}),
+                        encoding=_JSON)
+
     # ------------------------------------------------------------------ queryables
 
     def _on_latest(self, query: zenoh.Query, what: str) -> None:
@@ -619,6 +681,38 @@ class ForecastGate:
         if put:
             self._last, self._last_wall = msg, now
         return put
+
+
+#: How an alarm raised by another owner during a split network and journaled again by the owner that stayed
+#: begins its message: the term that raised it, the number it had there (:func:`split_mark`).
+SPLIT_MARK = re.compile(r"^split: raised by term (\d+) as seq (\d+) .*?; renumbered by term (\d+)")
+
+
+def split_mark(term: int, seq: int, wall_ns: int | None, by: int) -> str:
+    """The mark of an alarm handed over after a split network (:data:`SPLIT_MARK` reads it back)."""
+    from datetime import UTC, datetime
+
+    when = "at an unknown time" if wall_ns is None else "at " + datetime.fromtimestamp(
+        wall_ns / 1e9, tz=UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return (f"split: raised by term {term} as seq {seq} {when} while the network was split (the owner that stood "
+            f"down); renumbered by term {by}")
+
+
+def signed_by(signer: Signer, data: Any) -> bool:
+    """Whether an alarm payload (decoded) carries a valid signature of ``signer``'s key."""
+    import base64
+
+    from cryptography.exceptions import InvalidSignature
+
+    from twin.service.signing import SIGNATURE_FIELD, canonical
+
+    if not isinstance(data, dict) or not isinstance(data.get(SIGNATURE_FIELD), str):
+        return False
+    try:
+        signer._key.public_key().verify(base64.b64decode(data[SIGNATURE_FIELD], validate=True), canonical(data))
+    except (InvalidSignature, ValueError, TypeError):
+        return False
+    return True
 
 
 def _ranges(numbers: list[int]) -> str:

@@ -14,7 +14,10 @@ next, never publishing one twice); a live input from now. Its status says so for
 (``took over from <id>``, counters ``took_over_ms``: from the last owner's token gone to the rig running,
 ``unwatched_ms``: record time no service watched, live inputs only) and the console logs it. Each service
 appends to ``<journal_dir>/<rig>.owners.jsonl`` when it starts and stops running a rig (:meth:`FailoverService._record`):
-the files of the services sharing a rig say together who watched it when.
+the files of the services sharing a rig say together who watched it when. An owner that stands down because
+another one ran the rig at the same time (a split network joined again) hands the alarms of its term over to
+that owner and takes its numbering before it stands by (:mod:`twin.service.handover`; ``handed_over`` in its
+owners file).
 """
 
 from __future__ import annotations
@@ -225,11 +228,34 @@ class FailoverService:
                      message=summary.message or None)
         if slot.standing_down and not self.stop.is_set() and summary.state == "stopped":
             log.info("rig %s: stood down; standing by", name)
+            self._hand_over(slot)
             self._stand_by(slot)
             return
         self._done(slot, summary)
         if summary.state == "failed":
             self.stop.set()  # as a service of its own: the others stop, the process exits non-zero
+
+    def _hand_over(self, slot: Slot) -> None:
+        """Stood down (a split network joined again): the alarms raised in this service's term go to the owner
+        that stays, and the journal takes its numbering (:mod:`twin.service.handover`)."""
+        from twin.service.checkpoints import commission_path, journal_path
+        from twin.service.fleet import _binding
+        from twin.service.handover import hand_over
+        from twin.service.journal import AlarmJournal
+        from twin.service.signing import load_signer
+
+        rig = slot.rig
+        try:
+            signer = load_signer(rig.signing_key, rig.name) if rig.signing_key else None
+            with AlarmJournal(journal_path(self.cfg, rig.name), witnesses=[commission_path(self.cfg, rig.name)],
+                              bind=_binding(rig)) as journal:
+                done = hand_over(self.session, journal, rig.name, journal.term(rig.name), signer)
+        except TwinError as exc:
+            log.warning("rig %s: the alarms of its term were not handed over: %s", rig.name, exc)
+            return
+        if done.raised:
+            self._record(rig.name, "handed_over", message=done.note, raised=done.raised, adopted=done.adopted,
+                         replaced=done.replaced)
 
     def _record(self, rig: str, event: str, **info) -> None:
         """Who watched the rig when: a line appended to ``<journal_dir>/<rig>.owners.jsonl`` when this service

@@ -356,6 +356,14 @@ class AlarmJournal:
             self.store.adopt_epoch(rig, epoch)
             return True
 
+    def supersede(self, rig: str, since_seq: int, events: list[AlarmEvent]) -> int:
+        """Take another journal's numbering of ``rig`` from ``since_seq`` on (:meth:`twin.service.store.Store.supersede`:
+        the alarms replaced are kept in the notes, kind ``superseded``); refused while alarms are pending."""
+        with self._lock:
+            if any(p.rig == rig for p in self._pending):
+                raise SourceError(f"{self.path}: alarms of rig {rig} are not journaled yet ({self.write_error})")
+            return self.store.supersede(rig, since_seq, [dataclasses.replace(e, signature="") for e in events])
+
     def _last_seq_locked(self, rig: str) -> int:
         mine = [p.seq for p in self._pending if p.rig == rig]
         return max(mine) if mine else self.store.last_seq(rig)

@@ -467,6 +467,59 @@ class Store:
                 raise self._error(exc, "cannot write to") from exc
         return n
 
+    def supersede(self, rig: str, since_seq: int, events: list[AlarmEvent], kind: str = "superseded") -> int:
+        """Replace ``rig``'s alarms from ``since_seq`` on by ``events`` (another journal's numbers ``since_seq``,
+        ``since_seq + 1``, ... without a gap, at least as many as are replaced), in one transaction; each alarm
+        replaced is kept whole in the notes (``kind``, its JSON payload). An owner that stood down after a split
+        network takes the numbering of the owner that stayed this way, once that owner holds its alarms
+        (:mod:`twin.service.handover`). Returns how many alarms were replaced.
+
+        :raises DataError: ``events`` are not numbered ``since_seq, since_seq + 1, ...``, are another rig's, end
+            before this journal's alarms, or carry another epoch than the alarms kept before ``since_seq``.
+        :raises SourceError: the write failed (naming the file); nothing changed.
+        """
+        events = sorted(events, key=lambda e: e.seq)
+        if [e.seq for e in events] != list(range(since_seq, since_seq + len(events))) or \
+                any(e.rig != rig for e in events):
+            raise DataError(f"{self.path}: the alarms to number rig {rig!r} from seq {since_seq} are not that rig's "
+                            f"{since_seq}, {since_seq + 1}, ... without a gap")
+        with self._lock:
+            db = self._conn()
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    last = self._last_seq(db, rig)
+                    if events and events[-1].seq < last:
+                        raise DataError(f"{self.path}: rig {rig!r}'s alarms end at seq {last}, the numbering given "
+                                        f"ends at {events[-1].seq}")
+                    epoch = self._read_epoch(db, rig)
+                    theirs = {e.epoch for e in events if e.epoch}
+                    if len(theirs) > 1 or (theirs and since_seq > 1 and epoch and theirs != {epoch}):
+                        raise DataError(f"{self.path}: the alarms to number rig {rig!r} from seq {since_seq} are of "
+                                        f"epoch(s) {', '.join(sorted(theirs))}, the journal's is {epoch}")
+                    old = db.execute("SELECT seq, payload FROM alarms WHERE rig=? AND seq>=? ORDER BY seq",
+                                     (rig, since_seq)).fetchall()
+                    now = time.time_ns()
+                    db.executemany("INSERT INTO notes VALUES (?, ?, ?, ?)", [(rig, now, kind, p) for _, p in old])
+                    db.execute("DELETE FROM alarms WHERE rig=? AND seq>=?", (rig, since_seq))
+                    for ev in events:
+                        payload = event_to_json(ev)
+                        db.execute("INSERT INTO alarms VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                                   (ev.rig, ev.seq, ev.parameter, ev.level, ev.kind, ev.t_ns, payload, _crc(payload)))
+                    if theirs and (theirs != {epoch}):
+                        db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"epoch:{rig}", theirs.pop()))
+                        self._epochs.pop(rig, None)
+                    self._mark(db, {rig: events[-1].seq} if events else {}, len(events) - len(old))
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
+                    raise
+                self._fold()
+            except sqlite3.Error as exc:
+                raise self._error(exc, "cannot write to") from exc
+        return len(old)
+
     @staticmethod
     def _mark(db: sqlite3.Connection, lasts: Mapping[str, int], added: int) -> None:
         """Raise the high-water marks (inside the caller's transaction)."""

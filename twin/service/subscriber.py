@@ -19,7 +19,7 @@ import zenoh
 from fpdd.zenohconf import zenoh_text
 from fpdd.errors import DataError
 from twin.online.events import AlarmEvent, StatusEvent
-from twin.service.bus import SPLIT_S, RigKeys, _Declarations, _open_error, _ranges
+from twin.service.bus import SPLIT_MARK, SPLIT_S, RigKeys, _Declarations, _open_error, _ranges
 from twin.service.signing import FORGED, STATUS_DOMAIN, UNVERIFIED, VERIFIED, TrustStore, Verdict
 
 log = logging.getLogger("twin.service.bus")
@@ -124,7 +124,7 @@ class AlarmSubscriber(_Declarations):
         """Per delivered ``(rig, seq)``: ``verified`` or ``unverified``."""
         self.reports: list[str] = []
         """Every report line (``forged: ...``, ``conflict: ...``, ``unverified: ...``, ``replayed: ...``,
-        ``epoch: ...``), in order."""
+        ``epoch: ...``, ``split: ...``, ``superseded: ...``), in order."""
         self.epochs: dict[str, str] = {}
         """Per rig: the epoch its alarms are delivered in (see the class docstring)."""
         self.replayed = 0
@@ -132,6 +132,13 @@ class AlarmSubscriber(_Declarations):
         self._live: set[tuple[str, int]] = set()
         self.splits = 0
         """Times two ownership terms of one rig were seen publishing at once (a split network), each reported."""
+        self.superseded = 0
+        """Alarms delivered that an owner which stood down after a split network handed over (:mod:`twin.service.handover`):
+        each reported in one line (``superseded: ...``) with the number it had on the losing side; when this
+        subscriber had delivered the losing side's alarm under that number, the owner's alarm of the number is
+        delivered from the history (:attr:`recovered` counts it; it is the one :meth:`last_seq` and a later
+        duplicate are judged by from then on)."""
+        self._refetch: set[tuple[str, int]] = set()
         self._terms: dict[str, dict[int, tuple[float, float]]] = {}  # rig -> term -> (first, last seen)
         self.forged = 0
         """Alarms (live, or history replies the first time they are seen) that did not verify with their rig's key."""
@@ -171,6 +178,7 @@ class AlarmSubscriber(_Declarations):
             self._ask_status(rig)  # the owners' announced epochs first: a replayed history reply is told by them
             for event, status in sorted(self._query(rig, since_seq, since_t_ns), key=lambda p: (p[0].rig, p[0].seq)):
                 self._accept(event, status)
+            self._redeliver()
 
     # ------------------------------------------------------------------ life cycle
 
@@ -320,6 +328,16 @@ class AlarmSubscriber(_Declarations):
                 del self._delivered[key]
                 self.verification.pop(key, None)
                 self._live.discard(key)
+        mark = SPLIT_MARK.match(event.message)
+        if mark is not None:  # handed over by an owner that stood down after a split network
+            term, old, by = (int(g) for g in mark.groups())
+            self.superseded += 1
+            self._report("superseded", f"rig {event.rig} seq {old} of term {term} was the losing side's of a split "
+                         f"network (two owners at once): that alarm is seq {event.seq} now, in term {by}'s "
+                         "numbering", once=True)
+            had = self._delivered.get((event.rig, old))
+            if had is not None and had.term == term and old != event.seq and not SPLIT_MARK.match(had.message):
+                self._refetch.add((event.rig, old))  # the owner's alarm of that number: delivered from its history
         self._delivered[(event.rig, event.seq)] = event
         self.verification[(event.rig, event.seq)] = status
         if event.epoch and event.rig not in self.epochs:
@@ -659,7 +677,21 @@ class AlarmSubscriber(_Declarations):
             except queue.Empty:
                 raise TimeoutError(f"no alarm on {self.keys.alarm} within {timeout} s") from None
             self._process(kind, value)
+            self._redeliver()
         return self._ready.popleft()
+
+    def _redeliver(self) -> None:
+        """Deliver from the history the owner's alarm of each number whose losing-side alarm (a split network)
+        was delivered here (see :attr:`superseded`)."""
+        while self._refetch:
+            rig, seq = min(self._refetch)
+            self._refetch.discard((rig, seq))
+            had = self._delivered.get((rig, seq))
+            for event, status in self._query(rig, seq, None):
+                if event.rig == rig and event.seq == seq and had is not None and \
+                        replace(event, signature="") != replace(had, signature=""):
+                    self.recovered += 1
+                    self._hand_over(event, status)
 
     def events(self, timeout: float | None = None) -> Iterator[AlarmEvent]:
         """Iterate over alarms; stops when none arrives within ``timeout`` seconds."""
