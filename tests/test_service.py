@@ -130,6 +130,14 @@ class StatusWatch:
         self.sub.undeclare()
 
 
+def _latest_status(session, rig):
+    """The state in the rig's latest status, asked of its latest-value queryable (``None``: no answer)."""
+    for reply in session.get(f"fpdd/{rig}/status", timeout=5.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_string())["state"]
+    return None
+
+
 IDLE = {"name": "idle", "source": "zenoh://fpdd/idle/samples"}  # a live rig nobody feeds: keeps the service up
 
 
@@ -156,8 +164,24 @@ def test_a_restart_resumes_instead_of_replaying_and_a_late_subscriber_gets_every
             assert "no input from zenoh://fpdd/idle/samples" in stale.message
             with AlarmSubscriber(session, rig="rig-a") as sub:
                 got = [sub.recv(timeout=10.0) for _ in range(n1)]
-                with pytest.raises(TimeoutError):
-                    sub.recv(timeout=0.3)
+                # Nothing else, whatever the machine's speed. The service is no object to publish a marker
+                # through; instead: (1) its latest status of rig-a says "finished": the rig's runner has ended,
+                # and every alarm it put came before that reply on the same link; (2) a payload put after it
+                # from this session on the rig's alarm key is handled (rejected: not an alarm) after anything
+                # the subscriber had queued, and nothing is delivered until it is.
+                deadline = time.monotonic() + 30.0
+                while (state := _latest_status(session, "rig-a")) != "finished":
+                    assert time.monotonic() < deadline, f"rig-a not finished within 30 s (state {state})"
+                    time.sleep(0.1)
+                session.put("fpdd/rig-a/alarm", "end of test")
+                late = []
+                while sub.rejected == 0:
+                    assert time.monotonic() < deadline, "the test's own payload was not handled within 30 s"
+                    try:
+                        late.append(sub.recv(timeout=0.1))
+                    except TimeoutError:
+                        pass
+                assert late == [] and sub.rejected == 1
             assert th.is_alive(), "a live rig keeps the service running until it is told to stop"
         finally:
             watch.close()

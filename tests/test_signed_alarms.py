@@ -217,8 +217,10 @@ def test_forged_alarm_with_the_next_seq_is_reported_and_all_real_alarms_arrive(
         assert got == []  # nothing forged was delivered, and no number moved
         real += [twin.publish_alarm(alarm("r1", i)) for i in (2, 3, 4, 5)]
         got = [first, *(sub.recv(timeout=WAIT_S) for _ in range(4))]
-        with pytest.raises(TimeoutError):
-            sub.recv(timeout=0.3)  # nothing else: no forged alarm, no duplicate
+        # Nothing else (no forged alarm, no duplicate), whatever the machine's speed: the forger's puts were all
+        # handled above, and a later real alarm is the next one delivered.
+        marker = twin.publish_alarm(alarm("r1", 6))
+        assert unsigned([sub.recv(timeout=WAIT_S)]) == [marker]
         forger.undeclare()
     assert unsigned(got) == real
     assert all(sub.verification[("r1", e.seq)] == VERIFIED for e in got)
@@ -312,15 +314,22 @@ def test_a_second_history_queryable_is_a_conflict_and_only_real_alarms_are_deliv
                 assert time.monotonic() < deadline
             with AlarmSubscriber(hub, "r1", trust=TrustStore(keys)) as sub:
                 got = [sub.recv(timeout=WAIT_S) for _ in range(5)]
-                with pytest.raises(TimeoutError):
-                    sub.recv(timeout=0.3)  # no 6..8
+                # No 6..8 of the forger's, whatever the machine's speed: the twin's real 6, put live after
+                # the history was judged, is the next alarm delivered.
+                assert twin.wait_for_alarm_subscribers(WAIT_S)
+                marker = twin.publish_alarm(alarm("r1", 6))
+                assert unsigned([sub.recv(timeout=WAIT_S)]) == [marker]
     assert unsigned(got) == real
-    assert {sub.verification[("r1", e.seq)] for e in got} == {VERIFIED}
-    assert sub.forged == 8 and sub.conflicts == 1
+    assert {sub.verification[("r1", e.seq)] for e in [*got, marker]} == {VERIFIED}
     forged = [r for r in sub.reports if r.startswith("forged: ")]
     conflict = [r for r in sub.reports if r.startswith("conflict: ")]
+    assert sub.forged == 8 and sub.conflicts == len(conflict)
     assert len(forged) == 1 and forged[0].startswith("forged: rig r1 seq 1..8 in replies of queryable ")
-    assert len(conflict) == 1 and "answered differently by 2 repliers" in conflict[0] and "seq 1..5" in conflict[0]
+    assert "answered differently by 2 repliers" in conflict[0] and "seq 1..5)" in conflict[0]
+    # Reported once. When the twin's liveliness is handled after the real 6 is journaled, the history is asked
+    # from 6 and the two repliers disagree on 6 as well: that is the one other conflict there may be.
+    assert len(conflict) == 1 or (len(conflict) == 2 and "answered differently by 2 repliers" in conflict[1]
+                                  and "seq 6)" in conflict[1])
 
 
 def test_without_keys_disagreeing_queryables_are_never_merged(
@@ -334,8 +343,13 @@ def test_without_keys_disagreeing_queryables_are_never_merged(
             while not has_two_queryables(hub):
                 assert time.monotonic() < deadline
             with AlarmSubscriber(hub, "r1") as sub:
-                with pytest.raises(TimeoutError):
-                    sub.recv(timeout=0.3)  # neither version of 1..5, none of the forger's 6..8
+                # Neither version of 1..5, none of the forger's 6..8, whatever the machine's speed: the twin's
+                # real 6, put live after the history was judged, is the first alarm delivered (unverifiable
+                # but maybe real, so delivered, with 1..5 recorded missed).
+                assert twin.wait_for_alarm_subscribers(WAIT_S)
+                marker = twin.publish_alarm(alarm("r1", 6))
+                assert sub.recv(timeout=WAIT_S) == marker
+    assert sub.missed == [("r1", 1, 5)]
     assert sub.conflicts == 1 and sub.forged == 0
     assert sub.reports[0].startswith("conflict: rig r1: the history on fpdd/r1/alarm/history is answered "
                                      "differently by 2 repliers")
