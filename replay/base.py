@@ -72,6 +72,18 @@ class Samples:
     def slice(self, start: int, stop: int) -> Samples:
         return Samples(self.t_ns[start:stop].copy(), {k: v[start:stop].copy() for k, v in self.signals.items()})
 
+    def __repr__(self) -> str:
+        """One line: the number of samples, their span and step, the signals with their SI units."""
+        n = len(self)
+        if n < 2:
+            return f"Samples({n} sample{'' if n == 1 else 's'}: {signal_list(self.names)})"
+        span_s = float(self.t_ns[-1] - self.t_ns[0]) * 1e-9
+        steps = np.diff(self.t_ns)
+        step = float(np.median(steps)) * 1e-9
+        uniform = bool(steps.max() - steps.min() <= 1)  # a step of 1/3 ms rounds to whole ns
+        return (f"Samples({n} samples over {span_s:.6g} s, dt {'' if uniform else '~'}{step * 1e3:.4g} ms: "
+                f"{signal_list(self.names)})")
+
     @staticmethod
     def empty(names: tuple[str, ...] | list[str] = ()) -> Samples:
         """A block of no samples carrying the given signal names."""
@@ -87,6 +99,21 @@ class Samples:
             np.concatenate([b.t_ns for b in blocks]),
             {k: np.concatenate([b.signals[k] for b in blocks]) for k in names},
         )
+
+
+def signal_list(names: tuple[str, ...] | list[str], width: int = 100) -> str:
+    """``x [m], pA [Pa], ... 3 more``: signal names with their SI units where known
+    (:data:`fpdd.units.SIGNAL_UNITS`), as many as fit in about ``width`` characters, for a one-line repr."""
+    from fpdd.units import SIGNAL_UNITS
+
+    shown: list[str] = []
+    for n in names:
+        item = f"{n} [{SIGNAL_UNITS[n]}]" if n in SIGNAL_UNITS else n
+        if shown and len(", ".join([*shown, item])) > width:
+            break
+        shown.append(item)
+    more = len(names) - len(shown)
+    return ", ".join(shown) + (f", ... {more} more" if more > 0 else "") if shown else "no signals"
 
 
 # --- what a read skipped -----------------------------------------------------------------
@@ -169,6 +196,11 @@ class ReadReport:
         if self.truncated:
             parts.append("file truncated or corrupt: readable part kept")
         return "; ".join(parts)
+
+    def __repr__(self) -> str:
+        """One line: the counts of :meth:`summary` and how many problems are kept (:attr:`problems` lists them)."""
+        problems = f"; {len(self.problems)} problem(s) kept" if self.problems else ""
+        return f"ReadReport({self.summary()}{problems})"
 
     def to_dict(self) -> dict:
         return {

@@ -80,6 +80,14 @@ class Record:
     def duration_s(self) -> float:
         return len(self) * self.dt
 
+    def __repr__(self) -> str:
+        """One line: the name, the number of samples, duration and step, the signals with their SI units."""
+        from replay.base import signal_list
+
+        name = self.name if len(self.name) <= 40 else "..." + self.name[-37:]
+        return (f"Record({name!r}, {len(self)} samples, {self.duration_s:.6g} s at dt {self.dt * 1e3:.4g} ms: "
+                f"{signal_list(tuple(self.signals))})")
+
     def require(self, names, what: str) -> None:
         missing = [n for n in names if n not in self.signals]
         if missing:
