@@ -1,6 +1,6 @@
 """MkDocs hook: the rigs.toml page lists every key the configuration reader knows.
 
-On the page that holds ``<!-- rigs-toml-keys -->``, every key of ``twin.service.config`` (``TOP_KEYS``,
+On the page that holds ``<!-- rigs-toml-keys -->``, every key of ``twin.service.config_parse`` (``TOP_KEYS``,
 ``ZENOH_KEYS``, ``SERVICE_KEYS``, ``RIG_KEYS``, ``BASELINE_KEYS``, ``NOISE_KEYS``) and of
 ``twin.service.ownership.FAILOVER_KEYS`` must appear in a table row as ``| `table.key` |``: a key the reader
 knows and the page does not list is a warning, which fails ``mkdocs build --strict``.
@@ -15,12 +15,12 @@ log = logging.getLogger("mkdocs.hooks.rigs_toml")
 
 
 def known_keys() -> list[str]:
-    from twin.service import config
+    from twin.service import config_parse as keys
     from twin.service.ownership import FAILOVER_KEYS
 
-    tables = {"zenoh": config.ZENOH_KEYS, "service": config.SERVICE_KEYS, "failover": FAILOVER_KEYS,
-              "rig": config.RIG_KEYS, "baseline": config.BASELINE_KEYS, "noise": config.NOISE_KEYS}
-    return [f"{table}.{key}" for table, keys in tables.items() for key in keys]
+    tables = {"zenoh": keys.ZENOH_KEYS, "service": keys.SERVICE_KEYS, "failover": FAILOVER_KEYS,
+              "rig": keys.RIG_KEYS, "baseline": keys.BASELINE_KEYS, "noise": keys.NOISE_KEYS}
+    return [f"{table}.{key}" for table, names in tables.items() for key in names]
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:

@@ -116,7 +116,7 @@ def timing_of(args, default=None):
     if controller is None and intersample is None and default is not None:
         return default
     timing = Timing.parse(controller, intersample)
-    from twin.service.config import MAX_CONTROLLER_HZ
+    from twin.service.config_parse import MAX_CONTROLLER_HZ
 
     if timing.rate_hz is not None and timing.rate_hz > MAX_CONTROLLER_HZ:
         from fpdd.errors import ParameterError
