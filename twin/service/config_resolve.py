@@ -115,9 +115,10 @@ def resolve_rig(rig: ParsedRig) -> RigConfig:
     dbc = _beside(rig.path, rig.dbc)
     if dbc is not None and not os.path.isfile(dbc):
         raise ConfigError(f"{rig.where}.dbc: {dbc} is not a file (a CAN database, .dbc)")
-    return RigConfig(rig.name, rig.model, rig.source, dbc, rig.speed, track, params, baseline, noise, rig.timing,
-                     commission, rig.commission_s, tuple(rig.baseline), signing_key=rig.signing_key, map=rig.map,
-                     forecast_horizon_s=rig.forecast_horizon_s)
+    return RigConfig(name=rig.name, model=rig.model, source=rig.source, dbc=dbc, speed=rig.speed, track=track,
+                     params=params, baseline=baseline, noise=noise, timing=rig.timing, commission=commission,
+                     commission_s=rig.commission_s, baseline_set=tuple(rig.baseline), signing_key=rig.signing_key,
+                     map=rig.map, forecast_horizon_s=rig.forecast_horizon_s)
 
 
 # --------------------------------------------------------------------------- the model's parts
