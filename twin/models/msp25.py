@@ -119,7 +119,7 @@ class MSP25(Model):
         rest[2] = rest[3] = pmid
         exc = np.zeros((3, NS))
         exc[0, 5] = 1.0             # rod_motion: |v|
-        # valve_command: the spool's speed as a command rate [V/s], |vs| / (Ke Ksp): the valve's damping and
+        # valve_motion: the spool's speed as a command rate [V/s], |vs| / (Ke Ksp): the valve's damping and
         # natural frequency are seen when the spool moves, not when the command jitters faster than the spool
         # follows (a PID's derivative of the sensor noise: volts per second of rate that move no spool)
         exc[1, 1] = 1.0 / (ps["Ke"] * ps["Ksp"])
