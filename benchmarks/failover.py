@@ -321,11 +321,15 @@ def run(kills: int = 10, seed: int = 1000, quick: bool = False, freeze: bool = F
                         est.first_after(time.monotonic())
                 finally:
                     est.close()
-            for p in procs.values():
-                p.finish(timeout=seconds + WAIT_S)
+            exits = {n: p.finish(timeout=seconds + WAIT_S) for n, p in procs.items()}
             time.sleep(0.5)
             sub.kill(signal.SIGTERM)
             counts = tally(reference, received(sub), [journal(tmp, n) for n in names])
+            # every service, the ones that took the rig over included, ends its run with exit code 0
+            counts["unclean_exits"] = sum(1 for rc in exits.values() if rc != 0)
+            if counts["unclean_exits"]:
+                print(f"failover: exit codes {exits}:\n  " + "\n  ".join(
+                    f"{n}: " + " | ".join(procs[n].seen[-4:]) for n, rc in exits.items() if rc != 0), file=sys.stderr)
         except BaseException:
             for p in Proc.started:  # what each process said, for the failure's cause
                 print(f"failover: {' '.join(p.args[:3])} ...:\n  " + "\n  ".join(p.drain()[-8:]), file=sys.stderr)
@@ -355,8 +359,9 @@ def main(argv=None) -> int:
               f"takeover median {out['takeover_median_s']:.2f} s, worst {out['takeover_worst_s']:.2f} s (kill to the "
               f"rig's next estimate); no estimate for median {out['estimate_gap_median_s']:.2f} s, worst "
               f"{out['estimate_gap_worst_s']:.2f} s; {out['alarms']} alarms: {out['lost']} lost, "
-              f"{out['duplicated']} duplicated")
-    return 0 if out["lost"] == 0 and out["duplicated"] == 0 and out["unexpected"] == 0 else 1
+              f"{out['duplicated']} duplicated; {out['unclean_exits']} service(s) exited with a code other than 0")
+    return 0 if out["lost"] == 0 and out["duplicated"] == 0 and out["unexpected"] == 0 and \
+        out["unclean_exits"] == 0 else 1
 
 
 if __name__ == "__main__":

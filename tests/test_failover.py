@@ -156,6 +156,8 @@ def test_live_input_taken_over_from_now_unwatched_time_within_the_takeover_and_a
             est.close()
     back.kill(signal.SIGTERM)
     b.kill(signal.SIGTERM)
+    # both had taken the rig over; told to stop, each closes its session and exits cleanly
+    assert (back.proc.returncode, b.proc.returncode) == (0, 0), "\n".join(back.drain()[-10:] + b.drain()[-10:])
     ja, jb = journal(tmp_path, "svc-a"), journal(tmp_path, "svc-b")
     seqs = {}
     for x in ja + jb:  # one alarm per number on every service, numbers 1..n
@@ -318,3 +320,36 @@ def test_a_bad_failover_table_is_refused_with_one_line_naming_the_key(table, mes
     with pytest.raises(ConfigError) as err:
         parse_config({"failover": table, "rig": [{"name": "r", "source": "r.mcap"}]}, "rigs.toml")
     assert str(err.value).startswith(f"rigs.toml: {message}"), str(err.value)
+
+
+@pytest.mark.slow
+def test_a_replica_closed_while_the_owner_does_not_answer_leaves_no_thread_inside_zenoh(hub, endpoint, tmp_path,
+                                                                                        monkeypatch):
+    """A standby takes a rig over while its replica still queries the owner that just died (each history query
+    waits its timeout): closing the replica stops its thread, so no thread is inside a Zenoh call when the
+    service closes its session and exits (one was: 'FATAL: exception not rethrown', SIGABRT at the exit)."""
+    from event_helpers import alarm
+    from twin.online.events import event_to_json
+    from twin.service import replication
+    from twin.service.config import parse_config
+
+    monkeypatch.setattr(replication, "FETCH_S", 0.4)
+    cfg = parse_config({"service": {"journal_dir": str(tmp_path / "svc-b")},
+                        "failover": {"service_id": "svc-b", "priority": 1},
+                        "rig": [{"name": "r1", "source": str(tmp_path / "r1.mcap")}]}, "rigs.toml")
+    held: list = []  # the owner's history: its queries are kept, never answered (a host that hangs)
+    history = hub.declare_queryable("fpdd/r1/alarm/history", held.append)
+    try:
+        with connected(endpoint) as session:
+            replica = replication.Replica(session, cfg, cfg.rigs[0])
+            for i in range(10):  # alarms after a gap: each makes the replica ask the history first (0.4 s each)
+                hub.put("fpdd/r1/alarm", event_to_json(alarm("r1", i, seq=5 + i)))
+            time.sleep(0.5)
+            started = time.monotonic()
+            replica.close()
+            assert not replica._thread.is_alive(), f"the replica's thread still runs {time.monotonic() - started:.1f} s " \
+                "after close()"
+            assert replica.journal.closed
+    finally:
+        history.undeclare()
+        held.clear()

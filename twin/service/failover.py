@@ -75,6 +75,7 @@ class FailoverService:
         self.slots = {r.name: Slot(r) for r in cfg.rigs}
         self._wake = threading.Event()
         self.summaries: dict[str, RigSummary] = {}
+        self._replicas: list[Replica] = []  # every one made: each closed (its thread stopped) before run returns
 
     def run(self) -> dict[str, RigSummary]:
         own = Ownership(self.session, list(self.slots), self.me, self._wake.set)
@@ -101,6 +102,8 @@ class FailoverService:
                 self._end(slot)
             own.close()
             warm.join()
+            for replica in self._replicas:  # no replica thread left in a Zenoh call when the session closes: a
+                replica.close()  # thread inside Zenoh at the interpreter's exit aborts the process (SIGABRT)
         return self.summaries
 
     def _warm_up(self) -> None:
@@ -117,6 +120,7 @@ class FailoverService:
 
     def _stand_by(self, slot: Slot) -> None:
         slot.replica = Replica(self.session, self.cfg, slot.rig)
+        self._replicas.append(slot.replica)
         slot.state = "standby"
         slot.standing_down = False
         self.ownership.hold(slot.rig.name, "standby", True)

@@ -185,6 +185,8 @@ class Replica:
     def _loop(self) -> None:
         while (item := self._work.get()) is not None:
             kind, payload = item
+            if self.journal.closed:  # closed while this thread was in a query: the rest is dropped, not queried
+                continue
             try:
                 if kind == "alarm":
                     self._alarm(self._event(payload))
@@ -254,7 +256,9 @@ class Replica:
     # ------------------------------------------------------------------ life
 
     def close(self) -> None:
-        """Stop following the bus (what was queued is journaled first) and close the journal."""
+        """Stop following the bus (what was queued is journaled first), close the journal and stop the thread
+        (idempotent). The thread never outlives this call by more than one query of the bus: a thread inside a
+        Zenoh call when the session closes and the interpreter exits aborts the process (SIGABRT)."""
         for s in self._subs:
             try:
                 s.undeclare()
@@ -270,3 +274,10 @@ class Replica:
             PutMark(put_mark_path(self.journal.path), self.rig).done(self.journal.last_seq(self.rig),
                                                                      self.journal.epoch(self.rig))
         self.journal.close()
+        if self._thread.is_alive():  # still in a query of the bus: with the journal closed the rest fails at once;
+            # never leave the thread inside a Zenoh call into the session's close and the interpreter's exit
+            self._thread.join(timeout=FETCH_S + 1.0)
+            if self._thread.is_alive():
+                log.warning("rig %s: replica: its thread did not stop within %.0f s", self.rig, 3 * FETCH_S + 2)
+            else:
+                log.debug("rig %s: replica: its thread stopped once the journal was closed", self.rig)
