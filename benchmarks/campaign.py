@@ -98,7 +98,7 @@ def parts_timeline(scn: dict[str, Any]) -> list[tuple[str, float, float]]:
     return out
 
 
-def run_draw(seed: int, minutes: float) -> dict[str, Any]:
+def run_draw(seed: int, minutes: float, confirm: bool = False) -> dict[str, Any]:
     """One draw: simulate (or read from the cache), commission if its start says so, track; what happened."""
     from fpdd.errors import ConfigError
     from twin.models.base import Timing
@@ -125,7 +125,7 @@ def run_draw(seed: int, minutes: float) -> dict[str, Any]:
     t1 = time.perf_counter()
     with _keeping_statuses() as kept:
         twin = track(_samples(rec), "campaign", params=params, timing=timing, commission=com,
-                     forecast_horizon_s=3600.0)
+                     forecast_horizon_s=3600.0, confirm=True if confirm else None)
     t2 = time.perf_counter()
     t_first = 1_700_000_000_000_000_000
     events = [{"t_s": float(a.t_s), "parameter": a.parameter, "level": a.level, "kind": a.kind}
@@ -460,19 +460,19 @@ def _result(which: str, minutes: float, draws: list[dict[str, Any]], command: st
             "draws": draws, "figures": summarise(draws)}
 
 
-def _one(args: tuple[int, float]) -> dict[str, Any]:
+def _one(args: tuple[int, float, bool]) -> dict[str, Any]:
     """:func:`run_draw`, or the draw with the error that stopped it (an unstable loop the simulator could not
     integrate, a twin that failed): counted apart, never silently dropped."""
     try:
         return run_draw(*args)
     except Exception as exc:  # noqa: BLE001 - reported per draw and counted
-        scn = draw(*args)
+        scn = draw(*args[:2])
         return {"seed": args[0], "kind": scn["kind"], "what": describe(scn), "scenario": scn,
                 "error": f"{type(exc).__name__}: {exc}"[:300]}
 
 
-def _build_one(args: tuple[int, float]) -> int:
-    seed, minutes = args
+def _build_one(args: tuple[int, float, bool]) -> int:
+    seed, minutes, _ = args
     scn = draw(seed, minutes)
     specs = [reference_spec(scn)] + [s for s in (commissioning_spec(scn),) if s is not None]
     reference().batch(specs, workers=1)
@@ -492,6 +492,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", default=",".join(KINDS),
                     help=f"only draws of these kinds, comma-separated (default all: {','.join(KINDS)})")
     ap.add_argument("--build", action="store_true", help="only simulate the draws' records into the cache")
+    ap.add_argument("--confirm", action="store_true",
+                    help="alarms confirmed by window re-fits (twin.online.confirm), not the filter's drift test alone")
     ap.add_argument("--json", action="store_true", help="print everything (draws and figures) as JSON")
     ap.add_argument("--html", metavar="DIR", help="also write DIR/index.html with plots")
     ap.add_argument("--log", metavar="FILE", help="append each draw's result to FILE as it finishes (JSON lines)")
@@ -540,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--first: {a.first} is not a seed of the {a.set} set ({lo}-{hi - 1})", file=sys.stderr)
             return 2
         chosen = seeds(a.set, a.draws, a.minutes, kinds, a.first)
-        jobs = [(s, a.minutes) for s in chosen]
+        jobs = [(s, a.minutes, a.confirm) for s in chosen]
         fn = _build_one if a.build else _one
         draws = []
         t0 = time.time()
@@ -557,6 +559,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"[{i + 1}/{len(jobs)}] seed {r}: record cached ({time.time() - t0:.0f} s)", file=sys.stderr,
                       flush=True)
                 continue
+            r["confirm"] = bool(a.confirm)
             draws.append(r)
             if a.log:
                 with open(a.log, "a", encoding="utf-8") as fh:

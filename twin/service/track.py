@@ -97,7 +97,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
           out_dir: str | None = None, dbc: str | None = None, chunk: int = 10000, progress=None,
           estimate_every: int = 50, noise: dict | None = None, timing=None, commission=None,
           forecast_horizon_s: float | None = None, maintenance=(), model: str | None = None,
-          map=None):  # noqa: A002
+          map=None, confirm=None):  # noqa: A002
     """Run ``source`` through a :class:`RigTwin` (tracker and drift test); returns the twin.
 
     ``source``: a log path (any format :func:`replay.factory.open_source` reads), a
@@ -123,6 +123,8 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``read_report`` (:class:`replay.base.ReadReport`: what its reader lost on the way, also logged as a warning).
     ``map``: a log's columns under other names or units, as ``--map`` (``{"x": "pos_mm:mm", "t": "time:ms"}`` or
     ``["x=pos_mm:mm"]``); default the map the commissioning fit was read with (``twin fit --map ... --save``).
+    ``confirm``: alarms confirmed by window re-fits (:mod:`twin.online.confirm`; ``True`` or its options; default
+    the filter's drift test alone).
     """
     from twin.online.baseline import default_baseline
     from twin.service.live_view.record import TwinRecording
@@ -150,7 +152,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
         rec = TwinRecording(os.path.join(out_dir, f"{rig_name}.twin.mcap"), rig_name, model, parameters=tracked,
                             layout=os.path.join(out_dir, f"{rig_name}.foxglove-layout.json"))
     every = max(1, int(estimate_every))
-    twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every)
+    twin = RigTwin(rig, SequenceNumbers(), rec, estimate_every=every, confirm=confirm)
     if noise or timing is not None or commission is not None:
         # the rig configuration plus what the command line adds
         r = SimpleNamespace(model=model, params=dict(params or {}), track=tracked,
