@@ -6,6 +6,7 @@ option and what was expected; never a traceback, never a silent default.
 
 from __future__ import annotations
 
+import signal
 import socket
 from pathlib import Path
 
@@ -259,7 +260,9 @@ def test_listen_port_in_use(files, capsys) -> None:
         port = taken.getsockname()[1]
         path = files["root"] / "rigs.toml"
         path.write_text(render(GOOD, files, port))
+        handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
         assert cli.main(["serve", "--config", str(path)]) == 2
+        assert {sig: signal.getsignal(sig) for sig in handlers} == handlers  # the caller's, as they were
     line = one_line_error(capsys, "serve")
     assert f"cannot listen on tcp/127.0.0.1:{port}: the address is already in use" in line
 

@@ -11,6 +11,7 @@ import os
 import pty
 import re
 import select
+import signal
 import subprocess
 import sys
 import time
@@ -92,6 +93,9 @@ def test_live_view_in_a_terminal(twin_on_bus):
     pid, fd = pty.fork()
     if pid == 0:  # the child: twin top on the terminal
         os.environ["COLUMNS"], os.environ["LINES"] = "120", "40"
+        # Ctrl-C as a shell gives it to a program in the foreground: a test run started with SIGINT ignored
+        # (in the background, under nohup) would hand that on through exec and twin top would never see it.
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
         os.execv(sys.executable, [*TWIN, "top", "--connect", endpoint, "--wait", "20"])
     screen = ""
 

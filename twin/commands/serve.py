@@ -84,14 +84,15 @@ def _run(args, console) -> int:
             console.line(f"twin serve: {signal.Signals(signum).name} received, stopping (checkpointing every rig)")
         stop.set()
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-
     def show(ev: AlarmEvent) -> None:
         console.line(f"twin serve: {format_alarm(ev, wall_clock=False)}")
 
     session = open_service_session(cfg)
     summaries: dict = {}
     view = None
+    # installed once the session is open, restored in the finally below (a session that cannot open, a port in
+    # use, leaves a caller's handlers as they were)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         if args.foxglove is not None:
             from twin.service.live_view import LiveView
