@@ -190,13 +190,21 @@ def test_a_frozen_owner_is_taken_over_at_its_lease_and_when_it_thaws_the_rule_ke
             est.close()
     assert b.wait_for(TOOK_OVER)[1] == "svc-a"
     assert LEASE_S <= took < LEASE_S + TAKEOVER_S, f"took over {took:.2f} s after the freeze (lease {LEASE_S:g} s)"
-    time.sleep(1.0)
+    raised = int(b.wait_for(ALARM_LINE)[1])  # svc-b raised an alarm svc-a, frozen, has not reached yet
     a.proc.send_signal(signal.SIGCONT)  # back: svc-a ranks first, svc-b stands down
     b.wait_for(re.compile(r"^twin serve: rig rig-f: standing down for svc-a \(it runs the rig too"))
     b.wait_for(re.compile(r"^twin serve: rig rig-f: stood down; standing by"))
     assert a.finish() == 0 and b.finish() == 0
-    assert [key(x) for x in journal(tmp_path, "svc-a")] == [key(x) for x in journal(tmp_path, "svc-b")] == \
-           [key(x) for x in reference]
+    ja, jb = journal(tmp_path, "svc-a"), journal(tmp_path, "svc-b")
+    assert [key(x) for x in ja] == [key(x) for x in jb] == [key(x) for x in reference]
+    # svc-b handed the alarms of its term over: svc-a journaled (marked) those it did not hold yet, and svc-b took
+    # svc-a's numbering; raised again by svc-a from the same data, they were recognised, not journaled twice
+    owners = [json.loads(x) for x in (tmp_path / "svc-b" / f"{RIG}.owners.jsonl").read_text().splitlines()]
+    handed = [o for o in owners if o["event"] == "handed_over"]
+    assert len(handed) == 1 and handed[0]["raised"] >= 1 and handed[0]["replaced"] >= 1, owners
+    marked = [x for x in ja if x.message.startswith("split: raised by term ")]
+    assert len(marked) == handed[0]["adopted"] and (handed[0]["adopted"] == 0 or marked[0].seq >= raised), marked
+    assert [(x.seq, x.message, x.term) for x in ja] == [(x.seq, x.message, x.term) for x in jb]
 
 
 def test_the_lab_configurations_load_and_differ_only_where_a_site_must():

@@ -349,7 +349,7 @@ class TwinPublisher(_Declarations, Publisher):
             )
             if self.term:  # another owner's statuses of this rig: a split network (said in ours)
                 self._keep(session.declare_subscriber(self.keys.status, self._on_rival_status))
-                if journal is not None:  # the alarms an owner that stood down raised meanwhile
+                if self._adopter() is not None:  # the alarms an owner that stood down raised meanwhile
                     self._keep(session.declare_queryable(self.keys.handover, self._on_handover))
             # The token last: a subscriber seeing the twin alive can query its history at once.
             self._keep(session.liveliness().declare_token(self.keys.twin))
@@ -566,7 +566,8 @@ class TwinPublisher(_Declarations, Publisher):
         message (:func:`split_mark`: the term and number it had, when it was raised) and keeps its term and raise
         time. Returns, per alarm in the other owner's order, ``{"seq": its number there, "now": its number here,
         "held": whether this journal held it already}``."""
-        if self._journal is None:
+        journal = self._adopter()
+        if journal is None:
             raise ConfigError(f"rig {self.rig!r}: this publisher has no journal to adopt alarms into")
         out: list[dict[str, Any]] = []
         for ev in sorted(events, key=lambda e: e.seq):
@@ -575,7 +576,7 @@ class TwinPublisher(_Declarations, Publisher):
             marked = replace(ev, seq=0, epoch="", signature="", term=raised_in,
                              message="; ".join(m for m in (split_mark(raised_in, ev.seq, ev.wall_ns, self.term),
                                                            ev.message) if m))
-            recorded = self._journal.record(marked)
+            recorded = journal.record(marked)
             if recorded.new and recorded.durable:
                 self.put_alarm(recorded.event)
             out.append({"seq": ev.seq, "now": recorded.event.seq, "held": not recorded.new})
@@ -584,6 +585,13 @@ class TwinPublisher(_Declarations, Publisher):
                     "under this term's numbers, %d held already", self.rig, len(out), term,
                     ", ".join(adopted) or "none", len(out) - len(adopted))
         return out
+
+    def _adopter(self) -> AlarmJournal | None:
+        """The journal alarms handed over are journaled in: this publisher's, or the history it answers from when
+        that is the rig's journal in this process (a service's rigs in threads, as under ``[failover]``)."""
+        if self._journal is not None:
+            return self._journal
+        return self._history if isinstance(self._history, AlarmJournal) else None
 
     def _on_handover(self, query: zenoh.Query) -> None:
         with query:

@@ -13,8 +13,8 @@ rule ranks after stands down (:mod:`twin.service.failover`) and, before it stand
    in the message ``split: raised by term T as seq N at <time> ...; renumbered by term W``, keeping its term T and
    raise time, and puts it on ``fpdd/<rig>/alarm`` like any alarm: every subscriber, a plain one included,
    receives it under a number of its own;
-3. the service that stood down reads the owner's history from the first number it had given and replaces its
-   own alarms from there by the owner's (:meth:`twin.service.journal.AlarmJournal.supersede`; the replaced ones
+3. the service that stood down reads the owner's history from the first number it had given (from 1 when it
+   numbered in another epoch than the owner's) and replaces its own alarms from there by the owner's (:meth:`twin.service.journal.AlarmJournal.supersede`; the replaced ones
    are kept whole in its journal's notes, kind ``superseded``): its journal then holds the owner's alarm under
    every number, and its replica follows the owner from there.
 
@@ -87,6 +87,8 @@ def hand_over(session: zenoh.Session, journal: AlarmJournal, rig: str, term: int
         log.warning("%s", note)
         return Handover(len(mine), note=note)
     adopted = sum(1 for a in answer["alarms"] if isinstance(a, dict) and not a.get("held"))
+    if answer.get("epoch") and answer["epoch"] != journal.epoch(rig):
+        first = 1  # this journal numbered in another epoch than the owner's: its whole numbering is the owner's
     theirs = _history(session, keys, first, timeout, signer)
     try:
         replaced = journal.supersede(rig, first, theirs)

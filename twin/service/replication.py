@@ -8,8 +8,10 @@ Key space::
 
 A replica message is the checkpoint as :mod:`twin.service.checkpoint_file` writes it (data only: numbers,
 strings, raw little-endian arrays in base64; never executed), with the rig's state (``running``,
-``finished``, ``stopped``, ``failed``), the owner's ``service_id`` and the SHA-256 of its body; a damaged or foreign
-message is refused (logged) and the previous checkpoint kept.
+``finished``, ``stopped``, ``failed``), the owner's ``service_id``, the epoch of the owner's alarm numbering and
+the SHA-256 of its body; a damaged or foreign message is refused (logged) and the previous checkpoint kept. A
+standby keeps the checkpoint in the owner's epoch (its journal takes it), so a takeover numbers on in the
+owner's numbering even when the checkpoint came before the owner's first alarm.
 
 A standby journals the owner's alarms (``fpdd/<rig>/alarm``) under the owner's numbers; a gap is filled from
 the owner's ``fpdd/<rig>/alarm/history`` before anything after it, so its journal always holds 1..n without a
@@ -58,6 +60,8 @@ def encode_replica(cp: Checkpoint, rig_state: str, service_id: str) -> str:
     body = {"rig": cp.rig, "t_ns": cp.t_ns, "samples": cp.samples, "fingerprint": cp.fingerprint,
             "saved_at": cp.saved_at, "alarm_seq": cp.alarm_seq, "rig_state": rig_state, "service_id": service_id,
             "state": encode_state(cp.state, f"{cp.rig}.state")}
+    if cp.epoch:  # the owner's numbering the checkpoint counts alarm_seq in (absent from earlier owners' messages)
+        body["epoch"] = cp.epoch
     data = _canonical(body)
     return json.dumps({"format": REPLICA_FORMAT, "version": REPLICA_VERSION,
                        "sha256": hashlib.sha256(data).hexdigest(), "body": body}, separators=(",", ":"))
@@ -80,8 +84,11 @@ def decode_replica(payload: str, rig: str) -> tuple[Checkpoint, str, str]:
         state = decode_state(body["state"], f"{rig}.state")
         if not isinstance(state, dict):
             raise ValueError("state is not a mapping")
+        epoch = str(body.get("epoch", ""))
+        if epoch and not all(c in "0123456789abcdef" for c in epoch):
+            raise ValueError(f"epoch {epoch!r}")
         cp = Checkpoint(rig, int(body["t_ns"]), int(body["samples"]), str(body["fingerprint"]), state,
-                        float(body["saved_at"]), int(body["alarm_seq"]))
+                        float(body["saved_at"]), int(body["alarm_seq"]), epoch=epoch)
         return cp, str(body["rig_state"]), str(body["service_id"])
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{replica_key(rig)}: not a valid replica checkpoint ({type(exc).__name__}: {exc})") \
@@ -246,6 +253,9 @@ class Replica:
             log.warning("rig %s: replica: checkpoint at t_ns=%d not kept: it counts %d alarm(s), %d journaled here",
                         self.rig, cp.t_ns, cp.alarm_seq, have)
             return
+        if cp.epoch and cp.epoch != self.journal.epoch(self.rig):  # the owner's numbering, whatever this journal
+            # made before the owner's first alarm came (else a takeover from this checkpoint would number in it)
+            self.journal.adopt_epoch(self.rig, cp.epoch, replica=True)
         self.checkpoint = self.journal.save_checkpoint(cp)
         self.owner = owner
         if self.watched_until_ns is None or cp.t_ns > self.watched_until_ns:
