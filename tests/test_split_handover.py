@@ -126,7 +126,10 @@ def test_the_owner_that_stands_down_hands_its_alarms_over_and_no_number_holds_tw
     assert [line for line in err.splitlines() if line.startswith("superseded: ")] == said
 
 
-def test_nothing_is_handed_over_without_an_owner_and_a_forged_handover_is_refused(hub, endpoint, tmp_path: Path) -> None:
+def test_nothing_is_handed_over_without_an_owner_and_a_bad_or_forged_handover_is_refused(
+        hub, endpoint, tmp_path: Path) -> None:
+    from twin.service.signing import init_keys, load_signer
+
     stays, leaves = new_term(), new_term() + 1000
     with AlarmJournal(tmp_path / "b.db") as jb:
         jb.begin_term("r1", leaves)
@@ -135,11 +138,25 @@ def test_nothing_is_handed_over_without_an_owner_and_a_forged_handover_is_refuse
         assert (done.raised, done.adopted, done.replaced) == (1, 0, 0)
         assert "not handed over (no owner answered" in done.note and "\n" not in done.note
         assert [e.seq for e in jb.read(rig="r1")] == [1] and jb.notes("r1") == []
+    signer = load_signer(init_keys("r1", tmp_path / "keys")[0], "r1")
+    other_key = load_signer(init_keys("r1", tmp_path / "other")[0], "r1")
     with connected(endpoint) as other, AlarmJournal(tmp_path / "a.db") as ja, \
-            TwinPublisher(hub, "r1", ja, term=stays):
+            TwinPublisher(hub, "r1", ja, term=stays, signer=signer):
         ja.begin_term("r1", stays)
-        for bad in ('{"rig": "r2", "term": 5, "alarms": []}', "not json", json.dumps(
-                {"rig": "r1", "term": stays, "alarms": [alarm("r1", 2, seq=1).to_dict()]})):
+        forged = json.loads(other_key.payload(replace(alarm("r1", 2, seq=1), term=leaves)))
+        unsigned = replace(alarm("r1", 2, seq=1), term=leaves).to_dict()
+        for bad, why in (('{"rig": "r2", "term": 5, "alarms": []}', "expected"), ("not json", "Expecting value"),
+                         (json.dumps({"rig": "r1", "term": stays, "alarms": []}), "this owner's own"),
+                         (json.dumps({"rig": "r1", "term": leaves, "alarms": [unsigned]}), "does not verify"),
+                         (json.dumps({"rig": "r1", "term": leaves, "alarms": [forged]}), "does not verify")):
             replies = list(other.get("fpdd/r1/alarm/handover", payload=bad, timeout=WAIT_S))
-            assert [r.ok for r in replies] == [None] and "fpdd/r1/alarm/handover: " in replies[0].err.payload.to_string()
+            assert [r.ok for r in replies] == [None], bad
+            text = replies[0].err.payload.to_string()
+            assert text.startswith('{"error": "fpdd/r1/alarm/handover: ') and why in text, text
         assert ja.read(rig="r1") == []  # nothing journaled
+        signed = json.loads(signer.payload(replace(alarm("r1", 2, seq=1), term=leaves)))
+        (reply,) = other.get("fpdd/r1/alarm/handover", payload=json.dumps({"rig": "r1", "term": leaves,
+                                                                            "alarms": [signed]}), timeout=WAIT_S)
+        assert json.loads(reply.ok.payload.to_string())["alarms"] == [{"seq": 1, "now": 1, "held": False}]
+        (kept,) = ja.read(rig="r1")
+        assert kept.term == leaves and kept.message.startswith(f"split: raised by term {leaves} as seq 1 ")
