@@ -99,6 +99,9 @@ def test_the_owner_that_stands_down_hands_its_alarms_over_and_no_number_holds_tw
             assert [_content(e) for e in jb.read(rig="r1")] == [_content(e) for e in final]
             kept = [AlarmEvent.from_dict(json.loads(text)) for _, kind, text in jb.notes("r1") if kind == "superseded"]
             assert [_content(e) for e in kept] == [_content(e) for e in theirs]
+            again = hand_over(other, jb, "r1", leaves)  # asked again: the owner holds them all, nothing changes
+            assert (again.raised, again.adopted, again.replaced) == (2, 0, 0), again
+            assert len(jb.notes("r1")) == 3 and [_content(e) for e in ja.read(rig="r1")] == [_content(e) for e in final]
             # the subscriber that saw both sides ends with the owner's alarm under every number
             latest: dict[int, AlarmEvent] = {}
             deadline = time.monotonic() + WAIT_S

@@ -470,9 +470,9 @@ class Store:
     def supersede(self, rig: str, since_seq: int, events: list[AlarmEvent], kind: str = "superseded") -> int:
         """Replace ``rig``'s alarms from ``since_seq`` on by ``events`` (another journal's numbers ``since_seq``,
         ``since_seq + 1``, ... without a gap, at least as many as are replaced), in one transaction; each alarm
-        replaced is kept whole in the notes (``kind``, its JSON payload). An owner that stood down after a split
+        replaced by another one is kept whole in the notes (``kind``, its JSON payload). An owner that stood down after a split
         network takes the numbering of the owner that stayed this way, once that owner holds its alarms
-        (:mod:`twin.service.handover`). Returns how many alarms were replaced.
+        (:mod:`twin.service.handover`). Returns how many alarms were replaced by another one.
 
         :raises DataError: ``events`` are not numbered ``since_seq, since_seq + 1, ...``, are another rig's, end
             before this journal's alarms, or carry another epoch than the alarms kept before ``since_seq``.
@@ -497,19 +497,21 @@ class Store:
                     if len(theirs) > 1 or (theirs and since_seq > 1 and epoch and theirs != {epoch}):
                         raise DataError(f"{self.path}: the alarms to number rig {rig!r} from seq {since_seq} are of "
                                         f"epoch(s) {', '.join(sorted(theirs))}, the journal's is {epoch}")
-                    old = db.execute("SELECT seq, payload FROM alarms WHERE rig=? AND seq>=? ORDER BY seq",
-                                     (rig, since_seq)).fetchall()
+                    rows = db.execute("SELECT seq, payload FROM alarms WHERE rig=? AND seq>=? ORDER BY seq",
+                                      (rig, since_seq)).fetchall()
+                    payloads = {ev.seq: event_to_json(ev) for ev in events}
+                    old = [(q, p) for q, p in rows if payloads.get(q) != p]  # the same alarm under its number: kept
                     now = time.time_ns()
                     db.executemany("INSERT INTO notes VALUES (?, ?, ?, ?)", [(rig, now, kind, p) for _, p in old])
                     db.execute("DELETE FROM alarms WHERE rig=? AND seq>=?", (rig, since_seq))
                     for ev in events:
-                        payload = event_to_json(ev)
+                        payload = payloads[ev.seq]
                         db.execute("INSERT INTO alarms VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                                    (ev.rig, ev.seq, ev.parameter, ev.level, ev.kind, ev.t_ns, payload, _crc(payload)))
                     if theirs and (theirs != {epoch}):
                         db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"epoch:{rig}", theirs.pop()))
                         self._epochs.pop(rig, None)
-                    self._mark(db, {rig: events[-1].seq} if events else {}, len(events) - len(old))
+                    self._mark(db, {rig: events[-1].seq} if events else {}, len(events) - len(rows))
                     db.execute("COMMIT")
                 except BaseException:
                     if db.in_transaction:
