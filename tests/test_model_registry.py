@@ -52,7 +52,7 @@ def test_bands_drift_rates_bounds_and_channels_come_from_the_specs():
         assert b.lo == pytest.approx(ps[name] / (1 + r)) and b.hi == pytest.approx(ps[name] * (1 + r))
     tr = OnlineTracker(tracked=("Ffric", "CdAleak", "wn"), dt=1e-3)
     assert tr.q_rate.tolist() == [m.tracking(n).drift_rate for n in ("Ffric", "CdAleak", "wn")]
-    assert [EXCITATION[c] for c in tr.chan] == ["rod_motion", "pressure_difference", "valve_motion"]
+    assert [EXCITATION[c] for c in tr.chan] == ["rod_motion", "pressure_difference", "valve_command"]
     lo, hi = m.tracking_bounds(ps, "Ffric")
     assert lo == pytest.approx(ps["Ffric"] * m.tracking("Ffric").bounds[0])
     assert hi == pytest.approx(min(ps["Ffric"] * m.tracking("Ffric").bounds[1], ps["pP"] * ps["A"]))

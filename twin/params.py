@@ -26,10 +26,7 @@ from fpdd.errors import ParameterError
 
 CATEGORIES = ("geometric", "physical", "phenomenological", "extension", "initial")
 #: what can excite a tracked parameter (the filter freezes it while its signal is quiet)
-#: what excites a tracked parameter: the rod's motion, the command's rate, a load (the piston's pressure difference),
-#: and the valve's own motion (its spool's speed as a command rate, with the command's threshold: what the
-#: valve follows of the command; a model without a spool state: the command's rate)
-EXCITATION = ("rod_motion", "valve_command", "pressure_difference", "valve_motion")
+EXCITATION = ("rod_motion", "valve_command", "pressure_difference")
 
 
 @dataclasses.dataclass(frozen=True)

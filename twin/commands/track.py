@@ -40,6 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maintenance", action="append", default=[], metavar="P[,P2]@SECONDS[:NOTE]",
                    help="a maintenance recorded in the log: the forecasts of P (and P2) start afresh at SECONDS from "
                         "the start of the record, e.g. CdAleak@1800:seal replaced (repeatable)")
+    p.add_argument("--confirm", action="store_true",
+                   help="raise a warning or alarm only when a batch re-fit of the recent window (twin fit's output-error "
+                        "fit with its HAC standard errors and adequacy test) confirms it at a stated level; a window "
+                        "that cannot test a parameter says not_testable (about 6x the CPU of the filter alone)")
     add_timing_arguments(p)
     add_map_argument(p)
 
@@ -184,7 +188,7 @@ def run(args) -> int:
 
     twin = track(blocks, args.rig, params, tracked, baseline, args.out,
                  progress=say, noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon,
-                 maintenance=maint, model=model_name)
+                 maintenance=maint, model=model_name, confirm=True if getattr(args, "confirm", False) else None)
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:
@@ -202,9 +206,9 @@ def run(args) -> int:
         "maintenance": [{"parameters": ps, "t": t, "note": note} for t, ps, note in maint],
         "commission_warnings": list(commission.warnings) if commission is not None else [],
         "final": twin.final_estimates(),
-        "status": twin.drift.statuses(),
+        "status": (twin.confirm or twin.drift).statuses(),
         "counters": twin.tracker.counters,
-        "consistency": twin.drift.guard,
+        "consistency": (twin.confirm or twin.drift).guard,
         "sensors": twin.tracker.sensor_status(),
         "noise": {o: dict(v, unit=model.signal_unit(o)) for o, v in twin.tracker.noise_levels().items()},
         "timing": twin.tracker.timing.label,

@@ -132,8 +132,7 @@ class FilterSpec:
     output and the state it reads (``z = state + sensor noise``).  ``q_state``: process noise of the scaled states
     (variance per sample at the log's rate).  ``prior_state``: prior standard deviation of the scaled states (and
     after a re-initialisation).  ``noise``: nominal sensor noise, standard deviation in SI per output.
-    ``excite``: the excitation thresholds of the rod's motion, the command's rate and the load (:data:`twin.params.EXCITATION`;
-    the valve's motion takes the command's), SI.
+    ``excite``: the excitation thresholds of :data:`twin.params.EXCITATION`'s channels, SI.
     ``feedback``: the output a closed loop's controller reads (``None``: no controller).
     ``exogenous``: logged signals that set a parameter sample by sample (signal -> parameter, e.g. the oil
     temperature ``T_oil``); the last fresh value holds between a slow signal's samples.
@@ -163,9 +162,8 @@ class FilterMap:
     ``demand_gain``: the drive per unit of demand error a closed loop's controller applies (the excitation of
     the command when only the demand is logged).  ``ranges``: each output's physical range (outside it, a reading
     is a wrong unit or a broken sensor).  ``centres``: each output's centre (a clipped reading sits at its largest
-    excursion from it).  ``excitation [3, n_states]``: the weights on the states of the rod's motion (row 0), the
-    valve's motion (row 1; a zero row: the drive's rate) and the load (row 2); a channel reads
-    ``|weights . states|`` (:data:`twin.params.EXCITATION`; the command's channel is always the drive's rate).
+    excursion from it).  ``excitation [3, n_states]``: each excitation channel's weights on the states, the
+    channel reads ``|weights . states|`` (a zero row: the channel is the drive's rate).
     """
 
     rest: np.ndarray

@@ -119,10 +119,6 @@ class MSP25(Model):
         rest[2] = rest[3] = pmid
         exc = np.zeros((3, NS))
         exc[0, 5] = 1.0             # rod_motion: |v|
-        # valve_motion: the spool's speed as a command rate [V/s], |vs| / (Ke Ksp): the valve's damping and
-        # natural frequency are seen when the spool moves, not when the command jitters faster than the spool
-        # follows (a PID's derivative of the sensor noise: volts per second of rate that move no spool)
-        exc[1, 1] = 1.0 / (ps["Ke"] * ps["Ksp"])
         exc[2, 2], exc[2, 3] = 1.0, -1.0  # pressure_difference: |pA - pB|
         return FilterMap(rest=rest, input_state=0, input_gain=ps["Ke"] * ps["Ksp"], demand_gain=ps["KP"],
                          ranges={"x": (-ps["stroke"], ps["stroke"]), "pA": (ps["pT"] - 2e6, ps["pP"] + 5e6),

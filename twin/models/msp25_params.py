@@ -51,10 +51,10 @@ BASE = (
     ParamSpec("Cd", "1", 1e-3, 1.0, PN, "valve discharge coefficient", typical=0.2191,
               tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 4, 4.0), excited_by="valve_command")),
     ParamSpec("zeta", "1", 1e-3, 10.0, PN, "valve damping ratio", typical=0.3701,
-              tracking=Tracking(band=0.3, drift_rate=0.01, bounds=(1 / 5, 5.0), excited_by="valve_motion")),
+              tracking=Tracking(band=0.3, drift_rate=0.01, bounds=(1 / 5, 5.0), excited_by="valve_command")),
     ParamSpec("wn", "rad/s", TWO_PI * 1.0, TWO_PI * 1000.0, PN, "valve natural frequency", "Hz",
               1.0 / TWO_PI, typical=TWO_PI * 43.0,
-              tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 3, 3.0), excited_by="valve_motion")),
+              tracking=Tracking(band=0.15, drift_rate=0.01, bounds=(1 / 3, 3.0), excited_by="valve_command")),
     # a single-rod cylinder: chamber B's annulus area and volume (0: the same as chamber A's, symmetric)
     ParamSpec("AB", "m^2", 0.0, 1e-1, G, "piston area AB of chamber B (0: equal to A, a symmetric cylinder)",
               "mm^2", 1e6),

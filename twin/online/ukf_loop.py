@@ -19,7 +19,7 @@ from twin.online.ukf_predict import _predict
 from twin.online.ukf_status import (
     C_ADAPT, C_A_MAX, C_CENTRAL, C_NSHARE, C_CK_S, C_CLEAR_N, C_DIV_NIS, C_GAP_MAX, C_INFLATE, C_NIS_CLIP, C_NIS_HI, C_NOISY, C_OFF_N,
     C_OUT_NU, C_RHO_HI, C_SETTLE_S, C_SIG_HI, C_SIG_LO, C_STUCK_N, C_TAU_DIV, C_TAU_GUARD, C_TAU_NOISE, C_WARM_S,
-    C_ZPIN, F_CK_OK, F_CK_T, F_CTRL, F_EXC0, F_EXC1, F_EXC2, F_EXC3, F_GATED_RUN, F_HAVE_PREV, F_NIS_EMA, F_NIS_FAST,
+    C_ZPIN, F_CK_OK, F_CK_T, F_CTRL, F_EXC0, F_EXC1, F_EXC2, F_GATED_RUN, F_HAVE_PREV, F_NIS_EMA, F_NIS_FAST,
     F_R1, F_RECOVERIES, F_REINITS, F_SETTLE, F_T, F_U1, F_U2, F_UPREV_OK, F_XM1, G_COLOUR, G_DIVERGED, G_NIS, G_OK,
     G_SENSOR, G_SETTLE, H_A, H_C, H_CLEAR_RUN, H_EXT, H_HAVE_NU, H_LAST_RAW, H_NU_PREV, H_OUT_RUN, H_R1,
     H_R_FLOOR, H_RUN_SAME, H_SIG, H_SIG_NOM, H_STATUS, H_UNIT_RUN, PARAM_STD_CAP, S_CLIPPED, S_MISSING, S_NOISY,
@@ -147,7 +147,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
             freeze[j] = False
         for j in range(p_count):
             c = chan[j]
-            if (fs[F_EXC3] < thresh[1]) if c == 3 else (fs[F_EXC0 + c] < thresh[c]):
+            if fs[F_EXC0 + c] < thresh[c]:
                 freeze[ns + j] = True
             frozen_out[k, j] = freeze[ns + j]
         # ---- predict from the previous sample
@@ -456,17 +456,12 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
         du = abs(u_exc - fs[F_R1]) / max(dtk, dt0) if fs[F_UPREV_OK] > 0.0 and math.isfinite(u_exc) else 0.0
         alpha = min(1.0, max(dtk, dt0) / tau_excite)
         e0 = 0.0
-        e1 = 0.0
         e2 = 0.0
-        by_state = False
-        for i in range(ns):  # the model's excitation channels: rod motion, the drive's rate, a load, the valve's
-            e0 += setup.excitation[0, i] * (x[i] * scale[i])  # motion (row 1: its state; none: the drive's rate)
-            e1 += setup.excitation[1, i] * (x[i] * scale[i])
+        for i in range(ns):  # the model's excitation channels: rod motion, (the drive's rate,) a load
+            e0 += setup.excitation[0, i] * (x[i] * scale[i])
             e2 += setup.excitation[2, i] * (x[i] * scale[i])
-            by_state = by_state or setup.excitation[1, i] != 0.0
         fs[F_EXC0] += alpha * (abs(e0) - fs[F_EXC0])
         fs[F_EXC1] += alpha * (du - fs[F_EXC1])
-        fs[F_EXC3] += alpha * ((abs(e1) if by_state else du) - fs[F_EXC3])
         fs[F_EXC2] += alpha * (abs(e2) - fs[F_EXC2])
         if math.isfinite(u_exc):
             fs[F_R1] = u_exc

@@ -25,7 +25,7 @@ CFG_NAMES = ("nis_clip", "nis_hi", "rho_hi", "tau_guard", "div_nis", "tau_div", 
  C_A_MAX, C_WARM_S, C_CENTRAL, C_NSHARE) = range(len(CFG_NAMES))
 N_CFG = len(CFG_NAMES)
 #: carried float state (array ``fs``); the model's controller memory follows from ``F_CTRL``
-(F_NIS_EMA, F_NIS_FAST, F_SETTLE, F_CK_T, F_T, F_HAVE_PREV, F_U1, F_U2, F_R1, F_EXC3, F_XM1, F_EXC0, F_EXC1,
+(F_NIS_EMA, F_NIS_FAST, F_SETTLE, F_CK_T, F_T, F_HAVE_PREV, F_U1, F_U2, F_R1, F_R2, F_XM1, F_EXC0, F_EXC1,
  F_EXC2, F_UPREV_OK, F_GATED_RUN, F_RECOVERIES, F_REINITS, F_CK_OK) = range(19)
 F_CTRL = 19
 #: per-output carried state (array ``ch [q, N_CH]``)
