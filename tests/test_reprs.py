@@ -65,3 +65,12 @@ def test_read_report_repr_counts_and_keeps_the_problems_out_of_the_line() -> Non
     text = one_line(report)
     assert text.startswith("ReadReport(rig-b.asc: 12000 records read, 11000 samples out; ")
     assert "bad_dlc=120" in text and f"{report.max_problems} problem(s) kept" in text
+
+
+def test_a_tracked_block_prints_its_size_and_last_status_not_its_arrays() -> None:
+    from twin.online.tracker import OnlineTracker
+
+    rec = rig_record(n=500)
+    block = OnlineTracker(dt=1e-3).process(rec.to_samples())
+    text = one_line(block)
+    assert text.startswith("TrackBlock(500 samples over 0.499 s, 5 parameters, outputs x, pA, pB; last status ")

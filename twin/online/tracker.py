@@ -123,6 +123,13 @@ class TrackBlock:
             return np.zeros(len(self.t_ns), bool)
         return self.guard != "consistent"
 
+    def __repr__(self) -> str:
+        T, p = self.estimates.shape if self.estimates.ndim == 2 else (len(self.t_ns), 0)
+        span = (int(self.t_ns[-1]) - int(self.t_ns[0])) * 1e-9 if T else 0.0
+        last = str(self.status[-1]) if T else "-"
+        return (f"TrackBlock({T} samples over {span:.3g} s, {p} parameters, outputs {', '.join(self.outputs) or '-'}; "
+                f"last status {last})")
+
     def sensor_status(self, i: int = -1) -> dict[str, str]:
         """Each output's sensor status at sample ``i`` (default the last)."""
         if self.sensors is None or not len(self.t_ns):
