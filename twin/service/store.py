@@ -56,6 +56,7 @@ writer writes.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import json
@@ -104,6 +105,24 @@ def new_epoch() -> str:
 
 def _crc(data: str | bytes) -> int:
     return zlib.crc32(data.encode("utf-8") if isinstance(data, str) else data)
+
+
+@contextlib.contextmanager
+def _immediate(db: sqlite3.Connection, undo=None):
+    """One write transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``), rolled back on any exception, ``undo`` then
+    called (what the transaction made in memory is not on disk); a body that rolls back itself and returns
+    leaves nothing to commit."""
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        yield db
+        if db.in_transaction:
+            db.execute("COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        if undo is not None:
+            undo()
+        raise
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,8 +188,7 @@ class Store:
             self._db.execute("PRAGMA synchronous = FULL")
             if writer:
                 db = self._db
-                db.execute("BEGIN IMMEDIATE")  # the schema, the id and the version together, or none of them
-                try:
+                with _immediate(db):  # the schema, the id and the version together, or none of them
                     for statement in _SCHEMA.split(";"):
                         if statement.strip():
                             db.execute(statement)
@@ -185,11 +203,6 @@ class Store:
                             db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"last_seq:{rig}", str(last)))
                         count = db.execute("SELECT COUNT(*) FROM alarms").fetchone()[0]
                         db.execute(f"PRAGMA user_version = {int(count)}")
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    raise
                 self._fold()  # a WAL left by a killed writer goes into the main file now
             self.journal_id = self.meta("journal_id")
         except sqlite3.DatabaseError as exc:
@@ -397,8 +410,8 @@ class Store:
         with self._lock:
             db = self._conn()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
+                # an epoch made in the transaction is not on disk: forgotten when it rolls back
+                with _immediate(db, undo=lambda: self._epochs.pop(event.rig, None)):
                     found = self._find(db, ident)
                     if found is not None:
                         db.execute("ROLLBACK")
@@ -416,12 +429,6 @@ class Store:
                                (event.rig, event.seq, event.parameter, event.level, event.kind, event.t_ns,
                                 payload, _crc(payload)))
                     self._mark(db, {event.rig: event.seq}, 1)
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    self._epochs.pop(event.rig, None)  # an epoch made in the transaction is not on disk
-                    raise
             except sqlite3.Error as exc:
                 raise self._error(exc, "cannot write to") from exc
             try:
@@ -440,8 +447,7 @@ class Store:
         with self._lock:
             db = self._conn()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
+                with _immediate(db):
                     lasts: dict[str, int] = {}
                     for ev in events:
                         if self._find(db, ev.identity) is not None:
@@ -454,11 +460,6 @@ class Store:
                         n += 1
                     self._mark(db, lasts, n)
                     db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    raise
                 self._fold()
             except sqlite3.IntegrityError as exc:
                 raise LogFormatError(f"{self.path}: import refused, the alarms collide with those "
@@ -486,8 +487,7 @@ class Store:
         with self._lock:
             db = self._conn()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
+                with _immediate(db):
                     last = self._last_seq(db, rig)
                     if events and events[-1].seq < last:
                         raise DataError(f"{self.path}: rig {rig!r}'s alarms end at seq {last}, the numbering given "
@@ -512,11 +512,6 @@ class Store:
                         db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"epoch:{rig}", theirs.pop()))
                         self._epochs.pop(rig, None)
                     self._mark(db, {rig: events[-1].seq} if events else {}, len(events) - len(rows))
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    raise
                 self._fold()
             except sqlite3.Error as exc:
                 raise self._error(exc, "cannot write to") from exc
@@ -591,15 +586,9 @@ class Store:
                 return have
             db = self._conn()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
+                with _immediate(db):
                     have = self._read_epoch(db, rig) or new_epoch()
                     db.execute("INSERT OR IGNORE INTO meta VALUES (?, ?)", (f"epoch:{rig}", have))
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    raise
                 self._fold()
             except sqlite3.Error as exc:
                 self._epochs.pop(rig, None)
@@ -706,14 +695,8 @@ class Store:
         with self._lock:
             db = self._conn()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
+                with _immediate(db):
                     db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(values.items()))
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        db.execute("ROLLBACK")
-                    raise
                 self._fold()
             except sqlite3.Error as exc:
                 raise self._error(exc, "cannot write to") from exc
