@@ -125,7 +125,7 @@ def run_draw(seed: int, minutes: float, confirm: bool = False) -> dict[str, Any]
     t1 = time.perf_counter()
     with _keeping_statuses() as kept:
         twin = track(_samples(rec), "campaign", params=params, timing=timing, commission=com,
-                     forecast_horizon_s=3600.0, confirm=True if confirm else None)
+                     forecast_horizon_s=3600.0, confirm=confirm)
     t2 = time.perf_counter()
     t_first = 1_700_000_000_000_000_000
     events = [{"t_s": float(a.t_s), "parameter": a.parameter, "level": a.level, "kind": a.kind}

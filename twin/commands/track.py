@@ -188,7 +188,7 @@ def run(args) -> int:
 
     twin = track(blocks, args.rig, params, tracked, baseline, args.out,
                  progress=say, noise=noise, timing=timing, commission=commission, forecast_horizon_s=horizon,
-                 maintenance=maint, model=model_name, confirm=True if getattr(args, "confirm", False) else None)
+                 maintenance=maint, model=model_name, confirm=args.confirm)
     if say:
         print(file=sys.stderr)
     if twin.stats.samples == 0:

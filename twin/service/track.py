@@ -123,7 +123,7 @@ def track(source, rig_name: str = "rig", params: dict | None = None, tracked=Non
     ``read_report`` (:class:`replay.base.ReadReport`: what its reader lost on the way, also logged as a warning).
     ``map``: a log's columns under other names or units, as ``--map`` (``{"x": "pos_mm:mm", "t": "time:ms"}`` or
     ``["x=pos_mm:mm"]``); default the map the commissioning fit was read with (``twin fit --map ... --save``).
-    ``confirm``: alarms confirmed by window re-fits (:mod:`twin.online.confirm`; ``True`` or its options; default
+    ``confirm``: alarms confirmed by window re-fits (:mod:`twin.online.confirm`; ``True`` or its options; false:
     the filter's drift test alone).
     """
     from twin.online.baseline import default_baseline
