@@ -54,6 +54,8 @@ if not os.environ.get("FPDD_REFCACHE"):  # the tests' cache (tests/conftest.py):
         os.path.expanduser("~"), ".cache"), "fpdd-twin", "refcache")
 
 TRACKED = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
+#: the sensor events a confirmed twin raises (a transducer's offset) and the sensor each names
+SENSOR_OF = {"pA_off": "pA", "pB_off": "pB"}
 #: what a parameter event is: a raise to these levels (an escalation of a raised event is the same event)
 EVENT_LEVELS = ("warning", "alarm")
 
@@ -248,10 +250,21 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
     fig["wrong_parameter"] = _prop(len(wrong), len(wears))
     # sensors and specimens
     sens = [d for d in draws if d["kind"] == "sensor"]
-    fig["sensor_vs_parameter"] = _prop(sum(bool(_raised(d, d["scenario"]["sensor"]["t0"])) for d in sens), len(sens))
-    fig["sensor_named"] = _prop(sum(d["scenario"]["sensor"]["sensor"] in d["sensor_faulty"]
-                                    and d["sensor_faulty"][d["scenario"]["sensor"]["sensor"]]["t_s"]
-                                    >= d["scenario"]["sensor"]["t0"] for d in sens), len(sens))
+    # a sensor event (a transducer's offset, ``pA_off``) is what a drifting sensor should raise: apart from the
+    # rig's parameters
+    fig["sensor_vs_parameter"] = _prop(sum(any(e["parameter"] in TRACKED for e in
+                                               _raised(d, d["scenario"]["sensor"]["t0"])) for d in sens), len(sens))
+
+    def named(d) -> bool:
+        s = d["scenario"]["sensor"]
+        t0 = s["t0"]
+        by_status = s["sensor"] in d["sensor_faulty"] and d["sensor_faulty"][s["sensor"]]["t_s"] >= t0
+        return by_status or any(SENSOR_OF.get(e["parameter"]) == s["sensor"] for e in _raised(d, t0))
+
+    fig["sensor_named"] = _prop(sum(named(d) for d in sens), len(sens))
+    fig["sensor_events_elsewhere"] = _prop(sum(any(e["parameter"] in SENSOR_OF and SENSOR_OF[e["parameter"]] !=
+                                                   d["scenario"]["sensor"]["sensor"] for e in _raised(d))
+                                               for d in sens), len(sens))
     spec = [d for d in draws if d["kind"] == "specimen"]
     fig["specimen_vs_parameter"] = _prop(sum(bool(_raised(d)) for d in spec), len(spec))
     fig["specimen_after_change"] = _prop(sum(bool(_raised(d, d["scenario"]["specimen"]["t0"])) for d in spec),
@@ -349,6 +362,7 @@ def table(res: dict[str, Any]) -> str:
     lines += [f"wrong-parameter (wear draws)             {_pct(f['wrong_parameter'])}",
               f"sensor drift -> parameter event          {_pct(f['sensor_vs_parameter'])}",
               f"sensor drift -> that sensor called faulty {_pct(f['sensor_named'])}",
+              f"sensor drift -> event on another sensor  {_pct(f.get('sensor_events_elsewhere', _prop(0, 0)))}",
               f"specimen -> parameter event              {_pct(f['specimen_vs_parameter'])}",
               f"  after the specimen's change            {_pct(f['specimen_after_change'])}",
               f"healthy sensor called faulty, all draws  {_pct(f['healthy_sensor_called_faulty'])}",

@@ -112,6 +112,22 @@ def test_figures_count_events_by_their_rules():
         assert field in text
 
 
+def test_a_sensor_event_is_not_a_parameter_event_and_names_its_sensor():
+    sensor = seeds("verification", 3, 1.0, ("sensor",))
+    scn = [draw(s, 1.0)["sensor"] for s in sensor]
+    offset_of = {v: k for k, v in C.SENSOR_OF.items()}
+    other = {"pA": "pB_off", "pB": "pA_off", "x": "pA_off"}
+    draws = [
+        _fake(sensor[0], [(scn[0]["t0"] + 5.0, offset_of.get(scn[0]["sensor"], "pA_off"), "warning", "raised")]),
+        _fake(sensor[1], [(scn[1]["t0"] + 5.0, "Ffric", "warning", "raised")]),
+        _fake(sensor[2], [(scn[2]["t0"] + 5.0, other[scn[2]["sensor"]], "warning", "raised")]),
+    ]
+    f = C.summarise(draws)
+    assert (f["sensor_vs_parameter"]["k"], f["sensor_vs_parameter"]["n"]) == (1, 3)  # only the Ffric event
+    assert f["sensor_events_elsewhere"]["k"] == 1
+    assert f["sensor_named"]["k"] == (1 if scn[0]["sensor"] in offset_of else 0)
+
+
 def test_bad_options_are_one_line_and_exit_2(capsys):
     assert C.main(["--kinds", "healthy,worn"]) == 2
     err = capsys.readouterr().err.strip()
