@@ -33,11 +33,13 @@ def test_outside_the_band_and_significant_is_confirmed_on_its_side():
 
 def test_outside_the_band_but_not_away_from_the_baseline_is_not_confirmed():
     # 160 is outside [66.7, 150] but log(1.6) / 0.19 = 2.5 < 3.29: the two-sample test does not reject the baseline
+    # nor does it show the parameter inside its band: unresolved, neither a confirmation nor a return
     v = decide("p", 160.0, 0.19, BAND, True)
-    assert v.state == "inside" and 2.0 < v.z < critical_z(ALPHA)
+    assert v.state == "unresolved" and 2.0 < v.z < critical_z(ALPHA) and "not away from the baseline" in v.why
     # the commissioning's own uncertainty counts as the second sample
     assert decide("p", 200.0, 0.1, BAND, True).state == "high"
-    assert decide("p", 200.0, 0.1, BAND, True, base_rel_std=0.2).state == "inside"
+    assert decide("p", 200.0, 0.1, BAND, True, base_rel_std=0.2).state == "unresolved"
+    assert decide("p", 140.0, 0.01, BAND, True).state == "inside"
 
 
 def test_a_window_that_does_not_inform_the_parameter_is_not_testable():
@@ -59,7 +61,7 @@ def test_an_offset_counts_beyond_the_tolerance_and_when_significant():
     assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e3, True).state == "high"
     assert decide_offset("pA_off", -2 * OFFSET_TOLERANCE_PA, 1e3, True).state == "low"
     assert decide_offset("pA_off", 0.5 * OFFSET_TOLERANCE_PA, 1e3, True).state == "inside"  # within calibration
-    assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e5, True).state == "inside"  # z = 2.5: not shown
+    assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e5, True).state == "unresolved"  # z = 2.5: not shown
     assert decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, math.nan, True).state == "not_testable"
 
 
@@ -121,6 +123,22 @@ def test_two_confirmations_warn_three_alarm_not_testable_keeps_count_inside_retu
     assert apply(low, 24.0) == [("alarm", "escalated")]
     assert apply(inside, 28.0) == [("ok", "returned")] and cd.count["p"] == 0
     assert apply(high, 32.0) == [] and apply(inside, 36.0) == [] and apply(high, 40.0) == []  # inside resets
+
+
+def test_an_unresolved_window_neither_confirms_nor_returns():
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    high = decide("p", 200.0, 0.05, BAND, True)
+    unresolved = decide("p", 160.0, 0.19, BAND, True)
+    assert cd._apply("p", high, 1, 4.0, "scheduled") == []
+    assert cd._apply("p", unresolved, 1, 8.0, "scheduled") == [] and cd.count["p"] == 1  # the count stays
+    assert cd.tested["p"] == 8.0 and cd.statuses() == {"p": "ok"}  # it was tested: the status says when
+    assert [e.level for e in cd._apply("p", high, 1, 12.0, "scheduled")] == ["warning"]
+    assert cd._apply("p", unresolved, 1, 16.0, "scheduled") == [] and cd.level["p"] == "warning"  # not returned
+    off = decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e3, True)
+    unsure = decide_offset("pA_off", 2 * OFFSET_TOLERANCE_PA, 1e5, True)
+    cd._apply_sensor("pA_off", off, 1, 4.0)
+    assert cd._apply_sensor("pA_off", unsure, 1, 8.0) == [] and cd.sensor_count["pA"] == 1
+    assert [e.level for e in cd._apply_sensor("pA_off", off, 1, 12.0)] == ["warning"]
 
 
 def test_a_systematic_error_of_one_window_is_not_an_event():

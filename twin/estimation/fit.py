@@ -432,7 +432,7 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
         spread: float = 2.0, seed: int = 0, max_nfev: int = 60, tol: float = 1e-12,
         substeps: int | None = None, progress: Callable[[str], None] | None = None,
         timing: Timing | None = None, loop_noise: bool = True,
-        scales: Mapping[str, float] | None = None) -> FitResult:
+        scales: Mapping[str, float] | None = None, hac_lag_s: float = 0.0) -> FitResult:
     """Fit ``free`` parameters of ``model`` to ``records`` by output-error least squares.
 
     The fit alone: ``twin.fit`` (:func:`twin.estimation.fit_checked.fit`, what ``twin fit`` and a commissioning
@@ -450,6 +450,8 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
     residual fed to the simulated controller, averaged over the two signs
     (module docstring).  ``scales``: the order of magnitude of linearly
     scaled free parameters (default: their typical sizes in the catalogue).
+    ``hac_lag_s``: the shortest span (s) of residual autocorrelation the
+    standard errors count (default: the automatic lag alone).
     """
     t_start = time.perf_counter()
     if isinstance(records, Record):
@@ -548,11 +550,13 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
             except (ValueError, np.linalg.LinAlgError, FloatingPointError):
                 prob.dither = []
                 evaluated.clear()
+    min_lag = int(math.ceil(hac_lag_s / min(rec.dt for rec in prob.records))) if hac_lag_s > 0 else 0
     return _result(prob, best, history, starts_info, nfev_total, time.perf_counter() - t_start,
-                   evaluated.get(np.asarray(best.x).tobytes()))
+                   evaluated.get(np.asarray(best.x).tobytes()), min_lag)
 
 
-def _result(prob: _Problem, res, history, starts_info, nfev, elapsed, R: np.ndarray | None = None) -> FitResult:
+def _result(prob: _Problem, res, history, starts_info, nfev, elapsed, R: np.ndarray | None = None,
+            min_lag: int = 0) -> FitResult:
     """The fit's result at ``res.x``; ``R``: the residuals there and at its finite-difference neighbours when the
     refinement evaluated them already."""
     z = res.x
@@ -568,7 +572,7 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed, R: np.ndar
     try:
         H_inv = np.linalg.pinv(J.T @ J)
         cov_white = s2 * H_inv * np.outer(g, g)
-        cov = hac_covariance(J, r, prob.block_sizes(), H_inv, N) * np.outer(g, g)
+        cov = hac_covariance(J, r, prob.block_sizes(), H_inv, N, min_lag) * np.outer(g, g)
     except np.linalg.LinAlgError:
         cov_white = cov = np.full((p, p), np.nan)
     ct = cov[: prob.n_theta, : prob.n_theta]

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int]],
-                   H_inv: np.ndarray, n_obs: int | None = None) -> np.ndarray:
+                   H_inv: np.ndarray, n_obs: int | None = None, min_lag: int = 0) -> np.ndarray:
     """Newey-West sandwich ``H^-1 S H^-1`` of least squares with Jacobian ``J [N, p]`` and residuals ``r [N]``.
 
     ``blocks``: ``(n_outputs, n_samples)`` of each independent record, whose
@@ -25,7 +25,8 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int
     are summed (so cross-correlations between outputs count), and their
     autocovariances are summed within each record with Bartlett weights up to
     an automatic lag.  ``n_obs``: the number of residuals that are measurements
-    (default all; held samples of a slower signal enter as zero residuals).
+    (default all; held samples of a slower signal enter as zero residuals).  ``min_lag``: the fewest lags
+    summed (samples; a short record whose residuals stay correlated longer than its ``sqrt(n)``).
     """
     Sm = np.zeros((J.shape[1], J.shape[1]))
     start = 0
@@ -37,7 +38,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, blocks: Sequence[tuple[int, int
         # loop to the noise its controller read; an AR(1) fitted to the sum sees mostly the white part and picks
         # a handful of lags, which on the reference simulator left the friction's standard error 20 % short
         # (lag 9 on 12 000 samples; from lag 50 on every parameter's spread matches its standard error)
-        L = min(max(bartlett_lag(G), math.ceil(math.sqrt(n))), n // 4)
+        L = min(max(bartlett_lag(G), math.ceil(math.sqrt(n)), int(min_lag)), n // 4)
         for lag in range(1, L + 1):
             w = 1.0 - lag / (L + 1.0)
             C = G[lag:].T @ G[:-lag]

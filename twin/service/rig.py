@@ -308,12 +308,31 @@ class RigTwin(Sink):
         self._status(None, force=True)
         return line
 
+    def _split(self, samples: Samples) -> bool:
+        """Write a block longer than the confirmation's step (:data:`twin.online.confirm.STEP_S`) in pieces of
+        that length: its re-fits are decided at the end of each piece, whatever the reader's chunk (a log read
+        in 10-s chunks is then decided as the live rig is).  False when the block is short enough."""
+        from twin.online.confirm import STEP_S
+
+        step = int(round(STEP_S * 1e9))
+        t = samples.t_ns
+        if int(t[-1]) - int(t[0]) < step:
+            return False
+        edges = np.searchsorted(t, int(t[0]) + step * np.arange(1, (int(t[-1]) - int(t[0])) // step + 1))
+        bounds = [0, *[int(e) for e in edges if 0 < e < len(t)], len(t)]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b > a:
+                self.write(samples.slice(a, b))
+        return True
+
     # -- Sink ---------------------------------------------------------------------------
     def write(self, samples: Samples) -> None:
         if len(samples) == 0:
             return
         if self.commissioning is not None:
             self._gather(samples)
+            return
+        if self.confirm is not None and self._split(samples):
             return
         t_start = time.perf_counter()
         if self._t0_ns is None:
