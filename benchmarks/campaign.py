@@ -245,6 +245,18 @@ def summarise(draws: Sequence[dict[str, Any]]) -> dict[str, Any]:
     left_all = [d for d in wears if d.get("exit_s") is not None]
     fig["detection_all"] = _prop(sum(_first_on(d, d["scenario"]["wear"]["parameter"], d["scenario"]["wear"]["t0"])
                                      is not None for d in left_all), len(left_all))
+    # the goal's deadline: one scheduled re-fit period plus one window after the exit; a draw whose record ends
+    # before that cannot show it either way and is not counted here
+    from twin.online.confirm import PERIOD_S, WINDOW_S
+
+    due = [d for d in left_all if d["exit_s"] + PERIOD_S + WINDOW_S <= d["duration_s"]]
+
+    def in_time(d) -> bool:
+        t = _first_on(d, d["scenario"]["wear"]["parameter"], d["scenario"]["wear"]["t0"])
+        return t is not None and t <= d["exit_s"] + PERIOD_S + WINDOW_S
+
+    fig["detection_in_time"] = {**_prop(sum(in_time(d) for d in due), len(due)),
+                                "deadline_s": PERIOD_S + WINDOW_S}
     wrong = [d for d in wears if any(e["parameter"] != d["scenario"]["wear"]["parameter"]
                                      for e in _raised(d, d["scenario"]["wear"]["t0"]))]
     fig["wrong_parameter"] = _prop(len(wrong), len(wears))
@@ -353,6 +365,9 @@ def table(res: dict[str, Any]) -> str:
                  + ", ".join(f"{p} {n}" for p, n in f["false_alarm_parameters"].items()))
     lines.append(f"early alarms, healthy draws              {_ph(f['early_alarms_healthy'])}")
     lines.append(f"detection, truth left the band           {_pct(f['detection_all'])}")
+    if "detection_in_time" in f:
+        lines.append(f"  within {f['detection_in_time']['deadline_s']:g} s of the exit (records that long) "
+                     f"{_pct(f['detection_in_time'])}")
     for p, r in f["detection"].items():
         dl = r["delay_s"]
         delay = ("" if dl["median"] is None else

@@ -98,6 +98,10 @@ def test_figures_count_events_by_their_rules():
     assert sum(r["hours"] for r in f["false_alarms_by_excitation"].values()) == pytest.approx(2 / 60)
     d = f["detection"][p]
     assert d["left_band"]["k"] == 1 and d["left_band"]["n"] == 1 and d["delay_s"]["values"] == [3.0]
+    from twin.online.confirm import PERIOD_S, WINDOW_S
+
+    due = int(w["t0"] + 2.0 + PERIOD_S + WINDOW_S <= 60.0)  # the record is long enough to judge the deadline
+    assert f["detection_in_time"]["k"] == f["detection_in_time"]["n"] == due
     # the other parameter's event came before the wear's onset: not a wrong-parameter event, a false alarm of
     # the healthy stretch before the onset
     assert f["wrong_parameter"]["k"] == 0 and f["wrong_parameter"]["n"] == 1
