@@ -289,10 +289,14 @@ class ConfirmedDrift:
         confirmed is ``offset``; a verdict of the filter that rests on its model (``offset``, ``noisy``) is
         ``ok`` once a window tested it and found none, and while the model does not represent the rig (the
         window's adequacy test failed: a load the model lacks is not three faulty sensors); a signal's own
-        faults (``stuck``, ``clipped``, ``missing``, ``wrong_unit``) stay."""
+        faults (``stuck``, ``clipped``, ``missing``, ``wrong_unit``) stay.  A pressure transducer is called
+        ``offset`` by the windows alone, never by the filter before the first window has tested it (a cold
+        filter's first second reads a load the model lacks as two offset transducers)."""
         out = dict(filter_status)
         for o, s in filter_status.items():
-            if s in ("offset", "noisy") and (not self.adequate or (o in self.sensor_level and self.fits)):
+            tested = not self.adequate or (o in self.sensor_level and bool(self.fits))
+            windows_say = s == "offset" and o in self.sensor_level  # a transducer's offset: the windows' word
+            if (s in ("offset", "noisy") and tested) or windows_say:
                 out[o] = "ok"
         for o, lv in self.sensor_level.items():
             if lv != "ok" and o in out:
