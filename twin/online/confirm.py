@@ -408,12 +408,11 @@ class ConfirmedDrift:
     @staticmethod
     def _adequate_at(res, values: Mapping[str, float], rec, tracker) -> bool:
         """Does the adequacy test pass at the filter's estimate ``values`` (the window fit's sensor offsets
-        kept)?  The test at the least-squares point can fail on an exact model: in a closed loop the sensor noise
-        goes round the loop, the output-error fit of a short window follows that coloured noise with the
-        parameters it cannot pin down (a ridge between the valve's dynamics and the leakage), and the drive
-        then explains a share of the prediction errors.  A parameter point of the model that passes says the
-        model represents the window; accepting on either point can only lower the rate of windows called
-        "not represented", never raise a false inadequacy."""
+        kept)?  The test at the least-squares point can fail on a right model: a short window's output-error fit
+        can land off the truth along a ridge it cannot pin down (the leakage against the valve's dynamics), and
+        the drive then explains a share of the prediction errors.  A parameter point of the model that passes
+        says the model represents the window; accepting on either point can only lower the rate of windows
+        called "not represented", never raise a false inadequacy."""
         from twin.estimation.diagnose.check import fit_adequacy
 
         vals = {n: float(v) for n, v in values.items() if math.isfinite(v) and v > 0}
@@ -426,10 +425,9 @@ class ConfirmedDrift:
             return False
         return bool(check.get("adequate", False))
 
-    def _verdicts(self, res, names, bounds, adequate: bool | None = None) -> tuple[dict[str, Verdict],
-                                                                                   dict[str, Verdict]]:
-        if adequate is None:
-            adequate = bool((getattr(res, "adequacy", None) or {}).get("adequate", True))
+    def _verdicts(self, res, names, bounds, adequate: bool) -> tuple[dict[str, Verdict], dict[str, Verdict]]:
+        """Each parameter's and each transducer offset's verdict from the window fit ``res``; ``adequate``: the
+        window's adequacy (at the fitted values or at the filter's estimate, :meth:`_adequate_at`)."""
         verdicts = {}
         for n in names:
             v = float(res.estimate[n])
