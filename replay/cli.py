@@ -296,5 +296,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 1
 
 
+def entry() -> None:
+    """The ``replay`` program: :func:`main`, then out of the process (:func:`fpdd.process.exit_process`)."""
+    from fpdd.process import exit_process
+
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -121,5 +121,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
 
+def entry() -> None:
+    """The ``twin`` program: :func:`main`, then out of the process (:func:`fpdd.process.exit_process`)."""
+    from fpdd.process import exit_process
+
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
