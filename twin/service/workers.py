@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import threading
 import time
 from typing import Any
@@ -60,6 +61,12 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     for t in threads:
         t.join()
     console.close()
+    if "zenoh" in sys.modules:  # a live Zenoh input ran here: leave as the programs do
+        from fpdd.process import exit_process
+
+        out.close()  # what the rigs put on the queue reaches the service first
+        out.join_thread()
+        exit_process(0)
 
 
 def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
