@@ -63,6 +63,24 @@ class Record:
         m = self.fresh[name]
         return None if m.size == 0 else m
 
+    def burn_start(self, seconds: float, names) -> None:
+        """Count no measurement of ``names`` in the record's first ``seconds`` (at most half the record).
+
+        A fit's simulation starts from a state read off the first samples; what it cannot read there (a moving
+        rod's speed, the spool, a controller's integral) makes its first residuals large and systematic, and
+        they pull the fit. The samples stay in the record: the simulation still runs through them."""
+        n = len(self)
+        k = min(int(round(seconds / self.dt)), n // 2) if seconds > 0 else 0
+        if k == 0:
+            return
+        for name in names:
+            if name in self.signals:
+                m = self.fresh_of(name)
+                m = np.ones(n, dtype=bool) if m is None else m.copy()
+                m[:k] = False
+                assert self.fresh is not None
+                self.fresh[name] = m
+
     def __len__(self) -> int:
         return 0 if not self.signals else next(iter(self.signals.values())).shape[0]
 

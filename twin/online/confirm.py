@@ -217,14 +217,9 @@ def window_record(samples, tracker, burn_s: float = BURN_S):
     t_ns = np.asarray(samples.t_ns)
     dt = tracker.dt or float(np.median(np.diff(t_ns))) * 1e-9
     sig = {k: np.asarray(v, float) for k, v in samples.signals.items() if k in ("x_ref", "u", "x", "pA", "pB")}
-    n = len(t_ns)
-    k = min(int(round(burn_s / dt)), n // 2) if burn_s > 0 else 0
-    fresh = None
-    if k > 0:
-        mask = np.ones(n, dtype=bool)
-        mask[:k] = False
-        fresh = {o: mask for o in ("x", "pA", "pB") if o in sig}
-    return Record(dt, sig, "window", fresh=fresh)
+    rec = Record(dt, sig, "window")
+    rec.burn_start(burn_s, ("x", "pA", "pB"))
+    return rec
 
 
 def fit_window(rec, tracker, names: Sequence[str], start: Mapping[str, float], sensors: bool = True,
