@@ -16,15 +16,26 @@ import functools
 from collections.abc import Callable
 from typing import TypeVar
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 F = TypeVar("F", bound=Callable)
+
+#: the process's BLAS libraries, found once (finding them walks every loaded shared object: 20 ms a call, as
+#: much as a window's adequacy test); made at the first estimation, when numpy's and scipy's are loaded
+_CONTROLLER: ThreadpoolController | None = None
+
+
+def _one_thread():
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=1, user_api="blas")
 
 
 def one_blas_thread(func: F) -> F:
     """Run ``func`` with every loaded BLAS library (numpy's, scipy's) limited to one thread, restored after."""
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        with threadpool_limits(limits=1, user_api="blas"):
+        with _one_thread():
             return func(*args, **kwargs)
     return wrapper  # type: ignore[return-value]

@@ -23,11 +23,13 @@ from twin.estimation.diagnose.adequacy import _state
 from twin.estimation.diagnose.constants import ALPHA
 from twin.estimation.diagnose.data import _Data
 from twin.estimation.fit import FitResult, noise_levels, resolve_outputs
+from twin.estimation.threads import one_blas_thread
 from twin.models import Model
 from twin.models.base import DEFAULT_TIMING, Timing
 from twin.record import Record
 
 
+@one_blas_thread
 def fit_adequacy(model: Model, records: Sequence[Record], res: FitResult, outputs: Sequence[str] | None = None,
                  noise: Mapping[str, float] | None = None, drive: str = "auto", timing: Timing | None = None,
                  holdout: float = 0.25, alpha: float = ALPHA) -> dict:
