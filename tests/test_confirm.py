@@ -127,6 +127,33 @@ def test_two_confirmations_warn_three_alarm_not_testable_keeps_count_inside_retu
     assert apply(high, 32.0) == [] and apply(inside, 36.0) == [] and apply(high, 40.0) == []  # inside resets
 
 
+def test_an_alarm_returns_only_on_a_window_that_puts_the_parameter_inside_at_the_level():
+    """A wear just past its band's edge: a window's point estimate falls inside by chance about half the time.
+    The return needs the edge rejected at the level (``back_inside``), as the raise needs the baseline rejected."""
+    from twin.online.confirm import back_inside, critical_z
+
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    high = decide("p", 200.0, 0.05, BAND, True)
+    for t in (4.0, 8.0, 12.0):
+        events = cd._apply("p", high, 1, t, "scheduled")
+    assert [e.level for e in events] == ["alarm"] and cd.raised_side["p"] == "high"
+    barely = decide("p", 145.0, 0.05, BAND, True)  # inside by 3 %, the window's error 5 %
+    assert barely.state == "inside"
+    assert back_inside(145.0, 0.05, BAND, "high") == (False, pytest.approx(math.log(145 / 150) / 0.05))
+    assert cd._apply("p", barely, 1, 16.0, "scheduled") == [] and cd.level["p"] == "alarm"
+    assert cd.count["p"] == 0  # the next confirmation starts again, the alarm stays
+    clearly = decide("p", 120.0, 0.05, BAND, True)
+    ok, z = back_inside(120.0, 0.05, BAND, "high")
+    assert ok and z < -critical_z()
+    (ev,) = cd._apply("p", clearly, 1, 20.0, "scheduled")
+    assert (ev.level, ev.kind) == ("ok", "returned") and "against its upper edge" in ev.message
+    assert ev.statistic == pytest.approx(z)
+    # the commissioning's own uncertainty widens the test as it widens the raise's
+    assert back_inside(120.0, 0.05, BAND, "high", base_rel_std=0.03)[0] is True
+    assert back_inside(120.0, 0.05, BAND, "high", base_rel_std=0.08)[0] is False
+    assert back_inside(80.0, 0.05, BAND, "low") == (True, pytest.approx(math.log(80 / (100 / 1.5)) / 0.05))
+
+
 def test_an_unresolved_window_neither_confirms_nor_returns():
     cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
     high = decide("p", 200.0, 0.05, BAND, True)

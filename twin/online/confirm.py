@@ -22,8 +22,13 @@ matter here): two estimators of different kinds, each wrong at times (the filter
 a short window's fit biased by what the model lacks under one demand), must agree.  Two confirmations on one
 side, on disjoint windows with none between them finding the parameter inside its band
 (:data:`WARN_CONFIRMATIONS`), raise a **warning**; three (:data:`ALARM_CONFIRMATIONS`, or two while the filter's
-drift test is at alarm) the **alarm**; a window that finds the parameter inside its band returns it.  A window
-that cannot test it changes nothing: the parameter is ``not_testable`` now, its level and count stay.
+drift test is at alarm) the **alarm**.  A raised parameter returns only on a window that puts it inside its band
+at the same level: the band's edge it crossed rejected, ``log(theta_w / edge) / sqrt(s_w^2 + s_0^2)`` beyond the
+critical value on the band's side (:func:`back_inside`).  A window whose point estimate merely falls inside
+changes nothing then: while a wear goes on just past the edge, half the windows' estimates fall inside by chance,
+and each had returned the alarm (an all-clear while the rig kept wearing; on the leakage that drifted linearly
+past its band the alarm came and went twice in 40 s).  A window that cannot test it changes nothing: the
+parameter is ``not_testable`` now, its level and count stay.
 
 The window is fitted twice, from the filter's current estimate and from the baseline (a wear in progress moves
 the filter ahead of the baseline; a diverged filter is far from both), and the lower cost is kept.  The fit
@@ -139,6 +144,21 @@ def decide(name: str, value: float, rel_std: float, base: Baseline, adequate: bo
         return Verdict(name, "unresolved", value, rel_std, z,
                        why=f"outside its band but not away from the baseline at the level {alpha:g} (z {z:+.1f})")
     return Verdict(name, "inside", value, rel_std, z)
+
+
+def back_inside(value: float, rel_std: float, base: Baseline, side: str, base_rel_std: float = 0.0,
+                alpha: float = ALPHA) -> tuple[bool, float]:
+    """Does a window put a parameter raised on ``side`` (``high``/``low``) back inside its band at the level
+    ``alpha``?  ``(verdict, z)`` with ``z = log(value / edge) / sqrt(s_w^2 + s_0^2)`` against the band's edge on
+    that side: back when ``z`` lies beyond the two-sided critical value towards the band's inside."""
+    if not (value > 0 and math.isfinite(value) and math.isfinite(rel_std) and rel_std >= 0):
+        return False, math.nan
+    s0 = base_rel_std if math.isfinite(base_rel_std) else 0.0
+    sd = math.sqrt(rel_std * rel_std + s0 * s0)
+    edge = base.hi if side == "high" else base.lo
+    z = math.log(value / edge) / sd if sd > 0 else (-math.inf if value < edge else math.inf)
+    zc = critical_z(alpha)
+    return (z < -zc if side == "high" else z > zc), z
 
 
 def decide_offset(name: str, value: float, std: float, adequate: bool, alpha: float = ALPHA,
@@ -266,6 +286,8 @@ class ConfirmedDrift:
         self.base_std = {n: float((base_std or {}).get(n, 0.0)) for n in baseline}
         self.level = {n: "ok" for n in baseline}
         self.side = {n: "" for n in baseline}
+        #: the side of the band a raised parameter left (its return is tested against that edge)
+        self.raised_side = {n: "high" for n in baseline}
         self.count = {n: 0 for n in baseline}
         self.state = {n: "untested" for n in baseline}
         #: record time (s) of each parameter's last test that could test it (None: not yet)
@@ -473,9 +495,15 @@ class ConfirmedDrift:
             self.side[n] = ""
             if old == "ok":
                 return []
+            back, zb = back_inside(vd.value, vd.rel_std, base, self.raised_side[n], self.base_std.get(n, 0.0),
+                                   self.alpha)
+            if not back:  # inside by its point estimate, not by the test: the alarm stays
+                return []
             self.level[n] = "ok"
-            return [self._event(n, "ok", "returned", vd, t_ns, now, base,
-                                f"{n} back inside its band (re-fit of the last {self.window_s:g} s)")]
+            edge = "upper" if self.raised_side[n] == "high" else "lower"
+            return [self._event(n, "ok", "returned", dataclasses.replace(vd, z=zb), t_ns, now, base,
+                                f"{n} back inside its band (re-fit of the last {self.window_s:g} s; z {zb:+.1f} "
+                                f"against its {edge} edge, level {self.alpha:g})")]
         side = "high" if vd.state == "high" else "low"
         self.count[n] = self.count[n] + 1 if self.side[n] == side else 1
         self.side[n] = side
@@ -486,6 +514,7 @@ class ConfirmedDrift:
         if ALARM_LEVELS.index(new) <= ALARM_LEVELS.index(old):
             return []
         self.level[n] = new
+        self.raised_side[n] = side  # the side of the level it holds now
         kind = "escalated" if old == "warning" else "raised"
         where = "above" if side == "high" else "below"
         msg = (f"{n} {where} its healthy band, confirmed by {c} re-fits of {self.window_s:g} s windows "
