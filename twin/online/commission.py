@@ -29,6 +29,7 @@ from collections.abc import Mapping, Sequence
 from fpdd.errors import ConfigError, ParameterError
 from twin.models import DEFAULT_MODEL, REGISTRY, get_model, trackable_models
 from twin.models.base import Timing
+from twin.online.confirm import BURN_S
 
 NOISE_KEYS = ("x", "pA", "pB")
 
@@ -206,13 +207,13 @@ def tracker_params(c: Commission, tracked: Sequence[str]) -> tuple[dict[str, flo
 MIN_STROKE_M = 1e-4
 #: A fitted parameter known worse than this (relative standard error) was not excited enough.
 MAX_REL_STD = 0.5
-#: seconds at the window's start whose residuals the commissioning fit does not count (the confirmation's
-#: :data:`twin.online.confirm.BURN_S`, for the same reason: the fit's loop starts from a state read off the first
-#: samples). A service started on a rig already moving gathers a window that starts mid-motion: counted, that
-#: start refused 16 of 40 commissionings of the reference simulator (windows 12 s from 3.37 s and 7.61 s, seeds
-#: 0-19) and put 3 of the 24 accepted leakages more than 3 standard errors off their truth; not counted, 1 of 40
-#: refused and none off. Windows starting at rest: no change (20 of 20 either way).
-BURN_S = 0.5
+# The window's first BURN_S seconds are simulated, not counted, as in the confirmation's windows and for the same
+# reason (the fit's loop starts from a state read off the first samples; :data:`twin.online.confirm.BURN_S`). A
+# service started on a rig already moving gathers a window that starts mid-motion: counted, that start refused 49
+# of 120 commissionings of the reference simulator (verification seeds 1000-1039, 12-s windows from 2.71, 6.43 and
+# 11.9 s) and put 26 of the 71 accepted leakages more than 3 standard errors off their truth; not counted, 4 of 120
+# refused and 1 of 116 off. Windows starting at rest: 0 of 40 refused either way (python -m
+# benchmarks.commission_start).
 #: At most this many samples are gathered for a commissioning fit, whatever ``commission_s`` says (memory).
 MAX_WINDOW_SAMPLES = 1_000_000
 
