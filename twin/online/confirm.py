@@ -26,8 +26,8 @@ drift test is at alarm) the **alarm**.  A raised parameter returns only on a win
 at the same level: the band's edge it crossed rejected, ``log(theta_w / edge) / sqrt(s_w^2 + s_0^2)`` beyond the
 critical value on the band's side (:func:`back_inside`).  A window whose point estimate merely falls inside
 changes nothing then: while a wear goes on just past the edge, half the windows' estimates fall inside by chance,
-and each had returned the alarm (an all-clear while the rig kept wearing; on the leakage that drifted linearly
-past its band the alarm came and went twice in 40 s).  A window that cannot test it changes nothing: the
+and each had returned the alarm (an all-clear while the rig kept wearing; on a leakage drifting exponentially
+past its band the alarm was raised three times and returned twice within 60 s).  A window that cannot test it changes nothing: the
 parameter is ``not_testable`` now, its level and count stay.
 
 The window is fitted twice, from the filter's current estimate and from the baseline (a wear in progress moves
