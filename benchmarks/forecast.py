@@ -199,11 +199,17 @@ def _samples(rec, t0_ns: int = 1_700_000_000_000_000_000):
     return Samples(t_ns, {k: np.asarray(v, float) for k, v in rec.signals.items()})
 
 
-def run_record(rec, horizon_s: float = 3600.0):
-    """The record through ``twin track``'s library (tracker, drift test, forecast); returns the twin."""
+def run_record(rec, horizon_s: float = 3600.0, confirm: bool = False):
+    """The record through ``twin track``'s library (tracker, drift test, forecast; ``confirm``: alarms confirmed by
+    window re-fits, ``twin track --confirm``); returns the twin."""
     from twin.service.track import track
 
-    return track(_samples(rec), "bench", forecast_horizon_s=horizon_s)
+    return track(_samples(rec), "bench", forecast_horizon_s=horizon_s, confirm=True if confirm else None)
+
+
+def _drift_alarms(twin) -> list[dict[str, Any]]:
+    return [{"parameter": a.parameter, "level": a.level, "t_s": a.t_s} for a in twin.alarms
+            if a.level in ("warning", "alarm") and a.kind in ("raised", "escalated")]
 
 
 def true_exit(rec, twin, param: str) -> float:
@@ -230,7 +236,11 @@ def wear_figures(rec, twin, param: str, wear_start: float = 0.0) -> dict[str, An
             "first_early_s": first, "lead_s": lead,
             "lead_fraction": None if lead is None else lead / (te - wear_start),
             "early_other": [a.parameter for a in early if a.parameter != param],
-            "early_before_exit": sum(1 for a in early if a.parameter == param and a.t_s < te)}
+            "early_before_exit": sum(1 for a in early if a.parameter == param and a.t_s < te),
+            "drift_alarms": _drift_alarms(twin),
+            # all-clears while the truth is outside its band (these wears only worsen past their exit)
+            "returns_after_exit": sum(1 for a in twin.alarms if a.parameter == param and a.kind == "returned"
+                                      and a.t_s >= te)}
 
 
 def level_error(rec, twin, param: str, skip_s: float = 60.0, window_s: float = 60.0) -> dict[str, Any]:
@@ -270,16 +280,16 @@ def level_error(rec, twin, param: str, skip_s: float = 60.0, window_s: float = 6
 def healthy_figures(rec, twin) -> dict[str, Any]:
     early = [a for a in twin.alarms if a.level == "early" and a.kind == "raised"]
     hours = float(rec.t[-1] - rec.t[0]) / 3600.0
-    drift = [a for a in twin.alarms if a.level in ("warning", "alarm") and a.kind in ("raised", "escalated")]
     return {"hours": hours, "early": len(early), "early_parameters": [a.parameter for a in early],
-            "forecasts": len(twin.forecasts),
-            "drift_alarms": [{"parameter": a.parameter, "level": a.level, "t_s": a.t_s} for a in drift]}
+            "forecasts": len(twin.forecasts), "drift_alarms": _drift_alarms(twin)}
 
 
-def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = None) -> dict[str, Any]:
-    """The figures of a set's records (``seeds``: only those of the set's records)."""
+def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = None,
+            confirm: bool = False) -> dict[str, Any]:
+    """The figures of a set's records (``seeds``: only those of the set's records; ``confirm``: the alarms
+    confirmed by window re-fits)."""
     ref = _reference()
-    out: dict[str, Any] = {"set": which, "wear": [], "healthy": []}
+    out: dict[str, Any] = {"set": which, "confirm": confirm, "wear": [], "healthy": []}
     for row, spec in zip(WEAR[which] if part != "healthy" else [], specs(which)):
         label, param, shape, dur, seed, nz = row[:6]
         t0 = wear_start(row)
@@ -287,7 +297,7 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
             continue
         rec = ref.get_record(spec)
         t = time.perf_counter()
-        twin = run_record(rec)
+        twin = run_record(rec, confirm=confirm)
         r = {"label": label, "shape": shape, "duration_s": dur, "seed": seed, "noise": nz,
              **wear_figures(rec, twin, param, wear_start=t0), "wear_start_s": t0, "track_s": time.perf_counter() - t,
              "level_error": {n: level_error(rec, twin, n) for n in twin.forecast.params}}
@@ -298,7 +308,7 @@ def measure(which: str, say=print, part: str = "all", seeds: list[int] | None = 
         if seeds and seed not in seeds:
             continue
         rec = logged(ref.get_record(spec), kind)
-        twin = run_record(rec)
+        twin = run_record(rec, confirm=confirm)
         r = {"label": label, "duration_s": dur, "seed": seed, **healthy_figures(rec, twin),
              "level_error": {n: level_error(rec, twin, n) for n in twin.forecast.params}}
         out["healthy"].append(r)
@@ -344,11 +354,32 @@ def _level(w: dict[str, Any]) -> str:
     return f"{le['mean']:+.4f}, {le['rms']:.4f}"
 
 
+def _firsts(w: dict[str, Any]) -> str:
+    """The first warning and the first alarm on the wearing parameter, each as seconds from the true exit."""
+    out = []
+    for level in ("warning", "alarm"):
+        t = next((d["t_s"] for d in w.get("drift_alarms", []) if d["parameter"] == w["parameter"]
+                  and d["level"] == level), None)
+        out.append("none" if t is None else f"{t - w['t_exit_true_s']:+.0f} s")
+    return ", ".join(out)
+
+
+def _returns(w: dict[str, Any]) -> str:
+    n = w.get("returns_after_exit")
+    return "-" if n is None else str(n)
+
+
+def _others(w: dict[str, Any]) -> str:
+    other = [d for d in w.get("drift_alarms", []) if d["parameter"] != w["parameter"]]
+    return ", ".join(f"{d['parameter']} {d['level']} {d['t_s']:.0f} s" for d in other) or "none"
+
+
 def table(res: dict[str, Any]) -> str:
     """The results table (Markdown, as in docs/results/forecast.md)."""
     lines = ["| record | wear | true exit | forecasts in last third | 90 % coverage | first early alarm | lead / wear "
-             "| level error (60-s means: mean, RMS; log) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| level error (60-s means: mean, RMS; log) | first warning, alarm (its parameter) | returns after the exit "
+             "| alarms on others |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for w in res["wear"]:
         lf, cov, first = w["lead_fraction"], w["coverage"], w["first_early_s"]
         cov_t = "n/a" if cov is None else f"{100 * cov:.0f} %"
@@ -356,11 +387,12 @@ def table(res: dict[str, Any]) -> str:
         lf_t = "n/a" if lf is None else f"{lf:.2f}"
         lines.append(f"| {w['label']} seed {w['seed']}, {w['duration_s'] / 60:.0f} min, noise x{w['noise']:g} | "
                      f"{w['parameter']} {w['shape']} | {w['t_exit_true_s']:.0f} s | {w['forecasts_in_window']} of "
-                     f"{w['window_s']} s | {cov_t} | {first_t} | {lf_t} | {_level(w)} |")
+                     f"{w['window_s']} s | {cov_t} | {first_t} | {lf_t} | {_level(w)} | {_firsts(w)} | "
+                     f"{_returns(w)} | {_others(w)} |")
     for h in res["healthy"]:
         drift = "".join(f", {d['parameter']} {d['level']} at {d['t_s']:.0f} s" for d in h.get("drift_alarms", []))
         lines.append(f"| healthy {h['label']} seed {h['seed']}, {h['duration_s'] / 60:.0f} min | none | - | "
-                     f"{h['forecasts']} forecasts | - | {h['early']} early{drift} | - | - |")
+                     f"{h['forecasts']} forecasts | - | {h['early']} early{drift} | - | - | - | - | - |")
     s = res["summary"]
     if s["coverage_pooled"] is not None:
         lines.append(f"\ncoverage: pooled over the forecasts {100 * s['coverage_pooled']:.1f} %, mean of the records "
@@ -387,6 +419,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, action="append", metavar="N",
                     help="measure only the set's record of this seed (repeatable; default: all of the set)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="print the table of --json outputs of the parts")
+    ap.add_argument("--confirm", action="store_true",
+                    help="alarms confirmed by window re-fits (twin track --confirm); the table adds each wear's "
+                    "first warning and alarm on its parameter and the alarms on others")
     add_guard_option(ap)
     a = ap.parse_args(argv)
     refused = apply_guard(a.guard)
@@ -401,7 +436,8 @@ def main(argv: list[str] | None = None) -> int:
         for path in a.merge:
             with open(path, encoding="utf-8") as f:
                 parts.append(json.load(f))
-        res = summarise({"set": parts[0]["set"], "wear": [w for p in parts for w in p["wear"]],
+        res = summarise({"set": parts[0]["set"], "confirm": parts[0].get("confirm", False),
+                         "wear": [w for p in parts for w in p["wear"]],
                          "healthy": [h for p in parts for h in p["healthy"]]})
         print(json.dumps(res, indent=1) if a.json else table(res))
         return 0
@@ -412,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--seed: {bad[0]} is not a record of the {a.set} set (its seeds: "
                   f"{', '.join(str(k) for k in sorted(known))})", file=sys.stderr)
             return 2
-    res = measure(a.set, say=(lambda m: print(m, file=sys.stderr, flush=True)), part=a.part, seeds=a.seed)
+    res = measure(a.set, say=(lambda m: print(m, file=sys.stderr, flush=True)), part=a.part, seeds=a.seed,
+                  confirm=a.confirm)
     print(json.dumps(res, indent=1) if a.json else table(res))
     return 0
 
