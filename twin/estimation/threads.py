@@ -21,13 +21,15 @@ from threadpoolctl import ThreadpoolController
 F = TypeVar("F", bound=Callable)
 
 #: the process's BLAS libraries, found once (finding them walks every loaded shared object: 20 ms a call, as
-#: much as a window's adequacy test); made at the first estimation, when numpy's and scipy's are loaded
+#: much as a window's adequacy test); made at the first estimation, with numpy's and scipy's loaded
 _CONTROLLER: ThreadpoolController | None = None
 
 
 def _one_thread():
     global _CONTROLLER
     if _CONTROLLER is None:
+        import scipy.linalg  # noqa: F401 - scipy's own BLAS loaded before the libraries are listed
+
         _CONTROLLER = ThreadpoolController()
     return _CONTROLLER.limit(limits=1, user_api="blas")
 
