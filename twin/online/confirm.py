@@ -112,9 +112,6 @@ class Verdict:
     rel_std: float = math.nan
     z: float = math.nan
     why: str = ""
-    #: ``low``/``high``: an adequate window's fit ran beyond the parameter's physical range on that side (no
-    #: verdict of its own, but it points away from a count on the other side)
-    beyond: str = ""
 
 
 def critical_z(alpha: float = ALPHA) -> float:
@@ -455,8 +452,7 @@ class ConfirmedDrift:
             lo, hi = bounds[n]
             if adequate and not lo < v < hi:  # beyond what the filter may hold for this rig: the fit ran off
                 verdicts[n] = Verdict(n, "not_testable", v, why="the window's fit left the parameter's physical "
-                                                                f"range ({lo:.3g} .. {hi:.3g})",
-                                      beyond="low" if v <= lo else "high")
+                                                                f"range ({lo:.3g} .. {hi:.3g})")
                 continue
             shared = [p for p in SENSOR_PARAMS if p in res.free and abs(float(
                 res.corr[res.free.index(n), res.free.index(p)])) > SENSOR_CORR]
@@ -485,11 +481,6 @@ class ConfirmedDrift:
         base = self.baseline[n]
         if vd.state == "not_testable":
             self.state[n] = "not_testable"
-            if vd.beyond and self.side[n] and vd.beyond != self.side[n]:
-                # an adequate window whose fit ran out of the range the other way: not a test, but no support
-                # for the count either; the confirmations must come again (as after a window inside the band)
-                self.count[n] = 0
-                self.side[n] = ""
             return []
         self.tested[n] = now
         self.state[n] = "ok"
