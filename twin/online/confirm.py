@@ -119,6 +119,15 @@ def critical_z(alpha: float = ALPHA) -> float:
     return NormalDist().inv_cdf(1.0 - 0.5 * alpha)
 
 
+def log_z(value: float, ref: float, rel_std: float, base_rel_std: float = 0.0) -> float:
+    """``log(value / ref) / sqrt(s_w^2 + s_0^2)``: a window's value against a reference (the baseline, a band's
+    edge) in units of the two relative standard errors (``s_0`` NaN counts as 0; both 0: an infinite z)."""
+    s0 = base_rel_std if math.isfinite(base_rel_std) else 0.0
+    sd = math.sqrt(rel_std * rel_std + s0 * s0)
+    d = math.log(value / ref)
+    return d / sd if sd > 0 else math.copysign(math.inf, d)
+
+
 def decide(name: str, value: float, rel_std: float, base: Baseline, adequate: bool, base_rel_std: float = 0.0,
            alpha: float = ALPHA, resolve: float = RESOLVE) -> Verdict:
     """The window's verdict on one parameter (module docstring): ``not_testable`` when the window's fit is not
@@ -133,8 +142,7 @@ def decide(name: str, value: float, rel_std: float, base: Baseline, adequate: bo
         return Verdict(name, "not_testable", value, rel_std,
                        why=f"the window informs it to +-{100 * rel_std:.0f} % only (at most "
                            f"{100 * resolve * half:.0f} % tests its band)")
-    s0 = base_rel_std if math.isfinite(base_rel_std) else 0.0
-    z = math.log(value / base.value) / math.sqrt(rel_std * rel_std + s0 * s0)
+    z = log_z(value, base.value, rel_std, base_rel_std)
     zc = critical_z(alpha)
     if value > base.hi and z > zc:
         return Verdict(name, "high", value, rel_std, z)
@@ -153,10 +161,8 @@ def back_inside(value: float, rel_std: float, base: Baseline, side: str, base_re
     that side: back when ``z`` lies beyond the two-sided critical value towards the band's inside."""
     if not (value > 0 and math.isfinite(value) and math.isfinite(rel_std) and rel_std >= 0):
         return False, math.nan
-    s0 = base_rel_std if math.isfinite(base_rel_std) else 0.0
-    sd = math.sqrt(rel_std * rel_std + s0 * s0)
     edge = base.hi if side == "high" else base.lo
-    z = math.log(value / edge) / sd if sd > 0 else (-math.inf if value < edge else math.inf)
+    z = log_z(value, edge, rel_std, base_rel_std)
     zc = critical_z(alpha)
     return (z < -zc if side == "high" else z > zc), z
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import signal
-import sys
 import threading
 import time
 from typing import Any
@@ -61,12 +60,11 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     for t in threads:
         t.join()
     console.close()
-    if "zenoh" in sys.modules:  # a live Zenoh input ran here: leave as the programs do
-        from fpdd.process import exit_process
+    from fpdd.process import exit_process
 
-        out.close()  # what the rigs put on the queue reaches the service first
-        out.join_thread()
-        exit_process(0)
+    out.close()  # what the rigs put on the queue reaches the service first
+    out.join_thread()
+    exit_process(0)  # as the programs leave (Zenoh's threads at the interpreter's exit)
 
 
 def run_scheduled(rigs: list[RigConfig], cfg: ServiceConfig, out, stop) -> None:
