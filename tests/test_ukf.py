@@ -236,11 +236,10 @@ def test_sigma_points_propagated_together_are_the_models_step_exactly(mode, para
     """The model's lanes integrate the sigma points side by side (vectorised): per point the same numbers as the
     model's own one-point ``advance`` (its right-hand side ``deriv``), bit for bit, on both sides of the valve's
     null and with a noise state in the last coordinates; a symmetric and a single-rod cylinder."""
-    from twin.online.ukf_predict import _lanes, fx_into
-
     tr = OnlineTracker(params=params)
     F = ukf.functions_of(tr.model)
-    fns = (F.advance, F.lanes_applicable, F.lanes)
+    predict = ukf.kernel_modules(tr.model)[0]  # the prediction compiled with the model's functions
+    _lanes, fx_into = predict._lanes, predict.fx_into
     n, nm, ns = tr.n, tr.nmod, tr.ns
     rng = np.random.default_rng(31 + mode)
     x = np.concatenate([[0.01, 0.0, 11.0, 9.0, 2.0, 0.5], np.zeros(len(tr.tracked)), np.zeros(n - nm)])
@@ -252,14 +251,37 @@ def test_sigma_points_propagated_together_are_the_models_step_exactly(mode, para
     m = 2 * nm + 1
     assert F.lanes_applicable(tr.pvec) and m <= F.LANES
     sf = np.full((2 * n + 1, n), np.nan)
-    _lanes(*fns, sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2, nm,
+    _lanes(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2, nm,
            np.empty((F.LANES, ns)), np.empty((F.LANES, len(tr.tracked))), np.empty(F.LANE_WORK))
     for r in rows[:m]:
         one = np.empty(n)
-        fx_into(*fns, sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+        fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
                 0.0, np.zeros(F.N_CTRL), F.N_CTRL, np.empty(ns), np.empty(ns), one, nm)
         np.testing.assert_array_equal(sf[r, :nm], one[:nm])
     assert np.isnan(sf[nm + 1:n + 1]).all()  # the points along noise states are not integrated
+
+
+def test_a_models_kernel_is_the_filters_source_with_one_marked_import_swapped():
+    """The kernel of a model is ``ukf_predict`` and ``ukf_loop`` as written, each with its one marked import naming
+    the model's module (and the model's prediction) instead of the slot: no other line differs, and a source that
+    lost its marker is refused in one line."""
+    from pathlib import Path
+
+    from twin.online import ukf_loop, ukf_predict
+
+    tr = OnlineTracker()
+    predict, loop = ukf.kernel_modules(tr.model)
+    functions = tr.model.FILTER.functions
+    for generated, original, slot, named in ((predict, ukf_predict, "twin.online.ukf_model", functions),
+                                             (loop, ukf_loop, "twin.online.ukf_predict", predict.__name__)):
+        new = Path(generated.__file__).read_text().splitlines()
+        old = Path(original.__file__).read_text().splitlines()
+        assert new[:len(old)] == [row.replace(f"from {slot} import ", f"from {named} import ") for row in old]
+        assert sum(a != b for a, b in zip(new, old)) == 1
+        tail = new[len(old):]
+    assert any(row.startswith("def run(") for row in tail)  # the loop's copy: the kernel's entry, appended
+    with pytest.raises(RuntimeError, match="ukf_loop.py: expected one line"):
+        ukf._swap_import("from twin.online.ukf_predict import _predict\n", ukf._PREDICT_LINE, "x", "twin/online/ukf_loop.py")
 
 
 def test_the_kernel_is_loaded_from_numbas_cache_in_a_fresh_process():

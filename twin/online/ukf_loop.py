@@ -2,9 +2,10 @@
 checks, the update, noise learning, the consistency guard, divergence recovery and checkpoints (see
 :mod:`twin.online.ukf`).
 
-:func:`filter_loop` takes the model's compiled filter interface (``advance``, ``lanes_applicable``, ``lanes``) and four records
-(:data:`twin.online.ukf.Setup`, :data:`~twin.online.ukf.Carry`, :data:`~twin.online.ukf.Block`,
-:data:`~twin.online.ukf.Out`); it is compiled into each model's kernel (:func:`twin.online.ukf.kernel_for`).
+:func:`filter_loop` takes four records (:data:`twin.online.ukf.Setup`, :data:`~twin.online.ukf.Carry`,
+:data:`~twin.online.ukf.Block`, :data:`~twin.online.ukf.Out`).  The model comes through the prediction, imported in
+the one line marked ``# kernel: the model's prediction``: each model's kernel (:func:`twin.online.ukf.kernel_for`)
+is a copy of this module whose marked line names that model's copy of :mod:`twin.online.ukf_predict`.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from twin.online.ukf_linalg import _all_finite, dlog_dz
-from twin.online.ukf_predict import _predict
+from twin.online.ukf_predict import _predict, lanes_apply  # kernel: the model's prediction
 from twin.online.ukf_status import (
     C_ADAPT, C_A_MAX, C_CENTRAL, C_NSHARE, C_CK_S, C_CLEAR_N, C_DIV_NIS, C_GAP_MAX, C_INFLATE, C_NIS_CLIP, C_NIS_HI, C_NOISY, C_OFF_N,
     C_OUT_NU, C_RHO_HI, C_SETTLE_S, C_SIG_HI, C_SIG_LO, C_STUCK_N, C_TAU_DIV, C_TAU_GUARD, C_TAU_NOISE, C_WARM_S,
@@ -68,7 +69,7 @@ def _carry_controller(ctrl, fs, closed, ps, nc):
 
 
 @nb.njit
-def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, ticks, mode, out):
+def filter_loop(setup, carry, block, closed, ticks, mode, out):
     """Filter the ``T`` samples of ``block`` in place; ``carry`` carries over between calls; returns the index of
     an unrecoverable sample, or -1.
 
@@ -100,7 +101,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
     si = np.empty(ns)
     so = np.empty(ns)
     ctrl = np.zeros(3 * nc)  # controller memory: working, carried from sample to sample, at the interval's end
-    fast = applicable(pvec)
+    fast = lanes_apply(pvec)
     for j in range(nc):
         ctrl[nc + j] = fs[F_CTRL + j]
     sig = np.empty((2 * n + 1, n))
@@ -184,7 +185,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                     wnd[1] = fs[F_U1]
                     wnd[2] = a_now
                     wnd[3] = a_now
-                    ps = _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
+                    ps = _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub,
                                   fs[F_XM1], Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc,
                                   fast, W, S_l, TH, rows, central)
                     _carry_controller(ctrl, fs, closed, ps, nc)
@@ -201,7 +202,7 @@ def filter_loop(advance, applicable, lanes_fn, setup, carry, block, closed, tick
                         wnd[2] = fs[F_U1] + f1 * (a_now - fs[F_U1])
                         wnd[3] = wnd[2]
                         xm = fs[F_XM1] if s_i == 0 or fb < 0 else x[fb] * scale[fb]
-                        ps = _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale,
+                        ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale,
                                       h, nsub, xm, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl,
                                       nc, fast, W, S_l, TH, rows, central)
                         _carry_controller(ctrl, fs, closed, ps, nc)

@@ -1,11 +1,12 @@
 """The filter's prediction: the unscented transform of the augmented state through one log interval of the rig
 model (filterpy's ``UnscentedKalmanFilter.predict`` with Merwe's sigma points), compiled.
 
-The model comes as its compiled filter interface ``advance, applicable, lanes_fn`` (its ``advance``,
-``lanes_applicable`` and ``lanes``) (see
-:attr:`twin.models.base.FilterSpec.functions`); these functions take them as their first arguments (three
-dispatchers: a tuple of them would be a first-class function type, which numba does not cache) and are compiled
-into each model's kernel (:func:`twin.online.ukf.kernel_for`), never cached on their own.
+The model comes as the globals ``advance``, ``applicable`` and ``lanes_fn`` (its compiled filter interface's
+``advance``, ``lanes_applicable`` and ``lanes``, see :attr:`twin.models.base.FilterSpec.functions`), imported in
+the one line marked ``# kernel: the model's interface``.  Here that line names the model slot
+(:mod:`twin.online.ukf_model`); :func:`twin.online.ukf.kernel_for` compiles a copy of this module whose marked
+line names a model's module instead (numba caches a function that calls dispatchers it finds as globals;
+dispatchers handed down as arguments become first-class function values, which it does not cache).
 """
 
 from __future__ import annotations
@@ -15,11 +16,18 @@ import math
 import numba as nb
 
 from twin.online.ukf_linalg import _chol_lower, _repair, theta_of
+from twin.online.ukf_model import advance, lanes as lanes_fn, lanes_applicable as applicable  # kernel: the model's interface
 from twin.online.ukf_status import ST_OK, ST_REPAIRED
 
 
 @nb.njit
-def fx_into(advance, applicable, lanes_fn, s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, out,
+def lanes_apply(p):
+    """True when the model's side-by-side lanes are exact for the kernel vector ``p``."""
+    return applicable(p)
+
+
+@nb.njit
+def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, out,
             nmod):
     """One log interval of one augmented state with the drive window ``wnd`` (the drive at samples k-2, k-1, k, k;
     index 1 is the interval's start).
@@ -44,7 +52,7 @@ def fx_into(advance, applicable, lanes_fn, s, wnd, closed, ticks, mode, p, idx, 
 
 
 @nb.njit
-def _lanes(advance, applicable, lanes_fn, sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W):
+def _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W):
     """The model part of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m``, integrated side by
     side by the model's ``lanes``; a parameter at the central point's value (a sigma point along another state)
     reuses its value."""
@@ -68,7 +76,7 @@ def _lanes(advance, applicable, lanes_fn, sig, sf, rows, m, wnd, mode, pw, idx, 
 
 
 @nb.njit
-def _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
+def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
              nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S, TH, rows, central):
     """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1.
 
@@ -108,16 +116,16 @@ def _predict(advance, applicable, lanes_fn, x, P, wnd, closed, ticks, mode, pw, 
             if k == 0 or (k - 1) % n < nmod:
                 rows[m] = k
                 m += 1
-        _lanes(advance, applicable, lanes_fn, sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W)
+        _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W)
     else:
-        fx_into(advance, applicable, lanes_fn, sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so,
+        fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so,
                 sf[0], nmod)
         for j in range(nc):  # the controller's memory at the interval's end, along the central point
             ctrl[2 * nc + j] = ctrl[j]
         for k in range(nmod):
-            fx_into(advance, applicable, lanes_fn, sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc,
+            fx_into(sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc,
                     si, so, sf[k + 1], nmod)
-            fx_into(advance, applicable, lanes_fn, sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl,
+            fx_into(sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl,
                     nc, si, so, sf[n + k + 1], nmod)
     for k in range(nmod, n):  # along a noise state only: the model part is the central point's
         for i in range(nmod):
