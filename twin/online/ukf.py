@@ -166,9 +166,9 @@ def _kernel_sources(functions: str, predict_name: str) -> tuple[str, str]:
     that copy (``predict_name``), plus the kernel's entry ``run``."""
     from twin.online import ukf_loop, ukf_predict
 
-    predict = _swap_import(Path(ukf_predict.__file__).read_text(), _MODEL_LINE, functions,  # type: ignore[arg-type]
+    predict = _swap_import(Path(ukf_predict.__file__).read_text(), _MODEL_LINE, functions,
                            "twin/online/ukf_predict.py")
-    loop = _swap_import(Path(ukf_loop.__file__).read_text(), _PREDICT_LINE, predict_name,  # type: ignore[arg-type]
+    loop = _swap_import(Path(ukf_loop.__file__).read_text(), _PREDICT_LINE, predict_name,
                         "twin/online/ukf_loop.py")
     return predict, loop + _KERNEL_TAIL
 
