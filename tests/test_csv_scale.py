@@ -75,3 +75,31 @@ def test_reference_loops_pass_and_their_mm_copies_are_refused(controller, known,
     for mm, named in ((("x",), "ref: x is"), (("x_ref",), "ref: x_ref is"), (("x", "x_ref"), "ref: x and x_ref")):
         with pytest.raises(DataError, match=f"^{named}"):
             check_loop_scale(ps, {**sig, **{n: sig[n] * 1e3 for n in mm}}, "ref")
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_demand_starting_from_rest_leaves_the_scale_undetermined_not_refused(seed):
+    """The tracker checks the first block it is handed: half a second in which the demand ramps up from rest (a
+    sweep whose onset is drawn) while x is mostly its sensor's coloured noise.  The projection of one on the other
+    is no scale there; the scale's interval at the 0.1 % level is wide, and nothing is refused (a healthy campaign
+    draw was refused as 'x 2620 times its demand').  The whole record in mm is still refused."""
+    from fpdd.errors import DataError
+    from reference import msp25_spec
+    from conftest import get_records
+
+    from twin.units import check_loop_scale
+
+    rng = np.random.default_rng(seed)
+    onset = float(rng.uniform(0.4, 0.49))
+    demand = {"kind": "sequence", "onset_s": onset, "parts": [
+        {"kind": "sweep", "seconds": 2.5, "amplitude": float(rng.uniform(2e-3, 4e-3)), "v_max": 0.15,
+         "ramp_s": float(rng.uniform(0.05, 0.1))}]}
+    spec = msp25_spec(seed, duration=3.0, controller="analog", truth="draw", demand=demand,
+                      noise={"x": 2e-6 * float(rng.uniform(0.6, 1.0)), "tau": 0.005})
+    sig = dict(get_records([spec], workers=1)[0].signals)
+    ps = get_model("msp25").params()
+    first = {k: np.asarray(v)[:500] for k, v in sig.items()}
+    check_loop_scale(ps, first, "ref")  # the first half-second: undetermined, not refused
+    check_loop_scale(ps, sig, "ref")
+    with pytest.raises(DataError, match="^ref: x is"):
+        check_loop_scale(ps, {**sig, "x": sig["x"] * 1e3}, "ref")

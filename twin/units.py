@@ -227,12 +227,42 @@ def check_lengths(model, ps, signals, name: str = "record") -> None:
 LOOP_SCALE_DECADES = 0.5
 
 
+#: The level (two-sided normal quantile) at which a loop's scale must be determined before a refusal: 0.1 %.
+LOOP_SCALE_Z = 3.29
+
+
+def _scale_interval(r, x) -> tuple[float, float, float]:
+    """The position per unit of demand ``b`` by least squares with the loop's lag, ``x = b x_ref + c x_ref' + e``
+    (a loop follows its demand late: without the rate term a sweep's residual is the tracking error itself and the
+    scale is lost in it), and its interval at :data:`LOOP_SCALE_Z` standard errors, the residual's autocorrelation
+    counted (an AR(1)'s effective sample count).  A demand at rest leaves ``b`` undetermined: a wide interval, not
+    a scale near 1/1000 by chance."""
+    import numpy as np
+
+    n = r.size
+    X = np.column_stack([r, np.gradient(r)])
+    G = X.T @ X
+    if not (n > 3 and np.all(np.isfinite(G)) and np.linalg.cond(G) < 1e12):
+        return float("nan"), float("nan"), float("nan")
+    coef = np.linalg.solve(G, X.T @ x)
+    e = x - X @ coef
+    ee = float(np.dot(e, e))
+    rho = float(np.dot(e[1:], e[:-1])) / ee if ee > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.999)
+    var = float(np.linalg.inv(G)[0, 0]) * ee / (n - 2) * (1.0 + rho) / (1.0 - rho)
+    b, se = float(coef[0]), float(np.sqrt(max(var, 0.0)))
+    return b, b - LOOP_SCALE_Z * se, b + LOOP_SCALE_Z * se
+
+
 def check_loop_scale(ps, signals, name: str = "record") -> None:
     """Refuse (:class:`~fpdd.errors.DataError`, one line) a position in mm read as metres whose values stay inside
     the stroke, which no range can tell: in closed loop the demand ``x_ref`` and the measured ``x`` share one scale,
     and the controller's drive is ``u = KP (x_ref - x)`` (``KP`` of ``ps``). With ``x`` and ``x_ref`` in the record,
-    the least-squares scale ``s = <x_ref, x> / <x, x>`` near 1/1000 (or 1000) names ``x`` (or ``x_ref``); with ``u``
-    too, on a loop that tracks its demand (``s`` within a factor 2 of 1), the gain ``g = <u, e> / <e, e>`` of
+    the least-squares scale of ``x`` on ``x_ref`` (its lag taken out) near 1000 (or 1/1000), its whole interval at
+    the 0.1 % level (:func:`_scale_interval`), names ``x`` (or ``x_ref``): a demand at rest or a position lagging it leaves the
+    scale undetermined and refuses nothing (a healthy record's first half-second, its demand ramping up from
+    rest, was refused as ``x`` 2620 times its demand on the reference simulator, seed 1228); with ``u``
+    too, on a loop that tracks its demand (``<x_ref, x> / <x, x>`` within a factor 2 of 1), the gain ``g = <u, e> / <e, e>`` of
     ``e = x_ref - x`` near ``KP / 1000``, with the drive explained better by ``KP e / 1000`` than by ``KP e``, names
     both. Near means within :data:`LOOP_SCALE_DECADES` of three decades."""
     import numpy as np
@@ -263,12 +293,11 @@ def check_loop_scale(ps, signals, name: str = "record") -> None:
                         f"--map {sig}={sig}:mm or a header {sig}[mm] (a bare column is SI)")
 
     xx, rr = float(np.dot(x, x)), float(np.dot(r, r))
-    if xx > 0 and rr > 0:
-        k = thousand(float(np.dot(r, x)) / xx)
-        if k == -1:
-            refuse("x", f"is {xx / float(np.dot(r, x)):.3g} times larger than the demand x_ref it tracks")
-        if k == 1:
-            refuse("x_ref", f"is {float(np.dot(r, x)) / xx:.3g} times larger than the position x that tracks it")
+    b, lo_b, hi_b = _scale_interval(r, x)
+    if thousand(lo_b) == 1 and thousand(hi_b) == 1:
+        refuse("x", f"is {b:.3g} times larger than the demand x_ref it tracks")
+    if thousand(lo_b) == -1 and thousand(hi_b) == -1:
+        refuse("x_ref", f"is {1.0 / b:.3g} times larger than the position x that tracks it")
     try:
         kp = float(ps["KP"])
     except Exception:  # a model with no proportional gain
