@@ -10,7 +10,6 @@ is a copy of this module whose marked line names that model's copy of :mod:`twin
 
 from __future__ import annotations
 
-import collections
 import math
 
 import numba as nb
@@ -68,65 +67,66 @@ def _carry_controller(ctrl, fs, closed, ps, nc):
             ctrl[nc + j] = ctrl[2 * nc + j]
             fs[F_CTRL + j] = ctrl[2 * nc + j]
 
-
-#: the loop's scratch arrays, allocated once per block (:func:`_work`)
-Work = collections.namedtuple("Work", (
-    "L", "A", "Q", "B",  # [n, n]: the sigma points' factor, its argument, the process noise, the update's work
-    "pw",               # the kernel vector the model runs with (tracked parameters and exogenous inputs set in it)
-    "si", "so",         # [ns]: one state in and out of the model, SI
-    "ctrl",             # [3 nc]: controller memory: working, carried from sample to sample, at the interval's end
-    "sig", "sf",        # [2n + 1, n]: the sigma points and their predictions
-    "W", "S_l", "TH",   # the model's side-by-side lanes: work, states, parameters
-    "rows",             # [2n + 1] int: the sigma points that move the model
-    "sel", "WQ", "WN",  # the update's work
-    "freeze",           # [n] bool: a parameter without excitation is not updated
-    "innov", "Sd", "nu",  # [q]: each output's innovation, its variance, normalised
-    "share",            # [q]: the sensor noise's share of each output's innovation variance (noise learning)
-    "use",              # [q] bool: the outputs the update reads
-    "R",                # [q]: the white floor of each output's noise
-    "a_pow",            # [q]: each noise state's AR coefficient over the interval
-    "wnd",              # [4]: the drive at samples k-2, k-1, k, k
-    "unit_like",        # [q] bool: a reading off by a power of ten or out of its physical range
-    "inn2", "sd2",      # [q]: the update's work
-))
+# The stages below take arrays and numbers, never the kernel's records: a record handed to a compiled function is
+# reference-counted member by member at each call, inlined or not (measured: passing Setup and the scratch arrays
+# as records to the stages cost 0.6-1 us a sample).  filter_loop reads the records once per block.
 
 
 @nb.njit
-def _work(setup, n, q, nc, p_count):
-    """Fresh scratch arrays for one block."""
-    ns = setup.scale.shape[0]
-    ctrl = np.zeros(3 * nc)
-    return Work(np.zeros((n, n)), np.empty((n, n)), np.zeros((n, n)), np.empty((n, n)), setup.pvec.copy(),
-                np.empty(ns), np.empty(ns), ctrl, np.empty((2 * n + 1, n)), np.empty((2 * n + 1, n)),
-                np.empty(setup.lane_work), np.empty((setup.lanes, ns)), np.empty((setup.lanes, p_count)),
-                np.empty(2 * n + 1, dtype=np.int64), np.empty(q, dtype=np.int64), np.empty((4 * q + 1, q)),
-                np.empty((2 * n, q)), np.zeros(n, dtype=np.bool_), np.empty(q), np.empty(q), np.empty(q),
-                np.ones(q), np.zeros(q, dtype=np.bool_), np.empty(q), np.empty(q), np.empty(4),
-                np.zeros(q, dtype=np.bool_), np.empty(q), np.empty(q))
+def _work(n, ns, q, p_count, nc, lanes, lane_work):
+    """Fresh scratch arrays for one block: ``L, A, Q, B`` [n, n] (the sigma points' factor, its argument, the
+    process noise, the update's work); ``si, so`` [ns] (one state in and out of the model, SI); ``ctrl`` [3 nc]
+    (controller memory: working, carried from sample to sample, at the interval's end); ``sig, sf`` [2n + 1, n]
+    (the sigma points and their predictions); ``W, S_l, TH`` (the model's side-by-side lanes); ``rows`` (the sigma
+    points that move the model); ``sel, WQ, WN, inn2, sd2`` (the update's work); ``freeze`` [n] (a parameter
+    without excitation is not updated); ``innov, Sd, nu, share, use, R, a_pow, unit_like`` [q] (each output's
+    innovation, its variance, normalised, the sensor noise's share of it, read by the update, the white floor of
+    its noise, its noise state's AR power over the interval, a reading off by a power of ten or out of range);
+    ``wnd`` [4] (the drive at samples k-2, k-1, k, k)."""
+    return (np.zeros((n, n)), np.empty((n, n)), np.zeros((n, n)), np.empty((n, n)), np.empty(ns), np.empty(ns),
+            np.zeros(3 * nc), np.empty((2 * n + 1, n)), np.empty((2 * n + 1, n)), np.empty(lane_work),
+            np.empty((lanes, ns)), np.empty((lanes, p_count)), np.empty(2 * n + 1, dtype=np.int64),
+            np.empty(q, dtype=np.int64), np.empty((4 * q + 1, q)), np.empty((2 * n, q)), np.empty(q), np.empty(q),
+            np.zeros(n, dtype=np.bool_), np.empty(q), np.empty(q), np.empty(q), np.ones(q),
+            np.zeros(q, dtype=np.bool_), np.empty(q), np.empty(q), np.zeros(q, dtype=np.bool_), np.empty(4))
 
 
 @nb.njit(inline="always")
-def _freeze_flags(fs, setup, wk, frozen_k, ns):
+def _freeze_flags(fs, chan, thresh, freeze, frozen_out, k, ns):
     """A parameter whose excitation channel is below its threshold is frozen (not updated) at this sample."""
-    freeze, chan, idx, thresh = wk.freeze, setup.chan, setup.idx, setup.thresh
     for j in range(freeze.shape[0]):
         freeze[j] = False
-    for j in range(idx.shape[0]):
+    for j in range(chan.shape[0]):
         c = chan[j]
         if fs[F_EXC0 + c] < thresh[c]:
             freeze[ns + j] = True
-        frozen_k[j] = freeze[ns + j]
+        frozen_out[k, j] = freeze[ns + j]
 
 
 @nb.njit(inline="always")
-def _process_noise(x, P, ch, setup, wk, dtk, nint, ns, nmod):
+def _interval(fs, dtk, dt0, gap_max):
+    """The interval to this sample on the nominal grid (time stamps off it by jitter, twin.record): its log periods
+    (0: no prediction, the first sample or a long gap) and seconds, and whether the states are re-initialised (a
+    gap longer than ``gap_max``)."""
+    if not (fs[F_HAVE_PREV] > 0.0 and math.isfinite(fs[F_U1])):
+        return 0, dtk, False
+    if not (dtk > 0.0) or not math.isfinite(dtk):
+        dtk = 0.0
+    nint = int(dtk / dt0 + 0.5)
+    if dtk > gap_max:
+        return 0, dtk, True
+    if nint >= 1:
+        dtk = nint * dt0
+    return nint, dtk, False
+
+
+@nb.njit(inline="always")
+def _process_noise(x, P, ch, Q, a_pow, q_state, q_param, width, dt0, dtk, nint, ns, nmod):
     """The process noise over an interval of ``dtk`` s (``nint`` log periods): diagonal (its every diagonal entry
     is set here, the entries off it stay the zeros ``Q`` starts with); each noise state's AR power over it."""
-    Q, a_pow, dt0, idx = wk.Q, wk.a_pow, setup.dt0, setup.idx
-    q_param, q_state, width = setup.q_param, setup.q_state, setup.width
     for i in range(ns):
         Q[i, i] = q_state[i] * dtk / dt0
-    for j in range(idx.shape[0]):
+    for j in range(q_param.shape[0]):
         g = 1.0 / max(dlog_dz(x[ns + j], width[j]), 1e-12)
         add = q_param[j] * dtk * g * g
         cap = PARAM_STD_CAP * PARAM_STD_CAP * g * g
@@ -140,43 +140,14 @@ def _process_noise(x, P, ch, setup, wk, dtk, nint, ns, nmod):
 
 
 @nb.njit(inline="always")
-def _advance_interval(x, P, fs, ch, setup, wk, a_now, dtk, nint, closed, ticks, mode, fast, central, nc):
-    """Predict over ``nint`` log periods to this sample: one step, or across a gap one step per period with the
-    drive linear from the last sample to this one; returns the last prediction's status (< 0: lost)."""
-    Q, a_pow, ctrl, wnd = wk.Q, wk.a_pow, wk.ctrl, wk.wnd
-    dt0, fb_state, idx, scale = setup.dt0, setup.fb_state, setup.idx, setup.scale
-    ns = scale.shape[0]
-    nmod = ns + idx.shape[0]
-    n = x.shape[0]
-    h = dt0
-    _process_noise(x, P, ch, setup, wk, dtk, nint, ns, nmod)
-    if nint == 1:
-        wnd[0] = fs[F_U2]
-        wnd[1] = fs[F_U1]
-        wnd[2] = a_now
-        wnd[3] = a_now
-        ps = _predict(x, P, wnd, closed, ticks, mode, h, fs[F_XM1], setup, wk, nmod, nc, fast, central)
-        _carry_controller(ctrl, fs, closed, ps, nc)
-        return ps
-    for j in range(ch.shape[0]):
-        a_pow[j] = ch[j, H_A]
-    for i in range(n):
-        Q[i, i] /= nint
-    fb = fb_state
-    ps = ST_OK
-    for s_i in range(nint):
-        f0 = s_i / nint
-        f1 = (s_i + 1) / nint
-        wnd[0] = fs[F_U1] + f0 * (a_now - fs[F_U1])
-        wnd[1] = wnd[0]
-        wnd[2] = fs[F_U1] + f1 * (a_now - fs[F_U1])
-        wnd[3] = wnd[2]
-        xm = fs[F_XM1] if s_i == 0 or fb < 0 else x[fb] * scale[fb]
-        ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), h, xm, setup, wk, nmod, nc, fast, central)
-        _carry_controller(ctrl, fs, closed, ps, nc)
-        if ps < 0:
-            break
-    return ps
+def _gap_window(wnd, fs, a_now, s_i, nint):
+    """The drive across one period of a gap: linear from the last sample to this one."""
+    f0 = s_i / nint
+    f1 = (s_i + 1) / nint
+    wnd[0] = fs[F_U1] + f0 * (a_now - fs[F_U1])
+    wnd[1] = wnd[0]
+    wnd[2] = fs[F_U1] + f1 * (a_now - fs[F_U1])
+    wnd[3] = wnd[2]
 
 
 @nb.njit(inline="always")
@@ -193,44 +164,10 @@ def _restore(x, P, x_ck, P_ck):
 
 
 @nb.njit(inline="always")
-def _predict_step(x, P, fs, ch, x_ck, P_ck, setup, wk, a_now, dtk, closed, ticks, mode, fast, central, nc):
-    """Predict from the previous sample across the real time ``dtk`` since it; returns the sample's status so far,
-    whether the states are to be re-initialised (a long gap, or a prediction lost and restored from the last
-    checkpoint), the interval on the nominal grid, and whether the filter is lost for good (no checkpoint)."""
-    cfg, dt0 = setup.cfg, setup.dt0
-    status = ST_OK
-    reinit = False
-    if fs[F_HAVE_PREV] > 0.0 and math.isfinite(fs[F_U1]):
-        if not (dtk > 0.0) or not math.isfinite(dtk):
-            dtk = 0.0
-        nint = int(dtk / dt0 + 0.5)
-        if dtk > cfg[C_GAP_MAX]:
-            reinit = True
-        elif nint >= 1:
-            if nint > 1:
-                status = ST_GAP
-            dtk = nint * dt0  # time stamps on the nominal grid: the rest of the step is jitter (twin.record)
-            ps = _advance_interval(x, P, fs, ch, setup, wk, a_now, dtk, nint, closed, ticks, mode, fast, central,
-                                   nc)
-            if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
-                if fs[F_CK_OK] <= 0.0 or not _restore(x, P, x_ck, P_ck):
-                    return status, reinit, dtk, True
-                reinit = True
-                fs[F_RECOVERIES] += 1.0
-                status = ST_RECOVERED
-            elif ps == ST_REPAIRED:
-                status = ST_REPAIRED
-    return status, reinit, dtk, False
-
-
-@nb.njit(inline="always")
-def _raw_checks(zk, setup, ch, wk, dtk):
+def _raw_checks(zk, ch, mia, scale, out_lo, out_hi, out_centre, R, innov, Sd, nu, use, unit_like, dtk, dt0):
     """Each output's white noise floor, and the checks on its raw value: missing, out of its physical range (a
     unit error shows first there), the largest excursion from its centre lately (a clip sits at it), the same value
     again (a held value of a signal at its own, slower rate, twin.record.fresh_mask: suspect until it moves)."""
-    R, Sd, innov, nu = wk.R, wk.Sd, wk.innov, wk.nu
-    unit_like, use, dt0, mia = wk.unit_like, wk.use, setup.dt0, setup.mia
-    out_centre, out_hi, out_lo, scale = setup.out_centre, setup.out_hi, setup.out_lo, setup.scale
     for j in range(zk.shape[0]):
         R[j] = ch[j, H_R_FLOOR]
         innov[j] = np.nan
@@ -260,10 +197,9 @@ def _raw_checks(zk, setup, ch, wk, dtk):
 
 
 @nb.njit(inline="always")
-def _innovations(zk, x, P, mia, nmod, wk, by_share):
+def _innovations(zk, x, P, mia, nmod, R, innov, Sd, nu, share, by_share):
     """The innovation of every finite output, its variance and its normalised value (for the detectors), and the
     sensor noise's share of that variance."""
-    R, Sd, innov, nu, share = wk.R, wk.Sd, wk.innov, wk.nu, wk.share
     for j in range(zk.shape[0]):
         zj = zk[j]
         if not math.isfinite(zj):
@@ -278,11 +214,10 @@ def _innovations(zk, x, P, mia, nmod, wk, by_share):
 
 
 @nb.njit(inline="always")
-def _outliers(zk, fs, ch, cfg, wk):
+def _outliers(zk, fs, ch, cfg, innov, nu, use, unit_like):
     """Per-output outliers: this output far off while another agrees with the model, in a filter that was
     consistent (while it converges, a large innovation on one output is the model's, not the sensor's); a power of
     ten off the prediction is a unit error."""
-    innov, nu, unit_like, use = wk.innov, wk.nu, wk.unit_like, wk.use
     q = zk.shape[0]
     was_consistent = fs[F_NIS_EMA] < cfg[C_NIS_HI] and fs[F_SETTLE] <= 0.0 and fs[F_T] >= cfg[C_WARM_S]
     for j in range(q):
@@ -308,10 +243,9 @@ def _outliers(zk, fs, ch, cfg, wk):
 
 
 @nb.njit(inline="always")
-def _sensor_status(zk, setup, ch, cfg, wk):
+def _sensor_status(zk, ch, cfg, out_centre, innov, nu, use, unit_like):
     """Each sensor's status moves on (unit, offset, clipped, stuck, noisy, back to ok); returns whether any is
     faulty or noisy (the drift test then holds)."""
-    innov, nu, unit_like, use, out_centre = wk.innov, wk.nu, wk.unit_like, wk.use, setup.out_centre
     any_fault = False
     for j in range(zk.shape[0]):
         st = int(ch[j, H_STATUS])
@@ -353,13 +287,12 @@ def _sensor_status(zk, setup, ch, cfg, wk):
 
 
 @nb.njit(inline="always")
-def _learn_noise(fs, ch, cfg, wk, dtk, dt0, nis, m):
+def _learn_noise(fs, ch, cfg, nu, share, use, dtk, dt0, nis, m):
     """Noise learning on the normalised innovations and the consistency guard's averages of the NIS.
 
     noise_share: an innovation tells of the sensor's noise in proportion to that noise's share of its variance
     (while the model's own uncertainty dominates, a small innovation says the prior was wide, not that the sensor
     is quiet); off: every innovation counts fully."""
-    nu, share, use = wk.nu, wk.share, wk.use
     w_n = min(1.0, max(dtk, dt0) / cfg[C_TAU_NOISE])
     for j in range(nu.shape[0]):
         if not use[j] or not math.isfinite(nu[j]):
@@ -447,34 +380,25 @@ def _sample_status(status, us, any_fault, drive_ok, ch):
 
 
 @nb.njit(inline="always")
-def _write_out(out, k, x, P, ch, zk, wk, reinit, nis, ll, status, gcode):
-    """This sample's outputs."""
-    Sd, innov, use, out_Pd = wk.Sd, wk.innov, wk.use, out.Pd
-    out_S, out_X, out_guard, out_innov = out.S, out.X, out.guard, out.innov
-    out_ll, out_nis, out_noise, out_sensors = out.ll, out.nis, out.noise, out.sensors
-    out_status, out_used = out.status, out.used
+def _write_out(k, x, P, ch, zk, innov, Sd, use, reinit, X_out, Pd_out, innov_out, S_out, sens_out, sig_out,
+               used_out):
+    """This sample's states, variances and per-output outputs."""
     for i in range(x.shape[0]):
-        out_X[k, i] = x[i]
-        out_Pd[k, i] = P[i, i]
+        X_out[k, i] = x[i]
+        Pd_out[k, i] = P[i, i]
     for j in range(zk.shape[0]):
-        out_innov[k, j] = innov[j]
-        out_S[k, j] = Sd[j]
-        out_sensors[k, j] = int(ch[j, H_STATUS]) if math.isfinite(zk[j]) else S_MISSING
-        out_noise[k, j] = ch[j, H_SIG]
-        out_used[k, j] = use[j] and not reinit
-    out_nis[k] = nis
-    out_ll[k] = ll
-    out_status[k] = status
-    out_guard[k] = gcode
+        innov_out[k, j] = innov[j]
+        S_out[k, j] = Sd[j]
+        sens_out[k, j] = int(ch[j, H_STATUS]) if math.isfinite(zk[j]) else S_MISSING
+        sig_out[k, j] = ch[j, H_SIG]
+        used_out[k, j] = use[j] and not reinit
 
 
 @nb.njit(inline="always")
-def _feed_next(u_k, xref_k, zk, a_now, dtk, closed, setup, fs, x, wk):
+def _feed_next(u_k, xref_k, zk, a_now, dtk, dt0, closed, fs, x, use, scale, fb, fb_col, demand_gain, excitation,
+               tau_excite):
     """This sample's drive and measurement feed the next prediction: the measured output the controller reads,
     the excitation averages (rod motion, the drive's rate, a load), the drive window."""
-    use, demand_gain, dt0, excitation = wk.use, setup.demand_gain, setup.dt0, setup.excitation
-    fb_col, fb_state, scale, tau_excite = setup.fb_col, setup.fb_state, setup.scale, setup.tau_excite
-    fb = fb_state
     if fb_col >= 0 and math.isfinite(zk[fb_col]) and use[fb_col]:
         fs[F_XM1] = zk[fb_col] * scale[fb]
     elif fb >= 0:
@@ -498,6 +422,76 @@ def _feed_next(u_k, xref_k, zk, a_now, dtk, closed, setup, fs, x, wk):
     fs[F_HAVE_PREV] = 1.0
 
 
+@nb.njit(inline="always")
+def _step_window(wnd, fs, a_now):
+    """The drive around one log interval: the samples k-2 and k-1, this one repeated (the next is not known)."""
+    wnd[0] = fs[F_U2]
+    wnd[1] = fs[F_U1]
+    wnd[2] = a_now
+    wnd[3] = a_now
+
+
+@nb.njit
+def _predict_gap(x, P, fs, ch, wnd, a_now, nint, closed, ticks, mode, pw, idx, lo_log, width, scale, dt0, nsub, Q,
+                 Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S_l, TH, rows, central, fb):
+    """Predict across a gap of ``nint`` log periods, one step per period with the drive linear from the last sample
+    to this one (the process noise ``Q`` over the whole gap, shared out); returns the last step's status (< 0:
+    lost)."""
+    for j in range(ch.shape[0]):
+        a_pow[j] = ch[j, H_A]
+    for i in range(x.shape[0]):
+        Q[i, i] /= nint
+    ps = ST_OK
+    for s_i in range(nint):
+        _gap_window(wnd, fs, a_now, s_i, nint)
+        xm = fs[F_XM1] if s_i == 0 or fb < 0 else x[fb] * scale[fb]
+        ps = _predict(x, P, wnd, closed, ticks, min(mode, 1), pw, idx, lo_log, width, scale, dt0, nsub, xm, Q, Wm,
+                      Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S_l, TH, rows, central)
+        _carry_controller(ctrl, fs, closed, ps, nc)
+        if ps < 0:
+            break
+    return ps
+
+
+@nb.njit(inline="always")
+def _restart(x, P, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg, p_count):
+    """The model states re-initialised from the measurement (the parameters kept, their covariance inflated); the
+    filter settles before its drift test counts again."""
+    _reinit_states(x, P, zk, mia, a_now if not closed else np.nan, setup, ch, nmod, cfg[C_INFLATE], p_count)
+    fs[F_SETTLE] = cfg[C_SETTLE_S]
+    fs[F_GATED_RUN] = 0.0
+
+
+@nb.njit(inline="always")
+def _exogenous(EXO, k, exo_idx, pw):
+    """An exogenous input (the oil's temperature) sets its parameter while it is fresh."""
+    for j in range(exo_idx.shape[0]):
+        if math.isfinite(EXO[k, j]):
+            pw[exo_idx[j]] = EXO[k, j]
+
+
+@nb.njit(inline="always")
+def _drive(u_k, xref_k, closed, fs):
+    """The drive at this sample (the demand in closed loop) and whether it was logged; the last one if not."""
+    a_now = xref_k if closed else u_k
+    if math.isfinite(a_now):
+        return a_now, True
+    return fs[F_U1], False
+
+
+@nb.njit(inline="always")
+def _recover(x, P, x_ck, P_ck, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg, p_count):
+    """After a divergence: back to the last consistent checkpoint, the states re-initialised, the guard's averages
+    reset; False when there is no checkpoint (the filter is lost)."""
+    if fs[F_CK_OK] <= 0.0 or not _restore(x, P, x_ck, P_ck):
+        return False
+    _restart(x, P, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg, p_count)
+    fs[F_RECOVERIES] += 1.0
+    fs[F_NIS_EMA] = 1.0
+    fs[F_NIS_FAST] = 1.0
+    return True
+
+
 @nb.njit
 def filter_loop(setup, carry, block, closed, ticks, mode, out):
     """Filter the ``T`` samples of ``block`` in place; ``carry`` carries over between calls; returns the index of
@@ -511,74 +505,80 @@ def filter_loop(setup, carry, block, closed, ticks, mode, out):
     checkpoint, the outputs, and what feeds the next prediction.
     """
     x, P, fs, ch, x_ck, P_ck = carry.x, carry.P, carry.fs, carry.ch, carry.x_ck, carry.P_ck
-    cfg = setup.cfg
-    ns = setup.scale.shape[0]
-    nc = fs.shape[0] - F_CTRL
-    n = x.shape[0]
-    q = block.Z.shape[1]
-    p_count = setup.idx.shape[0]
+    U, XREF, Z, DT, EXO = block.U, block.XREF, block.Z, block.DT, block.EXO
+    mia, dt0, idx, lo_log, width, scale = setup.mia, setup.dt0, setup.idx, setup.lo_log, setup.width, setup.scale
+    nsub, q_state, q_param, Wm, Wc, lam = setup.nsub, setup.q_state, setup.q_param, setup.Wm, setup.Wc, setup.lam
+    floor, chan, thresh, cfg, fb, fb_col = setup.floor, setup.chan, setup.thresh, setup.cfg, setup.fb_state, setup.fb_col
+    out_lo, out_hi, out_centre, exo_idx = setup.out_lo, setup.out_hi, setup.out_centre, setup.exo_idx
+    gate, max_gated, demand_gain, excitation = setup.gate, setup.max_gated, setup.demand_gain, setup.excitation
+    tau_excite = setup.tau_excite
+    X_out, Pd_out, nis_out, ll_out, st_out, innov_out = out.X, out.Pd, out.nis, out.ll, out.status, out.innov
+    S_out, frozen_out, guard_out, sens_out, sig_out, used_out = out.S, out.frozen, out.guard, out.sensors, out.noise, \
+        out.used
+    ns, nc, n, q, p_count = scale.shape[0], fs.shape[0] - F_CTRL, x.shape[0], Z.shape[1], idx.shape[0]
     nmod = ns + p_count
-    wk = _work(setup, n, q, nc, p_count)
+    (L, A, Q, B, si, so, ctrl, sig, sf, W, S_l, TH, rows, sel, WQ, WN, inn2, sd2, freeze, innov, Sd, nu, share, use,
+     R, a_pow, unit_like, wnd) = _work(n, ns, q, p_count, nc, setup.lanes, setup.lane_work)
+    pw = setup.pvec.copy()
     fast = lanes_apply(setup.pvec)
     for j in range(nc):
-        wk.ctrl[nc + j] = fs[F_CTRL + j]
-    by_share = cfg[C_NSHARE] > 0.0
-    central = cfg[C_CENTRAL] > 0.0
-    for k in range(block.U.shape[0]):
-        for j in range(setup.exo_idx.shape[0]):  # an exogenous input (the oil's temperature) sets its parameter
-            if math.isfinite(block.EXO[k, j]):
-                wk.pw[setup.exo_idx[j]] = block.EXO[k, j]
-        a_now = block.XREF[k] if closed else block.U[k]
-        drive_ok = math.isfinite(a_now)
-        if not drive_ok:
-            a_now = fs[F_U1]
-        _freeze_flags(fs, setup, wk, out.frozen[k], ns)
-        status, reinit, dtk, lost = _predict_step(x, P, fs, ch, x_ck, P_ck, setup, wk, a_now, block.DT[k], closed,
-                                                  ticks, mode, fast, central, nc)
-        if lost:
-            return k
+        ctrl[nc + j] = fs[F_CTRL + j]
+    by_share, central = cfg[C_NSHARE] > 0.0, cfg[C_CENTRAL] > 0.0
+    for k in range(U.shape[0]):
+        _exogenous(EXO, k, exo_idx, pw)
+        a_now, drive_ok = _drive(U[k], XREF[k], closed, fs)
+        _freeze_flags(fs, chan, thresh, freeze, frozen_out, k, ns)
+        nint, dtk, reinit = _interval(fs, DT[k], dt0, cfg[C_GAP_MAX])
+        status = ST_GAP if nint > 1 else ST_OK
+        if nint >= 1:
+            _process_noise(x, P, ch, Q, a_pow, q_state, q_param, width, dt0, dtk, nint, ns, nmod)
+            if nint == 1:
+                _step_window(wnd, fs, a_now)
+                ps = _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, dt0, nsub, fs[F_XM1], Q,
+                              Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S_l, TH, rows,
+                              central)
+                _carry_controller(ctrl, fs, closed, ps, nc)
+            else:
+                ps = _predict_gap(x, P, fs, ch, wnd, a_now, nint, closed, ticks, mode, pw, idx, lo_log, width, scale,
+                                  dt0, nsub, Q, Wm, Wc, lam, floor, nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast,
+                                  W, S_l, TH, rows, central, fb)
+            if ps < 0:  # not finite, not repairable: back to the last consistent checkpoint
+                if fs[F_CK_OK] <= 0.0 or not _restore(x, P, x_ck, P_ck):
+                    return k
+                reinit, status = True, ST_RECOVERED
+                fs[F_RECOVERIES] += 1.0
+            elif ps == ST_REPAIRED:
+                status = ST_REPAIRED
         fs[F_T] += dtk if fs[F_HAVE_PREV] > 0.0 else 0.0
-        zk = block.Z[k]
-        _raw_checks(zk, setup, ch, wk, dtk)
+        zk = Z[k]
+        _raw_checks(zk, ch, mia, scale, out_lo, out_hi, out_centre, R, innov, Sd, nu, use, unit_like, dtk, dt0)
         if reinit:  # after a long gap (or after an unrepairable prediction)
-            _reinit_states(x, P, zk, setup.mia, a_now if not closed else np.nan, setup, ch, nmod, cfg[C_INFLATE],
-                           p_count)
+            _restart(x, P, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg, p_count)
             if status != ST_RECOVERED:
                 status = ST_REINIT
                 fs[F_REINITS] += 1.0
-            fs[F_SETTLE] = cfg[C_SETTLE_S]
-            fs[F_GATED_RUN] = 0.0
-        _innovations(zk, x, P, setup.mia, nmod, wk, by_share)
-        _outliers(zk, fs, ch, cfg, wk)
-        any_fault = _sensor_status(zk, setup, ch, cfg, wk)
-        us = ST_STALE
-        nis = np.nan
-        ll = np.nan
+        _innovations(zk, x, P, mia, nmod, R, innov, Sd, nu, share, by_share)
+        _outliers(zk, fs, ch, cfg, innov, nu, use, unit_like)
+        any_fault = _sensor_status(zk, ch, cfg, out_centre, innov, nu, use, unit_like)
+        us, nis, ll = ST_STALE, np.nan, np.nan
         if not reinit:
-            g = setup.gate if fs[F_GATED_RUN] < setup.max_gated else np.inf
-            us, nis, ll, m = _update_into(x, P, zk, setup.mia, nmod, wk.R, wk.use, wk.freeze, g, wk.inn2, wk.sd2,
-                                          wk.sel, wk.WQ, wk.WN, wk.B)
+            g = gate if fs[F_GATED_RUN] < max_gated else np.inf
+            us, nis, ll, m = _update_into(x, P, zk, mia, nmod, R, use, freeze, g, inn2, sd2, sel, WQ, WN, B)
             fs[F_GATED_RUN] = fs[F_GATED_RUN] + 1.0 if us == ST_GATED else 0.0
-            _learn_noise(fs, ch, cfg, wk, dtk, setup.dt0, nis, m)
-        gcode = G_OK
+            _learn_noise(fs, ch, cfg, nu, share, use, dtk, dt0, nis, m)
         if _diverged(x, fs, cfg, ns, p_count):
-            if fs[F_CK_OK] <= 0.0 or not _restore(x, P, x_ck, P_ck):
+            if not _recover(x, P, x_ck, P_ck, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg, p_count):
                 return k
-            _reinit_states(x, P, zk, setup.mia, a_now if not closed else np.nan, setup, ch, nmod, cfg[C_INFLATE],
-                           p_count)
-            fs[F_RECOVERIES] += 1.0
-            fs[F_SETTLE] = cfg[C_SETTLE_S]
-            fs[F_NIS_EMA] = 1.0
-            fs[F_NIS_FAST] = 1.0
-            fs[F_GATED_RUN] = 0.0
-            status = ST_RECOVERED
-            gcode = G_DIVERGED
+            status, gcode = ST_RECOVERED, G_DIVERGED
         else:
             gcode = _guard_code(any_fault, fs, ch, cfg)
         if fs[F_SETTLE] > 0.0:
-            fs[F_SETTLE] -= max(dtk, setup.dt0)
+            fs[F_SETTLE] -= max(dtk, dt0)
         _checkpoint(gcode, fs, cfg, x, P, x_ck, P_ck)
-        status = _sample_status(status, us, any_fault, drive_ok, ch)
-        _write_out(out, k, x, P, ch, zk, wk, reinit, nis, ll, status, gcode)
-        _feed_next(block.U[k], block.XREF[k], zk, a_now, dtk, closed, setup, fs, x, wk)
+        _write_out(k, x, P, ch, zk, innov, Sd, use, reinit, X_out, Pd_out, innov_out, S_out, sens_out, sig_out,
+                   used_out)
+        nis_out[k], ll_out[k], guard_out[k] = nis, ll, gcode
+        st_out[k] = _sample_status(status, us, any_fault, drive_ok, ch)
+        _feed_next(U[k], XREF[k], zk, a_now, dtk, dt0, closed, fs, x, use, scale, fb, fb_col, demand_gain,
+                   excitation, tau_excite)
     return -1

@@ -76,13 +76,9 @@ def _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, 
 
 
 @nb.njit
-def _predict(x, P, wnd, closed, ticks, mode, h, xm, setup, wk, nmod, nc, fast, central):
-    """filterpy's predict over one interval of ``h`` s; returns the status (ok or repaired_covariance) or -1.
-
-    ``setup``: the kernel's constant record (:data:`twin.online.ukf.Setup`: the parameters' places and bounds,
-    the state scales, the sigma points' weights); ``wk``: the loop's scratch arrays (:data:`twin.online.ukf_loop.Work`:
-    the kernel vector ``pw``, the process noise ``Q`` and the noise states' AR powers ``a_pow`` over the interval,
-    the controller memory ``ctrl``, work).  ``xm``: the measured output a controller reads at the interval's start.
+def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
+             nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S, TH, rows, central):
+    """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1.
 
     ``central``: the predicted mean is the central point's prediction (filterpy's ``x_mean_fn`` returning
     ``sigmas[0]``), the covariance the weighted sum about it; else the points' weighted mean (filterpy's default).
@@ -92,12 +88,8 @@ def _predict(x, P, wnd, closed, ticks, mode, h, xm, setup, wk, nmod, nc, fast, c
     kPa (README, "The strong-chirp divergence").
 
     ``fast``: the model's lanes apply (open loop, then all sigma points that move the model at once, when they fit
-    in the lanes); ``ctrl``: the controller memory (``nc`` entries), the carried memory, and the memory at the
+    in ``S``'s lanes); ``ctrl``: the controller memory (``nc`` entries), the carried memory, and the memory at the
     interval's end along the central point (written here)."""
-    pw, idx, lo_log, width, scale, nsub = wk.pw, setup.idx, setup.lo_log, setup.width, setup.scale, setup.nsub
-    Q, Wm, Wc, lam, floor, a_pow = wk.Q, setup.Wm, setup.Wc, setup.lam, setup.floor, wk.a_pow
-    L, A, sig, sf, si, so, ctrl = wk.L, wk.A, wk.sig, wk.sf, wk.si, wk.so, wk.ctrl
-    W, S, TH, rows = wk.W, wk.S_l, wk.TH, wk.rows
     n = x.shape[0]
     status = ST_OK
     for i in range(n):
