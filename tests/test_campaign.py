@@ -116,6 +116,30 @@ def test_figures_count_events_by_their_rules():
         assert field in text
 
 
+def test_a_healthy_rig_outside_the_band_its_twin_ran_with_is_counted_apart():
+    """A healthy draw whose commissioning was refused runs with the default bands, and its truth (drawn up to 20 %
+    off them) may lie outside one: an alarm on that parameter is right and is not a false alarm; one on another
+    parameter is counted as wrong.  A draw whose truth lies inside its bands counts as before."""
+    healthy = seeds("verification", 3, 1.0, ("healthy",))
+    draws = []
+    for sd, events in ((healthy[0], [(9.0, "Cd", "warning", "raised"), (12.0, "Cd", "alarm", "escalated")]),
+                       (healthy[1], [(20.0, "Cd", "warning", "raised"), (30.0, "wn", "warning", "raised")]),
+                       (healthy[2], [(40.0, "Ffric", "warning", "raised")])):
+        d = _fake(sd, events)
+        truth = d["scenario"]["truth"]
+        d["bands"] = {p: [0.8 * truth[p], 1.2 * truth[p]] for p in C.TRACKED}
+        if sd != healthy[2]:
+            d["commission_refused"] = "commission_s = 30: too little excitation"
+            d["bands"]["Cd"] = [1.1 * truth["Cd"], 1.4 * truth["Cd"]]  # the truth below the default band
+        draws.append(d)
+    f = C.summarise(draws)
+    assert f["healthy_outside_band"] == {"draws": healthy[:2], "right": 2, "wrong": 1}
+    assert f["false_alarms"]["events"] == 1 and f["false_alarms"]["hours"] == pytest.approx(1 / 60)
+    assert f["healthy_draws_with_event"]["n"] == 1
+    assert "truth outside the fallback band 2 draws" in C.table({"set": "verification", "minutes": 1.0,
+                                                                 "seed_range": "x", "figures": f})
+
+
 def test_a_sensor_event_is_not_a_parameter_event_and_names_its_sensor():
     sensor = seeds("verification", 3, 1.0, ("sensor",))
     scn = [draw(s, 1.0)["sensor"] for s in sensor]
