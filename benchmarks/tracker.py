@@ -22,7 +22,9 @@ Before/after (always, and alone with ``--against-before``): the kernel as it was
 benchmark runs in: 47 positional arrays, the rig model built in) timed against the current
 per-model kernel on the same record, interleaved, ``--repeats`` times each (medians, CPU time), with the
 largest relative difference of their estimates: a ratio measured in the same run on a shared, noisy machine.
-Target (issue 20): the current kernel <= 12 us per sample.  ``--new-models``: the tracker on the user's rig
+Target (issue 20): the current kernel <= 12 us per sample.  ``--models``: the kernel alone of every registered
+model the online twin runs, interleaved, each against the default rig's (target: the oscillator's at least 5x
+faster).  ``--new-models``: the tracker on the user's rig
 (:data:`USER_RIG`: two areas, the filtered PID, a warming oil logged as ``T_oil``) against the paper's rig, same
 excitation, interleaved, medians.
 
@@ -361,6 +363,57 @@ def _print_before(a: dict) -> None:
           f"{'OK' if a['target_current<=12us'] else 'MISSED'} (load average {a['load_average_1min']})")
 
 
+def models_kernel(repeats: int = 5, duration: float = 20.0) -> dict:
+    """The compiled kernel alone (CPU time of its calls, :func:`twin.online.ukf.kernel_for`) of every registered
+    model the online twin runs, each on its own default excitation and noise, interleaved ``repeats`` times;
+    medians in us per sample and each model's speed-up over the default rig's kernel in the same run (target: the
+    oscillator's at least 5x)."""
+    from twin.models import DEFAULT_MODEL, MODELS, get_model
+    from twin.models.simulate import default_noise, excite, measure
+    from twin.online import ukf
+    from twin.online.tracker import OnlineTracker
+
+    spent = [0.0]
+    kernel_for = ukf.kernel_for
+
+    def timed(model):
+        run = kernel_for(model)
+
+        def call(*a):
+            c0 = time.process_time()
+            try:
+                return run(*a)
+            finally:
+                spent[0] += time.process_time() - c0
+        return call
+
+    recs = {}
+    for name in MODELS:
+        m = get_model(name)
+        if m.FILTER is None:
+            continue
+        kind, xr = excite(m, duration, 1e-3, seed=0)
+        recs[name] = measure(m, m.params(), kind, xr, 1e-3, noise=default_noise(m), seed=0).to_samples()
+    times: dict[str, list[float]] = {k: [] for k in recs}
+    ukf.kernel_for = timed
+    try:
+        for name, s in recs.items():
+            OnlineTracker(model=name).process(s.slice(0, 20))  # compile / load outside the clock
+        for _ in range(repeats):
+            for name, s in recs.items():
+                spent[0] = 0.0
+                OnlineTracker(model=name).process(s)
+                times[name].append(spent[0] / len(s) * 1e6)
+    finally:
+        ukf.kernel_for = kernel_for
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    base = med[DEFAULT_MODEL]
+    return {"cpu_us_per_sample": times, "median": med, "speedup_over_default": {k: base / v for k, v in med.items()},
+            "default_model": DEFAULT_MODEL, "states": {k: OnlineTracker(model=k).n for k in recs},
+            "target_oscillator>=5x": base / med["oscillator"] >= 5.0 if "oscillator" in med else None,
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+
+
 def confirm_cost(duration: float = 60.0) -> dict:
     """The tracker alone against the tracker with its alarms confirmed by window re-fits
     (:class:`twin.online.confirm.ConfirmedDrift`: scheduled every period, triggered by the drift test) on the same
@@ -396,6 +449,8 @@ def main(argv=None) -> int:
     ap.add_argument("--new-models", action="store_true",
                     help="only time the tracker on the user's rig (two areas, filtered PID, logged warming oil) "
                          "against the paper's rig")
+    ap.add_argument("--models", action="store_true",
+                    help="only the kernel of every registered model, each against the default rig's kernel")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (before/after)")
     ap.add_argument("--confirm", action="store_true",
                     help="only the cost of confirming alarms by window re-fits, against the tracker alone")
@@ -410,6 +465,18 @@ def main(argv=None) -> int:
               f"({c['refits']} re-fits of {c['window_s']:g} s windows, scheduled every {c['period_s']:g} s, in "
               f"{c['seconds']:g} s) {c['confirmed_cpu_us_per_sample']:.1f} us/sample: ratio {c['ratio']:.1f}, "
               f"{c['cpu_s_per_refit']:.2f} s CPU per re-fit (load average {c['load_average_1min']})")
+        return 0
+    if args.models:
+        mk = models_kernel(max(args.repeats, 5), 10.0 if args.quick else 20.0)
+        if args.json:
+            print(json.dumps(mk, indent=2))
+            return 0
+        for k, v in mk["median"].items():
+            print(f"{k:12s} kernel {v:6.2f} us/sample CPU (median of {len(mk['cpu_us_per_sample'][k])}), "
+                  f"{mk['states'][k]} filter states, {mk['speedup_over_default'][k]:.2f}x the {mk['default_model']} "
+                  "kernel's speed")
+        print(f"target: the oscillator's kernel at least 5x the {mk['default_model']}'s: "
+              f"{'met' if mk['target_oscillator>=5x'] else 'MISSED'} (load average {mk['load_average_1min']})")
         return 0
     if args.new_models:
         nm = new_models(args.repeats, 10.0 if args.quick else 20.0)
