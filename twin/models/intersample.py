@@ -35,6 +35,24 @@ def input_at(a, k, f, mode):
 
 
 @nb.njit(cache=True)
+def input_between(a0, a1, a2, a3, f, mode):
+    """:func:`input_at` from the four samples around the interval, ``a0 = a[k-1]``, ``a1 = a[k]``, ``a2 = a[k+1]``,
+    ``a3 = a[k+2]`` (clamped at the ends as there), the same operations in the same order: for a compiled caller
+    that reads them once per interval (an array handed to a compiled function is reference-counted at each call,
+    and an interval evaluates the input several times)."""
+    if mode == 0 or f <= 0.0:
+        return a1
+    if mode == 1:
+        return a1 + f * (a2 - a1)
+    m0 = 0.5 * (a2 - a0)
+    m1 = 0.5 * (a3 - a1)
+    f2 = f * f
+    f3 = f2 * f
+    return ((2.0 * f3 - 3.0 * f2 + 1.0) * a1 + (f3 - 2.0 * f2 + f) * m0
+            + (3.0 * f2 - 2.0 * f3) * a2 + (f3 - f2) * m1)
+
+
+@nb.njit(cache=True)
 def slope_at(a, k, f, mode, dt):
     """Time derivative of :func:`input_at` [unit/s]."""
     if mode == 0:

@@ -28,7 +28,7 @@ from fpdd.errors import DataError, ParameterError
 from fpdd.units import text_to_si
 from twin.models.base import (DEFAULT_TIMING, INTERSAMPLE_CODE, Experiment, FilterMap, FilterSpec, Model, Signal,
                               SimResult, check_drive, start_of)
-from twin.models.intersample import input_at
+from twin.models.intersample import input_at, input_between
 from twin.params import Effect, ParamSpec, Tracking
 from twin.models import intersample as _intersample_src
 from twin.models import base as _base_src
@@ -108,6 +108,15 @@ def deriv(x, v, u, p):
 
 
 @nb.njit(cache=True)
+def _accel(x, v, u, m, d, k, k3, u0, fc, vc):
+    """:func:`deriv`'s acceleration from the parameters as numbers (the same operations in the same order)."""
+    f = u - u0 - d * v - k * x - k3 * x * x * x
+    if fc > 0.0:
+        f -= fc * math.tanh(v / vc)
+    return f / m
+
+
+@nb.njit(cache=True)
 def _simulate_one(s0, p, u, mode, dt, nsub, S):
     T = u.shape[0]
     x = s0[0]
@@ -157,16 +166,27 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
     v = s[1]
     h = dt / nsub
     fh = 1.0 / nsub
+    # the parameters and the drive around the interval read once: numbers, not arrays, go to the inner calls (an
+    # array handed to a compiled function is reference-counted at each call: 28 atomic operations a sigma point)
+    m, dm, km, k3, u0, fc, vc = p[I_M], p[I_D], p[I_K], p[I_K3], p[I_U0], p[I_FC], p[I_VC]
+    n = drive.shape[0]
+    a0 = drive[k - 1 if k > 0 else 0]
+    a1 = drive[k]
+    a2 = drive[k + 1 if k + 1 < n else n - 1]
+    a3 = drive[k + 2 if k + 2 < n else n - 1]
     for j in range(nsub):
-        u0 = input_at(drive, k, j * fh, mode)
-        um = input_at(drive, k, (j + 0.5) * fh, mode)
-        u1 = input_at(drive, k, (j + 1.0) * fh, mode)
-        a = deriv(x, v, u0, p)
-        b = deriv(x + 0.5 * h * a[0], v + 0.5 * h * a[1], um, p)
-        c = deriv(x + 0.5 * h * b[0], v + 0.5 * h * b[1], um, p)
-        d = deriv(x + h * c[0], v + h * c[1], u1, p)
-        x += h / 6.0 * (a[0] + 2.0 * b[0] + 2.0 * c[0] + d[0])
-        v += h / 6.0 * (a[1] + 2.0 * b[1] + 2.0 * c[1] + d[1])
+        ua = input_between(a0, a1, a2, a3, j * fh, mode)
+        um = input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode)
+        ub = input_between(a0, a1, a2, a3, (j + 1.0) * fh, mode)
+        a_v = _accel(x, v, ua, m, dm, km, k3, u0, fc, vc)
+        b_x = v + 0.5 * h * a_v
+        b_v = _accel(x + 0.5 * h * v, b_x, um, m, dm, km, k3, u0, fc, vc)
+        c_x = v + 0.5 * h * b_v
+        c_v = _accel(x + 0.5 * h * b_x, c_x, um, m, dm, km, k3, u0, fc, vc)
+        d_x = v + h * c_v
+        d_v = _accel(x + h * c_x, d_x, ub, m, dm, km, k3, u0, fc, vc)
+        x += h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x)
+        v += h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
     out[0] = x
     out[1] = v
     return drive[k]
