@@ -185,9 +185,12 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
         try:
             while time.monotonic() - t0 < seconds:
                 time.sleep(5.0)
-                if proc.poll() is not None:
-                    assert proc.stderr is not None  # started with stderr=PIPE
-                    raise RuntimeError(f"twin serve ended early: {proc.stderr.read()}")
+                if proc.poll() is not None:  # its console is in a file next to its configuration (_start)
+                    args = [str(a) for a in proc.args]  # type: ignore[union-attr]
+                    tail = Path(args[args.index("--config") + 1]).with_suffix(".stderr").read_text(
+                        errors="replace").strip().splitlines()[-5:]
+                    raise RuntimeError(f"twin serve ended early at {time.monotonic() - t0:.0f} s with exit code "
+                                       f"{proc.returncode}: {' | '.join(tail) or 'nothing on its console'}")
                 now_rss = sum(_rss_kib(p) for p in _tree(proc.pid))
                 samples.append((time.monotonic() - t0, now_rss))
                 for _, st in watch.drain():

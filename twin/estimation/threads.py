@@ -23,6 +23,8 @@ F = TypeVar("F", bound=Callable)
 #: the process's BLAS libraries, found once (finding them walks every loaded shared object: 20 ms a call, as
 #: much as a window's adequacy test); made at the first estimation, with numpy's and scipy's loaded
 _CONTROLLER: ThreadpoolController | None = None
+#: numpy's BLAS alone, for the online tracker (which imports no scipy module of its own)
+_NUMPY_CONTROLLER: ThreadpoolController | None = None
 
 
 def _one_thread():
@@ -32,6 +34,18 @@ def _one_thread():
 
         _CONTROLLER = ThreadpoolController()
     return _CONTROLLER.limit(limits=1, user_api="blas")
+
+
+def numpy_one_thread():
+    """A context with numpy's BLAS limited to one thread (9 us to enter and leave), without importing scipy.
+
+    The online tracker's Python around its compiled kernel multiplies small matrices; OpenBLAS's threads, woken
+    by them, then spin on the other core while the kernel runs: a quarter of the tracker's processor time on a
+    20-s record (``perf``: ``blas_thread_server``), time a service's other rigs needed."""
+    global _NUMPY_CONTROLLER
+    if _NUMPY_CONTROLLER is None:
+        _NUMPY_CONTROLLER = ThreadpoolController()
+    return _NUMPY_CONTROLLER.limit(limits=1, user_api="blas")
 
 
 def one_blas_thread(func: F) -> F:

@@ -383,7 +383,14 @@ class OnlineTracker:
         self.x_ck = self.x.copy()
 
     def process(self, samples) -> TrackBlock:
-        """Filter a block of samples (signals in SI; the model's drive and demand, its measured outputs)."""
+        """Filter a block of samples (signals in SI; the model's drive and demand, its measured outputs); numpy's
+        BLAS on one thread meanwhile (:func:`twin.estimation.threads.numpy_one_thread`)."""
+        from twin.estimation.threads import numpy_one_thread
+
+        with numpy_one_thread():
+            return self._process(samples)
+
+    def _process(self, samples) -> TrackBlock:
         T = len(samples)
         sig = samples.signals
         drive, demand = self.model.drive_name, self.model.demand_name
