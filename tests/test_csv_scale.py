@@ -103,3 +103,34 @@ def test_a_demand_starting_from_rest_leaves_the_scale_undetermined_not_refused(s
     check_loop_scale(ps, sig, "ref")
     with pytest.raises(DataError, match="^ref: x is"):
         check_loop_scale(ps, {**sig, "x": sig["x"] * 1e3}, "ref")
+
+
+def test_the_tracker_refuses_a_position_in_mm_once_the_demand_moves():
+    """A small-amplitude test (0.1 mm) whose demand starts from rest, fed in the service's 0.1-s blocks: the first
+    block cannot tell the loop's scale, so the tracker checks again as the blocks gather (each time they double)
+    and refuses x in mm once the demand has moved; the same record in SI runs through."""
+    from fpdd.errors import DataError
+    from reference import msp25_spec
+    from conftest import get_records
+    from replay.base import Samples
+
+    from twin.models.base import Timing
+    from twin.online.tracker import OnlineTracker
+
+    demand = {"kind": "sequence", "onset_s": 0.45, "parts": [
+        {"kind": "sweep", "seconds": 2.5, "amplitude": 1e-4, "v_max": 0.05, "ramp_s": 0.08}]}
+    spec = msp25_spec(4, duration=3.0, controller="analog", truth="draw", demand=demand,
+                      noise={"x": 1e-6, "tau": 0.005})
+    rec = get_records([spec], workers=1)[0]
+    sig = {k: np.asarray(v, dtype=float) for k, v in rec.signals.items()}
+    t_ns = 1_700_000_000_000_000_000 + np.round(np.asarray(rec.t) * 1e9).astype(np.int64)
+
+    def feed(signals):
+        tr = OnlineTracker(timing=Timing.parse("continuous", "cubic"))
+        for i in range(0, t_ns.size, 100):
+            tr.process(Samples(t_ns[i:i + 100], {k: v[i:i + 100] for k, v in signals.items()}))
+        return tr
+
+    assert feed(sig).samples == t_ns.size
+    with pytest.raises(DataError, match="^the tracked signals: x is .* times larger than the demand"):
+        feed({**sig, "x": sig["x"] * 1e3})

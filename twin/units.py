@@ -254,6 +254,25 @@ def _scale_interval(r, x) -> tuple[float, float, float]:
     return b, b - LOOP_SCALE_Z * se, b + LOOP_SCALE_Z * se
 
 
+def loop_scale_settled(signals) -> bool:
+    """True when ``x`` and ``x_ref`` share one scale beyond doubt: the interval of :func:`_scale_interval` lies
+    wholly outside both refusal bands (more data cannot refuse them any more), or the record has no demand."""
+    import numpy as np
+
+    if "x" not in signals or "x_ref" not in signals:
+        return True
+    x = np.asarray(signals["x"], dtype=np.float64)
+    r = np.asarray(signals["x_ref"], dtype=np.float64)
+    ok = np.isfinite(x) & np.isfinite(r)
+    if ok.sum() < 100:
+        return False
+    _, lo, hi = _scale_interval(r[ok], x[ok])
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return False
+    far = 10.0 ** LOOP_SCALE_DECADES
+    return bool(1e-3 * far < lo and hi < 1e3 / far)
+
+
 def check_loop_scale(ps, signals, name: str = "record") -> None:
     """Refuse (:class:`~fpdd.errors.DataError`, one line) a position in mm read as metres whose values stay inside
     the stroke, which no range can tell: in closed loop the demand ``x_ref`` and the measured ``x`` share one scale,

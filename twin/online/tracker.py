@@ -291,6 +291,8 @@ class OnlineTracker:
         self._last_t_ns: int | None = None
         self._pending: Samples | None = None
         self._started = False
+        self._scale_seen: list[dict[str, np.ndarray]] | None = None  # the first blocks while the loop's scale is open
+        self._scale_checked_at = 0  # samples gathered at the last check
         self.closed_fast = True
         self._setup_args = types.SimpleNamespace(  # constant: what the kernel's Setup takes of the configuration
             mia=self.meas_idx, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
@@ -359,6 +361,29 @@ class OnlineTracker:
     def R_floor(self) -> np.ndarray:
         return self.ch[:, ukf.H_R_FLOOR].copy()
 
+    #: how long the tracker keeps re-checking the loop's scale (x against x_ref) while it is not settled, s
+    SCALE_WATCH_S = 60.0
+
+    def _check_scale_on(self, samples: Samples) -> None:
+        """The loop's scale (a position in mm read as metres, :func:`twin.units.check_loop_scale`) checked again on
+        the blocks gathered so far each time they have doubled, until it is settled
+        (:func:`twin.units.loop_scale_settled`) or :data:`SCALE_WATCH_S` have passed: a record that starts at rest
+        cannot tell it on its first block.  Doubling keeps the whole watch linear in the samples it reads."""
+        from twin.units import check_loop_scale, loop_scale_settled
+
+        assert self._scale_seen is not None
+        names = [k for k in ("x", "x_ref", "u") if k in samples.signals]
+        self._scale_seen.append({k: np.asarray(samples.signals[k], dtype=float) for k in names})
+        n = sum(len(next(iter(b.values()))) for b in self._scale_seen if b)
+        if len(self._scale_seen) > 1 and n < 2 * self._scale_checked_at:
+            return
+        seen = {k: np.concatenate([b[k] for b in self._scale_seen if k in b]) for k in names}
+        if len(self._scale_seen) > 1:  # the first block was checked with the record's ranges
+            check_loop_scale(self.ps, seen, "the tracked signals")
+        self._scale_checked_at = max(n, 100)
+        if loop_scale_settled(seen) or n * (self.dt or 0.0) >= self.SCALE_WATCH_S:
+            self._scale_seen = None
+
     def _start_from_data(self, samples: Samples) -> None:
         """The measured state at the first sample (the model's measured outputs) instead of rest."""
         sig = samples.signals
@@ -422,6 +447,9 @@ class OnlineTracker:
         if not self._started:
             self._start_from_data(samples)
             self._started = True
+            self._scale_seen = []
+        if self._scale_seen is not None:
+            self._check_scale_on(samples)
         # seconds since the previous sample (NaN before the first one ever)
         DT = np.empty(T)
         if T:
@@ -608,6 +636,7 @@ class OnlineTracker:
         self.samples = samples
         self._last_t_ns = last
         self._started = started
+        self._scale_seen = None  # accepted before its checkpoint
         self.closed_fast = closed_fast
         self._pending = pending
 
