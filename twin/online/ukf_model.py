@@ -18,16 +18,16 @@ _SLOT = "twin.online.ukf_model: the filter's model slot; run a kernel made by tw
 @nb.njit
 def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):  # pragma: no cover - a signature
     """One log interval of one state ``s`` (SI) from sample ``k``; writes ``out``, returns the command at t_k."""
-    raise NotImplementedError(_SLOT)
+    raise RuntimeError(_SLOT)
 
 
 @nb.njit
 def lanes_applicable(p):  # pragma: no cover - a signature
     """True when the side-by-side ``lanes`` are exact for the kernel vector ``p``."""
-    raise NotImplementedError(_SLOT)
+    raise RuntimeError(_SLOT)
 
 
 @nb.njit
 def lanes(S, TH, m, p, idx, wnd, mode, dt, nsub, W):  # pragma: no cover - a signature
     """One log interval, open loop, of the states ``S[ln]`` with the parameters ``idx`` at ``TH[ln]``, in place."""
-    raise NotImplementedError(_SLOT)
+    raise RuntimeError(_SLOT)
