@@ -294,6 +294,8 @@ def test_the_kernel_is_loaded_from_numbas_cache_in_a_fresh_process():
             "tr = OnlineTracker(dt=1e-3); t = np.arange(5, dtype=np.int64) * 1000000;"
             "tr.process(Samples(t, {'u': np.zeros(5), 'x': np.zeros(5), 'pA': np.full(5, 14e6), 'pB': np.full(5, 14e6)}));"
             "k = ukf.kernel_for(tr.model); print(sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()))")
-    OnlineTracker()  # this process has compiled (or loaded) it: the cache is written
+    tr = OnlineTracker(dt=1e-3)  # this process compiles (or loads) it on its first block: the cache is written
+    t = np.arange(5, dtype=np.int64) * 1000000
+    tr.process(Samples(t, {"u": np.zeros(5), "x": np.zeros(5), "pA": np.full(5, 14e6), "pB": np.full(5, 14e6)}))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
     assert out.stdout.split() == ["1", "0"], out.stdout + out.stderr
