@@ -291,8 +291,8 @@ class OnlineTracker:
         self._last_t_ns: int | None = None
         self._pending: Samples | None = None
         self._started = False
-        self._scale_seen: list[dict[str, np.ndarray]] | None = None  # the first blocks while the loop's scale is open
-        self._scale_checked_at = 0  # samples gathered at the last check
+        # the loop-scale watch while the scale is open: the blocks gathered, the samples at the last check
+        self._scale_watch: types.SimpleNamespace | None = None
         self.closed_fast = True
         self._setup_args = types.SimpleNamespace(  # constant: what the kernel's Setup takes of the configuration
             mia=self.meas_idx, idx=self.idx, lo_log=self.lo_log, width=self.width, scale=self.scale,
@@ -371,18 +371,19 @@ class OnlineTracker:
         cannot tell it on its first block.  Doubling keeps the whole watch linear in the samples it reads."""
         from twin.units import check_loop_scale, loop_scale_settled
 
-        assert self._scale_seen is not None
+        w = self._scale_watch
+        assert w is not None
         names = [k for k in ("x", "x_ref", "u") if k in samples.signals]
-        self._scale_seen.append({k: np.asarray(samples.signals[k], dtype=float) for k in names})
-        n = sum(len(next(iter(b.values()))) for b in self._scale_seen if b)
-        if len(self._scale_seen) > 1 and n < 2 * self._scale_checked_at:
+        w.blocks.append({k: np.asarray(samples.signals[k], dtype=float) for k in names})
+        n = sum(len(next(iter(b.values()))) for b in w.blocks if b)
+        if len(w.blocks) > 1 and n < 2 * w.checked_at:
             return
-        seen = {k: np.concatenate([b[k] for b in self._scale_seen if k in b]) for k in names}
-        if len(self._scale_seen) > 1:  # the first block was checked with the record's ranges
+        seen = {k: np.concatenate([b[k] for b in w.blocks if k in b]) for k in names}
+        if len(w.blocks) > 1:  # the first block was checked with the record's ranges
             check_loop_scale(self.ps, seen, "the tracked signals")
-        self._scale_checked_at = max(n, 100)
+        w.checked_at = max(n, 100)
         if loop_scale_settled(seen) or n * (self.dt or 0.0) >= self.SCALE_WATCH_S:
-            self._scale_seen = None
+            self._scale_watch = None
 
     def _start_from_data(self, samples: Samples) -> None:
         """The measured state at the first sample (the model's measured outputs) instead of rest."""
@@ -447,8 +448,8 @@ class OnlineTracker:
         if not self._started:
             self._start_from_data(samples)
             self._started = True
-            self._scale_seen = []
-        if self._scale_seen is not None:
+            self._scale_watch = types.SimpleNamespace(blocks=[], checked_at=0)
+        if self._scale_watch is not None:
             self._check_scale_on(samples)
         # seconds since the previous sample (NaN before the first one ever)
         DT = np.empty(T)
@@ -580,6 +581,8 @@ class OnlineTracker:
         return {"version": self.STATE_VERSION, "tracked": list(self.tracked), "outputs": list(self.outputs),
                 "dt": self.dt, "samples": int(self.samples), "counters": {k: int(v) for k, v in self.counters.items()},
                 "last_t_ns": self._last_t_ns, "started": bool(self._started), "closed_fast": bool(self.closed_fast),
+                # the loop-scale watch still open (its blocks are not kept: restored, it starts again from there)
+                "scale_watch": self._scale_watch is not None,
                 "pending": None if pending is None else {"t_ns": np.asarray(pending.t_ns, dtype=np.int64),
                                                          "signals": {k: np.asarray(v, dtype=float)
                                                                      for k, v in pending.signals.items()}},
@@ -636,7 +639,8 @@ class OnlineTracker:
         self.samples = samples
         self._last_t_ns = last
         self._started = started
-        self._scale_seen = None  # accepted before its checkpoint
+        # a checkpoint written before the watch existed: the rig was accepted then
+        self._scale_watch = types.SimpleNamespace(blocks=[], checked_at=0) if state.get("scale_watch") else None
         self.closed_fast = closed_fast
         self._pending = pending
 
