@@ -35,6 +35,8 @@ twin = TwinPublisher(session, "r1", journal, put_mark=put_mark_path(path))
 assert twin.wait_for_alarm_subscribers(10.0)
 twin.publish_alarm(alarm("r1", 1))
 twin.publish_alarm(alarm("r1", 2))
+print("put", flush=True)
+sys.stdin.readline()  # the subscriber has both: what is tested is the third, journaled and never put
 journal.record(alarm("r1", 3))  # journaled, in the main file; the put would come next
 print("journaled", flush=True)
 os.kill(os.getpid(), signal.SIGKILL)
@@ -62,10 +64,17 @@ def test_an_alarm_journaled_but_not_put_before_a_kill_is_put_at_the_restart(
 
     plain = hub.declare_subscriber("fpdd/r1/alarm", keep)  # a plain Zenoh subscriber: no history, no gap filling
     path = tmp_path / "r1.db"
-    child = subprocess.run([sys.executable, "-c", CHILD, str(path), endpoint, str(Path(__file__).parent)],
-                           capture_output=True, text=True, timeout=120)
-    assert child.returncode == -9 and child.stdout == "journaled\n", child.stderr
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path), endpoint, str(Path(__file__).parent)],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert child.stdout is not None and child.stdin is not None
+    assert child.stdout.readline() == "put\n"
+    # a put still in the child's transmit queue at a kill -9 is lost with it, its put mark written (a limit noted
+    # in issue 38): the child dies only once the first two have arrived
     wait_for(2)
+    child.stdin.write("go\n")
+    child.stdin.flush()
+    out, err = child.communicate(timeout=120)
+    assert child.returncode == -9 and out == "journaled\n", err
     assert json.loads(put_mark_path(path).read_text())["seq"] == 2
     for _ in range(2):  # the service starts again (and once more: nothing is put twice)
         history = StoreHistory(path)
