@@ -254,6 +254,20 @@ def _scale_interval(r, x) -> tuple[float, float, float]:
     return b, b - LOOP_SCALE_Z * se, b + LOOP_SCALE_Z * se
 
 
+def _loop_signals(signals, names=("x", "x_ref")):
+    """The finite samples of ``names`` (each sample finite in all of them), or None when one is missing or fewer
+    than 100 samples are left."""
+    import numpy as np
+
+    if any(n not in signals for n in names):
+        return None
+    arrays = [np.asarray(signals[n], dtype=np.float64) for n in names]
+    ok = np.logical_and.reduce([np.isfinite(a) for a in arrays])
+    if ok.sum() < 100:
+        return None
+    return [a[ok] for a in arrays]
+
+
 def loop_scale_settled(signals) -> bool:
     """True when ``x`` and ``x_ref`` share one scale beyond doubt: the interval of :func:`_scale_interval` lies
     wholly outside both refusal bands (more data cannot refuse them any more), or the record has no demand."""
@@ -261,12 +275,10 @@ def loop_scale_settled(signals) -> bool:
 
     if "x" not in signals or "x_ref" not in signals:
         return True
-    x = np.asarray(signals["x"], dtype=np.float64)
-    r = np.asarray(signals["x_ref"], dtype=np.float64)
-    ok = np.isfinite(x) & np.isfinite(r)
-    if ok.sum() < 100:
+    both = _loop_signals(signals)
+    if both is None:
         return False
-    _, lo, hi = _scale_interval(r[ok], x[ok])
+    _, lo, hi = _scale_interval(both[1], both[0])
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return False
     far = 10.0 ** LOOP_SCALE_DECADES
@@ -288,17 +300,11 @@ def check_loop_scale(ps, signals, name: str = "record") -> None:
 
     from fpdd.errors import DataError
 
-    if "x" not in signals or "x_ref" not in signals:
+    found = _loop_signals(signals, ("x", "x_ref", "u") if "u" in signals else ("x", "x_ref"))
+    if found is None:
         return
-    x = np.asarray(signals["x"], dtype=np.float64)
-    r = np.asarray(signals["x_ref"], dtype=np.float64)
-    ok = np.isfinite(x) & np.isfinite(r)
-    u = np.asarray(signals["u"], dtype=np.float64) if "u" in signals else None
-    if u is not None:
-        ok &= np.isfinite(u)
-    if ok.sum() < 100:
-        return
-    x, r = x[ok], r[ok]
+    x, r = found[0], found[1]
+    u = found[2] if len(found) > 2 else None
 
     def thousand(ratio: float) -> int:
         """+1 for ~1000, -1 for ~1/1000, 0 otherwise."""
@@ -326,13 +332,13 @@ def check_loop_scale(ps, signals, name: str = "record") -> None:
     if not (xx > 0 and rr > 0 and 0.5 <= float(np.dot(r, x)) / xx <= 2.0):
         return  # the gain is read only off a loop that tracks its demand (x and x_ref on one scale)
     e = r - x
-    ee, ue = float(np.dot(e, e)), float(np.dot(u[ok], e))
+    ee, ue = float(np.dot(e, e)), float(np.dot(u, e))
     if not (ee > 0 and ue > 0):
         return
     # the drive read as mm explains it better than read as SI (the residuals of u = KP e against u = KP e / 1000),
     # and the fitted gain is three decades below KP
-    sse_si = float(np.sum((u[ok] - kp * e) ** 2))
-    sse_mm = float(np.sum((u[ok] - kp * e / 1000.0) ** 2))
+    sse_si = float(np.sum((u - kp * e) ** 2))
+    sse_mm = float(np.sum((u - kp * e / 1000.0) ** 2))
     if sse_mm < sse_si and thousand(kp * ee / ue) == 1:
         g = ue / ee
         raise DataError(f"{name}: x and x_ref drive the loop as if its gain were {g:.3g} V/m, about 1000 times less "

@@ -21,25 +21,16 @@ def input_at(a, k, f, mode):
     if mode == 0 or f <= 0.0:
         return a[k]
     n = a.shape[0]
-    k1 = k + 1 if k + 1 < n else n - 1
-    if mode == 1:
-        return a[k] + f * (a[k1] - a[k])
-    k0 = k - 1 if k > 0 else 0
-    k2 = k + 2 if k + 2 < n else n - 1
-    m0 = 0.5 * (a[k1] - a[k0])
-    m1 = 0.5 * (a[k2] - a[k])
-    f2 = f * f
-    f3 = f2 * f
-    return ((2.0 * f3 - 3.0 * f2 + 1.0) * a[k] + (f3 - 2.0 * f2 + f) * m0
-            + (3.0 * f2 - 2.0 * f3) * a[k1] + (f3 - f2) * m1)
+    return input_between(a[k - 1 if k > 0 else 0], a[k], a[k + 1 if k + 1 < n else n - 1],
+                         a[k + 2 if k + 2 < n else n - 1], f, mode)
 
 
 @nb.njit(cache=True)
 def input_between(a0, a1, a2, a3, f, mode):
     """:func:`input_at` from the four samples around the interval, ``a0 = a[k-1]``, ``a1 = a[k]``, ``a2 = a[k+1]``,
-    ``a3 = a[k+2]`` (clamped at the ends as there), the same operations in the same order: for a compiled caller
-    that reads them once per interval (an array handed to a compiled function is reference-counted at each call,
-    and an interval evaluates the input several times)."""
+    ``a3 = a[k+2]`` (clamped at the ends): for a compiled caller that reads them once per interval (an array handed
+    to a compiled function is reference-counted at each call, and an interval evaluates the input several
+    times)."""
     if mode == 0 or f <= 0.0:
         return a1
     if mode == 1:

@@ -99,21 +99,17 @@ LANE_WORK = 0
 
 
 @nb.njit(cache=True)
-def deriv(x, v, u, p):
-    f = u - p[I_U0] - p[I_D] * v - p[I_K] * x - p[I_K3] * x * x * x
-    fc = p[I_FC]
-    if fc > 0.0:
-        f -= fc * math.tanh(v / p[I_VC])
-    return v, f / p[I_M]
-
-
-@nb.njit(cache=True)
 def _accel(x, v, u, m, d, k, k3, u0, fc, vc):
-    """:func:`deriv`'s acceleration from the parameters as numbers (the same operations in the same order)."""
+    """The acceleration from the parameters as numbers (the filter's step reads them once per interval)."""
     f = u - u0 - d * v - k * x - k3 * x * x * x
     if fc > 0.0:
         f -= fc * math.tanh(v / vc)
     return f / m
+
+
+@nb.njit(cache=True)
+def deriv(x, v, u, p):
+    return v, _accel(x, v, u, p[I_M], p[I_D], p[I_K], p[I_K3], p[I_U0], p[I_FC], p[I_VC])
 
 
 @nb.njit(cache=True)
