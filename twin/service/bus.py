@@ -308,6 +308,9 @@ class TwinPublisher(_Declarations, Publisher):
         if history is None and journal is None:
             raise ConfigError(f"rig {rig!r}: a twin publisher needs a journal or a history to answer from")
         self._history: History = history if history is not None else journal  # type: ignore[assignment]
+        if self._mark is not None and self._mark.seq is None:  # no mark yet: what is journaled now counts as put,
+            # and the mark exists before the first put (a put not settled at a kill is then put again)
+            self._mark.unsent(self._history.last_seq(rig), getattr(self._history, "epoch", lambda _rig: "")(rig))
         self._latest: dict[str, str] = {}
         self._latest_lock = threading.Lock()
         self._declared: list[Any] = []
@@ -356,6 +359,13 @@ class TwinPublisher(_Declarations, Publisher):
         except zenoh.ZError as exc:
             self.close()
             raise _open_error(exc, f"rig {rig!r}: cannot declare the twin on the bus") from exc
+
+    def close(self) -> None:
+        """Undeclare everything, once the alarms put in the last moments have left (their put mark settled:
+        :mod:`twin.service.put_mark`, at most ``SETTLE_S`` of waiting)."""
+        if self._mark is not None:
+            self._mark.wait_settled()
+        super().close()
 
     def wait_for_alarm_subscribers(self, timeout: float) -> bool:
         """Wait until at least one subscriber matches ``fpdd/<rig>/alarm``.
@@ -416,8 +426,8 @@ class TwinPublisher(_Declarations, Publisher):
                 f"rig {self.rig!r}: alarm seq {event.seq} journaled but not published ({zenoh_text(exc)}); "
                 f"subscribers will get it from {self.keys.history}"
             ) from exc
-        if self._mark is not None:
-            self._mark.done(event.seq, event.epoch)
+        if self._mark is not None:  # in the mark once the process has outlived the put (settled)
+            self._mark.put(event.seq, event.epoch)
 
     def put_unsent(self, wait_s: float = 2.0) -> int:
         """Put the alarms journaled after the put mark (the service died between journal and put), in order,
@@ -453,6 +463,8 @@ class TwinPublisher(_Declarations, Publisher):
             payload = f'{payload[:-1]},"term":{self.term}}}'  # an estimate: its term appended, the text as written
         with self._latest_lock:
             self._latest[what] = payload
+        if self._mark is not None:
+            self._mark.settle()
         try:
             pub.put(payload)
         except zenoh.ZError as exc:
@@ -464,6 +476,8 @@ class TwinPublisher(_Declarations, Publisher):
         payload = event_to_json(event)
         with self._latest_lock:
             self._latest["estimate"] = payload
+        if self._mark is not None:
+            self._mark.settle()
         try:
             self._estimate_pub.put(payload)
         except zenoh.ZError as exc:
