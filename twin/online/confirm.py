@@ -48,6 +48,7 @@ samples between them (``python -m benchmarks.tracker`` measures the cost per sam
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
@@ -64,6 +65,8 @@ from twin.online.events import ALARM_LEVELS, AlarmEvent
 WINDOW_S = 4.0
 #: seconds between scheduled re-fits
 PERIOD_S = 20.0
+FITS_KEPT = 200
+"""Window fits kept for inspection (``ConfirmedDrift.fits``, the last ones): a service runs for months."""
 #: two-sided level of each parameter's two-sample test (z = 3.29)
 ALPHA = 1e-3
 #: a window standard error (relative) above this share of the band's log half-width: ``not_testable``
@@ -302,9 +305,12 @@ class ConfirmedDrift:
         self.sensor_count = {o: 0 for o in SENSOR_PARAMS.values()}
         self.adequate = True
         self.reasons: list[str] = []
-        self.fits: list[WindowFit] = []
+        self.fits: collections.deque[WindowFit] = collections.deque(maxlen=FITS_KEPT)
+        self.n_fits = 0
+        """Window fits run so far (``fits`` keeps the last :data:`FITS_KEPT`)."""
         #: the filter's drift test's own events (triggers, never published): what it would have raised alone
-        self.triggered: list[AlarmEvent] = []
+        #: (the last :data:`FITS_KEPT`)
+        self.triggered: collections.deque[AlarmEvent] = collections.deque(maxlen=FITS_KEPT)
         self._t_first: float | None = None
         self._next_scheduled: float | None = None
         self._last_fit_t = -math.inf
@@ -414,6 +420,7 @@ class ConfirmedDrift:
         adequate = bool(adequacy.get("adequate", True))
         self.reasons = list(adequacy.get("reasons", []))
         self.adequate = adequate
+        self.n_fits += 1
         self.fits.append(WindowFit(now, t_ns, verdicts, sensors, adequate, self.reasons, dict(res.estimate),
                                    dict(res.std), np.asarray(res.corr), which, elapsed))
         events = []
