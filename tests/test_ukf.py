@@ -254,10 +254,10 @@ def test_sigma_points_propagated_together_are_the_models_step_exactly(mode, para
     _lanes(sig, sf, rows, m, wnd, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2, nm,
            np.empty((F.LANES, ns)), np.empty((F.LANES, len(tr.tracked))), np.empty(F.LANE_WORK))
     for r in rows[:m]:
-        one = np.empty(n)
-        fx_into(sig[r], wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+        one = np.empty((2 * n + 1, n))
+        fx_into(sig, r, wnd, False, 1, mode, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
                 0.0, np.zeros(F.N_CTRL), F.N_CTRL, np.empty(ns), np.empty(ns), one, nm)
-        np.testing.assert_array_equal(sf[r, :nm], one[:nm])
+        np.testing.assert_array_equal(sf[r, :nm], one[r, :nm])
     assert np.isnan(sf[nm + 1:n + 1]).all()  # the points along noise states are not integrated
 
 

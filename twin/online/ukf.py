@@ -283,8 +283,9 @@ def fx_one(model, s, u_prev, u_now, pvec, idx, lo_log, width, scale, dt, nsub, n
     nmod = ns + idx.shape[0]
     out = np.empty(n)
     wnd = np.array([u_prev if u_before is None else u_before, u_prev, u_now, u_now], dtype=np.float64)
-    fx_into(np.ascontiguousarray(s, dtype=np.float64), wnd, closed, ticks, mode, pvec.copy(), idx, lo_log,
-            width, scale, dt, nsub, xm, np.zeros(fmod.N_CTRL), fmod.N_CTRL, np.empty(ns), np.empty(ns), out, nmod)
+    fx_into(np.ascontiguousarray(s, dtype=np.float64).reshape(1, n), 0, wnd, closed, ticks, mode, pvec.copy(), idx,
+            lo_log, width, scale, dt, nsub, xm, np.zeros(fmod.N_CTRL), fmod.N_CTRL, np.empty(ns), np.empty(ns),
+            out.reshape(1, n), nmod)
     for j in range(nmod, n):
         out[j] = noise_a[j - nmod] * s[j]
     return out

@@ -27,28 +27,29 @@ def lanes_apply(p):
 
 
 @nb.njit
-def fx_into(s, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, out,
+def fx_into(sig, r, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, sf,
             nmod):
-    """One log interval of one augmented state with the drive window ``wnd`` (the drive at samples k-2, k-1, k, k;
-    index 1 is the interval's start).
+    """One log interval of the augmented state ``sig[r]`` with the drive window ``wnd`` (the drive at samples k-2,
+    k-1, k, k; index 1 is the interval's start).
 
-    Writes the model states and parameters of ``out`` (``nmod`` entries); ``p`` is overwritten at ``idx``; no
-    allocation.  ``ctrl``: the model's controller memory (``nc`` entries) followed, when it is longer, by the rig
+    Writes the model states and parameters of ``sf[r]`` (``nmod`` entries); ``p`` is overwritten at ``idx``; no
+    allocation (the rows are indexed, not sliced: a slice handed to a compiled call is a new array, reference
+    counted on the way in and out, 2n+1 times an interval).  ``ctrl``: the model's controller memory (``nc`` entries) followed, when it is longer, by the rig
     controller's memory carried from sample to sample (the interval starts from it; else from rest).
     """
     ns = scale.shape[0]
     for j in range(idx.shape[0]):
-        p[idx[j]] = theta_of(s[ns + j], lo_log[j], width[j])
+        p[idx[j]] = theta_of(sig[r, ns + j], lo_log[j], width[j])
     for j in range(ns):
-        si[j] = s[j] * scale[j]
+        si[j] = sig[r, j] * scale[j]
     carried = ctrl.shape[0] >= 2 * nc
     for j in range(nc):
         ctrl[j] = ctrl[nc + j] if carried else 0.0
     advance(si, 1, wnd, closed, ticks, mode, p, h, nsub, xm, ctrl, so)
     for j in range(ns):
-        out[j] = so[j] / scale[j]
+        sf[r, j] = so[j] / scale[j]
     for j in range(ns, nmod):
-        out[j] = s[j]
+        sf[r, j] = sig[r, j]
 
 
 @nb.njit
@@ -118,15 +119,15 @@ def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, n
                 m += 1
         _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W)
     else:
-        fx_into(sig[0], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so,
-                sf[0], nmod)
+        fx_into(sig, 0, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so,
+                sf, nmod)
         for j in range(nc):  # the controller's memory at the interval's end, along the central point
             ctrl[2 * nc + j] = ctrl[j]
         for k in range(nmod):
-            fx_into(sig[k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc,
-                    si, so, sf[k + 1], nmod)
-            fx_into(sig[n + k + 1], wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl,
-                    nc, si, so, sf[n + k + 1], nmod)
+            fx_into(sig, k + 1, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc,
+                    si, so, sf, nmod)
+            fx_into(sig, n + k + 1, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, ctrl,
+                    nc, si, so, sf, nmod)
     for k in range(nmod, n):  # along a noise state only: the model part is the central point's
         for i in range(nmod):
             sf[k + 1, i] = sf[0, i]
