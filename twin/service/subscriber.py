@@ -507,9 +507,11 @@ class AlarmSubscriber(_Declarations):
             self._accept(event, status)
         return [event for event, _ in found]
 
-    def _twin_alive(self, rig: str) -> bool:
-        """Whether the rig's twin holds its liveliness token (asked again when not known alive)."""
-        if rig in self._alive:
+    def _twin_alive(self, rig: str, fresh: bool = False) -> bool:
+        """Whether the rig's twin holds its liveliness token (asked again when not known alive, or ``fresh``:
+        a twin killed a moment ago is still alive in the order of this subscriber's messages, its token's removal
+        queued behind its last alarms, while a query finds nobody to answer it)."""
+        if rig in self._alive and not fresh:
             return True
         try:
             replies = list(self._session.liveliness().get(RigKeys(rig).twin, timeout=min(self._query_timeout, 1.0)))
@@ -517,6 +519,8 @@ class AlarmSubscriber(_Declarations):
             return False
         if any(r.ok is not None for r in replies):
             self._alive.add(rig)
+        elif fresh:
+            self._alive.discard(rig)
         return rig in self._alive
 
     def _record_missed(self, rig: str, first: int, last: int) -> None:
@@ -569,7 +573,7 @@ class AlarmSubscriber(_Declarations):
                 self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: differs from the alarm the "
                              "twin journaled under that number (that one was delivered); not accepted")
             return
-        if verdict.status != VERIFIED and rig not in self._conflicted and self._twin_alive(rig):
+        if verdict.status != VERIFIED and rig not in self._conflicted and self._twin_alive(rig, fresh=True):
             self.rejected += 1
             self._report("forged", f"rig {rig} seq {seq} on {RigKeys(rig).alarm}: not in the history of the rig's "
                          "live twin (not journaled by it); not accepted")
@@ -586,7 +590,8 @@ class AlarmSubscriber(_Declarations):
         rig = event.rig
         if verdict.status != VERIFIED and self._twin_alive(rig):
             held = [e for e, _ in self._query(rig, event.seq, None) if e.seq == event.seq]
-            if not any(replace(e, signature="") == replace(event, signature="") for e in held):
+            if not any(replace(e, signature="") == replace(event, signature="") for e in held) and \
+                    self._twin_alive(rig, fresh=True):
                 self.rejected += 1
                 self._report("forged", f"rig {rig} seq {event.seq} on {RigKeys(rig).alarm}: epoch {event.epoch} is "
                              "not the live twin's (not journaled by it); not accepted")
