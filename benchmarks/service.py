@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _log(path: Path, seconds: float, seed: int) -> None:
+def _log(path: Path, seconds: float, seed: int, onset_s: float | None = None) -> None:
+    """A rig's log: a friction step (x2) at ``onset_s`` (default: half way)."""
     from replay.mcapio import McapSink
     from twin.models import msp25 as M
     from twin.models.scenario import Drift, simulate_wear
@@ -54,7 +55,8 @@ def _log(path: Path, seconds: float, seed: int) -> None:
     from twin.models.simulate import excite
 
     _, xr = excite(M.MODEL, seconds, 1e-3, seed=seed)
-    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 2.0, seconds / 2, shape="step")],
+    rec, _ = simulate_wear(M.MODEL.params(), xr, 1e-3, [Drift("Ffric", 2.0, seconds / 2 if onset_s is None else onset_s,
+                                                                    shape="step")],
                            noise={k: NOMINAL_NOISE[k] for k in ("x", "pA", "pB")}, seed=seed)
     with McapSink(str(path)) as sink:
         sink.write(rec.to_samples())
@@ -171,17 +173,18 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
     seconds = minutes * 60.0
     with tempfile.TemporaryDirectory(prefix="fpdd-soak-") as tmp:
         d = Path(tmp)
+        warm = min(120.0, seconds / 5)
         say(f"simulating {seconds + 30:.0f} s of data for {rigs} rigs (2 logs)...")
         logs = [d / f"rig{i}.mcap" for i in range(2)]
-        for i, p in enumerate(logs):
-            _log(p, seconds + 30.0, seed=20 + i)
+        for i, p in enumerate(logs):  # the friction step (alarms, window re-fits) inside the warm-up: after it
+            _log(p, seconds + 30.0, seed=20 + i, onset_s=warm / 2)  # every path has run once
         port = _free_port()
         proc = _start(_config(d, logs, rigs, port))
         watch = _Statuses(f"tcp/127.0.0.1:{port}")
         samples: list[tuple[float, int]] = []
+        per_proc: dict[int, list[tuple[float, int]]] = {}  # each process of the service: (t, RSS KiB)
         lags: dict[str, list[float]] = {}
         t0 = time.monotonic()
-        warm = min(120.0, seconds / 5)
         try:
             while time.monotonic() - t0 < seconds:
                 time.sleep(5.0)
@@ -191,8 +194,12 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
                         errors="replace").strip().splitlines()[-5:]
                     raise RuntimeError(f"twin serve ended early at {time.monotonic() - t0:.0f} s with exit code "
                                        f"{proc.returncode}: {' | '.join(tail) or 'nothing on its console'}")
-                now_rss = sum(_rss_kib(p) for p in _tree(proc.pid))
-                samples.append((time.monotonic() - t0, now_rss))
+                now = time.monotonic() - t0
+                each = {p: _rss_kib(p) for p in _tree(proc.pid)}
+                now_rss = sum(each.values())
+                samples.append((now, now_rss))
+                for p, kib in each.items():
+                    per_proc.setdefault(p, []).append((now, kib))
                 for _, st in watch.drain():
                     lags.setdefault(st["rig"], []).append(st["counters"].get("lag_ms", 0) / 1000)
                 say(f"  t={samples[-1][0]:6.0f} s  RSS {now_rss / 1024:7.1f} MiB  rigs reporting {len(lags)}")
@@ -205,7 +212,13 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
     after = rss[t >= warm]
     slope = float(np.polyfit(t[t >= warm], after, 1)[0]) if after.size > 2 else 0.0
     all_lags = [x for v in lags.values() for x in v]
-    return {"rigs": rigs, "minutes": minutes, "warm_up_s": warm,
+    procs = []  # where the growth is: each process's RSS after the warm-up and at the end
+    for p, rows in per_proc.items():
+        after_p = [kib for when, kib in rows if when >= warm]
+        if after_p:
+            procs.append({"pid": p, "role": "service" if p == proc.pid else "worker",
+                          "rss_warm_mib": after_p[0] / 1024, "rss_final_mib": after_p[-1] / 1024})
+    return {"rigs": rigs, "processes": procs, "minutes": minutes, "warm_up_s": warm,
             "rss_warm_mib": base / 1024, "rss_final_mib": rss[-1] / 1024, "rss_max_after_warm_mib": after.max() / 1024,
             "growth_after_warm_pct": 100.0 * (rss[-1] - base) / base,
             "slope_kib_per_min": slope * 60.0,
@@ -464,6 +477,8 @@ def main(argv=None) -> int:
                   f"{r['rss_warm_mib']:.1f} MiB, at the end {r['rss_final_mib']:.1f} MiB: growth "
                   f"{r['growth_after_warm_pct']:+.2f} % (target < 5 %), slope {r['slope_kib_per_min']:+.0f} KiB/min; "
                   f"lag max {r['lag_max_s']:.3f} s, p95 {r['lag_p95_s']:.3f} s")
+            for q in r["processes"]:
+                print(f"  {q['role']:7s} pid {q['pid']}: {q['rss_warm_mib']:.1f} -> {q['rss_final_mib']:.1f} MiB")
     elif args.what == "overhead":
         r = overhead(args.seconds, args.block_ms, args.rounds, args.profile, say)
         if args.json:

@@ -95,3 +95,29 @@ def test_a_replayed_mcap_keeps_a_small_index_per_chunk(tmp_path: Path):
     per_chunk_lib = (theirs[1] - theirs[0]) / (chunks[1] - chunks[0])
     assert per_chunk < per_chunk_lib / 3, (per_chunk, per_chunk_lib)
     assert per_chunk < 160  # a handful of 64-bit numbers per chunk (seven arrays of them)
+
+
+def test_the_heap_freed_by_a_long_run_goes_back_to_the_system() -> None:
+    """What the rigs free stays in the C heap (glibc keeps it in its arenas) until it is trimmed: the worker trims
+    every ``TRIM_EVERY_S`` (``fpdd.process.trim_heap``). Here 125 MiB of 64-KiB blocks, freed below one still held
+    (so the heap's top cannot shrink), are still resident until the trim."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        from fpdd.process import trim_heap
+        def rss():
+            with open("/proc/self/status") as f:
+                return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+        blocks = [bytearray(b"\\1" * 65536) for _ in range(2000)]
+        held = blocks[-1]
+        del blocks
+        freed = rss()
+        print(trim_heap(), freed, rss())
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
+                         cwd=Path(__file__).parent.parent).stdout.split()
+    trimmed, before, after = out[0] == "True", float(out[1]), float(out[2])
+    assert trimmed, "no malloc_trim on this system"
+    assert before - after > 100.0, (before, after)

@@ -304,9 +304,15 @@ class Fleet:
                     self.stop.set()
 
     def _loop(self, front, inbox, procs) -> None:
+        from fpdd.process import TRIM_EVERY_S, trim_heap
+
         names = {r.name for r in self.cfg.rigs}
+        trimmed = time.monotonic()
         while True:
             self._receive(front, inbox, 0.1)
+            if time.monotonic() - trimmed >= TRIM_EVERY_S:  # the rigs run here too when there are no workers
+                trim_heap()
+                trimmed = time.monotonic()
             if names <= set(self.summaries) or self.stop.is_set():
                 return
             for p, rigs in procs:

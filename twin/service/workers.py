@@ -57,8 +57,13 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
                                             args=(rig, cfg, out, local), name=f"rig-{rig.name}", daemon=True))
     for t in threads:
         t.start()
+    from fpdd.process import TRIM_EVERY_S, trim_heap
+
     for t in threads:
-        t.join()
+        while t.is_alive():  # meanwhile the freed heap goes back to the system (flat memory over months)
+            t.join(TRIM_EVERY_S)
+            if t.is_alive():
+                trim_heap()
     console.close()
     from fpdd.process import exit_process
 
