@@ -195,11 +195,11 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
                     raise RuntimeError(f"twin serve ended early at {time.monotonic() - t0:.0f} s with exit code "
                                        f"{proc.returncode}: {' | '.join(tail) or 'nothing on its console'}")
                 now = time.monotonic() - t0
-                each = {p: _rss_kib(p) for p in _tree(proc.pid)}
+                each = {pid: _rss_kib(pid) for pid in _tree(proc.pid)}
                 now_rss = sum(each.values())
                 samples.append((now, now_rss))
-                for p, kib in each.items():
-                    per_proc.setdefault(p, []).append((now, kib))
+                for pid, kib in each.items():
+                    per_proc.setdefault(pid, []).append((now, kib))
                 for _, st in watch.drain():
                     lags.setdefault(st["rig"], []).append(st["counters"].get("lag_ms", 0) / 1000)
                 say(f"  t={samples[-1][0]:6.0f} s  RSS {now_rss / 1024:7.1f} MiB  rigs reporting {len(lags)}")
@@ -213,10 +213,10 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
     slope = float(np.polyfit(t[t >= warm], after, 1)[0]) if after.size > 2 else 0.0
     all_lags = [x for v in lags.values() for x in v]
     procs = []  # where the growth is: each process's RSS after the warm-up and at the end
-    for p, rows in per_proc.items():
+    for pid, rows in per_proc.items():
         after_p = [kib for when, kib in rows if when >= warm]
         if after_p:
-            procs.append({"pid": p, "role": "service" if p == proc.pid else "worker",
+            procs.append({"pid": pid, "role": "service" if pid == proc.pid else "worker",
                           "rss_warm_mib": after_p[0] / 1024, "rss_final_mib": after_p[-1] / 1024})
     return {"rigs": rigs, "processes": procs, "minutes": minutes, "warm_up_s": warm,
             "rss_warm_mib": base / 1024, "rss_final_mib": rss[-1] / 1024, "rss_max_after_warm_mib": after.max() / 1024,

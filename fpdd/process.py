@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 
 def exit_process(rc: int) -> None:
@@ -29,7 +30,7 @@ def exit_process(rc: int) -> None:
 #: How often a long-running process gives its C heap's free pages back to the system [s].
 TRIM_EVERY_S = 60.0
 
-_malloc_trim = None
+_malloc_trim: Any = None
 
 
 def trim_heap() -> bool:
