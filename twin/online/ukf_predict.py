@@ -34,8 +34,9 @@ def fx_into(sig, r, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, n
 
     Writes the model states and parameters of ``sf[r]`` (``nmod`` entries); ``p`` is overwritten at ``idx``; no
     allocation (the rows are indexed, not sliced: a slice handed to a compiled call is a new array, reference
-    counted on the way in and out, 2n+1 times an interval).  ``ctrl``: the model's controller memory (``nc`` entries) followed, when it is longer, by the rig
-    controller's memory carried from sample to sample (the interval starts from it; else from rest).
+    counted on the way in and out, 2n+1 times an interval).  ``ctrl``: the model's controller memory (``nc``
+    entries) followed, when it is longer, by the rig controller's memory carried from sample to sample (the
+    interval starts from it; else from rest).
     """
     ns = scale.shape[0]
     for j in range(idx.shape[0]):

@@ -310,7 +310,7 @@ class TwinPublisher(_Declarations, Publisher):
         self._history: History = history if history is not None else journal  # type: ignore[assignment]
         if self._mark is not None and self._mark.seq is None:  # no mark yet: what is journaled now counts as put,
             # and the mark exists before the first put (a put not settled at a kill is then put again)
-            self._mark.unsent(self._history.last_seq(rig), getattr(self._history, "epoch", lambda _rig: "")(rig))
+            self._mark.done(self._history.last_seq(rig), getattr(self._history, "epoch", lambda _rig: "")(rig))
         self._latest: dict[str, str] = {}
         self._latest_lock = threading.Lock()
         self._declared: list[Any] = []

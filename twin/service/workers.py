@@ -60,7 +60,7 @@ def worker_main(rigs: list[RigConfig], cfg: ServiceConfig, out, stop_conn, log_l
     from fpdd.process import TRIM_EVERY_S, trim_heap
 
     for t in threads:
-        while t.is_alive():  # meanwhile the freed heap goes back to the system (flat memory over months)
+        while t.is_alive():  # meanwhile the freed C heap goes back to the system (glibc would keep it)
             t.join(TRIM_EVERY_S)
             if t.is_alive():
                 trim_heap()
