@@ -284,3 +284,26 @@ def test_noise_added_after_the_controller_leaves_the_loop_alone():
     without = fit(RIG, rec, RIG.PHENOMENOLOGICAL, start=start, loop_noise=False)
     for k in RIG.PHENOMENOLOGICAL:
         assert abs(with_loop.estimate[k] - without.estimate[k]) < 0.05 * without.std[k], k
+
+
+def test_the_refinement_stops_when_the_step_left_is_a_hundredth_of_a_standard_error():
+    """A linear least-squares problem: at its solution the Gauss-Newton step left is nothing (stop); a tenth of a
+    standard error away it is not (go on); a step a bound blocks is left to the trust region."""
+    from twin.estimation.fit import STEP_SE, _step_within_noise
+
+    rng = np.random.default_rng(7)
+    J = rng.normal(size=(2000, 2))
+    y = J @ np.array([1.0, -2.0]) + rng.normal(scale=0.5, size=2000)
+    z_hat = np.linalg.lstsq(J, y, rcond=None)[0]
+    r = J @ z_hat - y
+    se = np.sqrt(np.diag(np.linalg.inv(J.T @ J)) * (r @ r) / (2000 - 2))
+    lo, hi = np.full(2, -10.0), np.full(2, 10.0)
+    assert _step_within_noise(J, r, 2000, lo, hi, z_hat)
+    for k, off in ((0, 0.1), (1, 0.1), (0, 3 * STEP_SE)):
+        z = z_hat.copy()
+        z[k] += off * se[k]
+        assert not _step_within_noise(J, J @ z - y, 2000, lo, hi, z)
+    z = z_hat.copy()
+    z[0] += 0.5 * STEP_SE * se[0]
+    assert _step_within_noise(J, J @ z - y, 2000, lo, hi, z)
+    assert not _step_within_noise(J, J @ z - y, 2000, np.array([z[0] - 1e-12, -10.0]), hi, z)  # the bound blocks it

@@ -33,6 +33,39 @@ def test_values_with_units_convert_to_si(name, text, si):
     assert to_si(name, text) == pytest.approx(si, rel=1e-12)
 
 
+@pytest.mark.parametrize("text,unit", [
+    ("43Hz", "rad/s"), ("0.043 kHz", "rad/s"), ("270.2rad/s", "rad/s"), ("0.0098589mm^2", "m^2"),
+    ("3.3 mm²", "m^2"), ("4 mm**2", "m^2"), ("480 cm^3", "m^3"), ("20kPa", "Pa"), ("1.5 GPa", "Pa"), ("0.05kN", "N"),
+    ("2um", "m"), ("2 µm", "m"), ("7 cm", "m"), ("1.5ms", "s"), ("-3.5e2 mm", "m"),
+])
+def test_a_prefixed_si_unit_is_read_without_pint_and_as_pint_reads_it(text, unit):
+    """The common spellings (the SI unit with a prefix) skip pint's import, about a second of a command's start;
+    each gives what pint gives. Anything else is pint's (``3ms`` for a length: not a prefixed metre)."""
+    from fpdd import units
+
+    fast = units._prefixed(text, unit)
+    assert fast is not None
+    pint_value = units._registry().Quantity(text.replace("²", "^2").replace("µ", "u"))
+    if unit == "rad/s" and "Hz" in text:
+        assert fast == pytest.approx(2 * math.pi * float(pint_value.to("Hz").magnitude), rel=1e-12)
+    else:
+        assert fast == pytest.approx(float(pint_value.to(unit).magnitude), rel=1e-12)
+    for other, u in (("3ms", "m"), ("2 kg", "N"), ("1 bar", "Pa"), ("40degC", "K"), ("5 mm^3", "m^2"),
+                     ("0.4 V/mm", "V/m")):
+        assert units._prefixed(other, u) is None
+
+
+def test_a_command_with_prefixed_units_does_not_import_pint():
+    import subprocess
+    import sys
+
+    code = ("import sys; from twin.units import to_si; "
+            "v = [to_si('CdAleak', '3.3mm^2'), to_si('wn', '43Hz'), to_si('Ffric', '0.05kN')]; "
+            "print('pint' in sys.modules, v)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split(" ", 1)
+    assert out[0] == "False" and json.loads(out[1]) == pytest.approx([3.3e-6, 2 * math.pi * 43, 50.0], rel=1e-12)
+
+
 @pytest.mark.parametrize("text,message", [
     ("wn=43N", "wn: '43N' is not in a unit of rad/s"),
     ("Ffric=abc", "Ffric: cannot read 'abc'"),

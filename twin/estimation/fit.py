@@ -74,6 +74,10 @@ __all__ = ["FitResult", "fit", "hac_covariance", "likelihood_ratio", "make_probl
            "initial_from_data", "resolve_outputs"]
 
 FD_STEP = 1e-6  # finite-difference step in the order-one fit coordinates
+#: a refinement stops when the Gauss-Newton step left is under this fraction of a standard error in every
+#: direction (its Mahalanobis length in the white-noise covariance, which the HAC one only widens): the digits it
+#: would still add are far inside the estimate's own uncertainty
+STEP_SE = 0.01
 LOOP_NOISE_BAND = 0.4  # the loop noise's level is read off the residual above this fraction of Nyquist
 INIT_SCALE = {"x0": 1e-3, "dp0": 1e5, "v0": 1e-3}
 #: the weighting unit of an output whose units follow the record, as a fraction of its rms variation (a weight
@@ -423,6 +427,30 @@ def _local_starts(prob: _Problem, start: Mapping[str, float], n: int, seed: int,
     return np.clip(Z, lo_in, hi_in)
 
 
+class _Converged(Exception):
+    """Raised from the Jacobian's callback: the refinement has converged at ``z`` by :data:`STEP_SE`."""
+
+    def __init__(self, z: np.ndarray) -> None:
+        super().__init__("converged")
+        self.z = np.array(z, dtype=float)
+
+
+def _step_within_noise(J: np.ndarray, r: np.ndarray, n: int, lo: np.ndarray, hi: np.ndarray,
+                       z: np.ndarray) -> bool:
+    """Whether the Gauss-Newton step from ``z`` (Jacobian ``J`` [N, p], residuals ``r``) is shorter than
+    :data:`STEP_SE` standard errors in every direction, ``||J step||^2 / s^2 < STEP_SE^2`` with ``s^2`` the
+    residuals' variance, and stays inside the bounds (a step a bound blocks is left to the trust region)."""
+    p = J.shape[1]
+    s2 = float(r @ r) / max(n - p, 1)
+    if not (s2 > 0.0 and np.all(np.isfinite(J))):
+        return False
+    step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+    if not np.all(np.isfinite(step)) or np.any(z + step <= lo) or np.any(z + step >= hi):
+        return False
+    Js = J @ step
+    return float(Js @ Js) / s2 < STEP_SE * STEP_SE
+
+
 @one_blas_thread
 def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[str],
         base: ParameterSet | None = None, start: Mapping[str, float] | None = None,
@@ -489,22 +517,26 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
     evaluated: dict[bytes, np.ndarray] = {}
 
     def refine(z_start: np.ndarray, rank: int):
-        cache: dict = {}
+        cache: dict = {}  # the residuals at the last point, and its finite-difference neighbours once asked for
+        calls = [0]
 
         def fun(z):
             key = z.tobytes()
             if key not in cache:
                 cache.clear()
-                Zb = np.vstack([z, z + FD_STEP * np.eye(prob.n_z)])
-                cache[key] = prob.residuals(Zb)
-                evaluated[key] = cache[key]
-                while len(evaluated) > 4:
-                    evaluated.pop(next(iter(evaluated)))
+                cache[key] = prob.residuals(z[None, :])  # a step tried: its residuals alone (a rejected one
+                calls[0] += 1                              # never needs the Jacobian)
             return cache[key][0]
 
         def jac(z):
             fun(z)
-            R = cache[z.tobytes()]
+            key = z.tobytes()
+            R = cache[key]
+            if R.shape[0] == 1:  # the step was taken: its Jacobian by finite differences, in one batch
+                R = cache[key] = np.vstack([R, prob.residuals(z + FD_STEP * np.eye(prob.n_z))])
+            evaluated[key] = R
+            while len(evaluated) > 4:
+                evaluated.pop(next(iter(evaluated)))
             J = ((R[1:] - R[0]) / FD_STEP).T
             th = prob.from_z(z)[0]
             history.append({"start": rank, "iteration": len([h for h in history if h["start"] == rank]),
@@ -512,10 +544,23 @@ def fit(model: Model | str, records: Sequence[Record] | Record, free: Sequence[s
             if progress:  # a person reads it: each value in its display unit (``wn=43.0051 Hz``)
                 progress(f"start {rank}: iteration {history[-1]['iteration']:3d} cost {history[-1]['cost']:.6g} "
                          + ", ".join(f"{s.name}={s.show(v)}" for s, v in zip(prob.specs, th.tolist())))
+            if _step_within_noise(J, R[0], prob.n_measured(), lo, hi, z):
+                raise _Converged(z)
             return J
 
-        return optimize.least_squares(fun, z_start, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                                      ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
+        try:
+            res = optimize.least_squares(fun, z_start, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
+                                         ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
+        except _Converged as done:
+            r = cache[done.z.tobytes()][0]
+            res = optimize.OptimizeResult(
+                x=done.z, cost=0.5 * float(r @ r), fun=r, status=2, success=True,
+                message=f"converged: the remaining Gauss-Newton step is under {STEP_SE:g} of a standard error")
+        last = cache.get(np.asarray(res.x).tobytes())
+        if last is not None:  # the residuals at the solution (its neighbours too when asked for): not simulated again
+            evaluated[np.asarray(res.x).tobytes()] = last
+        res.nfev = calls[0]
+        return res
 
     best = None
     for rank, i in enumerate(order):
@@ -563,6 +608,8 @@ def _result(prob: _Problem, res, history, starts_info, nfev, elapsed, R: np.ndar
     theta, init = prob.from_z(z)
     if R is None:
         R = prob.residuals(np.vstack([z, z + FD_STEP * np.eye(prob.n_z)]))
+    elif R.shape[0] == 1:
+        R = np.vstack([R, prob.residuals(z + FD_STEP * np.eye(prob.n_z))])
     r = R[0]
     J = ((R[1:] - r) / FD_STEP).T
     N = prob.n_measured()

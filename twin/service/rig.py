@@ -48,8 +48,10 @@ SERVICE_HISTORY = 4096
 ALARMS_KEPT = 10000
 #: A rig's status is published at least this often [s], and a change of its message alone waits for it.
 STATUS_S = 1.0
-#: Forecasts kept in memory per rig by the service (one per parameter per second); ``twin track`` keeps all.
-FORECASTS_KEPT = 4096
+#: Forecasts kept in memory per rig by the service (one per parameter per second: with five parameters about the
+#: span of its estimates, 3.4 minutes); the bus and the recording have them all, the service publishes only the
+#: latest; ``twin track`` keeps all.
+FORECASTS_KEPT = 1024
 #: Samples that arrive while a rig's commissioning fit runs wait for it, at most this much sample time [s].
 COMMISSION_PENDING_S = 60.0
 
