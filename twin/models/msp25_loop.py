@@ -18,7 +18,7 @@ from twin.models import base as _base_src
 from twin.models import intersample as _intersample_src
 from twin.models import msp25_params as _params_src
 from twin.models import msp25_rhs as _rhs_src
-from twin.models.intersample import input_at, input_between, slope_at
+from twin.models.intersample import input_at, slope_at
 from twin.models.jitcache import keep_fresh
 from twin.models.msp25_params import (
     I_A, I_AB, I_DMEAS, I_KD, I_KDP, I_KFF, I_KI, I_KP, I_KXM, I_PAOFF, I_PBOFF, I_TAUX, I_TF, I_UMAX, NS,
@@ -93,54 +93,29 @@ def pid_tick(r, rdot, xm, pa, pb, h, p, ctrl):
 
 
 @nb.njit(cache=True)
-def _slope_between(a0, a1, a2, a3, f, mode, dt):
-    """:func:`twin.models.intersample.slope_at` from the four samples around the interval (as
-    :func:`~twin.models.intersample.input_between`), the same operations in the same order."""
-    if mode == 0:
-        return 0.0
-    if mode == 1:
-        return (a2 - a1) / dt
-    m0 = 0.5 * (a2 - a0)
-    m1 = 0.5 * (a3 - a1)
-    f2 = f * f
-    return ((6.0 * f2 - 6.0 * f) * a1 + (3.0 * f2 - 4.0 * f + 1.0) * m0
-            + (6.0 * f - 6.0 * f2) * a2 + (3.0 * f2 - 2.0 * f) * m1) / dt
-
-
-@nb.njit(cache=True)
-def _d_signal(a4, a5, q0, q1, q2, q3, f, mode, p, dt):
+def _d_signal(a4, a5, k, f, drive, mode, p, dt):
     """A continuous controller's measured displacement, error, demand rate, the signal its derivative acts on
-    and that signal's rate; the demand from its four samples around the interval ``q0..q3``."""
+    and that signal's rate."""
     g = p[I_KXM]
     xm = g * (a4 - p[I_TAUX] * a5)  # x(t - tau) to first order
-    e = input_between(q0, q1, q2, q3, f, mode) - xm
-    rdot = _slope_between(q0, q1, q2, q3, f, mode, dt)
+    e = input_at(drive, k, f, mode) - xm
+    rdot = slope_at(drive, k, f, mode, dt)
     if p[I_DMEAS] > 0.0:
         return xm, e, rdot, -xm, -g * a5
     return xm, e, rdot, e, rdot - g * a5
 
 
 @nb.njit(cache=True)
-def _u_stage(a2, a3, a4, a5, q0, q1, q2, q3, f, closed, mode, p, integ, dflt, dt):
+def _u_stage(a2, a3, a4, a5, k, f, drive, closed, mode, p, integ, dflt, dt):
     """Controller output at a stage of a continuous loop (closed) or an interpolated logged input (open).
     ``dflt``: the derivative filter's state (the filtered signal) when ``Tf > 0``."""
     if not closed:
-        return input_between(q0, q1, q2, q3, f, mode)
-    xm, e, rdot, sig, dsig = _d_signal(a4, a5, q0, q1, q2, q3, f, mode, p, dt)
+        return input_at(drive, k, f, mode)
+    xm, e, rdot, sig, dsig = _d_signal(a4, a5, k, f, drive, mode, p, dt)
     tf = p[I_TF]
     d = dsig if tf <= 0.0 else (sig - dflt) / tf
     u = p[I_KP] * e + p[I_KI] * integ + p[I_KD] * d
     return _shape_output(u, rdot, a2 + p[I_PAOFF], a3 + p[I_PBOFF], p)
-
-
-@nb.njit(cache=True)
-def _around(drive, k):
-    """The four samples around the interval from ``k``: ``drive[k-1], drive[k], drive[k+1], drive[k+2]``, clamped
-    at the ends (read once per interval: an array handed to a compiled function is reference-counted at each
-    call, and a continuous loop reads its demand a dozen times per substep)."""
-    n = drive.shape[0]
-    return (drive[k - 1 if k > 0 else 0], drive[k], drive[k + 1 if k + 1 < n else n - 1],
-            drive[k + 2 if k + 2 < n else n - 1])
 
 
 @nb.njit(cache=True)
@@ -150,13 +125,6 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
     ``closed``: a continuous controller reads the state at every stage (its memory ``ctrl``, integral and
     derivative filter, updated per substep); else the logged input ``drive`` is interpolated by ``mode``.
     """
-    q0, q1, q2, q3 = _around(drive, k)
-    _step_varying4(s, q0, q1, q2, q3, closed, mode, p, dt, nsub, ctrl, out)
-
-
-@nb.njit(cache=True)
-def _step_varying4(s, q0, q1, q2, q3, closed, mode, p, dt, nsub, ctrl, out):
-    """:func:`step_varying` with the drive's four samples around the interval."""
     h = dt / nsub
     fh = 1.0 / nsub
     a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
@@ -165,29 +133,29 @@ def _step_varying4(s, q0, q1, q2, q3, closed, mode, p, dt, nsub, ctrl, out):
     tf = p[I_TF]
     for j in range(nsub):
         f0 = j * fh
-        u1 = _u_stage(a2, a3, a4, a5, q0, q1, q2, q3, f0, closed, mode, p, integ, dflt, dt)
+        u1 = _u_stage(a2, a3, a4, a5, k, f0, drive, closed, mode, p, integ, dflt, dt)
         k1 = deriv(a0, a1, a2, a3, a4, a5, u1, p)
         b2 = a2 + 0.5 * h * k1[2]
         b3 = a3 + 0.5 * h * k1[3]
         b4 = a4 + 0.5 * h * k1[4]
         b5 = a5 + 0.5 * h * k1[5]
-        u2 = _u_stage(b2, b3, b4, b5, q0, q1, q2, q3, f0 + 0.5 * fh, closed, mode, p, integ, dflt, dt)
+        u2 = _u_stage(b2, b3, b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
         k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p)
         c2 = a2 + 0.5 * h * k2[2]
         c3 = a3 + 0.5 * h * k2[3]
         c4 = a4 + 0.5 * h * k2[4]
         c5 = a5 + 0.5 * h * k2[5]
-        u3 = _u_stage(c2, c3, c4, c5, q0, q1, q2, q3, f0 + 0.5 * fh, closed, mode, p, integ, dflt, dt)
+        u3 = _u_stage(c2, c3, c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
         k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p)
         d2 = a2 + h * k3[2]
         d3 = a3 + h * k3[3]
         d4 = a4 + h * k3[4]
         d5 = a5 + h * k3[5]
-        u4 = _u_stage(d2, d3, d4, d5, q0, q1, q2, q3, f0 + fh, closed, mode, p, integ, dflt, dt)
+        u4 = _u_stage(d2, d3, d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dflt, dt)
         k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p)
         if closed:
-            _, e0, _, s0, _ = _d_signal(a4, a5, q0, q1, q2, q3, f0, mode, p, dt)
-            _, e1, _, s1, _ = _d_signal(d4, d5, q0, q1, q2, q3, f0 + fh, mode, p, dt)
+            _, e0, _, s0, _ = _d_signal(a4, a5, k, f0, drive, mode, p, dt)
+            _, e1, _, s1, _ = _d_signal(d4, d5, k, f0 + fh, drive, mode, p, dt)
             integ += 0.5 * h * (e0 + e1)
             if tf > 0.0:  # the filter over the substep, its input linear between the ends
                 dflt += (1.0 - math.exp(-h / tf)) * (0.5 * (s0 + s1) - dflt)
@@ -217,19 +185,18 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
             step_varying(s, k, drive, False, mode, p, dt, nsub, ctrl, out)
         return u
     if ticks == 0:
-        q0, q1, q2, q3 = _around(drive, k)
         if ctrl[2] <= 0.0:  # the derivative filter starts at its input
-            ctrl[3] = _d_signal(s[4], s[5], q0, q1, q2, q3, 0.0, mode, p, dt)[3]
+            ctrl[3] = _d_signal(s[4], s[5], k, 0.0, drive, mode, p, dt)[3]
             ctrl[2] = 1.0
-        e = q1 - xm_k
-        rdot = _slope_between(q0, q1, q2, q3, 0.0, mode, dt)
+        e = drive[k] - xm_k
+        rdot = slope_at(drive, k, 0.0, mode, dt)
         tf = p[I_TF]
         sig = -xm_k if p[I_DMEAS] > 0.0 else e
         d = (-p[I_KXM] * s[5] if p[I_DMEAS] > 0.0 else rdot - p[I_KXM] * s[5]) if tf <= 0.0 else \
             (sig - ctrl[3]) / tf
         u = p[I_KP] * e + p[I_KI] * ctrl[0] + p[I_KD] * d
         u = _shape_output(u, rdot, s[2] + p[I_PAOFF], s[3] + p[I_PBOFF], p)
-        _step_varying4(s, q0, q1, q2, q3, True, mode, p, dt, nsub, ctrl, out)
+        step_varying(s, k, drive, True, mode, p, dt, nsub, ctrl, out)
         return u
     h = dt / ticks
     nsub_t = max(1, (nsub + ticks - 1) // ticks)
