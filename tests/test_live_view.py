@@ -14,6 +14,7 @@ import json
 import os
 import struct
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -387,8 +388,14 @@ source = "zenoh://fpdd/idle/samples"
         client = Client(url)
         try:
             client.subscribe(list(client.channels))
-            got = client.messages({"/rig/signals": 20, "/twin/estimate": 2, "/twin/status": 1, "/twin/alarm": 1,
-                                   "/twin/alarm_log": 1}, timeout=60.0)
+            try:
+                got = client.messages({"/rig/signals": 20, "/twin/estimate": 2, "/twin/status": 1,
+                                       "/twin/alarm": 1, "/twin/alarm_log": 1}, timeout=60.0)
+            except Exception as exc:  # the live view went away: say what the service printed, and whether it ran
+                time.sleep(1.0)
+                said = "".join(seen) + "".join(lines.get() for _ in range(lines.qsize()))
+                raise AssertionError(f"{exc!r}; the service's exit code {proc.poll()}, its output:\n"
+                                     f"{said[-3000:]}") from exc
             proc.send_signal(signal.SIGINT)  # Ctrl-C with the client still connected
             assert proc.wait(timeout=60.0) == 0
         finally:
