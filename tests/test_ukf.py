@@ -299,3 +299,42 @@ def test_the_kernel_is_loaded_from_numbas_cache_in_a_fresh_process():
     tr.process(Samples(t, {"u": np.zeros(5), "x": np.zeros(5), "pA": np.full(5, 14e6), "pB": np.full(5, 14e6)}))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
     assert out.stdout.split() == ["1", "0"], out.stdout + out.stderr
+
+
+def test_two_threads_making_a_models_kernel_at_once_both_get_it():
+    """A service starts its rigs in threads: the first two to make a model's kernel at once must both get it (a
+    second thread had replaced the first one's half-executed module, and the first then failed to import
+    ``_predict`` from it: CI's live-view test, a rig and an idle rig in one process)."""
+    import sys
+    import threading
+
+    from twin.models import get_model
+    from twin.online import ukf
+
+    model = get_model("oscillator")
+    name = model.FILTER.functions
+    saved = ukf._KERNELS.pop(name, None)
+    for mod in [m for m in sys.modules if m.startswith("ukf_") and name.replace(".", "_") in m]:
+        del sys.modules[mod]
+    got: list = []
+    errors: list = []
+    start = threading.Barrier(4)
+
+    def make() -> None:
+        start.wait(timeout=60.0)
+        try:
+            got.append(ukf.kernel_for(model))
+        except Exception as exc:  # noqa: BLE001 - the failure is what the test reports
+            errors.append(exc)
+
+    threads = [threading.Thread(target=make) for _ in range(4)]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=300.0)
+        assert not errors, errors
+        assert len(got) == 4 and all(g is got[0] for g in got)
+    finally:
+        if saved is not None and name not in ukf._KERNELS:
+            ukf._KERNELS[name] = saved

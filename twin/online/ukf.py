@@ -91,6 +91,7 @@ import importlib.util
 import os
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,10 @@ def _kernel_sources(functions: str, predict_name: str) -> tuple[str, str]:
 
 
 _KERNELS: dict[str, tuple[object, object]] = {}
+#: one thread at a time makes a model's kernel modules: a second thread (a service's next rig) that made them too
+#: replaced the first one's half-executed module in ``sys.modules``, and the first's kernel then failed to import
+#: ``_predict`` from it
+_KERNELS_LOCK = threading.Lock()
 
 
 def functions_of(model):
@@ -247,6 +252,14 @@ def kernel_modules(model):
     mod_name = model.FILTER.functions if model.FILTER is not None else ""
     if mod_name in _KERNELS:
         return _KERNELS[mod_name]
+    with _KERNELS_LOCK:
+        if mod_name not in _KERNELS:
+            _KERNELS[mod_name] = _make_kernel_modules(model, mod_name)
+    return _KERNELS[mod_name]
+
+
+def _make_kernel_modules(model, mod_name: str):
+    """:func:`kernel_modules`'s work, under its lock."""
     fmod = functions_of(model)
     digest = hashlib.sha256(mod_name.encode())
     online = Path(__file__).parent
@@ -260,9 +273,7 @@ def kernel_modules(model):
         if not (where / f"{name}.py").exists():
             for stale in where.glob(f"ukf_{part}_{tag}_*.py"):  # compiled from sources that changed since
                 stale.unlink(missing_ok=True)
-    pair = (_load(names[0], where / f"{names[0]}.py", predict), _load(names[1], where / f"{names[1]}.py", loop))
-    _KERNELS[mod_name] = pair
-    return pair
+    return (_load(names[0], where / f"{names[0]}.py", predict), _load(names[1], where / f"{names[1]}.py", loop))
 
 
 def kernel_for(model):
