@@ -9,8 +9,8 @@ import pytest
 
 from replay.base import Samples
 from twin.online.baseline import Baseline
-from twin.online.confirm import (ALPHA, OFFSET_TOLERANCE_PA, RESOLVE, ConfirmedDrift, Window, critical_z, decide,
-                                 decide_offset)
+from twin.online.confirm import (ALPHA, OFFSET_TOLERANCE_PA, REPLICATE_ALPHA, RESOLVE, ConfirmedDrift, Window,
+                                 critical_z, decide, decide_offset)
 from twin.online.events import StatusEvent
 
 BAND = Baseline(100.0, 100.0 / 1.5, 150.0)  # log half-width log(2.25)/2 = 0.405
@@ -157,7 +157,8 @@ def test_an_alarm_returns_only_on_a_window_that_puts_the_parameter_inside_at_the
 def test_an_unresolved_window_neither_confirms_nor_returns():
     cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
     high = decide("p", 200.0, 0.05, BAND, True)
-    unresolved = decide("p", 160.0, 0.19, BAND, True)
+    unresolved = decide("p", 160.0, 0.19, BAND, True, base_rel_std=0.3)  # z 1.3: below the replication level
+    assert unresolved.state == "unresolved" and 0 < unresolved.z < critical_z(2 * REPLICATE_ALPHA)
     assert cd._apply("p", high, 1, 4.0, "scheduled") == []
     assert cd._apply("p", unresolved, 1, 8.0, "scheduled") == [] and cd.count["p"] == 1  # the count stays
     assert cd.tested["p"] == 8.0 and cd.statuses() == {"p": "ok"}  # it was tested: the status says when
@@ -204,3 +205,30 @@ def test_an_offset_becomes_a_sensor_event_in_two_windows_and_returns():
     assert cd._apply_sensor("pA_off", within, 1, 20.0) == []
     assert [e.kind for e in cd._apply_sensor("pA_off", within, 1, 24.0)] == ["returned"]
     assert cd.sensor_status({"pA": "ok"}) == {"pA": "ok"}
+
+
+def test_a_confirmation_is_replicated_at_the_replication_level_on_the_same_side_beyond_the_band():
+    """The first confirmation needs the level ALPHA; a later window on the same side, beyond the band, replicates
+    it at REPLICATE_ALPHA (one-sided): an honest test of a weakly informed parameter (a leakage on a PI loop)
+    rarely shows the first window's evidence twice over."""
+    zr = critical_z(2 * REPLICATE_ALPHA)
+    assert zr == pytest.approx(1.6449, abs=1e-4)
+    weak = decide("p", 160.0, 0.19, BAND, True)  # beyond the band, z 2.5: unresolved alone
+    assert weak.state == "unresolved" and zr < weak.z < critical_z(ALPHA)
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    assert cd._apply("p", weak, 1, 4.0, "scheduled") == [] and cd.count["p"] == 0  # alone it confirms nothing
+    high = decide("p", 200.0, 0.05, BAND, True)
+    assert cd._apply("p", high, 1, 8.0, "scheduled") == [] and cd.count["p"] == 1
+    (ev,) = cd._apply("p", weak, 1, 12.0, "scheduled")
+    assert (ev.level, ev.kind) == ("warning", "raised") and cd.count["p"] == 2
+    # on the other side, or inside the band, or below the level, it replicates nothing
+    cd2 = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    cd2._apply("p", high, 1, 4.0, "scheduled")
+    low_weak = decide("p", 60.0, 0.19, BAND, True)  # z -2.7
+    assert low_weak.state == "unresolved" and low_weak.z < -zr
+    assert cd2._apply("p", low_weak, 1, 8.0, "scheduled") == [] and cd2.count["p"] == 1
+    faint = decide("p", 160.0, 0.19, BAND, True, base_rel_std=0.3)  # z 1.3
+    assert faint.state == "unresolved" and faint.z < zr
+    assert cd2._apply("p", faint, 1, 12.0, "scheduled") == [] and cd2.count["p"] == 1
+    # and the filter must stand beyond the band on that side, as for any confirmation
+    assert cd2._apply("p", weak, 1, 16.0, "scheduled", filtered=120.0) == [] and cd2.count["p"] == 1

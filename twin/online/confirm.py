@@ -14,15 +14,21 @@ heteroskedasticity- and autocorrelation-consistent standard errors and the adequ
   ``not_testable``, never an alarm;
 * the fitted value must lie outside the healthy band **and** differ from the commissioning baseline by the
   two-sample test ``z = log(theta_w / theta_0) / sqrt(s_w^2 + s_0^2)`` at the two-sided level :data:`ALPHA`
-  (``s_w``: the window's relative standard error, ``s_0``: the commissioning fit's, 0 for a configured value).
+  (``s_w``: the window's relative standard error, ``s_0``: the commissioning fit's, 0 for a configured value),
+  both by the Wald ``s_w`` and by the window's likelihood ratio (the window fitted again with the parameter held
+  at its baseline; :meth:`ConfirmedDrift._likelihood_ratio`), the same in every parametrisation.
+
+A confirmed parameter is **replicated** by a later disjoint window that puts it beyond the band on the same side
+at the one-sided level :data:`REPLICATE_ALPHA` (the first confirmation holds the level ALPHA; the replication
+rules out one window's systematic error).
 
 A window's verdict counts as a confirmation when the filter's estimate at the window's end lies beyond the band
 on the same side too (the filter is the trigger, the window its check; holds of the filter's drift test do not
 matter here): two estimators of different kinds, each wrong at times (the filter diverging under a fast chirp,
 a short window's fit biased by what the model lacks under one demand), must agree.  Two confirmations on one
-side, on disjoint windows with none between them finding the parameter inside its band
-(:data:`WARN_CONFIRMATIONS`), raise a **warning**; three (:data:`ALARM_CONFIRMATIONS`, or two while the filter's
-drift test is at alarm) the **alarm**.  A raised parameter returns only on a window that puts it inside its band
+side (the first at ALPHA, the next ones replications), on disjoint windows with none between them finding the
+parameter inside its band (:data:`WARN_CONFIRMATIONS`), raise a **warning**; three (:data:`ALARM_CONFIRMATIONS`,
+or two while the filter's drift test is at alarm) the **alarm**.  A raised parameter returns only on a window that puts it inside its band
 at the same level: the band's edge it crossed rejected, ``log(theta_w / edge) / sqrt(s_w^2 + s_0^2)`` beyond the
 critical value on the band's side (:func:`back_inside`).  A window whose point estimate merely falls inside
 changes nothing then: while a wear goes on just past the edge, half the windows' estimates fall inside by chance,
@@ -33,7 +39,7 @@ parameter is ``not_testable`` now, its level and count stay.
 The window is fitted twice, from the filter's current estimate and from the baseline (a wear in progress moves
 the filter ahead of the baseline; a diverged filter is far from both), and the lower cost is kept.  The fit
 frees the catalogue's pressure-transducer offsets too (``pA_off``, ``pB_off``): an offset drifting on a
-transducer is fitted as what it is, and a significant one beyond :data:`OFFSET_TOLERANCE_PA` in two windows
+transducer is fitted as what it is, and a significant one (Wald and likelihood ratio against 0 Pa) beyond :data:`OFFSET_TOLERANCE_PA` in two windows
 (no window between them finding it within) becomes a *sensor* event on the offset (``pA_off``), never a
 parameter's alarm; it returns when two windows in a row find it within.  While a transducer's offset is confirmed or suspected (one window), the parameters are
 ``not_testable``: the filter, whose estimate each confirmation needs, reads that transducer as it is.
@@ -101,6 +107,12 @@ HAC_LAG_S = 0.25
 #: the noise over the first 0.1 s and white from 0.3 s on; counted, it pulled the fit along the leakage-valve
 #: ridge (leakage to zero, zeta and wn 1.1-1.5 times their truth) and failed the adequacy test there
 BURN_S = 0.5
+#: one-sided level of a replication: a window that confirms a parameter confirmed once already, on the same side
+#: beyond its band (z 1.64).  The first confirmation holds the level ALPHA against the noise; a replication rules
+#: out that one window's systematic error, and at ALPHA itself it asked a leakage wear to show the evidence of
+#: the first window twice over: on a PI loop under road and block demands, a 7x leakage whose windows gave ratio
+#: z 4.9 then 2.5 was never raised
+REPLICATE_ALPHA = 0.05
 #: the fit's budget per start (function evaluations of the trust-region refinement)
 MAX_NFEV = 25
 
@@ -252,20 +264,23 @@ def window_record(samples, tracker, burn_s: float = BURN_S):
 
 
 def fit_window(rec, tracker, names: Sequence[str], start: Mapping[str, float], sensors: bool = True,
-               max_nfev: int = MAX_NFEV):
+               max_nfev: int = MAX_NFEV, held: Mapping[str, float] | None = None):
     """The window's output-error fit of ``names`` (and the transducer offsets when ``sensors``) from ``start``,
-    with the rig's known values, noise and timing of ``tracker``; ``None`` when the fit cannot run."""
+    with the rig's known values, noise and timing of ``tracker``; ``held``: parameters of ``names`` held at these
+    values (the restricted fit of a likelihood-ratio test); ``None`` when the fit cannot run."""
     from twin.estimation.fit import fit
 
     model = tracker.model
     effects = (SENSOR_EFFECT,) if sensors and SENSOR_EFFECT in model.EFFECTS else ()
-    base = model.params(effects, **tracker.ps.as_dict())
-    free = tuple(names) + (tuple(SENSOR_PARAMS) if effects else ())
+    held = dict(held or {})
+    base = model.params(effects, **{**tracker.ps.as_dict(), **held})
+    names = [n for n in names if n not in held]
+    free = tuple(names) + (tuple(p for p in SENSOR_PARAMS if p not in held) if effects else ())
     noise = {o: v for o, v in tracker.noise_nominal.items() if o in rec}
     st = {}
-    for n in names:
+    for n in free:
         v = float(start.get(n, math.nan))
-        lo, hi = tracker.bounds[n]
+        lo, hi = tracker.bounds.get(n, (-math.inf, math.inf))
         if math.isfinite(v) and lo < v < hi:
             st[n] = v
     try:
@@ -416,6 +431,12 @@ class ConfirmedDrift:
                         mine[n] = dataclasses.replace(v, state="not_testable",
                                                       why="fits of the window from the filter's estimate and "
                                                           "from the baseline disagree")
+        for n, v in list(verdicts.items()):  # the window's evidence against the baseline: its likelihood ratio
+            if v.state in ("high", "low"):
+                verdicts[n] = self._likelihood_ratio(v, res, rec, tracker, names, est)
+        for p, v in list(sensors.items()):  # ... and against a transducer read true
+            if v.state in ("high", "low"):
+                sensors[p] = self._likelihood_ratio(v, res, rec, tracker, names, est)
         adequacy = getattr(res, "adequacy", None) or {}
         adequate = bool(adequacy.get("adequate", True))
         self.reasons = list(adequacy.get("reasons", []))
@@ -434,6 +455,53 @@ class ConfirmedDrift:
                                              "are not the rig's until it is fixed")
             events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         return events
+
+    def _likelihood_ratio(self, vd: Verdict, res, rec, tracker, names: Sequence[str],
+                          filtered: Mapping[str, float] | None = None) -> Verdict:
+        """The verdict ``vd`` (``high``/``low`` by the window's Wald test) tested again by the window's likelihood
+        ratio: the window fitted once more with the parameter held at its baseline (the others and the offsets
+        free, started from the window's estimate and from the filter's, the lower kept), and
+        ``z^2 = 2 (cost_0 - cost) / s^2 x (s_white / s_HAC)^2``
+        (the rise of the weighted squared residuals in units of their variance, widened as the HAC standard
+        error widens the white one).  The Wald test's standard error is a curvature at the window's estimate:
+        in the log of a parameter whose effect is linear (the leakage), it shrinks as the estimate grows, and a
+        window that ran to five times the leakage was "4.3 standard errors" from a baseline that fitted it
+        almost as well.  The ratio is the same in every parametrisation, and a restricted fit that ends lower
+        than the window's own says the window's minimum was not the one (no evidence).  The two-sample test
+        then reads the ratio's z as an effective standard error ``|log(theta_w / theta_0)| / z`` beside the
+        baseline's own.  A transducer offset is tested the same way against 0 Pa: where the window's leakage ran to
+        zero, an offset took its place (a leakage step read as a pB offset), and the restricted fit, free to move
+        the leakage, fits the window as well with the transducer read true."""
+        offset = vd.name in SENSOR_PARAMS  # a transducer's offset, tested against 0 Pa
+        null = 0.0 if offset else self.baseline[vd.name].value
+        sw, sh = float(res.std_white.get(vd.name, math.nan)), float(res.std.get(vd.name, math.nan))
+        # from the window's estimate (a parameter it ran off its range from the rig's configured value) and from
+        # the filter's: the lower of the two restricted fits
+        starts = [{k: float(v) for k, v in res.estimate.items()}]
+        if filtered:
+            starts.append({**starts[0], **{k: float(v) for k, v in filtered.items()}})
+        fits = [r for r in (fit_window(rec, tracker, names, st, self.sensors, held={vd.name: null})
+                            for st in starts) if r is not None]
+        r0 = min(fits, key=lambda r: r.cost) if fits else None
+        n_obs, n_par = int(res.n_obs), int(res.n_par)
+        s2 = 2.0 * float(res.cost) / max(n_obs - n_par, 1)
+        if r0 is None or not (math.isfinite(sw) and math.isfinite(sh) and sh > 0 and s2 > 0):
+            return dataclasses.replace(vd, state="not_testable", why="the window's likelihood ratio could not be "
+                                                                   "computed (the restricted fit failed)")
+        rise = 2.0 * (float(r0.cost) - float(res.cost))
+        z_lr = math.sqrt(max(rise, 0.0) / s2) * (sw / sh)
+        if offset:
+            d = vd.value
+            out = decide_offset(vd.name, vd.value, abs(d) / max(z_lr, 1e-12), True, self.alpha)
+        else:
+            base = self.baseline[vd.name]
+            d = math.log(vd.value / base.value)
+            out = decide(vd.name, vd.value, abs(d) / max(z_lr, 1e-12), base, True, self.base_std.get(vd.name, 0.0),
+                         self.alpha, resolve=math.inf)
+        why = (f"likelihood ratio against {'a true transducer' if offset else 'the baseline'}: z "
+               f"{math.copysign(z_lr, d):+.1f} (Wald {vd.z:+.1f})")
+        return dataclasses.replace(out, rel_std=vd.rel_std, why=why if out.state == vd.state else
+                                   why + f"; {'0 Pa' if offset else 'the baseline'} fits the window nearly as well")
 
     @staticmethod
     def _adequate_at(res, values: Mapping[str, float], rec, tracker) -> bool:
@@ -498,8 +566,14 @@ class ConfirmedDrift:
         self.tested[n] = now
         self.state[n] = "ok"
         old = self.level[n]
-        if vd.state == "unresolved":  # tested, but the window neither confirms nor returns it: nothing changes
-            return []
+        if vd.state == "unresolved":
+            # a replication: a parameter confirmed once is confirmed again by a later window beyond its band on the
+            # same side at the replication level (the first confirmation holds the level ALPHA)
+            side_now = "high" if vd.z > 0 else "low"
+            if not (self.count[n] > 0 and self.side[n] == side_now and abs(vd.z) >= critical_z(2 * REPLICATE_ALPHA)
+                    and (vd.value > base.hi if side_now == "high" else vd.value < base.lo)):
+                return []  # tested, but the window neither confirms nor returns it: nothing changes
+            vd = dataclasses.replace(vd, state=side_now)
         if vd.state in ("high", "low") and math.isfinite(filtered) and not (
                 filtered > base.hi if vd.state == "high" else filtered < base.lo):
             return []  # the window alone says so, the filter does not: no decision (the count stays)
