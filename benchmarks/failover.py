@@ -76,7 +76,11 @@ class Proc:
     def wait_for(self, pattern: re.Pattern, timeout: float = WAIT_S) -> re.Match:
         deadline = time.monotonic() + timeout
         while True:
-            line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            try:
+                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:  # say what the process printed instead of a bare queue.Empty
+                raise AssertionError(f"no line matching {pattern.pattern!r} within {timeout:g} s; the last lines: "
+                                     + "\n".join(self.seen[-15:])) from None
             assert line is not None, "process ended before: " + "\n".join(self.seen[-15:])
             self.seen.append(line)
             m = pattern.match(line)
