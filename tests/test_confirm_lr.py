@@ -66,3 +66,24 @@ def test_a_baseline_that_fits_the_window_as_well_is_no_evidence(window):
     out = cd._likelihood_ratio(claimed, res, w, tr, names)
     assert out.state == "unresolved" and abs(out.z) < critical_z()
     assert "nearly as well" in out.why
+
+
+def test_a_replicating_window_is_judged_by_its_likelihood_ratio_too(window):
+    """A window the Wald test leaves ``unresolved`` may replicate an earlier confirmation on its side: it gets the
+    same restricted fit, and its ratio, not its Wald z, decides (here the ratio rejects the baseline outright)."""
+    tr, w, names, res = window
+    bands = default_baseline("msp25")
+    base = bands["CdAleak"]
+    cd = ConfirmedDrift("r", bands, "msp25")
+    v = float(res.estimate["CdAleak"])
+    weak = Verdict("CdAleak", "unresolved", v, 0.6, math.log(v / base.value) / 0.6)  # a wide Wald error: z ~2.7
+    assert not cd._may_replicate("CdAleak", weak)  # nothing confirmed yet: nothing to replicate
+    cd.count["CdAleak"], cd.side["CdAleak"] = 1, "low"
+    assert not cd._may_replicate("CdAleak", weak)  # confirmed on the other side
+    cd.side["CdAleak"] = "high"
+    assert cd._may_replicate("CdAleak", weak)
+    inside = Verdict("CdAleak", "unresolved", base.hi * 0.99, 0.6, 1.0)
+    assert not cd._may_replicate("CdAleak", inside)  # inside its band: no replication
+    out = cd._likelihood_ratio(weak, res, w, tr, names)
+    assert out.state == "high" and out.z > critical_z() > weak.z
+    assert "nearly as well" not in out.why

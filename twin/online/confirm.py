@@ -432,7 +432,7 @@ class ConfirmedDrift:
                                                       why="fits of the window from the filter's estimate and "
                                                           "from the baseline disagree")
         for n, v in list(verdicts.items()):  # the window's evidence against the baseline: its likelihood ratio
-            if v.state in ("high", "low"):
+            if v.state in ("high", "low") or self._may_replicate(n, v):
                 verdicts[n] = self._likelihood_ratio(v, res, rec, tracker, names, est)
         for p, v in list(sensors.items()):  # ... and against a transducer read true
             if v.state in ("high", "low"):
@@ -455,6 +455,16 @@ class ConfirmedDrift:
                                              "are not the rig's until it is fixed")
             events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         return events
+
+    def _may_replicate(self, n: str, vd: Verdict) -> bool:
+        """Could the window's verdict ``vd`` on ``n`` replicate a confirmation (:meth:`_apply`)?  An ``unresolved``
+        verdict beyond the band on the side ``n`` was confirmed on.  Its test is the likelihood ratio too, as the
+        first confirmation's is: the Wald z only chose the windows worth the restricted fit."""
+        if vd.state != "unresolved" or self.count[n] <= 0 or not math.isfinite(vd.z):
+            return False
+        base = self.baseline[n]
+        side = "high" if vd.z > 0 else "low"
+        return self.side[n] == side and (vd.value > base.hi if side == "high" else vd.value < base.lo)
 
     def _likelihood_ratio(self, vd: Verdict, res, rec, tracker, names: Sequence[str],
                           filtered: Mapping[str, float] | None = None) -> Verdict:
@@ -500,8 +510,9 @@ class ConfirmedDrift:
                          self.alpha, resolve=math.inf)
         why = (f"likelihood ratio against {'a true transducer' if offset else 'the baseline'}: z "
                f"{math.copysign(z_lr, d):+.1f} (Wald {vd.z:+.1f})")
-        return dataclasses.replace(out, rel_std=vd.rel_std, why=why if out.state == vd.state else
-                                   why + f"; {'0 Pa' if offset else 'the baseline'} fits the window nearly as well")
+        if out.state not in ("high", "low"):
+            why += f"; {'0 Pa' if offset else 'the baseline'} fits the window nearly as well"
+        return dataclasses.replace(out, rel_std=vd.rel_std, why=why)
 
     @staticmethod
     def _adequate_at(res, values: Mapping[str, float], rec, tracker) -> bool:
