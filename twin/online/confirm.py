@@ -19,8 +19,8 @@ heteroskedasticity- and autocorrelation-consistent standard errors and the adequ
   at its baseline; :meth:`ConfirmedDrift._likelihood_ratio`), the same in every parametrisation.
 
 A confirmed parameter is **replicated** by a later disjoint window that puts it beyond the band on the same side
-at the one-sided level :data:`REPLICATE_ALPHA` (the first confirmation holds the level ALPHA; the replication
-rules out one window's systematic error).
+at the one-sided level :data:`REPLICATE_ALPHA` by its likelihood ratio too (the first confirmation holds the
+level ALPHA; the replication rules out one window's systematic error).
 
 A window's verdict counts as a confirmation when the filter's estimate at the window's end lies beyond the band
 on the same side too (the filter is the trigger, the window its check; holds of the filter's drift test do not
