@@ -580,11 +580,9 @@ class ConfirmedDrift:
         if vd.state == "unresolved":
             # a replication: a parameter confirmed once is confirmed again by a later window beyond its band on the
             # same side at the replication level (the first confirmation holds the level ALPHA)
-            side_now = "high" if vd.z > 0 else "low"
-            if not (self.count[n] > 0 and self.side[n] == side_now and abs(vd.z) >= critical_z(2 * REPLICATE_ALPHA)
-                    and (vd.value > base.hi if side_now == "high" else vd.value < base.lo)):
+            if not (self._may_replicate(n, vd) and abs(vd.z) >= critical_z(2 * REPLICATE_ALPHA)):
                 return []  # tested, but the window neither confirms nor returns it: nothing changes
-            vd = dataclasses.replace(vd, state=side_now)
+            vd = dataclasses.replace(vd, state=self.side[n])
         if vd.state in ("high", "low") and math.isfinite(filtered) and not (
                 filtered > base.hi if vd.state == "high" else filtered < base.lo):
             return []  # the window alone says so, the filter does not: no decision (the count stays)
