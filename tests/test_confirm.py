@@ -232,3 +232,33 @@ def test_a_confirmation_is_replicated_at_the_replication_level_on_the_same_side_
     assert cd2._apply("p", faint, 1, 12.0, "scheduled") == [] and cd2.count["p"] == 1
     # and the filter must stand beyond the band on that side, as for any confirmation
     assert cd2._apply("p", weak, 1, 16.0, "scheduled", filtered=120.0) == [] and cd2.count["p"] == 1
+
+
+def test_a_window_beyond_a_standing_confirmation_is_not_gated_by_its_width():
+    """A window whose standard error is too wide to test the band (``not_testable`` alone) may still replicate a
+    confirmation when its value lies beyond the band on the confirmed side: its likelihood ratio decides, as for
+    any replication.  Inside the band, on the other side, or with nothing confirmed, the width gate stands."""
+    import types
+
+    half = 0.5 * math.log(BAND.hi / BAND.lo)
+    rel = 1.2 * RESOLVE * half  # too wide for the band: the gate alone would call it not testable
+
+    def res(value: float):
+        return types.SimpleNamespace(estimate={"p": value}, std={"p": rel * value}, free=["p"], corr=np.eye(1))
+
+    cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
+    bounds = {"p": (1.0, 1e4)}
+    (alone,) = cd._verdicts(res(400.0), ["p"], bounds, True)[0].values()
+    assert alone.state == "not_testable" and "informs it" in alone.why  # nothing confirmed: the gate stands
+    cd._apply("p", decide("p", 200.0, 0.05, BAND, True), 1, 4.0, "scheduled")
+    assert cd.count["p"] == 1 and cd.side["p"] == "high"
+    (beyond,) = cd._verdicts(res(180.0), ["p"], bounds, True)[0].values()  # z 2.4: a replication's candidate
+    assert beyond.state == "unresolved" and beyond.z == pytest.approx(math.log(1.8) / rel)
+    assert cd._may_replicate("p", beyond)
+    (strong,) = cd._verdicts(res(400.0), ["p"], bounds, True)[0].values()  # z 5.7: a confirmation's candidate
+    assert strong.state == "high"
+    for value in (120.0, 40.0):  # inside the band, beyond it on the other side: the gate stands
+        (v,) = cd._verdicts(res(value), ["p"], bounds, True)[0].values()
+        assert v.state == "not_testable" and "informs it" in v.why, value
+    (idle,) = cd._verdicts(res(400.0), ["p"], bounds, False)[0].values()
+    assert idle.state == "not_testable" and idle.why == "the model does not represent the rig now"

@@ -11,7 +11,8 @@ heteroskedasticity- and autocorrelation-consistent standard errors and the adequ
   ``not_testable`` and the status says "the model does not represent the rig now";
 * the parameter's window standard error (relative) must be at most :data:`RESOLVE` times the half-width of its
   healthy band in log units (the drift test's own ``resolve``): a window that does not inform a parameter gives
-  ``not_testable``, never an alarm;
+  ``not_testable``, never an alarm (a window beyond the band on the side of a standing confirmation is not gated
+  so: it can only replicate, and its likelihood ratio says whether it informs the parameter);
 * the fitted value must lie outside the healthy band **and** differ from the commissioning baseline by the
   two-sample test ``z = log(theta_w / theta_0) / sqrt(s_w^2 + s_0^2)`` at the two-sided level :data:`ALPHA`
   (``s_w``: the window's relative standard error, ``s_0``: the commissioning fit's, 0 for a configured value),
@@ -456,6 +457,13 @@ class ConfirmedDrift:
             events += self._apply(n, vd, t_ns, now, reason, est.get(n, math.nan))
         return events
 
+    def _beyond_confirmed(self, n: str, value: float) -> bool:
+        """Is ``value`` beyond ``n``'s band on the side of a standing confirmation (count above 0)?"""
+        if self.count[n] <= 0 or not (value > 0 and math.isfinite(value)):
+            return False
+        base = self.baseline[n]
+        return value > base.hi if self.side[n] == "high" else value < base.lo if self.side[n] == "low" else False
+
     def _may_replicate(self, n: str, vd: Verdict) -> bool:
         """Could the window's verdict ``vd`` on ``n`` replicate a confirmation (:meth:`_apply`)?  An ``unresolved``
         verdict beyond the band on the side ``n`` was confirmed on.  Its test is the likelihood ratio too, as the
@@ -552,8 +560,12 @@ class ConfirmedDrift:
                 verdicts[n] = Verdict(n, "not_testable", v, sd / v if v > 0 else math.nan,
                                       why=f"the window cannot tell it from the offset of {', '.join(shared)}")
                 continue
+            # a window beyond the band on the side of a standing confirmation is not gated by its width: its
+            # test is the likelihood ratio (:meth:`_may_replicate`), which a window that does not inform the
+            # parameter passes at the replication's level only
             verdicts[n] = decide(n, v, sd / v if v > 0 else math.nan, self.baseline[n], adequate,
-                                 self.base_std.get(n, 0.0), self.alpha)
+                                 self.base_std.get(n, 0.0), self.alpha,
+                                 resolve=math.inf if self._beyond_confirmed(n, v) else RESOLVE)
         sensors = {p: decide_offset(p, float(res.estimate[p]), float(res.std.get(p, math.nan)), adequate,
                                     self.alpha) for p in SENSOR_PARAMS if p in res.estimate}
         return verdicts, sensors
