@@ -10,7 +10,8 @@ import pytest
 from replay.base import Samples
 from twin.online.baseline import Baseline
 from twin.online.confirm import (ALPHA, OFFSET_TOLERANCE_PA, REPLICATE_ALPHA, RESOLVE, ConfirmedDrift, Window,
-                                 critical_z, decide, decide_offset)
+                                 critical_z, decide, decide_offset, noise_ratios,
+                                 quiet_sensors)
 from twin.online.events import StatusEvent
 
 BAND = Baseline(100.0, 100.0 / 1.5, 150.0)  # log half-width log(2.25)/2 = 0.405
@@ -96,14 +97,32 @@ def test_statuses_before_any_window_say_untested_and_the_status_event_carries_te
 def test_sensor_verdicts_of_the_filter_follow_the_windows():
     cd = ConfirmedDrift("r", {"p": BAND}, "msp25")
     filt = {"x": "noisy", "pA": "offset", "pB": "stuck"}
-    # no window yet: the filter's word stands, but a pressure transducer's offset is the windows' to say
-    assert cd.sensor_status(filt) == {"x": "noisy", "pA": "ok", "pB": "stuck"}
-    assert cd.sensor_status({"x": "offset"}) == {"x": "offset"}  # the windows do not test x's offset
+    # no window yet: a verdict resting on the model is not confirmed (a signal's own fault stands), and a pressure
+    # transducer's offset is the windows' to say
+    assert cd.sensor_status(filt) == {"x": "ok", "pA": "ok", "pB": "stuck"}
+    assert cd.sensor_status({"x": "offset"}) == {"x": "ok"}
+    cd.fits.append(None)  # a window has run (its verdicts are read from quiet and adequate)
     cd.adequate = False  # the model does not represent the rig: its model-based verdicts are not the sensors'
     assert cd.sensor_status(filt) == {"x": "ok", "pA": "ok", "pB": "stuck"}
     cd.adequate = True
+    # a window that predicted x and pA to within their noise: the filter's model-based verdicts on them are not
+    # the sensors'; one that found x's residuals beyond the factor leaves the filter's word
+    cd.quiet = {"x": True, "pA": True, "pB": True}
+    assert cd.sensor_status(filt) == {"x": "ok", "pA": "ok", "pB": "stuck"}  # a signal's own fault stays
+    assert cd.sensor_status({"x": "offset", "pA": "noisy"}) == {"x": "ok", "pA": "ok"}
+    cd.quiet = {"x": False, "pA": True}  # a window that found x's residuals beyond the factor confirms the filter
+    assert cd.sensor_status({"x": "noisy", "pA": "noisy"}) == {"x": "noisy", "pA": "ok"}
+    assert cd.sensor_status({"x": "offset"}) == {"x": "offset"}
     cd.sensor_level["pB"] = "warning"
     assert cd.sensor_status({"x": "ok", "pA": "ok", "pB": "ok"})["pB"] == "offset"
+
+
+def test_a_windows_noise_ratio_is_its_residual_rms_over_the_nominal_noise():
+    import types
+
+    res = types.SimpleNamespace(outputs=("x", "pA", "pB"), mse={"x": (3e-6) ** 2, "pA": (2e4) ** 2, "pB": math.nan},
+                                noise={"x": 2e-6, "pA": 2e4, "pB": 2e4})
+    assert noise_ratios(res) == pytest.approx({"x": 1.5, "pA": 1.0})
 
 
 def test_two_confirmations_warn_three_alarm_not_testable_keeps_count_inside_returns():
@@ -262,3 +281,11 @@ def test_a_window_beyond_a_standing_confirmation_is_not_gated_by_its_width():
         assert v.state == "not_testable" and "informs it" in v.why, value
     (idle,) = cd._verdicts(res(400.0), ["p"], bounds, False)[0].values()
     assert idle.state == "not_testable" and idle.why == "the model does not represent the rig now"
+
+
+def test_one_sensor_beyond_its_noise_is_that_sensor_several_are_the_model():
+    assert quiet_sensors({"x": 1.1, "pA": 7.0, "pB": 0.9}, 5.0, True) == {"x": True, "pA": False, "pB": True}
+    # both pressures beyond at once: a load the model lacks, not two faulty transducers
+    assert quiet_sensors({"x": 1.1, "pA": 7.0, "pB": 6.0}, 5.0, True) == {"x": True, "pA": True, "pB": True}
+    assert quiet_sensors({"x": 1.1, "pA": 7.0}, 5.0, False) == {"x": True, "pA": True}  # an inadequate window
+    assert quiet_sensors({"x": math.nan}, 5.0, True) == {"x": False}

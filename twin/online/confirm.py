@@ -264,6 +264,26 @@ def window_record(samples, tracker, burn_s: float = BURN_S):
     return rec
 
 
+def noise_ratios(res) -> dict[str, float]:
+    """Each output's residual RMS in the window fit ``res`` (the burn-in not counted) over the nominal noise its
+    residuals were weighted with; outputs without a nominal noise are left out."""
+    out = {}
+    for o in res.outputs:
+        sd, m = float(res.noise.get(o, math.nan)), float(res.mse.get(o, math.nan))
+        if sd > 0 and math.isfinite(m) and m >= 0:
+            out[o] = math.sqrt(m) / sd
+    return out
+
+
+def quiet_sensors(ratios: Mapping[str, float], factor: float, adequate: bool) -> dict[str, bool]:
+    """Per output, whether a window with these residual-to-noise ``ratios`` (:func:`noise_ratios`) leaves the
+    filter's model-based verdict on it unconfirmed: within ``factor``, or several outputs beyond it at once (a
+    common cause, the model: a load it lacks moves both pressures), or the window not ``adequate``.  One output
+    beyond it while the others read the rig as the model does is that sensor."""
+    beyond = [o for o, r in ratios.items() if not r <= factor]
+    return {o: not adequate or r <= factor or len(beyond) > 1 for o, r in ratios.items()}
+
+
 def fit_window(rec, tracker, names: Sequence[str], start: Mapping[str, float], sensors: bool = True,
                max_nfev: int = MAX_NFEV, held: Mapping[str, float] | None = None):
     """The window's output-error fit of ``names`` (and the transducer offsets when ``sensors``) from ``start``,
@@ -320,6 +340,12 @@ class ConfirmedDrift:
         self.sensor_level = {o: "ok" for o in SENSOR_PARAMS.values()}
         self.sensor_count = {o: 0 for o in SENSOR_PARAMS.values()}
         self.adequate = True
+        #: per output, whether the last window leaves the filter's model-based verdict on it unconfirmed
+        #: (:func:`quiet_sensors`: its residuals within the filter's ``noisy_factor`` of its nominal noise, or
+        #: several sensors beyond it at once, or the window not adequate)
+        self.quiet: dict[str, bool] = {}
+        #: per output, the last window's residual RMS over its nominal noise (after the burn-in)
+        self.noise_ratio: dict[str, float] = {}
         self.reasons: list[str] = []
         self.fits: collections.deque[WindowFit] = collections.deque(maxlen=FITS_KEPT)
         self.n_fits = 0
@@ -348,16 +374,22 @@ class ConfirmedDrift:
     def sensor_status(self, filter_status: Mapping[str, str]) -> dict[str, str]:
         """The filter's sensor statuses as the window re-fits decide them: a transducer offset the last windows
         confirmed is ``offset``; a verdict of the filter that rests on its model (``offset``, ``noisy``) is
-        ``ok`` once a window tested it and found none, and while the model does not represent the rig (the
-        window's adequacy test failed: a load the model lacks is not three faulty sensors); a signal's own
-        faults (``stuck``, ``clipped``, ``missing``, ``wrong_unit``) stay.  A pressure transducer is called
-        ``offset`` by the windows alone, never by the filter before the first window has tested it (a cold
-        filter's first second reads a load the model lacks as two offset transducers)."""
+        shown only when the last window confirms it, as an alarm is confirmed: ``ok`` before the first window (a
+        cold filter's first seconds read a load the model lacks, or its own unconverged parameters, as a faulty
+        sensor), while the model does not represent the rig (the window's adequacy test failed: a load the model
+        lacks is not three faulty sensors), and while the last window predicted that sensor to within the filter's
+        ``noisy_factor`` of its nominal noise (:attr:`quiet`: the window's residual RMS on it, the burn-in not
+        counted, says the sensor reads the rig as the model does, its noise included) or found several sensors
+        beyond it at once (a common cause: the model); a signal's own faults
+        (``stuck``, ``clipped``, ``missing``, ``wrong_unit``) stay.  A pressure transducer's offset is the
+        windows' word alone (the fitted offsets)."""
         out = dict(filter_status)
         for o, s in filter_status.items():
-            tested = not self.adequate or (o in self.sensor_level and bool(self.fits))
             windows_say = s == "offset" and o in self.sensor_level  # a transducer's offset: the windows' word
-            if (s in ("offset", "noisy") and tested) or windows_say:
+            # confirmed by the last window, as an alarm is: a window that predicted this sensor to within its noise
+            # says it is neither off nor noisy; before the first window the model the verdict rests on is untested
+            unconfirmed = not self.fits or not self.adequate or self.quiet.get(o, False)
+            if (s in ("offset", "noisy") and unconfirmed) or windows_say:
                 out[o] = "ok"
         for o, lv in self.sensor_level.items():
             if lv != "ok" and o in out:
@@ -442,6 +474,9 @@ class ConfirmedDrift:
         adequate = bool(adequacy.get("adequate", True))
         self.reasons = list(adequacy.get("reasons", []))
         self.adequate = adequate
+        factor = float(getattr(tracker, "guard_settings", {}).get("noisy_factor", math.inf))
+        self.noise_ratio = noise_ratios(res)
+        self.quiet = quiet_sensors(self.noise_ratio, factor, adequate)
         self.n_fits += 1
         self.fits.append(WindowFit(now, t_ns, verdicts, sensors, adequate, self.reasons, dict(res.estimate),
                                    dict(res.std), np.asarray(res.corr), which, elapsed))

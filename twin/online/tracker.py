@@ -661,8 +661,12 @@ def fmt_estimate(name: str, value: float, std: float, model: str = DEFAULT_MODEL
 
 
 def consistency_note(tracker: OnlineTracker, drift=None) -> str:
-    """One line for the rig's status message: faulty sensors and why the drift test holds ("" when all is well)."""
-    parts = [f"sensor {o}: {s}" for o, s in tracker.sensor_status().items() if s not in ("ok", "missing")]
+    """One line for the rig's status message: faulty sensors (as the window re-fits decide them when ``drift``
+    confirms alarms) and why the drift test holds ("" when all is well)."""
+    sensors = tracker.sensor_status()
+    if hasattr(drift, "sensor_status"):
+        sensors = drift.sensor_status(sensors)
+    parts = [f"sensor {o}: {s}" for o, s in sensors.items() if s not in ("ok", "missing")]
     guard = getattr(drift, "guard", "consistent")
     if guard and guard != "consistent":
         parts.append(f"drift test holds: {guard.replace('_', ' ')}")
