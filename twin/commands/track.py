@@ -209,8 +209,7 @@ def run(args) -> int:
         "status": (twin.confirm or twin.drift).statuses(),
         "counters": twin.tracker.counters,
         "consistency": (twin.confirm or twin.drift).guard,
-        "sensors": (twin.confirm.sensor_status(twin.tracker.sensor_status()) if twin.confirm is not None else
-                    twin.tracker.sensor_status()),
+        "sensors": twin.sensor_status(),
         "noise": {o: dict(v, unit=model.signal_unit(o)) for o, v in twin.tracker.noise_levels().items()},
         "timing": twin.tracker.timing.label,
         "files": {"mcap": os.path.join(args.out, f"{args.rig}.twin.mcap"), "trends_png": png},

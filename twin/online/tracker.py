@@ -660,12 +660,10 @@ def fmt_estimate(name: str, value: float, std: float, model: str = DEFAULT_MODEL
     return f"{name} = {spec.show(value)} +- {spec.show(std)}" if math.isfinite(std) else f"{name} = {spec.show(value)}"
 
 
-def consistency_note(tracker: OnlineTracker, drift=None) -> str:
-    """One line for the rig's status message: faulty sensors (as the window re-fits decide them when ``drift``
-    confirms alarms) and why the drift test holds ("" when all is well)."""
-    sensors = tracker.sensor_status()
-    if hasattr(drift, "sensor_status"):
-        sensors = drift.sensor_status(sensors)
+def consistency_note(tracker: OnlineTracker, drift=None, sensors: Mapping[str, str] | None = None) -> str:
+    """One line for the rig's status message: faulty sensors (``sensors``, default the filter's own verdicts) and
+    why the drift test holds ("" when all is well)."""
+    sensors = tracker.sensor_status() if sensors is None else sensors
     parts = [f"sensor {o}: {s}" for o, s in sensors.items() if s not in ("ok", "missing")]
     guard = getattr(drift, "guard", "consistent")
     if guard and guard != "consistent":

@@ -380,6 +380,12 @@ class RigTwin(Sink):
         t, v, s = self._ring.arrays()
         return {"t_s": t, "values": v, "stds": s}
 
+    def sensor_status(self) -> dict[str, str]:
+        """Each sensor's status: the filter's, with its model-based verdicts as the window re-fits decide them when
+        the alarms are confirmed (:meth:`twin.online.confirm.ConfirmedDrift.sensor_status`)."""
+        sensors = self.tracker.sensor_status()
+        return self.confirm.sensor_status(sensors) if self.confirm is not None else sensors
+
     def last_estimate(self) -> dict[str, tuple[float, float]]:
         """(value, std) of every tracked parameter (SI) after the last block filtered ({} before the first)."""
         row = self._last_row
@@ -504,9 +510,7 @@ class RigTwin(Sink):
             if state in ("starting", "running"):
                 state = "commissioning"
             per_param = {n: "commissioning" for n in per_param}
-        sensors = self.tracker.sensor_status()
-        if self.confirm is not None:  # the filter's model-based sensor verdicts as the window re-fits decide them
-            sensors = self.confirm.sensor_status(sensors)
+        sensors = self.sensor_status()
         guard = str(drift.guard or "consistent")
         key = (state, tuple(per_param.items()), tuple(sensors.items()), guard, com is not None and com.fitting)
         if not force and key == self._last_status and now - self._last_status_wall < STATUS_S:
@@ -515,7 +519,7 @@ class RigTwin(Sink):
         self._last_status_wall = now
         from twin.online.tracker import consistency_note
 
-        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, drift)) if m)
+        message = "; ".join(m for m in (self.health.message, consistency_note(self.tracker, drift, sensors)) if m)
         if com is not None and state not in ("failed", "stopped", "finished"):
             message = "; ".join(m for m in (com.note(), message) if m)
         t_ns = int(out.t_ns[-1]) if out is not None and len(out.t_ns) else (self.last_t_ns or self._t0_ns or 0)
