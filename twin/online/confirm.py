@@ -503,11 +503,9 @@ class ConfirmedDrift:
         """Could the window's verdict ``vd`` on ``n`` replicate a confirmation (:meth:`_apply`)?  An ``unresolved``
         verdict beyond the band on the side ``n`` was confirmed on.  Its test is the likelihood ratio too, as the
         first confirmation's is: the Wald z only chose the windows worth the restricted fit."""
-        if vd.state != "unresolved" or self.count[n] <= 0 or not math.isfinite(vd.z):
+        if vd.state != "unresolved" or not math.isfinite(vd.z):
             return False
-        base = self.baseline[n]
-        side = "high" if vd.z > 0 else "low"
-        return self.side[n] == side and (vd.value > base.hi if side == "high" else vd.value < base.lo)
+        return self.side[n] == ("high" if vd.z > 0 else "low") and self._beyond_confirmed(n, vd.value)
 
     def _likelihood_ratio(self, vd: Verdict, res, rec, tracker, names: Sequence[str],
                           filtered: Mapping[str, float] | None = None) -> Verdict:
