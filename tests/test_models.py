@@ -259,6 +259,34 @@ def test_the_filters_lanes_are_the_models_one_definition_bit_for_bit(mode, t_oil
                                       np.array(M.deriv(*S[ln], wnd[1], q)))
 
 
+@pytest.mark.parametrize("mode,effects", [(0, ()), (1, ()), (2, ()), (2, ("coulomb_friction", "cubic_stiffness")),
+                                          (1, ("coulomb_friction", "input_offset"))])
+def test_the_oscillators_lanes_are_its_advance_bit_for_bit(mode, effects):
+    """The oscillator's lanes run every sigma point's interval in one call; each lane, with its own damping, stiffness
+    and friction, is the model's ``advance`` of its point, bit for bit, with or without its effects."""
+    rng = np.random.default_rng(1200 + mode)
+    ps = O.MODEL.params(effects)
+    if "coulomb_friction" in effects:
+        ps = O.MODEL.params(effects, Fc=0.7, vc=2e-3)
+    idx = np.array([O.MODEL.kernel_index(n) for n in ("d", "k", "Fc")], dtype=np.int64)
+    p = O.MODEL.vector(ps)
+    assert O.lanes_applicable(p) and 2 * (len(O.STATES) + idx.size) + 1 <= O.LANES
+    S = np.column_stack([rng.normal(0, 1e-3, O.LANES), rng.normal(0, 0.05, O.LANES)])
+    TH = p[idx] * np.exp(rng.normal(0, 0.3, size=(O.LANES, idx.size)))
+    wnd = rng.normal(0, 1, size=4)
+    got = S.copy()
+    m = O.LANES - 3  # the lanes beyond m are not touched
+    O.lanes(got, TH, m, p.copy(), idx, wnd, mode, 1e-3, 3, np.empty(O.LANE_WORK))
+    np.testing.assert_array_equal(got[m:], S[m:])
+    for ln in range(m):
+        q = p.copy()
+        q[idx] = TH[ln]
+        one = np.empty(len(O.STATES))
+        O.advance(S[ln].copy(), 1, wnd, False, 1, mode, q, 1e-3, 3, 0.0, np.zeros(O.N_CTRL), one)
+        np.testing.assert_array_equal(got[ln], one)
+        assert not np.array_equal(one, S[ln])
+
+
 def test_records_without_an_oil_temperature_are_unchanged_bit_for_bit():
     """At T_oil = T_ref (the default) the temperature factors are exactly one: the same numbers as without the
     temperature law; a warmer oil softens the oil column and leaks more."""

@@ -261,6 +261,30 @@ def test_sigma_points_propagated_together_are_the_models_step_exactly(mode, para
     assert np.isnan(sf[nm + 1:n + 1]).all()  # the points along noise states are not integrated
 
 
+def test_the_oscillators_prediction_integrates_its_sigma_points_in_one_call_as_one_at_a_time():
+    """The oscillator's filter takes the side-by-side path (its lanes apply to every parameter vector): per sigma
+    point the same numbers as its one-point ``fx_into``, bit for bit."""
+    tr = OnlineTracker(model="oscillator")
+    F = ukf.functions_of(tr.model)
+    predict = ukf.kernel_modules(tr.model)[0]
+    n, nm, ns = tr.n, tr.nmod, tr.ns
+    rng = np.random.default_rng(41)
+    sig = rng.normal(size=(2 * n + 1, n)) * np.concatenate([[0.5, 2.0], np.full(len(tr.tracked), 0.3),
+                                                            np.full(n - nm, 0.1)])
+    rows = np.array([k for k in range(2 * n + 1) if k == 0 or (k - 1) % n < nm])
+    m = 2 * nm + 1
+    assert F.lanes_applicable(tr.pvec) and m <= F.LANES
+    wnd = np.array([0.1, 0.2, 0.5, 0.5])
+    sf = np.full((2 * n + 1, n), np.nan)
+    predict._lanes(sig, sf, rows, m, wnd, 1, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2, nm,
+                   np.empty((F.LANES, ns)), np.empty((F.LANES, len(tr.tracked))), np.empty(F.LANE_WORK))
+    for r in rows[:m]:
+        one = np.empty((2 * n + 1, n))
+        predict.fx_into(sig, r, wnd, False, 1, 1, tr.pvec.copy(), tr.idx, tr.lo_log, tr.width, tr.scale, 1e-3, 2,
+                        0.0, np.zeros(F.N_CTRL), F.N_CTRL, np.empty(ns), np.empty(ns), one, nm)
+        np.testing.assert_array_equal(sf[r, :nm], one[r, :nm])
+
+
 def test_a_models_kernel_is_the_filters_source_with_one_marked_import_swapped():
     """The kernel of a model is ``ukf_predict`` and ``ukf_loop`` as written, each with its one marked import naming
     the model's module (and the model's prediction) instead of the slot: no other line differs, and a source that

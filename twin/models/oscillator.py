@@ -92,16 +92,26 @@ KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.value
 NP = len(KERNEL_NAMES)
 I_M, I_D, I_K, I_FC, I_VC, I_K3, I_TAU, I_U0, I_Y0 = range(NP)
 STATES = ("x", "v")
-#: the filter interface (twin.models.base.FilterSpec.functions): no controller memory, no side-by-side lanes
+#: the filter interface (twin.models.base.FilterSpec.functions): no controller memory; the sigma points integrated
+#: side by side (:func:`lanes`): all of a filter tracking every trackable parameter, in whole vectors of 8
 N_CTRL = 1
-LANES = 0
-LANE_WORK = 0
+N_TRACKABLE = sum(1 for s in BASE + tuple(q for e in EFFECTS.values() for q in e.params) if s.tracking is not None)
+LANES = 8 * ((2 * (len(STATES) + N_TRACKABLE) + 1 + 7) // 8)
+#: a lane's entries of the work vector: the states x, v and the parameters m, d, k, k3, u0, Fc, vc
+N_W = 9
+LANE_WORK = N_W * LANES
+
+
+@nb.njit(cache=True, inline="always")
+def _force(x, v, u, d, k, k3, u0):
+    """The force on the mass without its dry friction."""
+    return u - u0 - d * v - k * x - k3 * x * x * x
 
 
 @nb.njit(cache=True)
 def _accel(x, v, u, m, d, k, k3, u0, fc, vc):
     """The acceleration from the parameters as numbers (the filter's step reads them once per interval)."""
-    f = u - u0 - d * v - k * x - k3 * x * x * x
+    f = _force(x, v, u, d, k, k3, u0)
     if fc > 0.0:
         f -= fc * math.tanh(v / vc)
     return f / m
@@ -158,18 +168,22 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
     high with the lagging cubic, 0.4 % low with the linear one)."""
     if mode == 2:
         mode = 1
-    x = s[0]
-    v = s[1]
+    n = drive.shape[0]
+    x, v = _interval(s[0], s[1], p[I_M], p[I_D], p[I_K], p[I_K3], p[I_U0], p[I_FC], p[I_VC],
+                     drive[k - 1 if k > 0 else 0], drive[k], drive[k + 1 if k + 1 < n else n - 1],
+                     drive[k + 2 if k + 2 < n else n - 1], mode, dt, nsub)
+    out[0] = x
+    out[1] = v
+    return drive[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _interval(x, v, m, dm, km, k3, u0, fc, vc, a0, a1, a2, a3, mode, dt, nsub):
+    """RK4 over one log interval from the state ``x, v`` with the parameters and the drive around the interval as
+    numbers (an array handed to a compiled function is reference-counted at each call: 28 atomic operations a sigma
+    point); the one definition :func:`advance` and :func:`lanes` share."""
     h = dt / nsub
     fh = 1.0 / nsub
-    # the parameters and the drive around the interval read once: numbers, not arrays, go to the inner calls (an
-    # array handed to a compiled function is reference-counted at each call: 28 atomic operations a sigma point)
-    m, dm, km, k3, u0, fc, vc = p[I_M], p[I_D], p[I_K], p[I_K3], p[I_U0], p[I_FC], p[I_VC]
-    n = drive.shape[0]
-    a0 = drive[k - 1 if k > 0 else 0]
-    a1 = drive[k]
-    a2 = drive[k + 1 if k + 1 < n else n - 1]
-    a3 = drive[k + 2 if k + 2 < n else n - 1]
     for j in range(nsub):
         ua = input_between(a0, a1, a2, a3, j * fh, mode)
         um = input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode)
@@ -183,21 +197,89 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
         d_v = _accel(x + h * c_x, d_x, ub, m, dm, km, k3, u0, fc, vc)
         x += h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x)
         v += h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
-    out[0] = x
-    out[1] = v
-    return drive[k]
+    return x, v
 
 
 @nb.njit(cache=True)
 def lanes_applicable(p):
-    """No side-by-side lanes: the filter integrates one sigma point at a time."""
-    return False
+    """The lanes are exact for every kernel vector (they run :func:`advance`'s own interval)."""
+    return True
 
 
 @nb.njit(cache=True)
 def lanes(S, TH, m, p, idx, wnd, mode, dt, nsub, W):
-    """No side-by-side lanes (never called: :func:`lanes_applicable` is false)."""
-    return None
+    """One log interval of the states ``S[ln]`` (SI) with the parameters ``idx`` at ``TH[ln]``, ``ln < m <=
+    LANES``, in place: :func:`advance` for each, in one call (the filter's prediction then makes one compiled call
+    a sample instead of one per sigma point).  ``wnd``: the logged force at samples k-1, k (index 1: this sample),
+    k+1, k+2; ``p`` is overwritten at ``idx``; ``W``: work (:data:`LANE_WORK` entries), row ``r`` (one quantity:
+    x, v, m, d, k, k3, u0, Fc, vc) of lane ``ln`` at ``r * LANES + ln``; unused lanes repeat lane 0.
+
+    Without dry friction in any lane the lanes run side by side, one RK4 stage over all of them in a loop the
+    compiler vectorises (:func:`_lanes_rk4`, the same operations as :func:`advance` in the same order: each lane's
+    numbers are its point's, bit for bit); with it, one lane after the other (``tanh`` is not vectorised)."""
+    if mode == 2:
+        mode = 1
+    p_count = idx.shape[0]
+    friction = False
+    for ln in range(LANES):  # each lane's parameters read before W is written (W might be p for all the compiler knows)
+        r = ln if ln < m else 0
+        for j in range(p_count):
+            p[idx[j]] = TH[r, j]
+        x0, v0, mm, dm, km, k3, u0, fc, vc = S[r, 0], S[r, 1], p[I_M], p[I_D], p[I_K], p[I_K3], p[I_U0], p[I_FC], \
+            p[I_VC]
+        friction = friction or fc > 0.0
+        W[ln] = x0
+        W[LANES + ln] = v0
+        W[2 * LANES + ln] = mm
+        W[3 * LANES + ln] = dm
+        W[4 * LANES + ln] = km
+        W[5 * LANES + ln] = k3
+        W[6 * LANES + ln] = u0
+        W[7 * LANES + ln] = fc
+        W[8 * LANES + ln] = vc
+    a0, a1, a2, a3 = wnd[0], wnd[1], wnd[2], wnd[3]
+    if friction:
+        for ln in range(m):
+            x, v = _interval(W[ln], W[LANES + ln], W[2 * LANES + ln], W[3 * LANES + ln], W[4 * LANES + ln],
+                             W[5 * LANES + ln], W[6 * LANES + ln], W[7 * LANES + ln], W[8 * LANES + ln], a0, a1, a2,
+                             a3, mode, dt, nsub)
+            S[ln, 0] = x
+            S[ln, 1] = v
+        return
+    _lanes_rk4(W, a0, a1, a2, a3, mode, dt, nsub)
+    for ln in range(m):
+        S[ln, 0] = W[ln]
+        S[ln, 1] = W[LANES + ln]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lanes_rk4(W, a0, a1, a2, a3, mode, dt, nsub):
+    """:func:`_interval` without dry friction over the :data:`LANES` lanes of ``W`` at once, in place (numpy's
+    error model: a division is the processor's, with no test for a zero divisor that would keep the loop scalar;
+    a mass is never 0, its bound is 1e-9 kg)."""
+    h = dt / nsub
+    fh = 1.0 / nsub
+    for j in range(nsub):
+        ua = input_between(a0, a1, a2, a3, j * fh, mode)
+        um = input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode)
+        ub = input_between(a0, a1, a2, a3, (j + 1.0) * fh, mode)
+        for ln in range(LANES):
+            x = W[ln]
+            v = W[LANES + ln]
+            m = W[2 * LANES + ln]
+            dm = W[3 * LANES + ln]
+            km = W[4 * LANES + ln]
+            k3 = W[5 * LANES + ln]
+            u0 = W[6 * LANES + ln]
+            a_v = _force(x, v, ua, dm, km, k3, u0) / m
+            b_x = v + 0.5 * h * a_v
+            b_v = _force(x + 0.5 * h * v, b_x, um, dm, km, k3, u0) / m
+            c_x = v + 0.5 * h * b_v
+            c_v = _force(x + 0.5 * h * b_x, c_x, um, dm, km, k3, u0) / m
+            d_x = v + h * c_v
+            d_v = _force(x + h * c_x, d_x, ub, dm, km, k3, u0) / m
+            W[ln] = x + h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x)
+            W[LANES + ln] = v + h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
 
 
 def delay_signal(u: np.ndarray, tau: float, dt: float) -> np.ndarray:

@@ -5,9 +5,18 @@ matrix is not positive definite, an eigenvalue repair, and the logit between phy
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba as nb
 import numpy as np
+
+#: numba's option compiling a function without its runtime's reference counting (``@nb.njit(**NO_REFCOUNT)``): for
+#: the filter's per-sample functions, which allocate nothing; each array they name, in an inlined stage or a call,
+#: is otherwise counted in and out with an atomic operation sample by sample (a quarter of a small model's kernel)
+NO_REFCOUNT: dict[str, Any] = {"_nrt": False}
+#: the option back on, for a function such a caller may reach that allocates (numba compiles a callee with its
+#: caller's options unless the callee sets them)
+REFCOUNT: dict[str, Any] = {"_nrt": True}
 
 
 @nb.njit(cache=True)
@@ -32,7 +41,7 @@ def _chol_lower(A, L):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, **REFCOUNT)
 def _repair(P, floor):
     """Symmetrise ``P`` and clip its eigenvalues to ``floor``; False if it is not finite."""
     n = P.shape[0]

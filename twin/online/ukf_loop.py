@@ -15,7 +15,7 @@ import math
 import numba as nb
 import numpy as np
 
-from twin.online.ukf_linalg import _all_finite, dlog_dz
+from twin.online.ukf_linalg import NO_REFCOUNT, _all_finite, dlog_dz
 from twin.online.ukf_predict import _predict, lanes_apply  # kernel: the model's prediction
 from twin.online.ukf_status import (
     C_ADAPT, C_A_MAX, C_CENTRAL, C_NSHARE, C_CK_S, C_CLEAR_N, C_DIV_NIS, C_GAP_MAX, C_INFLATE, C_NIS_CLIP, C_NIS_HI, C_NOISY, C_OFF_N,
@@ -69,7 +69,11 @@ def _carry_controller(ctrl, fs, closed, ps, nc):
 
 # The stages below take arrays and numbers, never the kernel's records: a record handed to a compiled function is
 # reference-counted member by member at each call, inlined or not (measured: passing Setup and the scratch arrays
-# as records to the stages cost 0.6-1 us a sample).  filter_loop reads the records once per block.
+# as records to the stages cost 0.6-1 us a sample).  filter_loop reads the records once per block.  The loop itself
+# (_filter_loop) and the prediction and update it calls are compiled without numba's reference counting
+# (``NO_REFCOUNT``): they allocate nothing (filter_loop allocates the block's work arrays before), and every array
+# an inlined stage or a call names was otherwise counted in and out with an atomic operation, sample by sample
+# (measured: a quarter of a two-state model's kernel time in numba's NRT_incref/NRT_decref).
 
 
 @nb.njit
@@ -494,6 +498,16 @@ def _recover(x, P, x_ck, P_ck, zk, mia, a_now, closed, setup, ch, fs, nmod, cfg,
 
 @nb.njit
 def filter_loop(setup, carry, block, closed, ticks, mode, out):
+    """Filter the ``T`` samples of ``block`` in place (:func:`_filter_loop`, in fresh work arrays)."""
+    ns, nc, n, q, p_count = setup.scale.shape[0], carry.fs.shape[0] - F_CTRL, carry.x.shape[0], block.Z.shape[1], \
+        setup.idx.shape[0]
+    work = _work(n, ns, q, p_count, nc, setup.lanes, setup.lane_work)
+    return _filter_loop(setup, carry, block, closed, ticks, mode, out, work, setup.pvec.copy(),
+                        lanes_apply(setup.pvec))
+
+
+@nb.njit(**NO_REFCOUNT)
+def _filter_loop(setup, carry, block, closed, ticks, mode, out, work, pw, fast):
     """Filter the ``T`` samples of ``block`` in place; ``carry`` carries over between calls; returns the index of
     an unrecoverable sample, or -1.
 
@@ -515,12 +529,10 @@ def filter_loop(setup, carry, block, closed, ticks, mode, out):
     X_out, Pd_out, nis_out, ll_out, st_out, innov_out = out.X, out.Pd, out.nis, out.ll, out.status, out.innov
     S_out, frozen_out, guard_out, sens_out, sig_out, used_out = out.S, out.frozen, out.guard, out.sensors, out.noise, \
         out.used
-    ns, nc, n, q, p_count = scale.shape[0], fs.shape[0] - F_CTRL, x.shape[0], Z.shape[1], idx.shape[0]
+    ns, nc, p_count = scale.shape[0], fs.shape[0] - F_CTRL, idx.shape[0]
     nmod = ns + p_count
     (L, A, Q, B, si, so, ctrl, sig, sf, W, S_l, TH, rows, sel, WQ, WN, inn2, sd2, freeze, innov, Sd, nu, share, use,
-     R, a_pow, unit_like, wnd) = _work(n, ns, q, p_count, nc, setup.lanes, setup.lane_work)
-    pw = setup.pvec.copy()
-    fast = lanes_apply(setup.pvec)
+     R, a_pow, unit_like, wnd) = work
     for j in range(nc):
         ctrl[nc + j] = fs[F_CTRL + j]
     by_share, central = cfg[C_NSHARE] > 0.0, cfg[C_CENTRAL] > 0.0

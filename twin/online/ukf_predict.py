@@ -15,7 +15,7 @@ import math
 
 import numba as nb
 
-from twin.online.ukf_linalg import _chol_lower, _repair, theta_of
+from twin.online.ukf_linalg import NO_REFCOUNT, _chol_lower, _repair, theta_of
 from twin.online.ukf_model import advance, lanes as lanes_fn, lanes_applicable as applicable  # kernel: the model's interface
 from twin.online.ukf_status import ST_OK, ST_REPAIRED
 
@@ -26,7 +26,7 @@ def lanes_apply(p):
     return applicable(p)
 
 
-@nb.njit
+@nb.njit(**NO_REFCOUNT)
 def fx_into(sig, r, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, nsub, xm, ctrl, nc, si, so, sf,
             nmod):
     """One log interval of the augmented state ``sig[r]`` with the drive window ``wnd`` (the drive at samples k-2,
@@ -53,21 +53,21 @@ def fx_into(sig, r, wnd, closed, ticks, mode, p, idx, lo_log, width, scale, h, n
         sf[r, j] = sig[r, j]
 
 
-@nb.njit
+@nb.njit(**NO_REFCOUNT)
 def _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, nmod, S, TH, W):
     """The model part of ``sf[rows[ln]]`` for the sigma points ``sig[rows[ln]]``, ``ln < m``, integrated side by
     side by the model's ``lanes``; a parameter at the central point's value (a sigma point along another state)
     reuses its value."""
     ns = scale.shape[0]
     p_count = idx.shape[0]
-    s0 = sig[rows[0]]
+    r0 = rows[0]
     for ln in range(m):
-        s = sig[rows[ln]]
+        r = rows[ln]
         for j in range(p_count):
-            zj = s[ns + j]
-            TH[ln, j] = TH[0, j] if ln > 0 and zj == s0[ns + j] else theta_of(zj, lo_log[j], width[j])
+            zj = sig[r, ns + j]
+            TH[ln, j] = TH[0, j] if ln > 0 and zj == sig[r0, ns + j] else theta_of(zj, lo_log[j], width[j])
         for i in range(ns):
-            S[ln, i] = s[i] * scale[i]
+            S[ln, i] = sig[r, i] * scale[i]
     lanes_fn(S, TH, m, pw, idx, wnd, mode, h, nsub, W)
     for ln in range(m):
         r = rows[ln]
@@ -77,7 +77,7 @@ def _lanes(sig, sf, rows, m, wnd, mode, pw, idx, lo_log, width, scale, h, nsub, 
             sf[r, i] = sig[r, i]
 
 
-@nb.njit
+@nb.njit(**NO_REFCOUNT)
 def _predict(x, P, wnd, closed, ticks, mode, pw, idx, lo_log, width, scale, h, nsub, xm, Q, Wm, Wc, lam, floor,
              nmod, a_pow, L, A, sig, sf, si, so, ctrl, nc, fast, W, S, TH, rows, central):
     """filterpy's predict over one interval; returns the status (ok or repaired_covariance) or -1.

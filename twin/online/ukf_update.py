@@ -8,7 +8,7 @@ import math
 import numba as nb
 import numpy as np
 
-from twin.online.ukf_linalg import _chol_lower
+from twin.online.ukf_linalg import NO_REFCOUNT, _chol_lower
 from twin.online.ukf_status import ST_FROZEN, ST_GATED, ST_OK, ST_STALE
 
 
@@ -26,7 +26,7 @@ def _update(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag):
                         np.empty((4 * q + 1, q)), np.empty((2 * n, q)), np.empty((n, n)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, **NO_REFCOUNT)
 def _update_into(x, P, z, meas_idx, eta0, R, use, freeze, gate, innov, Sdiag, sel, WQ, WN, B):
     """:func:`_update` in preallocated work arrays: ``sel [q]``, ``WQ [4q + 1, q]``, ``WN [2n, q]``, ``B [n, n]``."""
     n = x.shape[0]
