@@ -100,7 +100,7 @@ def _sigma_batch(K=23, seed=0):
 
 def bench_core(quick: bool = False) -> list[dict]:
     from twin.estimation.fit import fit
-    from twin.estimation.paper import CASES, run_all
+    from twin.paper.cases import CASES, run_all
     from twin.models.simulate import default_noise, excite, measure
 
     rows = []

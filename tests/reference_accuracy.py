@@ -26,7 +26,7 @@ from reference import batch, msp25_spec  # noqa: E402
 
 from twin.estimation.fit import fit  # noqa: E402
 from twin.models import get_model  # noqa: E402
-from twin.estimation.paper import CASES, run_case  # noqa: E402
+from twin.paper.cases import CASES, run_case  # noqa: E402
 from twin.record import Record  # noqa: E402
 
 FREE = ("Ffric", "CdAleak", "Cd", "zeta", "wn")

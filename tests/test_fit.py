@@ -11,7 +11,7 @@ from twin import cli
 from fpdd.errors import DataError, ParameterError
 from twin.estimation.fit import fit, likelihood_ratio
 from twin.models import get_model
-from twin.estimation.paper import CASES, run_all
+from twin.paper.cases import CASES, run_all
 from twin.record import Record
 from twin.models.simulate import default_noise, excite, measure
 

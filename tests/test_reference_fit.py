@@ -18,7 +18,7 @@ from twin import cli
 from twin.estimation.fit import fit
 from twin.models import get_model
 from twin.models.base import Timing
-from twin.estimation.paper import CASES, run_case
+from twin.paper.cases import CASES, run_case
 from twin.record import Record
 
 RIG = get_model("msp25")

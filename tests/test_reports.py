@@ -124,7 +124,7 @@ def test_fit_report_from_the_command_line(tmp_path, osc_fit):
 
 @pytest.mark.slow
 def test_paper_report(tmp_path):
-    from twin.estimation.paper import CASES, run_all
+    from twin.paper.cases import CASES, run_all
 
     cases = [c for c in CASES if c.case in ("osc-A", "osc-D")]
     rows, elapsed = run_all(noisy=True, seed=1, cases=cases)

@@ -39,7 +39,7 @@ def table(rows: list[dict]) -> str:
 
 
 def run(args) -> int:
-    from twin.estimation.paper import CASES, run_all
+    from twin.paper.cases import CASES, run_all
 
     cases = None
     if args.case:

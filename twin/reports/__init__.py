@@ -23,7 +23,7 @@ def fit_report(*args, **kw):
 
 
 def paper_report(*args, **kw):
-    from twin.reports.paper import paper_report as f
+    from twin.paper.report import paper_report as f
 
     return f(*args, **kw)
 

@@ -16,7 +16,7 @@ FLOOR = 1e-14  # an error of exactly 0 is drawn here on the log axis
 
 def paper_report(rows: Sequence[Mapping], out_dir: str, *, elapsed_s: float | None = None,
                  title: str | None = None, filename: str = "paper_report.html") -> str:
-    """Write the HTML report of ``twin paper``'s rows (:func:`twin.estimation.paper.run_all`); returns its path.
+    """Write the HTML report of ``twin paper``'s rows (:func:`twin.paper.cases.run_all`); returns its path.
 
     Each row: ``case, model, parameter, true, estimate, std, error_pct, z,
     paper_estimate, paper_error_pct, noisy, converged, fit_time_s, note``.
