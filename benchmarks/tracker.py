@@ -414,6 +414,94 @@ def models_kernel(repeats: int = 5, duration: float = 20.0) -> dict:
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
+#: one tree's kernels, run from that tree (``PYTHONPATH``): every registered model's kernel alone on its default
+#: record (fastest of ``REPEATS`` calls on one captured block, after a warm-up), and its estimates at the end
+_KERNEL_WORKER = """
+import json, sys, time
+import numpy as np
+from twin.models import MODELS, get_model
+from twin.models.simulate import default_noise, excite, measure
+from twin.online import ukf
+from twin.online.tracker import OnlineTracker
+repeats, duration = int(sys.argv[1]), float(sys.argv[2])
+out = {}
+for name in MODELS:
+    m = get_model(name)
+    if m.FILTER is None:
+        continue
+    kind, xr = excite(m, duration, 1e-3, seed=0)
+    s = measure(m, m.params(), kind, xr, 1e-3, noise=default_noise(m), seed=0).to_samples()
+    tr = OnlineTracker(model=name)
+    got = {}
+    run_kernel = tr._run_kernel
+
+    def grab(block, closed, ticks, mode, o):
+        got["call"] = (tr._setup(), tuple(a.copy() for a in (tr.x, tr.P, tr.fs, tr.ch, tr.x_ck, tr.P_ck)), block,
+                       closed, ticks, mode, o)
+        return run_kernel(block, closed, ticks, mode, o)
+
+    tr._run_kernel = grab
+    est = tr.process(s).estimates[-1]
+    setup, carry, block, closed, ticks, mode, o = got["call"]
+    run = ukf.kernel_for(m)
+    times = []
+    for _ in range(repeats):
+        c = ukf.Carry(*(a.copy() for a in carry))
+        t0 = time.process_time()
+        run(setup, c, block, closed, ticks, mode, o)
+        times.append((time.process_time() - t0) / len(s) * 1e6)
+    out[name] = {"fastest": min(times), "median": float(np.median(times)), "estimates": [float(v) for v in est]}
+print(json.dumps(out))
+"""
+
+
+def models_against(baseline: str, rounds: int = 3, repeats: int = 15, duration: float = 20.0) -> dict:
+    """Every registered model's kernel alone, this tree against the tree of the git revision ``baseline``, each in
+    its own fresh process (the two trees cannot share one), ``rounds`` interleaved pairs (a warm-up pair first: a
+    fresh tree compiles its kernels); per round the fastest of ``repeats`` calls on the same captured block
+    (:data:`_KERNEL_WORKER`); medians over the rounds, and the largest relative difference of the estimates at the
+    end of each model's record (0: the same numbers)."""
+    import subprocess
+    import tempfile
+
+    from benchmarks.startup import _export
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as d:
+        trees = {"now": root, "baseline": _export(baseline, os.path.join(d, "baseline"))}
+        worker = os.path.join(d, "kernels.py")
+        with open(worker, "w") as f:
+            f.write(_KERNEL_WORKER)
+
+        def once(tree: str, n: int) -> dict:
+            p = subprocess.run([sys.executable, worker, str(n), str(duration)], cwd=tree, capture_output=True,
+                               text=True, env=dict(os.environ, PYTHONPATH=tree))
+            if p.returncode != 0:
+                raise RuntimeError(f"the kernels of {tree} failed: {p.stderr.strip().splitlines()[-1:]}")
+            return json.loads(p.stdout)
+
+        for tree in trees.values():
+            once(tree, 1)
+        runs: dict[str, list[dict]] = {k: [] for k in trees}
+        for _ in range(rounds):
+            for which, tree in trees.items():
+                runs[which].append(once(tree, repeats))
+    models = sorted(set(runs["now"][0]) & set(runs["baseline"][0]))
+    out: dict = {"baseline": baseline, "rounds": rounds, "repeats": repeats, "models": {},
+                 "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+    for name in models:
+        now = float(np.median([r[name]["fastest"] for r in runs["now"]]))
+        base = float(np.median([r[name]["fastest"] for r in runs["baseline"]]))
+        a = np.array(runs["now"][-1][name]["estimates"])
+        b = np.array(runs["baseline"][-1][name]["estimates"])
+        rel = float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))) if a.shape == b.shape else float("inf")
+        out["models"][name] = {"now_us": now, "baseline_us": base, "speedup": base / now,
+                               "now_runs": [r[name]["fastest"] for r in runs["now"]],
+                               "baseline_runs": [r[name]["fastest"] for r in runs["baseline"]],
+                               "max_rel_estimate_difference": rel}
+    return out
+
+
 def confirm_cost(duration: float = 60.0) -> dict:
     """The tracker alone against the tracker with its alarms confirmed by window re-fits
     (:class:`twin.online.confirm.ConfirmedDrift`: scheduled every period, triggered by the drift test) on the same
@@ -451,6 +539,8 @@ def main(argv=None) -> int:
                          "against the paper's rig")
     ap.add_argument("--models", action="store_true",
                     help="only the kernel of every registered model, each against the default rig's kernel")
+    ap.add_argument("--baseline", metavar="REV", help="with --models: every model's kernel from this git "
+                    "revision's tree too, in fresh processes interleaved with this tree's, estimates compared")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved runs of each kernel (before/after)")
     ap.add_argument("--confirm", action="store_true",
                     help="only the cost of confirming alarms by window re-fits, against the tracker alone")
@@ -466,6 +556,20 @@ def main(argv=None) -> int:
               f"{c['seconds']:g} s) {c['confirmed_cpu_us_per_sample']:.1f} us/sample: ratio {c['ratio']:.1f}, "
               f"{c['cpu_s_per_refit']:.2f} s CPU per re-fit (load average {c['load_average_1min']})")
         return 0
+    if args.models and args.baseline:
+        mb = models_against(args.baseline, rounds=args.repeats)
+        if args.json:
+            print(json.dumps(mb, indent=2))
+            return 0
+        for k, v in mb["models"].items():
+            print(f"{k:12s} kernel {v['now_us']:6.2f} us/sample CPU, {args.baseline} {v['baseline_us']:6.2f} "
+                  f"(medians of {mb['rounds']} interleaved rounds, each the fastest of {mb['repeats']} calls): "
+                  f"{v['speedup']:.2f}x; largest relative difference of the estimates {v['max_rel_estimate_difference']:.1e}")
+        print(f"(load average {mb['load_average_1min']})")
+        return 0
+    if args.baseline:
+        print("--baseline: only with --models", file=sys.stderr)
+        return 2
     if args.models:
         mk = models_kernel(max(args.repeats, 5), 10.0 if args.quick else 20.0)
         if args.json:
