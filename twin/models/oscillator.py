@@ -108,13 +108,20 @@ def _force(x, v, u, d, k, k3, u0):
     return u - u0 - d * v - k * x - k3 * x * x * x
 
 
+@nb.njit(cache=True, inline="always")
+def _acc(x, v, u, m, d, k, k3, u0, fc, vc, friction):
+    """The acceleration; ``friction`` False leaves the dry friction out (a literal: no branch is left in a loop the
+    compiler vectorises)."""
+    f = _force(x, v, u, d, k, k3, u0)
+    if friction and fc > 0.0:
+        f -= fc * math.tanh(v / vc)
+    return f / m
+
+
 @nb.njit(cache=True)
 def _accel(x, v, u, m, d, k, k3, u0, fc, vc):
     """The acceleration from the parameters as numbers (the filter's step reads them once per interval)."""
-    f = _force(x, v, u, d, k, k3, u0)
-    if fc > 0.0:
-        f -= fc * math.tanh(v / vc)
-    return f / m
+    return _acc(x, v, u, m, d, k, k3, u0, fc, vc, True)
 
 
 @nb.njit(cache=True)
@@ -178,6 +185,26 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
 
 
 @nb.njit(cache=True, inline="always")
+def _substep_inputs(a0, a1, a2, a3, j, fh, mode):
+    """The drive at substep ``j``'s start, middle and end (``fh``: a substep as a fraction of the interval)."""
+    return (input_between(a0, a1, a2, a3, j * fh, mode), input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode),
+            input_between(a0, a1, a2, a3, (j + 1.0) * fh, mode))
+
+
+@nb.njit(cache=True, inline="always")
+def _substep(x, v, ua, um, ub, h, m, dm, km, k3, u0, fc, vc, friction):
+    """One RK4 substep of length ``h`` with the drive ``ua, um, ub`` at its start, middle and end."""
+    a_v = _acc(x, v, ua, m, dm, km, k3, u0, fc, vc, friction)
+    b_x = v + 0.5 * h * a_v
+    b_v = _acc(x + 0.5 * h * v, b_x, um, m, dm, km, k3, u0, fc, vc, friction)
+    c_x = v + 0.5 * h * b_v
+    c_v = _acc(x + 0.5 * h * b_x, c_x, um, m, dm, km, k3, u0, fc, vc, friction)
+    d_x = v + h * c_v
+    d_v = _acc(x + h * c_x, d_x, ub, m, dm, km, k3, u0, fc, vc, friction)
+    return x + h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x), v + h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
+
+
+@nb.njit(cache=True, inline="always")
 def _interval(x, v, m, dm, km, k3, u0, fc, vc, a0, a1, a2, a3, mode, dt, nsub):
     """RK4 over one log interval from the state ``x, v`` with the parameters and the drive around the interval as
     numbers (an array handed to a compiled function is reference-counted at each call: 28 atomic operations a sigma
@@ -185,18 +212,8 @@ def _interval(x, v, m, dm, km, k3, u0, fc, vc, a0, a1, a2, a3, mode, dt, nsub):
     h = dt / nsub
     fh = 1.0 / nsub
     for j in range(nsub):
-        ua = input_between(a0, a1, a2, a3, j * fh, mode)
-        um = input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode)
-        ub = input_between(a0, a1, a2, a3, (j + 1.0) * fh, mode)
-        a_v = _accel(x, v, ua, m, dm, km, k3, u0, fc, vc)
-        b_x = v + 0.5 * h * a_v
-        b_v = _accel(x + 0.5 * h * v, b_x, um, m, dm, km, k3, u0, fc, vc)
-        c_x = v + 0.5 * h * b_v
-        c_v = _accel(x + 0.5 * h * b_x, c_x, um, m, dm, km, k3, u0, fc, vc)
-        d_x = v + h * c_v
-        d_v = _accel(x + h * c_x, d_x, ub, m, dm, km, k3, u0, fc, vc)
-        x += h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x)
-        v += h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
+        ua, um, ub = _substep_inputs(a0, a1, a2, a3, j, fh, mode)
+        x, v = _substep(x, v, ua, um, ub, h, m, dm, km, k3, u0, fc, vc, True)
     return x, v
 
 
@@ -260,26 +277,11 @@ def _lanes_rk4(W, a0, a1, a2, a3, mode, dt, nsub):
     h = dt / nsub
     fh = 1.0 / nsub
     for j in range(nsub):
-        ua = input_between(a0, a1, a2, a3, j * fh, mode)
-        um = input_between(a0, a1, a2, a3, (j + 0.5) * fh, mode)
-        ub = input_between(a0, a1, a2, a3, (j + 1.0) * fh, mode)
+        ua, um, ub = _substep_inputs(a0, a1, a2, a3, j, fh, mode)
         for ln in range(LANES):
-            x = W[ln]
-            v = W[LANES + ln]
-            m = W[2 * LANES + ln]
-            dm = W[3 * LANES + ln]
-            km = W[4 * LANES + ln]
-            k3 = W[5 * LANES + ln]
-            u0 = W[6 * LANES + ln]
-            a_v = _force(x, v, ua, dm, km, k3, u0) / m
-            b_x = v + 0.5 * h * a_v
-            b_v = _force(x + 0.5 * h * v, b_x, um, dm, km, k3, u0) / m
-            c_x = v + 0.5 * h * b_v
-            c_v = _force(x + 0.5 * h * b_x, c_x, um, dm, km, k3, u0) / m
-            d_x = v + h * c_v
-            d_v = _force(x + h * c_x, d_x, ub, dm, km, k3, u0) / m
-            W[ln] = x + h / 6.0 * (v + 2.0 * b_x + 2.0 * c_x + d_x)
-            W[LANES + ln] = v + h / 6.0 * (a_v + 2.0 * b_v + 2.0 * c_v + d_v)
+            W[ln], W[LANES + ln] = _substep(W[ln], W[LANES + ln], ua, um, ub, h, W[2 * LANES + ln],
+                                            W[3 * LANES + ln], W[4 * LANES + ln], W[5 * LANES + ln],
+                                            W[6 * LANES + ln], 0.0, 1.0, False)
 
 
 def delay_signal(u: np.ndarray, tau: float, dt: float) -> np.ndarray:
