@@ -100,3 +100,105 @@ def test_a_burst_of_malformed_payloads_costs_only_itself(tmp_path) -> None:
     assert not service.is_alive()
     assert latest["rig-b"]["samples"] == n, latest  # the neighbour: every sample
     assert latest["rig-a"]["samples"] == n, latest  # the target: every good sample, none dropped for the burst
+
+
+
+_ATTACKER = """
+import sys, time, zenoh
+with zenoh.open(zenoh.Config.from_json5(sys.argv[1])) as s:
+    p = s.declare_publisher(sys.argv[2])
+    print("ready", flush=True)
+    sys.stdin.readline()
+    t = time.monotonic()
+    for k in range(int(sys.argv[3])):
+        p.put(b"garbage" if k % 2 else b'{"t_ns": "bad", "x": 1}')
+    print(time.monotonic() - t, flush=True)
+    sys.stdin.readline()
+"""
+
+_ROUTER = """
+import sys, zenoh
+with zenoh.open(zenoh.Config.from_json5(sys.argv[1])):
+    print("ready", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def _ready(code: str, *args: str):
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+    return p
+
+
+@pytest.mark.slow
+def test_a_burst_through_the_router_leaves_the_neighbours_link_free(tmp_path) -> None:
+    """A site's service is a client of its router, so everything reached it on one link: a burst on one rig's key
+    held the neighbour's samples behind it for the burst's whole time on that link (lag max 0.26 s, as the
+    target's own). Each ``zenoh://`` rig's input now has its own session to the router: the neighbour's lag stays
+    a fraction of the target's. As on a site: the router, the service (``twin serve``), each rig's gateway (its
+    own session) and the attacker are apart, the router, the service and the attacker each in a process."""
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    config = tmp_path / "rigs.toml"
+    config.write_text(f'[zenoh]\nmode = "client"\nconnect = ["{endpoint}"]\n[service]\njournal_dir = '
+                      f'"{tmp_path / "journal"}"\nstale_s = 0.3\nestimate_every = 100\n'
+                      + "".join(f'[[rig]]\nname = "{r}"\nsource = "zenoh://fpdd/{r}/samples"\n' for r in RIGS))
+    data = {r: _samples(1051 + i) for i, r in enumerate(RIGS)}
+    n = len(data["rig-a"])
+    router = _ready(_ROUTER, str(zenoh_config("router", listen=[endpoint])))
+    procs = [router]
+    try:
+        attacker = _ready(_ATTACKER, str(zenoh_config("client", connect=[endpoint])), "fpdd/rig-a/samples", str(BURST))
+        procs.append(attacker)
+        with open(tmp_path / "serve.err", "w") as err:
+            service = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config)],
+                                       stdout=subprocess.DEVNULL, stderr=err)
+        procs.append(service)
+        gateways = {r: zenoh.open(zenoh_config("client", connect=[endpoint])) for r in RIGS}
+        try:
+            latest: dict[str, dict] = {}
+            watch = [gateways[r].declare_subscriber(f"fpdd/{r}/status", _keeper(latest, r)) for r in RIGS]
+            sinks = {r: ZenohSampleSink(f"fpdd/{r}/samples", session=gateways[r], end_marker=False, max_block=100)
+                     for r in RIGS}
+            for sink in sinks.values():
+                assert sink.wait_for_subscriber(60.0), "the service did not subscribe to its input"
+            start = time.monotonic()
+            for i in range(0, n, 100):
+                for r, sink in sinks.items():
+                    sink.write(data[r].slice(i, i + 100))
+                if i == n // 3:
+                    assert attacker.stdin is not None
+                    attacker.stdin.write("go\n")
+                    attacker.stdin.flush()
+                time.sleep(max(0.0, start + (i + 100) * 1e-3 - time.monotonic()))
+            assert attacker.stdout is not None
+            put_s = float(attacker.stdout.readline())
+            assert _until_all(latest, "rig-b", n, stall_s=120.0), latest
+            _until_all(latest, "rig-a", n, stall_s=5.0)
+            for sink in sinks.values():
+                sink.close()
+            for w in watch:
+                w.undeclare()
+        finally:
+            for s in gateways.values():
+                s.close()
+        service.send_signal(signal.SIGTERM)
+        assert service.wait(timeout=60.0) == 0
+    finally:
+        for p in procs:
+            p.kill()
+            p.communicate(timeout=30.0)  # and its pipes closed
+    assert latest["rig-b"]["samples"] == n and latest["rig-a"]["samples"] == n, latest
+    summary = (tmp_path / "serve.err").read_text()
+    lag = {r: float(v) for r, v in re.findall(r"summary (rig-\w): .*lag max ([0-9.]+) s", summary)}
+    # the target waits for its own burst (about the time it took on the wire); the neighbour does not
+    assert lag["rig-a"] > 0.3 * put_s, (lag, put_s)
+    assert lag["rig-b"] < 0.5 * lag["rig-a"], (lag, put_s)

@@ -35,7 +35,7 @@ class LiveInput(RunnerCore):
         backoff = 0.0
         while not self.stop.is_set():
             try:
-                src = open_rig_source(self.rig, self.session, timeout_s=stale_s)
+                src = open_rig_source(self.rig, self.session, timeout_s=stale_s, cfg=self.cfg)
             except (TwinError, OSError, ValueError) as exc:
                 self._quiet(None, f"cannot open {self.rig.source}: {exc}")
                 backoff = min(5.0, max(stale_s, backoff * 2))

@@ -143,7 +143,7 @@ class RigRunner(LiveInput, LiveTime, Commissioner, Checkpoints):
         assert twin is not None  # made by _open
         position = twin.last_t_ns
         try:
-            src = open_rig_source(self.rig, self.session)
+            src = open_rig_source(self.rig, self.session, cfg=self.cfg)
         except (TwinError, OSError) as exc:
             raise RigFailure(f"cannot open its log: {exc}") from None
         pacer = Pacer(self.rig.speed)
