@@ -53,6 +53,7 @@ batch per block) and are published there on the service's one Zenoh session.
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing as mp
 import os
 import queue
@@ -168,6 +169,13 @@ class BusFront:
         self._signal_pubs.clear()
 
 
+#: 1 kHz rigs one worker process is given under ``workers = "auto"`` (a log replayed at speed ``s`` counts ``s``
+#: rigs, one replayed as fast as it can be a whole worker): the service's whole path costs 20-30 us of CPU a
+#: sample (Results, speed), so 16 rigs take about half a core and leave the rest of it for their window re-fits
+#: and bursts; a worker more is an interpreter, numba and the kernels again (about 130 MB of memory).
+AUTO_RIGS_PER_WORKER = 16
+
+
 class Fleet:
     """Every rig of a configuration, run until their logs end, one fails, or ``stop`` is set.
 
@@ -193,8 +201,11 @@ class Fleet:
         local = [r for r in rigs if r.source.startswith("zenoh://")]  # they ride on this process's session
         others = [r for r in rigs if not r.source.startswith("zenoh://")]
         n = self.cfg.workers
-        if n is None:  # auto: processes once there are more rigs than a few threads handle well
-            n = 0 if len(others) <= 4 else min(os.cpu_count() or 1, len(others))
+        if n is None:  # auto: processes once there are more rigs than a few threads handle well, as many as
+            # their samples need (each process is an interpreter, numba and its kernels: about 130 MB)
+            load = sum(r.speed if r.speed > 0 else AUTO_RIGS_PER_WORKER for r in others)
+            n = 0 if len(others) <= 4 else min(os.cpu_count() or 1, len(others),
+                                               max(1, math.ceil(load / AUTO_RIGS_PER_WORKER)))
         if self.keep is not None or n == 0 or not others:
             return local + others, []
         n = min(n, len(others))
