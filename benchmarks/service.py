@@ -90,6 +90,20 @@ def _rss_kib(pid: int) -> int:
     return 0
 
 
+def _pss_kib(pid: int) -> int:
+    """Proportional set size of ``pid`` [KiB]: its private pages and its share of each page it shares (the
+    libraries the service and its workers all map count once in the sum over them, where the RSS counts them in
+    every process)."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
 def _tree(pid: int) -> list[int]:
     out, todo = [], [pid]
     while todo:
@@ -182,6 +196,7 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
         proc = _start(_config(d, logs, rigs, port))
         watch = _Statuses(f"tcp/127.0.0.1:{port}")
         samples: list[tuple[float, int]] = []
+        pss: list[int] = []  # the sum of the processes' proportional set sizes [KiB]
         per_proc: dict[int, list[tuple[float, int]]] = {}  # each process of the service: (t, RSS KiB)
         lags: dict[str, list[float]] = {}
         t0 = time.monotonic()
@@ -195,14 +210,17 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
                     raise RuntimeError(f"twin serve ended early at {time.monotonic() - t0:.0f} s with exit code "
                                        f"{proc.returncode}: {' | '.join(tail) or 'nothing on its console'}")
                 now = time.monotonic() - t0
-                each = {pid: _rss_kib(pid) for pid in _tree(proc.pid)}
+                tree = _tree(proc.pid)
+                each = {pid: _rss_kib(pid) for pid in tree}
                 now_rss = sum(each.values())
                 samples.append((now, now_rss))
+                pss.append(sum(_pss_kib(pid) for pid in tree))
                 for pid, kib in each.items():
                     per_proc.setdefault(pid, []).append((now, kib))
                 for _, st in watch.drain():
                     lags.setdefault(st["rig"], []).append(st["counters"].get("lag_ms", 0) / 1000)
-                say(f"  t={samples[-1][0]:6.0f} s  RSS {now_rss / 1024:7.1f} MiB  rigs reporting {len(lags)}")
+                say(f"  t={samples[-1][0]:6.0f} s  RSS {now_rss / 1024:7.1f} MiB  PSS {pss[-1] / 1024:7.1f} MiB  "
+                    f"rigs reporting {len(lags)}")
         finally:
             err = _stop(proc)
             watch.close()
@@ -218,7 +236,12 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
         if after_p:
             procs.append({"pid": pid, "role": "service" if pid == proc.pid else "worker",
                           "rss_warm_mib": after_p[0] / 1024, "rss_final_mib": after_p[-1] / 1024})
+    pss_a = np.array(pss, dtype=float)
+    pss_warm = pss_a[np.searchsorted(t, warm)] if np.any(t >= warm) else pss_a[0]
     return {"rigs": rigs, "processes": procs, "minutes": minutes, "warm_up_s": warm,
+            "pss_warm_mib": pss_warm / 1024, "pss_final_mib": pss_a[-1] / 1024,
+            "pss_per_rig_mb": pss_a[-1] * 1024 / 1e6 / rigs,
+            "pss_growth_after_warm_pct": 100.0 * (pss_a[-1] - pss_warm) / pss_warm,
             "rss_warm_mib": base / 1024, "rss_final_mib": rss[-1] / 1024, "rss_max_after_warm_mib": after.max() / 1024,
             "growth_after_warm_pct": 100.0 * (rss[-1] - base) / base,
             "slope_kib_per_min": slope * 60.0,
@@ -477,6 +500,8 @@ def main(argv=None) -> int:
                   f"{r['rss_warm_mib']:.1f} MiB, at the end {r['rss_final_mib']:.1f} MiB: growth "
                   f"{r['growth_after_warm_pct']:+.2f} % (target < 5 %), slope {r['slope_kib_per_min']:+.0f} KiB/min; "
                   f"lag max {r['lag_max_s']:.3f} s, p95 {r['lag_p95_s']:.3f} s")
+            print(f"  PSS (shared pages counted once) {r['pss_warm_mib']:.1f} -> {r['pss_final_mib']:.1f} MiB "
+                  f"({r['pss_growth_after_warm_pct']:+.2f} %): {r['pss_per_rig_mb']:.1f} MB per rig (target <= 30)")
             for q in r["processes"]:
                 print(f"  {q['role']:7s} pid {q['pid']}: {q['rss_warm_mib']:.1f} -> {q['rss_final_mib']:.1f} MiB")
     elif args.what == "overhead":
