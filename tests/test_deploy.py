@@ -111,6 +111,11 @@ def test_systemd_unit_and_containerfile() -> None:
     assert re.search(r"^USER fpdd", recipe, re.MULTILINE)
     assert 'VOLUME ["/var/lib/fpdd"]' in recipe
     assert "twin-peer.json5" in recipe
+    # the kernels compiled once at install, into the cache directory the service is given
+    cache = next(v for k, v in settings if k == "Environment" and v.startswith("NUMBA_CACHE_DIR="))
+    assert re.search(r"^RUN twin warm\b", recipe, re.MULTILINE)
+    assert re.search(r"NUMBA_CACHE_DIR=(\S+) \S*twin warm", unit), "the unit's install notes warm its cache"
+    assert cache.split("=", 1)[1] in (DEPLOY / "README.md").read_text(encoding="utf-8").split("twin warm")[0]
 
 
 # --------------------------------------------------------------------------- live mTLS + ACL

@@ -36,6 +36,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
             "live terminal view of the running twins: estimates, statuses, last alarms"),
     "maintenance": ("twin.commands.maintenance", "add_arguments", "run",
                     "record a rig's maintenance: the named parameters' forecasts start afresh"),
+    "warm": ("twin.commands.warm", "add_arguments", "run",
+             "compile every model's kernels once (after an install), so the first command loads them"),
 }
 
 

@@ -189,13 +189,22 @@ def functions_of(model):
 
 
 def _kernel_dir() -> Path:
-    here = Path(__file__).parent / "__pycache__" / "kernels"
-    try:
-        here.mkdir(parents=True, exist_ok=True)
-        if os.access(here, os.W_OK):
-            return here
-    except OSError:
-        pass
+    """Where the generated kernel modules (and numba's cache of them) live: in ``$NUMBA_CACHE_DIR/fpdd-twin-kernels``
+    when numba is told where to cache (the service's unit does: its file system is read-only but there), else
+    beside this package where it is writable (a checkout, an editable install), else in the user's cache directory
+    (``$XDG_CACHE_HOME``, by default ``~/.cache``, then ``fpdd-twin/kernels``), else in the temporary directory.
+    Each outlives a restart but the last (a service's private ``/tmp`` is new at every start: its kernels were
+    compiled again each time)."""
+    user = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fpdd-twin" / "kernels"
+    told = os.environ.get("NUMBA_CACHE_DIR")
+    places = [Path(told) / "fpdd-twin-kernels"] if told else []
+    for where in (*places, Path(__file__).parent / "__pycache__" / "kernels", user):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            if os.access(where, os.W_OK):
+                return where
+        except OSError:
+            pass
     there = Path(tempfile.gettempdir()) / f"twin-kernels-{os.getuid() if hasattr(os, 'getuid') else 0}"
     there.mkdir(parents=True, exist_ok=True)
     return there
