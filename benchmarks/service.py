@@ -79,29 +79,27 @@ def _config(directory: Path, logs: list[Path], rigs: int, port: int, workers: st
     return path
 
 
-def _rss_kib(pid: int) -> int:
+def _proc_kib(pid: int, file: str, key: str) -> int:
+    """The figure ``key`` of ``/proc/<pid>/<file>`` [KiB]; 0 for a process gone."""
     try:
-        with open(f"/proc/{pid}/status") as f:
+        with open(f"/proc/{pid}/{file}") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
+                if line.startswith(key):
                     return int(line.split()[1])
     except OSError:
         pass
     return 0
+
+
+def _rss_kib(pid: int) -> int:
+    return _proc_kib(pid, "status", "VmRSS:")
 
 
 def _pss_kib(pid: int) -> int:
     """Proportional set size of ``pid`` [KiB]: its private pages and its share of each page it shares (the
     libraries the service and its workers all map count once in the sum over them, where the RSS counts them in
     every process)."""
-    try:
-        with open(f"/proc/{pid}/smaps_rollup") as f:
-            for line in f:
-                if line.startswith("Pss:"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return 0
+    return _proc_kib(pid, "smaps_rollup", "Pss:")
 
 
 def _tree(pid: int) -> list[int]:
