@@ -5,6 +5,10 @@ counted), and the neighbouring rig of the same service gets every sample. Real Z
 from __future__ import annotations
 
 import json
+import re
+import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -102,7 +106,6 @@ def test_a_burst_of_malformed_payloads_costs_only_itself(tmp_path) -> None:
     assert latest["rig-a"]["samples"] == n, latest  # the target: every good sample, none dropped for the burst
 
 
-
 _ATTACKER = """
 import sys, time, zenoh
 with zenoh.open(zenoh.Config.from_json5(sys.argv[1])) as s:
@@ -116,20 +119,12 @@ with zenoh.open(zenoh.Config.from_json5(sys.argv[1])) as s:
     sys.stdin.readline()
 """
 
-_ROUTER = """
-import sys, zenoh
-with zenoh.open(zenoh.Config.from_json5(sys.argv[1])):
-    print("ready", flush=True)
-    sys.stdin.readline()
-"""
 
 
-def _ready(code: str, *args: str):
-    import subprocess
-    import sys
-
-    p = subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+def _ready(args: list[str], ready: str) -> subprocess.Popen:
+    """A helper process, once it printed its first line (``ready`` begins it)."""
+    p = subprocess.Popen([sys.executable, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert p.stdout is not None and p.stdout.readline().startswith(ready)
     return p
 
 
@@ -140,11 +135,6 @@ def test_a_burst_through_the_router_leaves_the_neighbours_link_free(tmp_path) ->
     target's own). Each ``zenoh://`` rig's input now has its own session to the router: the neighbour's lag stays
     a fraction of the target's. As on a site: the router, the service (``twin serve``), each rig's gateway (its
     own session) and the attacker are apart, the router, the service and the attacker each in a process."""
-    import re
-    import signal
-    import subprocess
-    import sys
-
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     config = tmp_path / "rigs.toml"
@@ -153,10 +143,12 @@ def test_a_burst_through_the_router_leaves_the_neighbours_link_free(tmp_path) ->
                       + "".join(f'[[rig]]\nname = "{r}"\nsource = "zenoh://fpdd/{r}/samples"\n' for r in RIGS))
     data = {r: _samples(1051 + i) for i, r in enumerate(RIGS)}
     n = len(data["rig-a"])
-    router = _ready(_ROUTER, str(zenoh_config("router", listen=[endpoint])))
-    procs = [router]
+    router_conf = tmp_path / "router.json5"
+    router_conf.write_text(str(zenoh_config("router", listen=[endpoint])))
+    procs = [_ready(["-m", "twin.service.router", str(router_conf)], "router: listening")]
     try:
-        attacker = _ready(_ATTACKER, str(zenoh_config("client", connect=[endpoint])), "fpdd/rig-a/samples", str(BURST))
+        attacker = _ready(["-c", _ATTACKER, str(zenoh_config("client", connect=[endpoint])), "fpdd/rig-a/samples",
+                           str(BURST)], "ready")
         procs.append(attacker)
         with open(tmp_path / "serve.err", "w") as err:
             service = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--config", str(config)],

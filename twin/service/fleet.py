@@ -204,8 +204,7 @@ class Fleet:
         if n is None:  # auto: processes once there are more rigs than a few threads handle well, as many as
             # their samples need (each process is an interpreter, numba and its kernels: about 130 MB)
             load = sum(r.speed if r.speed > 0 else AUTO_RIGS_PER_WORKER for r in others)
-            n = 0 if len(others) <= 4 else min(os.cpu_count() or 1, len(others),
-                                               max(1, math.ceil(load / AUTO_RIGS_PER_WORKER)))
+            n = 0 if len(others) <= 4 else min(os.cpu_count() or 1, max(1, math.ceil(load / AUTO_RIGS_PER_WORKER)))
         if self.keep is not None or n == 0 or not others:
             return local + others, []
         n = min(n, len(others))
