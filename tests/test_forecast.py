@@ -21,6 +21,7 @@ from twin.online.baseline import Baseline
 from twin.online.forecast import DISCREPANCY, ForecastMonitor, discrepancy_of
 from twin.online.events.forecast import FORECAST_SCHEMA, describe
 from twin.online.events import AlarmEvent, validate
+from twin.service.checkpoint_file import decode_state, encode_state
 
 RATE = 20.0  # samples per second of the synthetic streams
 BASE = {"CdAleak": Baseline(1.0, 1.0 / 3.0, 3.0), "wn": Baseline(1.0, 1.0 / 1.15, 1.15)}
@@ -192,7 +193,8 @@ def test_state_is_plain_data_and_a_restored_monitor_continues_exactly():
     first = ForecastMonitor("r", BASE)
     cut = 400 * int(RATE) + 7  # mid-bin
     ev_1, fc_1 = _feed(first, stream, 0, cut)
-    state = json.loads(json.dumps(first.state()))  # numbers, strings and lists only
+    # through the checkpoint file's own encoding (JSON text, the bins as raw bytes)
+    state = decode_state(json.loads(json.dumps(encode_state(first.state()))))
     second = ForecastMonitor("r", BASE)
     second.restore(state)
     ev_2, fc_2 = _feed(second, stream, cut)
@@ -202,6 +204,30 @@ def test_state_is_plain_data_and_a_restored_monitor_continues_exactly():
     got = np.array([(f.t_exit, f.t_exit_lo, f.t_exit_hi or 0.0, f.p_within_horizon) for f in fc_1 + fc_2])
     want = np.array([(f.t_exit, f.t_exit_lo, f.t_exit_hi or 0.0, f.p_within_horizon) for f in fc_a])
     assert np.allclose(got, want, rtol=1e-9, atol=1e-9)
+    # a state written by an earlier version (the bins as lists of numbers) restores to the same point
+    older = {**state, "params": {n: {**d, "points": d["points"].tolist()} for n, d in state["params"].items()}}
+    third = ForecastMonitor("r", BASE)
+    third.restore(json.loads(json.dumps(encode_state(older))))
+    ev_3, fc_3 = _feed(third, stream, cut)
+    assert [e.identity for e in ev_3] == [e.identity for e in ev_2]
+    assert [(f.t_ns, f.t_exit) for f in fc_3] == [(f.t_ns, f.t_exit) for f in fc_2]
+
+
+def test_the_history_goes_into_a_checkpoint_as_raw_bytes():
+    """A full history (1800 bins of each parameter) is in every checkpoint, every second: its bins go in as one
+    array (raw bytes), not as lists of numbers (which JSON writes digit by digit)."""
+    stream = _stream(1005, 2000.0, lambda t: 1.0 + 1.5 * t / 2000.0)
+    fm = ForecastMonitor("r", BASE)
+    _feed(fm, stream)
+    state = fm.state()
+    pts = state["params"]["CdAleak"]["points"]
+    assert isinstance(pts, np.ndarray) and pts.dtype == np.float64 and pts.shape[1] == 4 and len(pts) > 1000
+    doc = json.dumps(encode_state(state))
+    as_lists = json.dumps({**state, "params": {n: {**d, "points": d["points"].tolist()}
+                                               for n, d in state["params"].items()}}, default=str)
+    assert len(doc) < 0.6 * len(as_lists)
+    back = decode_state(json.loads(doc))
+    assert all(np.array_equal(back["params"][n]["points"], state["params"][n]["points"]) for n in BASE)
 
 
 def test_a_maintenance_reset_forgets_the_history_and_returns_the_early_alarm():
@@ -212,7 +238,7 @@ def test_a_maintenance_reset_forgets_the_history_and_returns_the_early_alarm():
     back = fm.reset(["CdAleak"], why="seal replaced")
     assert [(e.level, e.kind, e.parameter) for e in back] == [("ok", "returned", "CdAleak")]
     assert "seal replaced" in back[0].message
-    assert fm.latest() == {} and fm.state()["params"]["CdAleak"]["points"] == []
+    assert fm.latest() == {} and len(fm.state()["params"]["CdAleak"]["points"]) == 0
 
 
 def test_the_message_gives_the_median_and_the_interval_in_one_unit():
@@ -364,7 +390,7 @@ def test_a_recorded_maintenance_is_kept_in_the_state_and_its_log_is_read_once_an
     assert fm.maintenance_seq == 1 and fm.maintained["CdAleak"]["note"] == "seal replaced"
     assert fm.maintained["CdAleak"]["t"] == pytest.approx(599.95, abs=1.0)
     again = ForecastMonitor("r", BASE)
-    again.restore(json.loads(json.dumps(fm.state())))
+    again.restore(decode_state(json.loads(json.dumps(encode_state(fm.state())))))
     assert again.maintenance_seq == 1 and again.maintained == fm.maintained
     assert reader.since(again.maintenance_seq) == []
     for bad, field in (({"parameters": []}, "maintenance.parameters"), ({"parameters": ["Q"]}, "'Q' not tracked"),

@@ -334,52 +334,57 @@ class ForecastMonitor:
         # each with at least ``min_span_s`` and 10 bins after it; the first is no hinge (the trend over all the data)
         onsets = np.concatenate([[span], np.geomspace(self.min_span_s, HINGE_REACH * span, HINGE_POINTS)
                                  if HINGE_REACH * span > self.min_span_s else []])
-        onsets = onsets[np.concatenate([[True], np.count_nonzero(t[None, :] > -onsets[1:, None], axis=1) >= 10])]
-        Z = np.maximum(t[None, :], -onsets[:, None])
-        Z[0] = t
+        # the bins are in time order: each hinge's count of bins after it, and where its flat part ends
+        onsets = onsets[np.concatenate([[True], n - np.searchsorted(t, -onsets[1:], side="right") >= 10])]
+        cuts = np.concatenate([[0], np.searchsorted(t, -onsets[1:], side="left")])  # bins before each hinge
         k_par = np.where(np.arange(onsets.size) == 0, 2.0, 3.0)  # a hinge adds its onset
         n_hinge = onsets.size - 1
         # prior: half on the trend over all the data, half spread over the hinges (none: all on it)
         log_prior = np.where(np.arange(onsets.size) == 0, math.log(0.5 if n_hinge else 1.0),
                              math.log(0.5 / max(n_hinge, 1)))
-        # (shape, onset index, coefficients, covariance, weighted rss) of each candidate
-        fits = [(shape, j, c, v, r) for shape, obs, w in (("exp", y, w_e), ("lin", u, w_l))
-                for j, (c, v, r) in enumerate(zip(*_wls_many(Z, obs, w)))]
+        # the candidates, each shape over every onset (the exponential's first): shape, onset index, coefficients,
+        # covariances, weighted rss
+        fit_e, fit_l = (_wls_hinges(t, -onsets, cuts, obs, w) for obs, w in ((y, w_e), (u, w_l)))
+        is_exp_all = np.repeat([True, False], onsets.size)
+        j_on = np.tile(np.arange(onsets.size), 2)
+        coef_all, cov_all, rss_all = (np.concatenate([a, b]) for a, b in zip(fit_e, fit_l))
+        log_rss = np.log(np.maximum(rss_all, 1e-300))
         rss_flat = float(np.sum(w_e * (y - np.sum(w_e * y) / np.sum(w_e)) ** 2))
         # the correlation from the residuals of the best candidate (untempered BIC), never below the filter's memory
-        best = min(fits, key=lambda f: n * math.log(max(f[4], 1e-300)) + k_par[f[1]] * math.log(n))
-        obs_b, w_b = (y, w_e) if best[0] == "exp" else (u, w_l)
-        kappa = _kappa((obs_b - best[2][0] - best[2][1] * Z[best[1]]) * np.sqrt(w_b))
+        ib = int(np.argmin(n * log_rss + k_par[j_on] * math.log(n)))
+        obs_b, w_b = (y, w_e) if is_exp_all[ib] else (u, w_l)
+        z_b = t if j_on[ib] == 0 else np.maximum(t, -onsets[j_on[ib]])
+        kappa = _kappa((obs_b - coef_all[ib, 0] - coef_all[ib, 1] * z_b) * np.sqrt(w_b))
         v_mean = float(np.mean(s * s))  # the filter's mean variance over the bins (log units)
         # never fewer bins per independent one than the filter's own memory gives
         kappa = min(kappa, 1.0 / memory_factor(self.step_s, v_mean, self.drift_rate.get(q.name)))
         n_eff = max(kappa * n, 3.0)
         # BIC with the tempered likelihood: the Jacobian of u = exp(y) cancels against the weights (see module doc)
-        bic = np.array([kappa * n * math.log(max(f[4], 1e-300)) + k_par[f[1]] * math.log(n_eff) for f in fits])
+        bic = kappa * n * log_rss + k_par[j_on] * math.log(n_eff)
         evidence = kappa * n * math.log(max(rss_flat, 1e-300)) + math.log(n_eff) - float(bic.min())
         if not evidence >= self.evidence:
             return None
-        logw = np.array([log_prior[f[1]] for f in fits]) - 0.5 * (bic - bic.min())
+        logw = log_prior[j_on] - 0.5 * (bic - bic.min())
         wts = np.exp(logw - logw.max())
         wts /= wts.sum()
-        w_exp = float(sum(w for w, f in zip(wts, fits) if f[0] == "exp"))
+        w_exp = float(np.sum(wts[is_exp_all]))
         lo, hi = q.base.lo / q.base.value, q.base.hi / q.base.value
         nu = max(n_eff - 2.0, 1.0)
         # the twin's own slow level error, which no trend sees: a fraction of the bins' scatter about the trend, in
         # log units (the best candidate's residual variance at the bins' mean weight; the weights make both shapes'
         # residuals relative), and relative to the linear trend's level now
-        d2 = self.discrepancy[q.name] ** 2 * best[4] / max(n - 2.0, 1.0) * v_mean
+        d2 = self.discrepancy[q.name] ** 2 * float(rss_all[ib]) / max(n - 2.0, 1.0) * v_mean
         # the candidates that carry 99.9 % of the weight (neighbouring onsets share it), renormalised
         order = np.argsort(wts)[::-1]
         keep = order[:int(np.searchsorted(np.cumsum(wts[order]), 0.999)) + 1]
-        is_exp = np.array([fits[i][0] == "exp" for i in keep])
-        coef = np.array([fits[i][2] for i in keep])
+        is_exp = is_exp_all[keep]
+        coef = coef_all[keep]
         # an exit counts within the reach of the stretch that supports each trend: from its onset
         grid = np.concatenate([np.broadcast_to(self._grid, (keep.size, self._grid.size)),
-                               np.minimum(self.horizon_s, self.reach * onsets[[fits[i][1] for i in keep]])[:, None]],
+                               np.minimum(self.horizon_s, self.reach * onsets[j_on[keep]])[:, None]],
                               axis=1)
         F = (wts[keep] / wts[keep].sum()) @ _exit_cdf(
-            coef, np.array([fits[i][3] for i in keep]), np.array([fits[i][4] for i in keep]), kappa, n, nu,
+            coef, cov_all[keep], rss_all[keep], kappa, n, nu,
             np.where(is_exp, math.log(lo), lo), np.where(is_exp, math.log(hi), hi), grid,
             np.where(is_exp, d2, d2 * coef[:, 0] ** 2))
         p_alarm = float(F[-1])
@@ -400,7 +405,7 @@ class ForecastMonitor:
         # the time axis is resolved to one bin: the interval widened by a bin on either side
         qs[0] = max(now, qs[0] - self.step_s) if qs[0] is not None else None
         qs[2] = qs[2] + self.step_s if qs[2] is not None else None
-        slope = float(fits[int(np.argmax(wts))][2][1])
+        slope = float(coef_all[int(np.argmax(wts)), 1])
         return Forecast(q.name, now, t_ns, qs[1], qs[0], qs[2], p_alarm, w_exp, float(evidence),
                         "high" if slope > 0 else "low")
 
@@ -481,11 +486,14 @@ class ForecastMonitor:
         return {n: q.level for n, q in self.params.items()}
 
     def state(self) -> dict[str, Any]:
-        """Plain data (numbers, strings, lists, dicts) from which :meth:`restore` continues exactly."""
+        """Plain data from which :meth:`restore` continues exactly: numbers, strings, lists, dicts and each
+        parameter's bins as one float64 array ``[n, 4]`` (a checkpoint keeps it as raw bytes,
+        :func:`twin.service.checkpoint_file.encode_state`: a full history is 1800 rows a parameter, taken every
+        second, and a list of its numbers cost 20 times the CPU to write and twice the bytes)."""
         return {"version": 2, "origin": self._origin, "bin": self._bin, "maintenance_seq": self.maintenance_seq,
                 "maintained": {n: dict(m) for n, m in self.maintained.items()},
                 "bin_last": None if self._bin_last is None else list(self._bin_last),
-                "params": {n: {"points": q.pts[:q.n].tolist(), "acc": list(q.acc), "since": q.since,
+                "params": {n: {"points": q.pts[:q.n].copy(), "acc": list(q.acc), "since": q.since,
                                "level": q.level, "clear_since": q.clear_since,
                                "last": None if q.last is None else dataclasses.asdict(q.last)}
                            for n, q in self.params.items()}}
@@ -504,7 +512,7 @@ class ForecastMonitor:
             q = self.params.get(n)
             if q is None:
                 continue
-            q.pts = np.array(d["points"], dtype=float).reshape(-1, 4)
+            q.pts = np.array(d["points"], dtype=float).reshape(-1, 4)  # an array, or a list of rows (earlier files)
             q.n = len(q.pts)
             q.acc = [float(v) for v in d["acc"]]
             q.since, q.level, q.clear_since = d["since"], d["level"], d["clear_since"]
@@ -520,23 +528,36 @@ def _expit(z: float) -> float:
 
 
 # -- closed-form pieces --------------------------------------------------------------------------------------------
-def _wls_many(Z: np.ndarray, y: np.ndarray, w: np.ndarray):
-    """Weighted least squares of ``y = a + b z`` for each row ``z`` of ``Z`` at once: coefficients ``[m, 2]``, their
-    unscaled covariances ``(X'WX)^-1`` ``[m, 2, 2]`` and the weighted RSS ``[m]`` (a row without spread: infinite RSS,
-    a candidate that never wins)."""
+def _wls_hinges(t: np.ndarray, c: np.ndarray, k: np.ndarray, y: np.ndarray, w: np.ndarray):
+    """Weighted least squares of ``y = a + b z`` for each hinge at once, ``z = max(t, c_j)`` (row 0: ``z = t``), from
+    running sums over the bins in time order: ``k_j`` bins lie before the hinge (``t < c_j``, where ``z`` is the
+    constant ``c_j``), the rest after it (``z = t``). Each row costs O(1) after one O(n) pass, and no array of
+    hinges x bins is made: the work and the memory are those of the history, not of the history times the hinges.
+    Returns the coefficients ``[m, 2]``, their unscaled covariances ``(X'WX)^-1`` ``[m, 2, 2]`` and the weighted RSS
+    ``[m]`` (a row without spread: infinite RSS, a candidate that never wins)."""
+    k = np.asarray(k, dtype=np.intp)
+    c = np.where(k > 0, c, 0.0)  # row 0 and any hinge before every bin: z = t throughout
+    wy = w * y
     sw = float(np.sum(w))
-    st = Z @ w
-    stt = (Z * Z) @ w
-    sy = float(np.sum(w * y))
-    sty = Z @ (w * y)
+    sy = float(np.sum(wy))
+    # prefix sums (the bins before each hinge) and suffix sums (from it on), each summed in its own direction
+    pw = np.concatenate([[0.0], np.cumsum(w)])[k]
+    pwy = np.concatenate([[0.0], np.cumsum(wy)])[k]
+    tail = np.concatenate([np.stack([w * t, w * t * t, wy * t], 0)[:, ::-1].cumsum(axis=1)[:, ::-1],
+                           np.zeros((3, 1))], axis=1)[:, k]
+    st = c * pw + tail[0]
+    stt = c * c * pw + tail[1]
+    sty = c * pwy + tail[2]
     det = sw * stt - st * st
     ok = det > 1e-12 * sw * np.maximum(stt, 1e-300)
     det = np.where(ok, det, 1.0)
     b = (sw * sty - st * sy) / det
     a = (sy - b * st) / sw
     cov = np.stack([np.stack([stt, -st], -1), np.stack([-st, np.full_like(st, sw)], -1)], -2) / det[:, None, None]
-    res = y[None, :] - a[:, None] - b[:, None] * Z
-    rss = np.where(ok, np.sum(w[None, :] * res * res, axis=1), np.inf)
+    # the residual sum about each line, from the centred sums (no cancellation against the level's square)
+    syy_c = float(np.sum(w * (y - sy / sw) ** 2))
+    szy_c = sty - st * sy / sw
+    rss = np.where(ok, np.maximum(syy_c - b * szy_c, 0.0), np.inf)
     return np.stack([a, b], -1), cov, rss
 
 
