@@ -101,6 +101,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numba as nb
 import numpy as np
 
 from twin.online.baseline import Baseline
@@ -324,7 +325,7 @@ class ForecastMonitor:
         if n < 10 or q.pts[n - 1, 0] - q.pts[0, 0] < self.min_span_s:
             return None
         t = q.pts[:n, 0] - now
-        y = q.pts[:n, 1]
+        y = np.ascontiguousarray(q.pts[:n, 1])  # one layout for the compiled fits
         s = q.pts[:n, 2]
         u = np.exp(y)
         w_e = 1.0 / (s * s)  # log coordinates: exponential model
@@ -336,7 +337,7 @@ class ForecastMonitor:
                                  if HINGE_REACH * span > self.min_span_s else []])
         # the bins are in time order: each hinge's count of bins after it, and where its flat part ends
         onsets = onsets[np.concatenate([[True], n - np.searchsorted(t, -onsets[1:], side="right") >= 10])]
-        cuts = np.concatenate([[0], np.searchsorted(t, -onsets[1:], side="left")])  # bins before each hinge
+        cuts = np.concatenate([[0], np.searchsorted(t, -onsets[1:], side="left")]).astype(np.intp)  # bins before
         k_par = np.where(np.arange(onsets.size) == 0, 2.0, 3.0)  # a hinge adds its onset
         n_hinge = onsets.size - 1
         # prior: half on the trend over all the data, half spread over the hinges (none: all on it)
@@ -528,59 +529,123 @@ def _expit(z: float) -> float:
 
 
 # -- closed-form pieces --------------------------------------------------------------------------------------------
-def _wls_hinges(t: np.ndarray, c: np.ndarray, k: np.ndarray, y: np.ndarray, w: np.ndarray):
+@nb.njit(cache=True, nogil=True)
+def _wls_hinges(t: np.ndarray, c: np.ndarray, k: np.ndarray, y: np.ndarray, w: np.ndarray):  # pragma: no cover
     """Weighted least squares of ``y = a + b z`` for each hinge at once, ``z = max(t, c_j)`` (row 0: ``z = t``), from
     running sums over the bins in time order: ``k_j`` bins lie before the hinge (``t < c_j``, where ``z`` is the
     constant ``c_j``), the rest after it (``z = t``). Each row costs O(1) after one O(n) pass, and no array of
     hinges x bins is made: the work and the memory are those of the history, not of the history times the hinges.
     Returns the coefficients ``[m, 2]``, their unscaled covariances ``(X'WX)^-1`` ``[m, 2, 2]`` and the weighted RSS
     ``[m]`` (a row without spread: infinite RSS, a candidate that never wins)."""
-    k = np.asarray(k, dtype=np.intp)
-    c = np.where(k > 0, c, 0.0)  # row 0 and any hinge before every bin: z = t throughout
-    wy = w * y
-    sw = float(np.sum(w))
-    sy = float(np.sum(wy))
-    # prefix sums (the bins before each hinge) and suffix sums (from it on), each summed in its own direction
-    pw = np.concatenate([[0.0], np.cumsum(w)])[k]
-    pwy = np.concatenate([[0.0], np.cumsum(wy)])[k]
-    tail = np.concatenate([np.stack([w * t, w * t * t, wy * t], 0)[:, ::-1].cumsum(axis=1)[:, ::-1],
-                           np.zeros((3, 1))], axis=1)[:, k]
-    st = c * pw + tail[0]
-    stt = c * c * pw + tail[1]
-    sty = c * pwy + tail[2]
-    det = sw * stt - st * st
-    ok = det > 1e-12 * sw * np.maximum(stt, 1e-300)
-    det = np.where(ok, det, 1.0)
-    b = (sw * sty - st * sy) / det
-    a = (sy - b * st) / sw
-    cov = np.stack([np.stack([stt, -st], -1), np.stack([-st, np.full_like(st, sw)], -1)], -2) / det[:, None, None]
-    # the residual sum about each line, from the centred sums (no cancellation against the level's square)
-    syy_c = float(np.sum(w * (y - sy / sw) ** 2))
-    szy_c = sty - st * sy / sw
-    rss = np.where(ok, np.maximum(syy_c - b * szy_c, 0.0), np.inf)
-    return np.stack([a, b], -1), cov, rss
+    n, m = t.size, c.size
+    pw = np.zeros(n + 1)  # prefix sums: the bins before each hinge
+    pwy = np.zeros(n + 1)
+    for i in range(n):
+        pw[i + 1] = pw[i] + w[i]
+        pwy[i + 1] = pwy[i] + w[i] * y[i]
+    s1 = np.zeros(n + 1)  # suffix sums, from the hinge on, summed from the end
+    s2 = np.zeros(n + 1)
+    s3 = np.zeros(n + 1)
+    for i in range(n - 1, -1, -1):
+        wt = w[i] * t[i]
+        s1[i] = s1[i + 1] + wt
+        s2[i] = s2[i + 1] + wt * t[i]
+        s3[i] = s3[i + 1] + (w[i] * y[i]) * t[i]
+    sw, sy = pw[n], pwy[n]
+    ybar = sy / sw
+    syy_c = 0.0
+    for i in range(n):
+        d = y[i] - ybar
+        syy_c += w[i] * d * d
+    coef = np.empty((m, 2))
+    cov = np.empty((m, 2, 2))
+    rss = np.empty(m)
+    for j in range(m):
+        kj = k[j]
+        cj = c[j] if kj > 0 else 0.0  # row 0, or a hinge before every bin: z = t throughout
+        st = cj * pw[kj] + s1[kj]
+        stt = cj * cj * pw[kj] + s2[kj]
+        sty = cj * pwy[kj] + s3[kj]
+        det = sw * stt - st * st
+        ok = det > 1e-12 * sw * max(stt, 1e-300)
+        if not ok:
+            det = 1.0
+        b = (sw * sty - st * sy) / det
+        coef[j, 0] = (sy - b * st) / sw
+        coef[j, 1] = b
+        cov[j, 0, 0] = stt / det
+        cov[j, 0, 1] = -st / det
+        cov[j, 1, 0] = -st / det
+        cov[j, 1, 1] = sw / det
+        # the residual sum about the line, from the centred sums (no cancellation against the level's square)
+        rss[j] = max(syy_c - b * (sty - st * sy / sw), 0.0) if ok else np.inf
+    return coef, cov, rss
+
+
+#: the lags the autocorrelation is summed over directly before the FFT takes over (a long positive sequence)
+KAPPA_DIRECT_LAGS = 64
+
+
+@nb.njit(cache=True, nogil=True)
+def _tau_direct(x: np.ndarray, max_lag: int) -> float:  # pragma: no cover
+    """Geyer's initial positive sequence of the centred ``x`` summed lag by lag; -1 when it is still positive at
+    ``max_lag`` (the caller then takes every lag at once by FFT)."""
+    n = x.size
+    c0 = 0.0
+    for i in range(n):
+        c0 += x[i] * x[i]
+    if not c0 > 0:
+        return 1.0
+    kmax = (n - 1) // 2 * 2
+    tau = 1.0
+    lag = 1
+    while lag + 1 <= kmax:
+        if lag > max_lag:
+            return -1.0
+        a = 0.0
+        for i in range(n - lag):
+            a += x[i] * x[i + lag]
+        b = 0.0
+        for i in range(n - lag - 1):
+            b += x[i] * x[i + lag + 1]
+        p = (a + b) / c0
+        if p <= 0.0:
+            break
+        tau += 2.0 * p
+        lag += 2
+    return tau
 
 
 def _kappa(r: np.ndarray) -> float:
     """``n_eff / n = 1 / tau_int`` of the standardised residuals: the integrated autocorrelation time
     ``1 + 2 sum rho_k``, summed over Geyer's initial positive sequence (pairs ``rho_k + rho_k+1`` while positive),
-    so a slow or periodic error (a bias that follows the excitation) counts as the few samples it is."""
+    so a slow or periodic error (a bias that follows the excitation) counts as the few samples it is. The pairs
+    are summed lag by lag while the sequence is short (most forecasts), else from the whole autocorrelation by
+    FFT (the same sum)."""
     n = r.size
     if n < 4:
         return 1.0
-    x = r - r.mean()
-    m = 1 << int(2 * n - 1).bit_length()
-    f = np.fft.rfft(x, m)
-    acf = np.fft.irfft(f * np.conj(f), m)[:n]
-    if not acf[0] > 0:
-        return 1.0
-    rho = acf / acf[0]
-    k = (n - 1) // 2 * 2
-    pairs = rho[1:k + 1:2] + rho[2:k + 2:2] if k >= 2 else np.zeros(0)
-    neg = np.flatnonzero(pairs <= 0.0)
-    stop = int(neg[0]) if neg.size else pairs.size
-    tau = 1.0 + 2.0 * float(np.sum(pairs[:stop]))
+    x = np.ascontiguousarray(r - r.mean(), dtype=np.float64)
+    tau = _tau_direct(x, KAPPA_DIRECT_LAGS)
+    if tau < 0.0:
+        m = 1 << int(2 * n - 1).bit_length()
+        f = np.fft.rfft(x, m)
+        acf = np.fft.irfft(f * np.conj(f), m)[:n]
+        rho = acf / acf[0]
+        k = (n - 1) // 2 * 2
+        pairs = rho[1:k + 1:2] + rho[2:k + 2:2] if k >= 2 else np.zeros(0)
+        neg = np.flatnonzero(pairs <= 0.0)
+        stop = int(neg[0]) if neg.size else pairs.size
+        tau = 1.0 + 2.0 * float(np.sum(pairs[:stop]))
     return 1.0 / min(max(tau, 1.0), float(n))
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the forecast's compiled pieces on a small history (``twin warm``)."""
+    t = np.arange(-30.0, 0.0)
+    y = np.sin(t)
+    _wls_hinges(t, np.array([-30.0, -10.0]), np.array([0, 20], dtype=np.intp), y, np.ones_like(t))
+    _tau_direct(y - y.mean(), KAPPA_DIRECT_LAGS)
 
 
 def _exit_cdf(coef: np.ndarray, cov: np.ndarray, rss: np.ndarray, kappa: float, n: int, nu: float, lo: np.ndarray,
