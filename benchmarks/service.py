@@ -195,6 +195,7 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
         watch = _Statuses(f"tcp/127.0.0.1:{port}")
         samples: list[tuple[float, int]] = []
         pss: list[int] = []  # the sum of the processes' proportional set sizes [KiB]
+        cpu: list[float] = []  # the service's processes' CPU time so far [s]
         per_proc: dict[int, list[tuple[float, int]]] = {}  # each process of the service: (t, RSS KiB)
         lags: dict[str, list[float]] = {}
         t0 = time.monotonic()
@@ -213,6 +214,7 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
                 now_rss = sum(each.values())
                 samples.append((now, now_rss))
                 pss.append(sum(_pss_kib(pid) for pid in tree))
+                cpu.append(_cpu_s(tree))
                 for pid, kib in each.items():
                     per_proc.setdefault(pid, []).append((now, kib))
                 for _, st in watch.drain():
@@ -235,6 +237,14 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
             procs.append({"pid": pid, "role": "service" if pid == proc.pid else "worker",
                           "rss_warm_mib": after_p[0] / 1024, "rss_final_mib": after_p[-1] / 1024})
     pss_a = np.array(pss, dtype=float)
+    # CPU per rig over the first minute after the warm-up and over the last minute: what the rigs' growing
+    # histories (the forecast's, up to 30 min) cost as they fill
+    cpu_a = np.array(cpu, dtype=float)
+
+    def cores_per_rig(lo: float, hi: float) -> float:
+        i, j = int(np.searchsorted(t, lo)), int(np.searchsorted(t, hi)) - 1
+        return float((cpu_a[j] - cpu_a[i]) / (t[j] - t[i]) / rigs) if j > i else float("nan")
+
     pss_warm = pss_a[np.searchsorted(t, warm)] if np.any(t >= warm) else pss_a[0]
     return {"rigs": rigs, "processes": procs, "minutes": minutes, "warm_up_s": warm,
             "pss_warm_mib": pss_warm / 1024, "pss_final_mib": pss_a[-1] / 1024,
@@ -243,6 +253,8 @@ def soak(rigs: int, minutes: float, say=print) -> dict:
             "rss_warm_mib": base / 1024, "rss_final_mib": rss[-1] / 1024, "rss_max_after_warm_mib": after.max() / 1024,
             "growth_after_warm_pct": 100.0 * (rss[-1] - base) / base,
             "slope_kib_per_min": slope * 60.0,
+            "cpu_pct_per_rig_first_min": 100.0 * cores_per_rig(warm, warm + 60.0),
+            "cpu_pct_per_rig_last_min": 100.0 * cores_per_rig(t[-1] - 60.0, t[-1] + 1.0),
             "lag_max_s": max(all_lags, default=float("nan")), "lag_p95_s": float(np.percentile(all_lags, 95))
             if all_lags else float("nan"), "service_stderr_tail": err.strip().splitlines()[-rigs:]}
 
@@ -498,6 +510,8 @@ def main(argv=None) -> int:
                   f"{r['rss_warm_mib']:.1f} MiB, at the end {r['rss_final_mib']:.1f} MiB: growth "
                   f"{r['growth_after_warm_pct']:+.2f} % (target < 5 %), slope {r['slope_kib_per_min']:+.0f} KiB/min; "
                   f"lag max {r['lag_max_s']:.3f} s, p95 {r['lag_p95_s']:.3f} s")
+            print(f"  CPU per rig: {r['cpu_pct_per_rig_first_min']:.2f} % of a core in the first minute after the "
+                  f"warm-up, {r['cpu_pct_per_rig_last_min']:.2f} % in the last")
             print(f"  PSS (shared pages counted once) {r['pss_warm_mib']:.1f} -> {r['pss_final_mib']:.1f} MiB "
                   f"({r['pss_growth_after_warm_pct']:+.2f} %): {r['pss_per_rig_mb']:.1f} MB per rig (target <= 30)")
             for q in r["processes"]:
