@@ -333,7 +333,7 @@ class ForecastMonitor:
         span = float(t[-1] - t[0])
         # candidate onsets of the wear (hinges, seconds before now): a trend that starts there and is flat before it,
         # each with at least ``min_span_s`` and 10 bins after it; the first is no hinge (the trend over all the data)
-        onsets = np.concatenate([[span], np.geomspace(self.min_span_s, HINGE_REACH * span, HINGE_POINTS)
+        onsets = np.concatenate([[span], _geometric(self.min_span_s, HINGE_REACH * span)
                                  if HINGE_REACH * span > self.min_span_s else []])
         # the bins are in time order: each hinge's count of bins after it, and where its flat part ends
         onsets = onsets[np.concatenate([[True], n - np.searchsorted(t, -onsets[1:], side="right") >= 10])]
@@ -526,6 +526,17 @@ def _expit(z: float) -> float:
         return 1.0 / (1.0 + math.exp(-z))
     e = math.exp(z)
     return e / (1.0 + e)
+
+
+_HINGE_STEPS = np.arange(HINGE_POINTS) / (HINGE_POINTS - 1)
+
+
+def _geometric(lo: float, hi: float) -> np.ndarray:
+    """:data:`HINGE_POINTS` points from ``lo`` to ``hi`` in geometric progression, both ends exact (``numpy.geomspace``
+    without its generality: a quarter of a forecast's time went to it)."""
+    out = lo * np.exp(_HINGE_STEPS * math.log(hi / lo))
+    out[0], out[-1] = lo, hi
+    return out
 
 
 # -- closed-form pieces --------------------------------------------------------------------------------------------
