@@ -201,7 +201,9 @@ class ForecastMonitor:
         self.reach = float(reach)
         self.discrepancy = discrepancy_of(baseline, discrepancy)
         self.drift_rate = drift_rates(model, baseline, drift_rate)
-        self.params = {n: _Param(n, b) for n, b in baseline.items()}
+        # each parameter's bins in an array of the history's full length from the start, written through once: the
+        # history's memory is taken in the first second, not over its first 30 minutes
+        self.params = {n: _Param(n, b, pts=np.full((self.max_points, 4), np.nan)) for n, b in baseline.items()}
         self._origin: float | None = None
         self._bin = -1  # index of the bin being filled
         self._bin_last: tuple[int, float] | None = None  # (t_ns, t_s) of the last sample of the bin being filled
@@ -476,7 +478,7 @@ class ForecastMonitor:
                 t_ns, now = self._bin_last
                 q.level = "ok"
                 events.append(self._event(q, None, "returned", now, t_ns, why=f" (history reset: {why})"))
-            self.params[n] = _Param(n, q.base)
+            self.params[n] = _Param(n, q.base, pts=q.pts)  # the same buffer, no bins in it
         return events
 
     def latest(self) -> dict[str, Forecast]:
@@ -513,8 +515,12 @@ class ForecastMonitor:
             q = self.params.get(n)
             if q is None:
                 continue
-            q.pts = np.array(d["points"], dtype=float).reshape(-1, 4)  # an array, or a list of rows (earlier files)
-            q.n = len(q.pts)
+            pts = np.array(d["points"], dtype=float).reshape(-1, 4)  # an array, or a list of rows (earlier files)
+            q.n = len(pts)
+            if q.n <= len(q.pts):
+                q.pts[:q.n] = pts
+            else:  # a longer history than this monitor keeps: taken whole, merged at its next bin
+                q.pts = pts
             q.acc = [float(v) for v in d["acc"]]
             q.since, q.level, q.clear_since = d["since"], d["level"], d["clear_since"]
             q.last = None if d["last"] is None else Forecast(**d["last"])
