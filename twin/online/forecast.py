@@ -163,7 +163,7 @@ def discrepancy_of(names, given: float | Mapping[str, float] | None = None) -> d
 class _Param:
     name: str
     base: Baseline
-    pts: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((0, 4)))  # rows: t, y, log std, held
+    pts: np.ndarray  # rows: t, y, log std, held; the history's whole length (the first ``n`` hold bins)
     n: int = 0
     acc: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0])  # sum t, y, s, h; count
     since: float | None = None  # record time of the first usable sample after a start or reset
@@ -294,11 +294,8 @@ class ForecastMonitor:
                 if q.since is None:
                     q.since = tm
                 if tm - q.since >= self.settle_s:
-                    if q.n == len(q.pts):
-                        if q.n >= self.max_points:
-                            self._merge(q)
-                        else:
-                            q.pts = np.concatenate([q.pts, np.empty((max(64, q.n), 4))])[:self.max_points]
+                    if q.n == len(q.pts):  # the history is full (its array has its whole length from the start)
+                        self._merge(q)
                     q.pts[q.n] = (tm, q.acc[1] / n_acc, q.acc[2] / n_acc, q.acc[3] / n_acc)
                     q.n += 1
             q.acc = [0.0, 0.0, 0.0, 0.0, 0.0]
