@@ -135,6 +135,10 @@ class Effect:
     #: effect can be told from them only when they are held at known values (``mimicry`` says how)
     mimicked_by: tuple[str, ...] = ()
     mimicry: str = ""
+    #: effects this one contains as a special case, each with the map of its parameters onto this one's (the
+    #: static supply droop's resistance is the supply line's at zero compliance and inertance): the diagnosis tries
+    #: this effect in place of a named special case, nested, and never the special case beside it
+    generalises: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = ()
 
     @property
     def names(self) -> tuple[str, ...]:

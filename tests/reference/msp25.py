@@ -85,7 +85,13 @@ DEMAND_KINDS = {
 TEMPERATURE_DEFAULT = {"T": 313.15, "T0": 313.15, "a_bulk": 0.006, "b_visc": 0.03, "quant": 0.1}
 # absolute tolerances per state (SI): xs vs pA pB x v x2 v2 zi zd z0..z3 pAm pBm
 ATOL = np.array([1e-12, 1e-9, 1.0, 1.0, 1e-11, 1e-9, 1e-11, 1e-9, 1e-12, 1e-11, 1e-11, 1e-11, 1e-11, 1e-11,
-                 1.0, 1.0])
+                 1.0, 1.0, 1.0, 1e-10, 1.0])
+
+#: the supply's fixed parts (effect ``supply_dynamics``; the hose and the accumulator's size are drawn): the
+#: accumulator's pre-charge as a fraction of the supply pressure (absolute), its gas's polytropic exponent, the
+#: oil's dynamic viscosity [Pa s], the pump's outlet volume [m^3], its full flow [m^3/s] and its compensator's band
+#: [Pa]
+SUPPLY_FIXED = {"precharge": 0.65, "n": 1.4, "mu": 0.04, "pump_v": 1e-3, "pump_q": 1.5e-3, "band": 1e6}
 
 
 def msp25_spec(seed: int = 0, *, duration: float = 20.0, log_rate_hz: float = 1000.0,
@@ -333,6 +339,14 @@ def _param_vector(spec: dict) -> np.ndarray:
         P[R.KTURB] = eff["supply_line_loss"]["K"]
     if "pressure_sensor_lag" in eff:
         P[R.TAUP] = eff["pressure_sensor_lag"]["tau"]
+    if "supply_dynamics" in eff:
+        e = eff["supply_dynamics"]
+        f = SUPPLY_FIXED
+        P[R.SUP_ON] = 1.0
+        P[R.HOSE_L], P[R.HOSE_D], P[R.ACC_V] = e["hose_l"], e["hose_d"], e["acc_v"]
+        P[R.ACC_P] = f["precharge"] * (kn["pP"] + P[R.PATM])
+        P[R.ACC_N], P[R.MU] = f["n"], f["mu"]
+        P[R.PUMP_V], P[R.PUMP_Q], P[R.PUMP_BAND] = f["pump_v"], f["pump_q"], f["band"]
     if "specimen_stiffness" in eff:
         P[R.KSPEC] = eff["specimen_stiffness"]["k"]
     if "entrained_air" in eff:
@@ -448,6 +462,8 @@ class _Setup:
         act += [R.S_Z0 + i for i in range(int(P[R.PADE_N]))]
         if P[R.TAUP] > 0.0:
             act += [R.S_PAM, R.S_PBM]
+        if P[R.SUP_ON] > 0.0:
+            act += [R.S_PV, R.S_QH, R.S_PU]
         self.active = idx = np.array(act, dtype=np.int64)
         self.opts["atol"] = self.atol[idx]
         self.fun = lambda t, y: R.rhs_sub(t, y, idx, P, tv, tab, sigp, sc, nzp, nzc)
@@ -469,6 +485,7 @@ def _equilibrium(s: _Setup, t: float) -> tuple[np.ndarray, str]:
     P = s.P
     spec = s.spec
     y = np.zeros(R.NS)
+    y[R.S_PV] = y[R.S_PU] = P[R.PP]  # the supply at rest (unused without it)
     pm = 0.5 * (P[R.PP] + P[R.PT])
     if P[R.AREA_B] != P[R.AREA]:  # two areas: the valve's null shares pP, the areas share the load
         pA_eq = (spec["Fext"] + P[R.PP] * P[R.AREA_B]) / (P[R.AREA] + P[R.AREA_B])
@@ -543,6 +560,7 @@ def simulate_msp25(spec: dict) -> Record:
     t_first = -j_pre * hb
     if spec["init"] is not None:
         y0 = np.zeros(R.NS)
+        y0[R.S_PV] = y0[R.S_PU] = s.P[R.PP]
         y0[: len(spec["init"])] = spec["init"]
         how = "given"
     else:
@@ -740,6 +758,8 @@ def _record(s: _Setup, states, u_log, xm_log, xclean, how: str, elapsed: float) 
         if name in spec["time_varying"]:
             hidden[name] = np.array([tv_eval(s.tv, s.tab, i, t) for t in tk])
     hidden.update(fresh)
+    if s.P[R.SUP_ON] > 0.0:
+        hidden["p_supply"] = states[:, R.S_PV].copy()
     if (spec.get("specimen") or {}).get("k") is not None:
         hidden["k_spec"] = np.array([tv_eval(s.tv, s.tab, R.TV_KSPEC, t) for t in tk])
     if T is not None:

@@ -7,6 +7,12 @@ derivative term), ``z0..z3`` Pade delay states, ``pAm, pBm`` the pressure transd
 readings (a first-order sensor, when it has a time constant).  Unused states have zero
 derivative.
 
+The supply (when ``SUP_ON``; its pressure is not logged): a pressure-compensated pump (full flow ``PUMP_Q`` up to
+``PUMP_BAND`` below ``pP``, none at ``pP``) fills its outlet volume ``PUMP_V``; a hose of length ``HOSE_L`` and
+bore ``HOSE_D`` (the oil's inertia, laminar Hagen-Poiseuille resistance with viscosity ``MU``, half its oil volume
+at each end) leads to a gas accumulator at the valve (gas volume ``ACC_V`` at its pre-charge ``ACC_P``, polytropic
+exponent ``ACC_N``), from which the valve draws.
+
 Oil temperature ``T`` (when ``TEMP_ON``): the oil's bulk modulus falls linearly,
 ``B(T) = B0 (1 - a (T - T0))`` (``a`` about 0.006/K for mineral oil), and the leakage flows (the
 orifice and the laminar term together) scale as the inverse of the viscosity,
@@ -22,17 +28,20 @@ import numpy as np
 
 from .signals import sig_eval, tv_eval
 
-NS = 16
+NS = 19
 S_XS, S_VS, S_PA, S_PB, S_X, S_V, S_X2, S_V2, S_ZI, S_ZD, S_Z0 = range(11)
 S_PAM, S_PBM = 14, 15
+# the supply (when SUP_ON): pressure at the valve's supply port, flow in the hose, pressure at the pump's outlet
+S_PV, S_QH, S_PU = 16, 17, 18
 
 # parameter vector layout
 (RHO, V0, AREA, MASS, BULK, VREF, KE, KSP, PORT, PP, PT, FEXT,
  KP, KI, KD, TD, MODE, UHELD, SEG,
  CVISC, FSTR, VSTR, GLAM, OVERLAP, BIAS, RSUP, KSPEC, GAIN, AIR, XSMAX, M2, K2, C2,
  PADE_N, PA0, PA1, PA2, PA3, PC0, PC1, PC2, PC3, PD, PTAU, DPREG, PATM, NOISE_ON,
- AREA_B, V0_B, KTURB, TAUP, TEMP_ON, TREF, ABULK, BVISC) = range(55)
-NP = 55
+ AREA_B, V0_B, KTURB, TAUP, TEMP_ON, TREF, ABULK, BVISC,
+ SUP_ON, HOSE_L, HOSE_D, MU, ACC_V, ACC_P, ACC_N, PUMP_V, PUMP_Q, PUMP_BAND) = range(65)
+NP = 65
 # time-varying free parameters, rows of the TV table; then the oil temperature [K], the specimen's stiffness [N/m]
 TV_FFRIC, TV_CDALEAK, TV_CD, TV_ZETA, TV_WN, TV_TEMP, TV_KSPEC = range(7)
 FREE_ORDER = ("Ffric", "CdAleak", "Cd", "zeta", "wn")
@@ -104,8 +113,8 @@ def control(t, y, P, sigp, sc, nzp, nzc):
 
 
 @nb.njit(cache=True)
-def valve_flows(xs, pA, pB, P, Cd):
-    """Flows into chamber A and out of chamber B through the valve, and the supply flow."""
+def valve_flows(xs, pA, pB, P, Cd, pS):
+    """Flows into chamber A and out of chamber B through the valve, and the supply flow (supply port at ``pS``)."""
     o = xs + P[BIAS]
     L = P[XSMAX]
     if L > 0.0:  # spool stroke limit, rounded corners of 2 % of the limit
@@ -118,7 +127,7 @@ def valve_flows(xs, pA, pB, P, Cd):
         o = math.copysign(a, o)
     g = Cd * P[PORT] * math.sqrt(2.0 / P[RHO])
     d = P[DPREG]
-    pP = P[PP]
+    pP = pS
     pT = P[PT]
     ao = abs(o)
     if o >= 0.0:
@@ -164,7 +173,8 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
     out[S_XS] = vs
     out[S_VS] = wn * wn * (P[KE] * P[KSP] * u - xs) - 2.0 * zeta * wn * vs
     # valve and leakage flows
-    qA, qB, _ = valve_flows(xs, pA, pB, P, Cd)
+    pS = y[S_PV] if P[SUP_ON] > 0.0 else P[PP]
+    qA, qB, qS = valve_flows(xs, pA, pB, P, Cd, pS)
     dp = pA - pB
     qL = CdAleak * math.sqrt(2.0 / P[RHO]) * ssqrt(dp, P[DPREG]) + P[GLAM] * dp
     B = P[BULK]
@@ -201,6 +211,21 @@ def rhs(t, y, P, tv, tab, sigp, sc, nzp, nzc):
         e = r - xm
         out[S_ZI] = e
         out[S_ZD] = (e - y[S_ZD]) / P[TD]
+    if P[SUP_ON] > 0.0:  # the supply: pump, hose, accumulator (module docstring)
+        ah = 0.25 * math.pi * P[HOSE_D] ** 2
+        vh = 0.5 * P[HOSE_L] * ah  # half the hose's oil at each end
+        pu = y[S_PU]
+        qh = y[S_QH]
+        qp = P[PUMP_Q] * min(max((P[PP] - pu) / P[PUMP_BAND], 0.0), 1.0)
+        out[S_PU] = B * (qp - qh) / (P[PUMP_V] + vh)
+        r_lam = 128.0 * P[MU] * P[HOSE_L] / (math.pi * P[HOSE_D] ** 4)
+        out[S_QH] = (pu - pS - r_lam * qh) / (P[RHO] * P[HOSE_L] / ah)
+        pabs = max(pS + P[PATM], P[PATM])
+        if pabs > P[ACC_P]:  # gas charged: V = V0 (p0 / p)^(1/n), compliance -dV/dp = V / (n p)
+            c_gas = P[ACC_V] * (P[ACC_P] / pabs) ** (1.0 / P[ACC_N]) / (P[ACC_N] * pabs)
+        else:
+            c_gas = 0.0
+        out[S_PV] = (qh - qS) / (c_gas + vh / B)
     if P[TAUP] > 0.0:  # pressure transducers: first-order lag of their readings
         out[S_PAM] = (pA - y[S_PAM]) / P[TAUP]
         out[S_PBM] = (pB - y[S_PBM]) / P[TAUP]

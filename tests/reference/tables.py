@@ -45,6 +45,8 @@ MSP25_EFFECTS: dict[str, dict[str, tuple]] = {
     "pressure_sensor_offset": {"offset": (0.2e6, 1.0e6), "sign": (), "channel": ()},  # Pa
     "supply_line_loss": {"K": (4e13, 1.6e14)},                         # Pa s^2/m^6 (drop = K q^2)
     "pressure_sensor_lag": {"tau": (1.5e-3, 4e-3)},                   # s, both transducers
+    # the supply line: hose length and bore [m], accumulator gas volume at pre-charge [m^3] (rings at 4-19 Hz)
+    "supply_dynamics": {"hose_l": (4.0, 10.0), "hose_d": (5e-3, 8e-3), "acc_v": (0.05e-3, 0.2e-3)},
     "mechanical_resonance": {"f": (50.0, 90.0), "m2": (10.0, 30.0), "zeta2": (0.02, 0.05)},
     "parameter_drift": {"param": ("Ffric",), "factor": (1.5, 2.5)},
 }

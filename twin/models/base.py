@@ -305,6 +305,10 @@ class Model(abc.ABC):
         spec = ps.spec(name)
         return max(v * f_lo, spec.lo if spec.lo > 0 else v * f_lo), min(v * f_hi, spec.hi)
 
+    def untracked(self, ps: ParameterSet) -> str | None:
+        """Why the online filter cannot run the rig ``ps`` (an effect whose states it does not carry), or None."""
+        return None
+
     @property
     def kernel_specs(self) -> tuple[ParamSpec, ...]:
         specs = list(self.BASE)

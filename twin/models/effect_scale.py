@@ -52,6 +52,7 @@ SCALES: dict[str, tuple[str | None, ...]] = {
     "pressure_sensor_offset": ("P", "P"),
     "supply_line_loss": ("P/Q2",),
     "pressure_sensor_lag": ("T",),
+    "supply_dynamics": (None, None, "P/Q"),
 }
 
 

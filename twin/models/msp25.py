@@ -59,17 +59,18 @@ from twin.models.base import (DEFAULT_TIMING, FilterMap, FilterSpec, Model, SimR
                               start_of)
 from twin.models.effect_scale import msp25_typicals
 from twin.models.msp25_loop import (
-    N_CTRL, advance, pid_tick, sensor_lag, simulate_kernel, step_varying,
+    N_CTRL, N_LINE, advance, pid_tick, sensor_lag, simulate_kernel, step_varying,
 )
 from twin.models.msp25_params import (
     BASE, EFFECTS, I_A, I_AB, I_B, I_BULK, I_BVISC, I_CD, I_CDALEAK, I_CVISC, I_DMEAS, I_DPL, I_DPLL, I_DSTR, I_EPS,
     I_FBRK, I_FEXT, I_FFRIC, I_KBT, I_KD, I_KDP, I_KE, I_KFF, I_KI, I_KLAM, I_KP, I_KSP, I_KSPEC, I_KSUP2, I_KXM,
+    I_CSUP, I_LSUP, I_RHOSE,
     I_M, I_PAOFF, I_PBOFF, I_PP, I_PT, I_RHO, I_RSUP, I_STROKE, I_TAUP, I_TAUX, I_TF, I_TOIL, I_TREF, I_UMAX, I_V0,
     I_V0B, I_VREF, I_VSTR, I_WN, I_XSBIAS, I_XSDB, I_XSMAX, I_ZETA, KAPPA_AIR, KERNEL_NAMES, NOMINAL, NP, NS,
     PHENOMENOLOGICAL, PLAUSIBLE_FRICTION, P_ATM, STATES, TWO_PI,
 )
 from twin.models.msp25_rhs import (
-    deriv, fast_tanh, rhs_batch, rk4_combine, step, step_batch, store6,
+    deriv, deriv_line, fast_tanh, line_advance, rhs_batch, rk4_combine, step, step_batch, step_line, store6,
 )
 
 #: the source files of the compiled code (a module inlining it keeps its numba cache in step with all of them)
@@ -144,6 +145,13 @@ class MSP25(Model):
         if name == "Ffric":
             hi = min(hi, ps["pP"] * ps["A"])
         return lo, hi
+
+    def untracked(self, ps):
+        """The supply line's dynamics are states outside the filter's (its memory carries the controller's only)."""
+        if "C_sup" in ps and ps["C_sup"] > 0.0:
+            return ("the online filter does not carry the supply line's states (effect supply_dynamics, C_sup > 0); "
+                    "track the rig with its static equivalent, supply_pressure_droop with R_sup = R_hose")
+        return None
 
     def check_record(self, ps, signals, name="record"):
         """The force the record's chamber pressures put on the rod must be one the rig can hold.
@@ -266,14 +274,14 @@ MODEL = MSP25()
 
 
 __all__ = [
-    "MODEL", "MSP25", "SOURCES", "N_CTRL", "advance", "pid_tick", "sensor_lag", "simulate_kernel",
+    "MODEL", "MSP25", "SOURCES", "N_CTRL", "N_LINE", "advance", "pid_tick", "sensor_lag", "simulate_kernel",
     "step_varying", "BASE", "EFFECTS", "I_A", "I_AB", "I_B", "I_BULK", "I_BVISC",
-    "I_CD", "I_CDALEAK", "I_CVISC", "I_DMEAS", "I_DPL", "I_DPLL", "I_DSTR", "I_EPS",
+    "I_CD", "I_CDALEAK", "I_CSUP", "I_LSUP", "I_RHOSE", "I_CVISC", "I_DMEAS", "I_DPL", "I_DPLL", "I_DSTR", "I_EPS",
     "I_FBRK", "I_FEXT", "I_FFRIC", "I_KBT", "I_KD", "I_KDP", "I_KE", "I_KFF",
     "I_KI", "I_KLAM", "I_KP", "I_KSP", "I_KSPEC", "I_KSUP2", "I_KXM", "I_M",
     "I_PAOFF", "I_PBOFF", "I_PP", "I_PT", "I_RHO", "I_RSUP", "I_STROKE", "I_TAUP",
     "I_TAUX", "I_TF", "I_TOIL", "I_TREF", "I_UMAX", "I_V0", "I_V0B", "I_VREF",
     "I_VSTR", "I_WN", "I_XSBIAS", "I_XSDB", "I_XSMAX", "I_ZETA", "KAPPA_AIR", "KERNEL_NAMES",
     "NOMINAL", "NP", "NS", "PHENOMENOLOGICAL", "PLAUSIBLE_FRICTION", "P_ATM", "STATES", "TWO_PI",
-    "deriv", "fast_tanh", "rhs_batch", "rk4_combine", "step", "step_batch", "store6",
+    "deriv", "deriv_line", "fast_tanh", "line_advance", "step_line", "rhs_batch", "rk4_combine", "step", "step_batch", "store6",
 ]

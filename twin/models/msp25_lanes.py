@@ -49,7 +49,8 @@ def lanes_applicable(p):
     """True when every effect of the kernel vector ``p`` sits at its neutral value (the lanes are exact)."""
     return (p[M.I_CVISC] == 0.0 and p[M.I_FBRK] == 0.0 and p[M.I_KLAM] == 0.0 and p[M.I_XSDB] == 0.0
             and p[M.I_XSBIAS] == 0.0 and p[M.I_RSUP] == 0.0 and p[M.I_KSPEC] == 0.0 and p[M.I_TAUX] == 0.0
-            and p[M.I_EPS] == 0.0 and p[M.I_XSMAX] >= 1.0 and p[M.I_KXM] == 1.0 and p[M.I_KSUP2] == 0.0)
+            and p[M.I_EPS] == 0.0 and p[M.I_XSMAX] >= 1.0 and p[M.I_KXM] == 1.0 and p[M.I_KSUP2] == 0.0
+            and p[M.I_CSUP] == 0.0)
 
 
 @nb.njit(cache=True)

@@ -21,10 +21,10 @@ from twin.models import msp25_rhs as _rhs_src
 from twin.models.intersample import input_at, slope_at
 from twin.models.jitcache import keep_fresh
 from twin.models.msp25_params import (
-    I_A, I_AB, I_DMEAS, I_KD, I_KDP, I_KFF, I_KI, I_KP, I_KXM, I_PAOFF, I_PBOFF, I_TAUX, I_TF, I_UMAX, NS,
+    I_A, I_AB, I_CSUP, I_DMEAS, I_KD, I_KDP, I_KFF, I_KI, I_KP, I_KXM, I_PAOFF, I_PBOFF, I_TAUX, I_TF, I_UMAX, NS,
 )
 from twin.models.msp25_rhs import (
-    deriv, rk4_combine, step, store6,
+    deriv_line, line_advance, rk4_combine, step, step_line, store6,
 )
 
 # the machine code cached for this module inlines these modules' compiled code and constants
@@ -48,6 +48,9 @@ def _delayed(hist, k, tau, dt):
 #: controller memory entries: integral of the error, previous error, started flag, derivative filter state (the
 #: filtered derivative of a digital controller, the filtered signal of a continuous one), previous measurement
 N_CTRL = 5
+#: the supply line's memory after the controller's (port sag [Pa], hose flow [m^3/s]; effect ``supply_dynamics``):
+#: a simulation's memory has ``N_CTRL + N_LINE`` entries; the online filter's has ``N_CTRL`` and refuses the effect
+N_LINE = 2
 
 
 @nb.njit(cache=True)
@@ -131,28 +134,32 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
     integ = ctrl[0]
     dflt = ctrl[3]
     tf = p[I_TF]
+    line = p[I_CSUP] > 0.0  # the supply line's memory follows the controller's (N_LINE entries)
+    y = 0.0
     for j in range(nsub):
         f0 = j * fh
+        if line:
+            y = ctrl[N_CTRL]
         u1 = _u_stage(a2, a3, a4, a5, k, f0, drive, closed, mode, p, integ, dflt, dt)
-        k1 = deriv(a0, a1, a2, a3, a4, a5, u1, p)
+        k1 = deriv_line(a0, a1, a2, a3, a4, a5, u1, p, y)
         b2 = a2 + 0.5 * h * k1[2]
         b3 = a3 + 0.5 * h * k1[3]
         b4 = a4 + 0.5 * h * k1[4]
         b5 = a5 + 0.5 * h * k1[5]
         u2 = _u_stage(b2, b3, b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
-        k2 = deriv(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p)
+        k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p, y)
         c2 = a2 + 0.5 * h * k2[2]
         c3 = a3 + 0.5 * h * k2[3]
         c4 = a4 + 0.5 * h * k2[4]
         c5 = a5 + 0.5 * h * k2[5]
         u3 = _u_stage(c2, c3, c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
-        k3 = deriv(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p)
+        k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p, y)
         d2 = a2 + h * k3[2]
         d3 = a3 + h * k3[3]
         d4 = a4 + h * k3[4]
         d5 = a5 + h * k3[5]
         u4 = _u_stage(d2, d3, d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dflt, dt)
-        k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p)
+        k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p, y)
         if closed:
             _, e0, _, s0, _ = _d_signal(a4, a5, k, f0, drive, mode, p, dt)
             _, e1, _, s1, _ = _d_signal(d4, d5, k, f0 + fh, drive, mode, p, dt)
@@ -160,6 +167,8 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
             if tf > 0.0:  # the filter over the substep, its input linear between the ends
                 dflt += (1.0 - math.exp(-h / tf)) * (0.5 * (s0 + s1) - dflt)
         a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+        if line:
+            line_advance(ctrl[N_CTRL:], (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
     store6(out, a0, a1, a2, a3, a4, a5)
     ctrl[0] = integ
     ctrl[3] = dflt
@@ -173,14 +182,18 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
     digital controller N times faster, 0: continuous).  ``mode``: intersample of
     ``drive`` (0 zoh, 1 foh, 2 cubic).  ``xm_k``: the measured displacement at
     ``t_k``.  ``ctrl``: controller memory (:data:`N_CTRL` entries: integral,
-    previous error, started, derivative filter, previous measurement), updated in
-    place.  ``out`` may be ``s``.  A digital controller's feed-forward reads the
+    previous error, started, derivative filter, previous measurement), then, with
+    the supply line's dynamics on, the line's (:data:`N_LINE`), updated in place.  ``out`` may be ``s``.  A digital controller's feed-forward reads the
     demand's rate as the cubic's slope (at a sample: the central difference).
     """
+    line = p[I_CSUP] > 0.0  # the supply line's dynamics: its memory follows the controller's
     if not closed:
         u = drive[k]
         if mode == 0:
-            step(s, u, p, dt, nsub, out)
+            if line:
+                step_line(s, u, p, dt, nsub, out, ctrl[N_CTRL:])
+            else:
+                step(s, u, p, dt, nsub, out)
         else:
             step_varying(s, k, drive, False, mode, p, dt, nsub, ctrl, out)
         return u
@@ -214,9 +227,11 @@ def advance(s, k, drive, closed, ticks, mode, p, dt, nsub, xm_k, ctrl, out):
         u = pid_tick(input_at(drive, k, i / ticks, mode), rdot, xm, pa, pb, h, p, ctrl)
         if i == 0:
             u0 = u
-            step(s, u, p, h, nsub_t, out)
+        src = s if i == 0 else out
+        if line:
+            step_line(src, u, p, h, nsub_t, out, ctrl[N_CTRL:])
         else:
-            step(out, u, p, h, nsub_t, out)
+            step(src, u, p, h, nsub_t, out)
     return u0
 
 
@@ -227,7 +242,7 @@ def _simulate_one(s0, p, drive, closed, ticks, mode, dt, nsub, S, U, XM, exo_idx
     if exo_idx.shape[0] > 0:  # logged signals set parameters sample by sample: this record's own vector
         p = p.copy()
     xhist = np.empty(T)
-    ctrl = np.zeros(N_CTRL)
+    ctrl = np.zeros(N_CTRL + N_LINE)
     tau = p[I_TAUX]
     g = p[I_KXM]
     for k in range(T):

@@ -144,6 +144,17 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            (_fx("tau_p", "s", 0.0, 0.1, "pressure transducer time constant", "ms", 1e3),), (0.0,),
            "pressure residual proportional to the pressure's rate of change; displacement unaffected",
            (1e-2,)),
+    Effect("supply_dynamics", "the supply line's own dynamics: the pump holds pP behind a hose (inertance, "
+           "resistance) that fills an accumulator at the valve, from which the valve draws (supply pressure not logged)",
+           (_fx("C_sup", "m^3/Pa", 0.0, 1e-9, "compliance at the valve's supply port (accumulator gas, hose oil)",
+                "cm^3/MPa", 1e12),
+            _fx("L_sup", "Pa s^2/m^3", 1e5, 1e12, "supply hose inertance (oil density x length / bore area)",
+                "MPa s^2/L", 1e-9),
+            _fx("R_hose", "Pa s/m^3", 0.0, 1e13, "supply hose resistance (pressure drop per flow)", "MPa s/L", 1e-9)),
+           (0.0, 2.5e8, 0.0),
+           "supply pressure sags with the flow drawn and rings at the line's frequency 1 / (2 pi sqrt(L_sup C_sup)): "
+           "speed lost and a ringing in the pressures after each change of flow", (2e-12, 2.5e8, 4.5e9),
+           generalises=(("supply_pressure_droop", (("R_sup", "R_hose"),)),)),
 )}
 
 KERNEL_NAMES = tuple(s.name for s in BASE) + tuple(p.name for e in EFFECTS.values() for p in e.params)
@@ -152,9 +163,10 @@ NP = len(KERNEL_NAMES)
  I_FEXT, I_STROKE, I_FFRIC, I_CDALEAK, I_CD, I_ZETA, I_WN, I_AB, I_V0B, I_TF, I_DMEAS, I_KFF, I_UMAX, I_KDP,
  I_TOIL, I_TREF, I_KBT, I_BVISC,
  I_CVISC, I_FBRK, I_VSTR, I_DSTR, I_KLAM, I_XSDB, I_XSBIAS,
- I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP) = range(NP)
-assert NP == 51 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
+ I_RSUP, I_KSPEC, I_TAUX, I_EPS, I_XSMAX, I_KXM, I_PAOFF, I_PBOFF, I_KSUP2, I_TAUP, I_CSUP, I_LSUP, I_RHOSE) = range(NP)
+assert NP == 54 and KERNEL_NAMES[I_PBOFF] == "pB_off" and KERNEL_NAMES[I_DPLL] == "dp_lam_leak"
 assert KERNEL_NAMES[I_TOIL] == "T_oil" and KERNEL_NAMES[I_BVISC] == "b_visc"
+assert KERNEL_NAMES[I_CSUP] == "C_sup" and KERNEL_NAMES[I_RHOSE] == "R_hose"
 assert KERNEL_NAMES[I_KSUP2] == "K_sup2" and KERNEL_NAMES[I_TAUP] == "tau_p" and KERNEL_NAMES[I_KDP] == "Kdp"
 
 #: the largest mean friction a working actuator shows, as a fraction of its stall force pP A (a physical bound:

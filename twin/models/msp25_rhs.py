@@ -17,7 +17,8 @@ from twin.models.jitcache import keep_fresh
 from twin.models.msp25_params import (
     I_A, I_AB, I_B, I_BULK, I_BVISC, I_CD, I_CDALEAK, I_CVISC, I_DPL, I_DPLL, I_DSTR, I_EPS, I_FBRK, I_FEXT,
     I_FFRIC, I_KBT, I_KE, I_KLAM, I_KSP, I_KSPEC, I_KSUP2, I_M, I_PP, I_PT, I_RHO, I_RSUP, I_TOIL, I_TREF, I_V0,
-    I_V0B, I_VREF, I_VSTR, I_WN, I_XSBIAS, I_XSDB, I_XSMAX, I_ZETA, KAPPA_AIR, NS, P_ATM,
+    I_V0B, I_VREF, I_VSTR, I_WN, I_XSBIAS, I_XSDB, I_XSMAX, I_ZETA, KAPPA_AIR, NS, P_ATM, I_CSUP, I_LSUP,
+    I_RHOSE,
 )
 
 # the machine code cached for this module inlines these modules' constants
@@ -40,6 +41,27 @@ def _bulk(p, B, eps):
 
 
 @nb.njit(cache=True)
+def _port_pressure(pP, pT, R, K2, pin, go, dpl):
+    """The supply port's pressure ``pe = pP - R q - K2 q^2`` at the flow ``q = go sqrt_reg(pe - pin)`` it passes into
+    a chamber at ``pin < pP`` through an opening of conductance ``go``.  With the orifice's square root unregularised
+    the root is closed form: ``s = sqrt(pe - pin)`` solves ``(1 + K2 go^2) s^2 + R go s - (pP - pin) = 0``; two
+    Newton steps on the regularised law follow (its band ``dpl`` moves the root by far less than a pascal outside
+    it).  A single pass ``pP - R q(pP)`` instead left 3-10 % of the sag at the catalogue's sizes."""
+    D = pP - pin
+    a = R * go
+    s = 2.0 * D / (a + math.sqrt(a * a + 4.0 * (1.0 + K2 * go * go) * D))
+    pe = pin + s * s
+    for _ in range(2):
+        d = pe - pin
+        r = d * d + dpl * dpl
+        rq = math.sqrt(math.sqrt(r))
+        q = go * d / rq
+        dq = go * (0.5 * d * d + dpl * dpl) / (r * rq)
+        pe -= (pe - pP + R * q + K2 * q * q) / (1.0 + (R + 2.0 * K2 * q) * dq)
+    return max(pe, pT)
+
+
+@nb.njit(cache=True)
 def fast_tanh(x):
     """tanh through one exp (libm's tanh costs about 100 ns between 1 and 19); equal to 1e-15."""
     a = abs(x)
@@ -54,7 +76,16 @@ def fast_tanh(x):
 
 @nb.njit(cache=True)
 def deriv(xs, vs, pA, pB, x, v, u, p):
-    """Right-hand side of one state (scalars in, tuple of six derivatives out).
+    """Right-hand side of one state (scalars in, tuple of six derivatives out): :func:`deriv_line` with the
+    supply port at ``pP``."""
+    d = deriv_line(xs, vs, pA, pB, x, v, u, p, 0.0)
+    return d[0], d[1], d[2], d[3], d[4], d[5]
+
+
+@nb.njit(cache=True)
+def deriv_line(xs, vs, pA, pB, x, v, u, p, sag):
+    """Right-hand side of one state with the valve's supply port ``sag`` [Pa] below ``pP`` (the supply line's
+    state, :func:`line_advance`): the six derivatives and the flow drawn from the supply [m^3/s].
 
     The one definition of the rig's physics: the filter's side-by-side form (:mod:`twin.models.msp25_lanes`)
     computes, with every effect neutral, the same operations in the same order (``tests/test_models.py`` checks
@@ -84,7 +115,7 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         else:
             o = 0.0
     g = p[I_CD] * p[I_B] * math.sqrt(2.0 / rho)
-    pP = p[I_PP]
+    pP = p[I_PP] - sag
     qPA = 0.0
     qBT = 0.0
     qAT = 0.0
@@ -97,14 +128,15 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
         qPB = -g * o * _sqrt_reg(pP - pB, dpl)
     R = p[I_RSUP]
     K2 = p[I_KSUP2]
-    if R > 0.0 or K2 > 0.0:  # supply droop (R q) and turbulent line loss (K2 q^2): one fixed-point pass
+    if R > 0.0 or K2 > 0.0:  # supply droop (R q) and turbulent line loss (K2 q^2) at the port's own flow
         qs = qPA + qPB
         if qs > 0.0:
-            pPe = max(pP - R * qs - K2 * qs * qs, pT)
+            pPe = _port_pressure(pP, pT, R, K2, pA if o >= 0.0 else pB, g * abs(o), dpl)
             if o >= 0.0:
                 qPA = g * o * _sqrt_reg(pPe - pA, dpl)
             else:
                 qPB = -g * o * _sqrt_reg(pPe - pB, dpl)
+    qs = qPA + qPB
     dpAB = pA - pB
     # the oil's temperature: bulk modulus and leakage at T_oil (factors exactly 1 at T_ref)
     dT = p[I_TOIL] - p[I_TREF]
@@ -130,7 +162,43 @@ def deriv(xs, vs, pA, pB, x, v, u, p):
     Ffr = ff * fast_tanh(v * (1.0 / p[I_VREF])) + p[I_CVISC] * v
     # pA A - pB AB, written so that a symmetric cylinder (AB = A) gives the same numbers as (pA - pB) A
     dv = (dpAB * A - pB * (AB - A) - Ffr - p[I_FEXT] - p[I_KSPEC] * x) * (1.0 / p[I_M])
-    return dxs, dvs, dpA, dpB, v, dv
+    return dxs, dvs, dpA, dpB, v, dv, qs
+
+
+@nb.njit(cache=True)
+def line_advance(line, qbar, p, h):
+    """The supply line over ``h`` with the valve drawing ``qbar`` [m^3/s] (exact for a constant draw).
+
+    The pump holds ``pP`` at the far end of a hose of inertance ``L_sup`` and resistance ``R_hose``; the hose fills
+    the compliance ``C_sup`` at the valve's supply port, from which the valve draws.  With ``y`` the port's sag
+    below ``pP`` and ``q`` the hose's flow: ``C y' = qbar - q``, ``L q' = y - R q``, whose rest under a steady draw
+    is ``q = qbar``, ``y = R qbar``; the deviation from it decays and rings at ``1 / sqrt(L C)`` with damping
+    ``R / 2 sqrt(C / L)``.  ``line``: ``[y, q]``, updated in place (``exp(A h)`` in closed form, stable at any
+    ``h``)."""
+    C = p[I_CSUP]
+    L = p[I_LSUP]
+    R = p[I_RHOSE]
+    e0 = line[0] - R * qbar
+    e1 = line[1] - qbar
+    # A = [[0, -1/C], [1/L, -R/L]]: exp(A h) = exp(m h) (c0 I + c1 (A - m I)), m the half trace
+    m = -0.5 * R / L
+    disc = m * m - 1.0 / (L * C)
+    if disc < 0.0:
+        w = math.sqrt(-disc)
+        c0 = math.cos(w * h)
+        c1 = math.sin(w * h) / w
+    elif disc > 0.0:
+        w = math.sqrt(disc)
+        c0 = math.cosh(w * h)
+        c1 = math.sinh(w * h) / w
+    else:
+        c0 = 1.0
+        c1 = h
+    f = math.exp(m * h)
+    n0 = f * ((c0 - c1 * m) * e0 - c1 / C * e1)
+    n1 = f * (c1 / L * e0 + (c0 + c1 * (-R / L - m)) * e1)
+    line[0] = R * qbar + n0
+    line[1] = qbar + n1
 
 
 @nb.njit(cache=True)
@@ -170,6 +238,27 @@ def step(s, u, p, dt, nsub, out):
         k4 = deriv(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
                    a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p)
         a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+    store6(out, a0, a1, a2, a3, a4, a5)
+
+
+@nb.njit(cache=True)
+def step_line(s, u, p, dt, nsub, out, line):
+    """:func:`step` with the supply line's dynamics: each substep integrates the rig with the port's sag
+    ``line[0]`` held, then the line (:func:`line_advance`) under the substep's mean draw (the RK4 weights of the
+    stages' draws); the line's frequency is far below the substep's."""
+    h = dt / nsub
+    a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
+    for _ in range(nsub):
+        y = line[0]
+        k1 = deriv_line(a0, a1, a2, a3, a4, a5, u, p, y)
+        k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
+                        a3 + 0.5 * h * k1[3], a4 + 0.5 * h * k1[4], a5 + 0.5 * h * k1[5], u, p, y)
+        k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
+                        a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u, p, y)
+        k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
+                        a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p, y)
+        a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+        line_advance(line, (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
     store6(out, a0, a1, a2, a3, a4, a5)
 
 

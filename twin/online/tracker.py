@@ -171,6 +171,9 @@ class OnlineTracker:
                                  f"{', '.join(trackable_models())}")
         spec = self.model.FILTER
         self.ps = self.model.params(tuple(effects), **dict(params or {}))  # an extended model: effects switched on
+        why = self.model.untracked(self.ps)
+        if why:
+            raise ParameterError(why)
         self.tracked = tuple(self.model.PHENOMENOLOGICAL if tracked is None else tracked)
         bad = [t for t in self.tracked if t not in self.model.trackable]
         if bad or not self.tracked:
