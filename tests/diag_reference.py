@@ -34,7 +34,8 @@ REF_DIR = os.path.join(_ROOT, "tests", "reference")
 #: the reference's catalogue effects that the product's catalogue names the same way
 IN_CATALOGUE = ("viscous_friction", "stribeck_friction", "laminar_leakage", "spool_deadband", "valve_null_bias",
                 "supply_pressure_droop", "specimen_stiffness", "sensor_delay", "entrained_air", "spool_saturation",
-                "position_sensor_gain", "pressure_sensor_offset", "supply_line_loss", "pressure_sensor_lag")
+                "position_sensor_gain", "pressure_sensor_offset", "supply_line_loss", "pressure_sensor_lag",
+                "supply_dynamics")
 OUT_OF_CATALOGUE = ("mechanical_resonance", "parameter_drift", "x_transducer_lag")
 
 #: out-of-catalogue errors of the logging chain, applied to the reference's logged signals (the controller reads

@@ -91,7 +91,8 @@ SIGNATURE_AXIS = {
     "specimen_stiffness": "position", "sensor_delay": "velocity", "entrained_air": "dp",
     "spool_saturation": "spool_opening", "coulomb_friction": "velocity", "cubic_stiffness": "position",
     "input_delay": "velocity", "position_sensor_gain": "position", "pressure_sensor_offset": "dp",
-    "supply_line_loss": "velocity", "pressure_sensor_lag": "dp", "input_offset": "position",
+    "supply_line_loss": "velocity", "supply_dynamics": "velocity", "pressure_sensor_lag": "dp",
+    "input_offset": "position",
     "output_offset": "position",
     CONTROLLER_RATE: "velocity", INPUT_INTERSAMPLE: "velocity",
 }

@@ -106,22 +106,32 @@ def _try(data: _Data, cur: ModelState, row: ScreenRow, seed: int, min_share: flo
          configured: ParameterSet, n_ranked: int = 2) -> Trial:
     model = data.model
     E = data.effect(row.effect)
-    free = cur.free + E.names
-    ps = model.params(effects=cur.effects + (row.effect,)).update(cur.params.as_dict())
+    # a named special case of this effect (the static droop of the supply line) is replaced, nested: its
+    # parameters become this effect's (Effect.generalises), the LR test counts only the parameters added
+    special = {e: dict(m) for e, m in model.EFFECTS[row.effect].generalises if e in cur.effects}
+    drop = {n for e in special for n in model.EFFECTS[e].names}
+    carried = {g: cur.params[n] for m in special.values() for n, g in m.items()}
+    free = tuple(n for n in cur.free if n not in drop) + E.names
+    effects = tuple(e for e in cur.effects if e not in special) + (row.effect,)
+    ps = model.params(effects=effects).update({k: v for k, v in cur.params.as_dict().items() if k not in drop})
     # starts: the effect at the screen's estimate, its typical magnitude and close to neutral; the other
     # free parameters at the current estimates (which may have bent to mimic the effect) and as configured (the
     # baseline: nominal or commissioned values).  All screened in one batch; the best start of each baseline is
     # refined and the better by held-out error kept; a start close to neutral when neither passes.
     named = {n for e in cur.effects for n in model.EFFECTS[e].names}  # earlier causes stay at their estimates
-    bases = [dict(cur.fit.estimate),
-             {**cur.fit.estimate, **{n: configured[n] for n in cur.free if n in configured and n not in named}}]
+    kept = {n: v for n, v in cur.fit.estimate.items() if n not in drop}
+    bases = [dict(kept),
+             {**kept, **{n: configured[n] for n in cur.free if n in configured and n not in named}}]
     if n_ranked < 2 or all(bases[1].get(n) == v for n, v in bases[0].items() if n in cur.free):
         bases = bases[:1]
     eff_starts = _effect_starts(data, row.effect, row.estimate)
+    if carried:  # the special case's estimates carried over (the rest of the effect at its starts)
+        eff_starts = eff_starts + [{**e, **carried} for e in eff_starts]
     tops = [_rank_starts(data, ps, [{**b, **e} for e in eff_starts], cur.timing)[0] for b in bases]
-    near = dict(cur.fit.estimate)
+    near = {**kept, **carried}
     for s, n, v in zip(E.params, E.neutral, E.typical):
-        near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
+        if s.name not in carried:
+            near[s.name] = n + 1e-3 * (v - n) if n < v else (n if n == v else min(s.hi, 10.0 * v))
     t: Trial | None = None
     for attempt, start in enumerate(tops + [near]):
         if attempt == len(tops) and t is not None and (t.accepted or t.state.fit.cost < cur.fit.cost):

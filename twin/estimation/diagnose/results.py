@@ -62,6 +62,7 @@ class Trial:
     signature: dict = dataclasses.field(default_factory=dict)  # is the effect's own signature in the residuals
     holdout_test: dict = dataclasses.field(default_factory=dict)  # Diebold-Mariano test of the held-out gain
     holdout_p_adjusted: float = 1.0  # its one-sided p-value (judged at HOLDOUT_LEVEL)
+    replaces: tuple[str, ...] = ()  # named causes it contains as special cases (Effect.generalises), replaced
 
     @property
     def effect(self) -> str:
@@ -80,7 +81,7 @@ class Trial:
                 "share": self.share, "converged": self.state.converged, "accepted": self.accepted,
                 "reason": self.reason, "implausible": list(self.implausible), "diverged": self.diverged,
                 "signature": self.signature, "holdout_test": self.holdout_test,
-                "holdout_p_adjusted": self.holdout_p_adjusted,
+                "holdout_p_adjusted": self.holdout_p_adjusted, "replaces": list(self.replaces),
                 "params": self.params()}
 
 

@@ -17,7 +17,7 @@ from twin.params import ParameterSet, check_names
 from twin.record import Record
 from twin.estimation.diagnose.constants import AICC_TIE, ALPHA, MIN_SHARE, PRUNE, TIMING_EFFECTS
 from twin.estimation.diagnose.data import _Data, holm
-from twin.estimation.diagnose.adequacy import _gain
+from twin.estimation.diagnose.adequacy import _gain, _lr
 from twin.estimation.diagnose.results import Diagnosis, ScreenRow, Trial
 from twin.estimation.diagnose.screen import screen
 from twin.estimation.diagnose.naming import _verdict, share_rule
@@ -95,13 +95,20 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
     causes: list[str] = []
     gains: dict[str, dict] = {}
     for _ in range(max_effects):
-        cands = [e for e in catalogue if e not in cur.effects]
+        # a special case of a named effect is inside it already (Effect.generalises)
+        inside = {g for e in cur.effects for g, _m in model.EFFECTS[e].generalises}
+        cands = [e for e in catalogue if e not in cur.effects and e not in inside]
         if cur.noise is None or (not cands and not timing_candidate):
             break
         scr = screen(data, cur, cands) if cands else []
         screens.append(scr)
         say("screen: " + ", ".join(f"{r.effect} LM={r.lm:.3g} p_Holm={r.p_adjusted:.2g}" for r in scr[:4]))
         promising = [r for r in scr if r.p_adjusted < alpha][:max_fits]
+        # an effect containing a promising one as its special case is fitted beside it: the two are nested, and
+        # the data choose between them at alpha (below), whatever the screen's order
+        companions = {r.effect for r in scr if r not in promising
+                      and any(g in {q.effect for q in promising} for g, _m in model.EFFECTS[r.effect].generalises)}
+        promising += [r for r in scr if r.effect in companions]
         trials: list[Trial] = []
         if timing_candidate and cur is nominal:
             tt = _try_timing(data, cur, seed, min_share, base, say)
@@ -109,7 +116,7 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
                 trials.append(tt)
         for row in promising:
             best_lr = max((t.lr for t in trials if t.accepted), default=0.0)
-            if row.lm < PRUNE * best_lr:
+            if row.lm < PRUNE * best_lr and row.effect not in companions:
                 say(f"  {row.effect}: not fitted (screen LM {row.lm:.3g} < {PRUNE:g} x LR {best_lr:.4g} of an "
                     "accepted extension)")
                 continue
@@ -134,11 +141,13 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             break
         ok = [t for t in trials if t.accepted]
         if not ok:
-            sig = sorted((t for t in trials if t.p_adjusted < alpha and t.delta_aicc < 0 and t.holdout_gain > 0
-                          and t.effects[0] not in TIMING_EFFECTS), key=lambda t: -t.lr)
+            # a pair extends the current model by two effects (not a trial that replaced a special case)
+            extends = [t for t in trials if t.effects[0] not in TIMING_EFFECTS
+                       and set(cur.effects) <= set(t.state.effects)]
+            sig = sorted((t for t in extends if t.p_adjusted < alpha and t.delta_aicc < 0 and t.holdout_gain > 0),
+                         key=lambda t: -t.lr)
             if len(sig) == 1:  # its partner may be mimicked by bent nominal parameters when fitted alone
-                rest = [t for t in trials if t is not sig[0] and t.effects[0] not in TIMING_EFFECTS
-                        and math.isfinite(t.state.wcost)]
+                rest = [t for t in extends if t is not sig[0] and math.isfinite(t.state.wcost)]
                 rank = {r.effect: i for i, r in enumerate(scr)}
                 rest.sort(key=lambda t: rank.get(t.effects[0], len(rank)))
                 sig += rest[:1]
@@ -164,6 +173,24 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
             cur = pair.state
             path.append(cur)
             continue
+        # nested: an effect and its special case both accepted; the larger one only if the parameters it adds
+        # are significant at alpha (its LR against the special case), else the special case
+        for t in ok:
+            for g, _m in model.EFFECTS[t.effects[0]].generalises if t.effects[0] in model.EFFECTS else ():
+                sp = next((u for u in ok if u.effects[0] == g and u.accepted), None)
+                if sp is None or not t.accepted:
+                    continue
+                lr_n, p_n, df_n, _ = _lr(sp.state, t.state, data)
+                if p_n < alpha:
+                    sp.accepted = False
+                    sp.reason = f"contained in {t.effect}, whose {df_n} more parameters are significant (LR {lr_n:.4g})"
+                else:
+                    t.accepted = False
+                    t.reason = (f"its {df_n} parameters beyond {g} are not significant (LR {lr_n:.4g}, p {p_n:.3g} "
+                                f">= {alpha:g})")
+                say(f"  nested: {t.effect} against {g}: LR {lr_n:.4g} p {p_n:.3g} -> "
+                    f"{t.effect if p_n < alpha else g}")
+        ok = [t for t in ok if t.accepted]
         # the lowest AICc wins; extensions within AICC_TIE of it are not told apart by the data (an input and an
         # output offset of a linear spring are the same error): the first in the catalogue's order is taken, so
         # the choice does not hang on round-off (the same record in other units names them in the same order)
@@ -177,6 +204,13 @@ def _diagnose(model, records, outputs, free, base, candidates, holdout, alpha, m
                 t.reason = (f"higher AICc than {win.effect}" if t.delta_aicc > win.delta_aicc + AICC_TIE else
                             f"not told apart from {win.effect} (AICc within {AICC_TIE:g}), which comes first")
         gains[win.effect] = _gain(cur, win.state, data) | {"share": win.share, "p_adjusted": win.p_adjusted}
+        replaced = [c for c in causes if c in model.EFFECTS and c not in win.state.effects]
+        if replaced:  # a special case the winner contains (Effect.generalises): named by the winner alone
+            say(f"  {win.effect} replaces {', '.join(replaced)}, which it contains")
+            win.replaces = tuple(replaced)
+            causes = [c for c in causes if c not in replaced]
+            for c in replaced:
+                gains.pop(c, None)
         causes.append(win.effect)
         cur = win.state
         path.append(cur)
