@@ -213,7 +213,7 @@ def test_cli_params_lists_metadata_and_effects(capsys):
     out = json.loads(capsys.readouterr().out)
     wn = next(p for p in out["params"] if p["name"] == "wn")
     assert wn["unit"] == "rad/s" and wn["display_unit"] == "Hz" and wn["category"] == "phenomenological"
-    assert len(out["effects"]) == 14  # eleven physical effects and three sensor errors
+    assert len(out["effects"]) == 15  # twelve physical effects and three sensor errors
 
 
 def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from twin.estimation.fit_stats import hac_covariance
+from twin.estimation.hac import bartlett_lag
 
 
 def _ar1(n: int, phi: float, rng: np.random.Generator) -> np.ndarray:
@@ -37,3 +38,18 @@ def test_a_lag_floor_covers_slowly_correlated_residuals():
     assert a < 0.7  # the automatic lag understates it
     assert 1.1 * a < f < 1.2  # the floor recovers part of it, never overstating
     assert np.all(np.array(floored) >= 0)
+
+
+def test_the_lag_does_not_depend_on_the_scores_scale_and_huge_scores_do_not_overflow():
+    """A diverged candidate's scores can be finite yet so large that their squares overflow (a diagnosis on the
+    reference stopped with OverflowError there): the lag is the same at any scale of the series."""
+    rng = np.random.default_rng(0)
+    g = rng.standard_normal((1000, 3))
+    g[:, 1] = np.cumsum(g[:, 1]) * 0.1  # one column with memory
+    lag = bartlett_lag(g)
+    assert lag > 10
+    for scale in (1e-200, 1e200):
+        assert bartlett_lag(g * scale) == lag
+    mixed = g.copy()
+    mixed[:, 2] *= 1e250  # one column far larger than the others: it carries the weight
+    assert bartlett_lag(mixed) == bartlett_lag(g[:, 2:])

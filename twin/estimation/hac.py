@@ -27,17 +27,25 @@ def bartlett_lag(g: np.ndarray) -> int:
     n = cols.shape[0]
     if n < 8:
         return 0
-    num = den = 0.0
+    vr: list[tuple[float, float]] = []  # each column's log sum of squares and lag-1 autocorrelation
     for a in range(cols.shape[1]):
         x = cols[:, a]
         if not np.all(np.isfinite(x)):
             continue
         x = x - np.mean(x)
-        v = float(x @ x)
-        if not 0 < v < math.inf:
+        big = float(np.max(np.abs(x)))
+        if not 0 < big < math.inf:
             continue
-        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
-        s4 = (v / n) ** 2 * (1 - rho * rho) ** 2  # innovation variance squared, up to a common factor
+        x = x / big  # scale-free: a diverged candidate's finite but huge scores overflowed their squares
+        v = float(x @ x)
+        vr.append((math.log(v) + 2.0 * math.log(big), float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))))
+    if not vr:
+        return 0
+    top = max(lv for lv, _ in vr)
+    num = den = 0.0
+    for lv, rho in vr:
+        # innovation variance squared, relative to the largest column's (the common factor cancels)
+        s4 = math.exp(2.0 * (lv - top)) * (1 - rho * rho) ** 2
         num += 4 * rho * rho * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)
         den += s4 / (1 - rho) ** 4
     if den <= 0:

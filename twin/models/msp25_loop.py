@@ -24,7 +24,7 @@ from twin.models.msp25_params import (
     I_A, I_AB, I_CSUP, I_DMEAS, I_KD, I_KDP, I_KFF, I_KI, I_KP, I_KXM, I_PAOFF, I_PBOFF, I_TAUX, I_TF, I_UMAX, NS,
 )
 from twin.models.msp25_rhs import (
-    deriv_line, line_advance, rk4_combine, step, step_line, store6,
+    deriv_line, line_advance, line_pieces, rk4_combine, step, step_line, store6,
 )
 
 # the machine code cached for this module inlines these modules' compiled code and constants
@@ -128,8 +128,8 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
     ``closed``: a continuous controller reads the state at every stage (its memory ``ctrl``, integral and
     derivative filter, updated per substep); else the logged input ``drive`` is interpolated by ``mode``.
     """
-    h = dt / nsub
-    fh = 1.0 / nsub
+    h0 = dt / nsub
+    fh0 = 1.0 / nsub
     a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
     integ = ctrl[0]
     dflt = ctrl[3]
@@ -137,38 +137,43 @@ def step_varying(s, k, drive, closed, mode, p, dt, nsub, ctrl, out):
     line = p[I_CSUP] > 0.0  # the supply line's memory follows the controller's (N_LINE entries)
     y = 0.0
     for j in range(nsub):
-        f0 = j * fh
-        if line:
-            y = ctrl[N_CTRL]
-        u1 = _u_stage(a2, a3, a4, a5, k, f0, drive, closed, mode, p, integ, dflt, dt)
-        k1 = deriv_line(a0, a1, a2, a3, a4, a5, u1, p, y)
-        b2 = a2 + 0.5 * h * k1[2]
-        b3 = a3 + 0.5 * h * k1[3]
-        b4 = a4 + 0.5 * h * k1[4]
-        b5 = a5 + 0.5 * h * k1[5]
-        u2 = _u_stage(b2, b3, b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
-        k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p, y)
-        c2 = a2 + 0.5 * h * k2[2]
-        c3 = a3 + 0.5 * h * k2[3]
-        c4 = a4 + 0.5 * h * k2[4]
-        c5 = a5 + 0.5 * h * k2[5]
-        u3 = _u_stage(c2, c3, c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
-        k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p, y)
-        d2 = a2 + h * k3[2]
-        d3 = a3 + h * k3[3]
-        d4 = a4 + h * k3[4]
-        d5 = a5 + h * k3[5]
-        u4 = _u_stage(d2, d3, d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dflt, dt)
-        k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p, y)
-        if closed:
-            _, e0, _, s0, _ = _d_signal(a4, a5, k, f0, drive, mode, p, dt)
-            _, e1, _, s1, _ = _d_signal(d4, d5, k, f0 + fh, drive, mode, p, dt)
-            integ += 0.5 * h * (e0 + e1)
-            if tf > 0.0:  # the filter over the substep, its input linear between the ends
-                dflt += (1.0 - math.exp(-h / tf)) * (0.5 * (s0 + s1) - dflt)
-        a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
-        if line:
-            line_advance(ctrl[N_CTRL:], (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
+        # with the supply line, a substep is cut where its coupling to the valve needs it (line_pieces)
+        m = line_pieces(a0, a2, a3, p, ctrl[N_CTRL], h0) if line else 1
+        h = h0 / m
+        fh = fh0 / m
+        for i in range(m):
+            f0 = j * fh0 + i * fh
+            if line:
+                y = ctrl[N_CTRL]
+            u1 = _u_stage(a2, a3, a4, a5, k, f0, drive, closed, mode, p, integ, dflt, dt)
+            k1 = deriv_line(a0, a1, a2, a3, a4, a5, u1, p, y)
+            b2 = a2 + 0.5 * h * k1[2]
+            b3 = a3 + 0.5 * h * k1[3]
+            b4 = a4 + 0.5 * h * k1[4]
+            b5 = a5 + 0.5 * h * k1[5]
+            u2 = _u_stage(b2, b3, b4, b5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
+            k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], b2, b3, b4, b5, u2, p, y)
+            c2 = a2 + 0.5 * h * k2[2]
+            c3 = a3 + 0.5 * h * k2[3]
+            c4 = a4 + 0.5 * h * k2[4]
+            c5 = a5 + 0.5 * h * k2[5]
+            u3 = _u_stage(c2, c3, c4, c5, k, f0 + 0.5 * fh, drive, closed, mode, p, integ, dflt, dt)
+            k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], c2, c3, c4, c5, u3, p, y)
+            d2 = a2 + h * k3[2]
+            d3 = a3 + h * k3[3]
+            d4 = a4 + h * k3[4]
+            d5 = a5 + h * k3[5]
+            u4 = _u_stage(d2, d3, d4, d5, k, f0 + fh, drive, closed, mode, p, integ, dflt, dt)
+            k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], d2, d3, d4, d5, u4, p, y)
+            if closed:
+                _, e0, _, s0, _ = _d_signal(a4, a5, k, f0, drive, mode, p, dt)
+                _, e1, _, s1, _ = _d_signal(d4, d5, k, f0 + fh, drive, mode, p, dt)
+                integ += 0.5 * h * (e0 + e1)
+                if tf > 0.0:  # the filter over the substep, its input linear between the ends
+                    dflt += (1.0 - math.exp(-h / tf)) * (0.5 * (s0 + s1) - dflt)
+            a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+            if line:
+                line_advance(ctrl[N_CTRL:], (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
     store6(out, a0, a1, a2, a3, a4, a5)
     ctrl[0] = integ
     ctrl[3] = dflt

@@ -75,6 +75,44 @@ def fast_tanh(x):
 
 
 @nb.njit(cache=True)
+def _opening(xs, p):
+    """The spool's effective opening: null bias, stroke limit, overlap."""
+    o = xs + p[I_XSBIAS]
+    xm = p[I_XSMAX]
+    if o > xm:
+        o = xm
+    elif o < -xm:
+        o = -xm
+    db = p[I_XSDB]
+    if db > 0.0:
+        if o > db:
+            o = o - db
+        elif o < -db:
+            o = o + db
+        else:
+            o = 0.0
+    return o
+
+
+@nb.njit(cache=True)
+def line_pieces(xs, pA, pB, p, sag, h):
+    """Pieces a step of ``h`` is cut into so that the supply line's coupling to the valve stays stable: the rig is
+    integrated with the port's sag held, then the line, so a piece's sag moves the draw by ``h |dq/dsag| / C_sup``
+    of itself; at most 0.5 (the draw's slope grows as the chamber's pressure nears the port's: ``q`` follows
+    the square root of the drop)."""
+    o = _opening(xs, p)
+    if o == 0.0:
+        return 1
+    pin = pA if o > 0.0 else pB
+    d = p[I_PP] - sag - pin
+    dpl = p[I_DPL]
+    r = d * d + dpl * dpl
+    slope = p[I_CD] * p[I_B] * math.sqrt(2.0 / p[I_RHO]) * abs(o) * (0.5 * d * d + dpl * dpl) / (r * math.sqrt(math.sqrt(r)))
+    k = 2.0 * h * slope / p[I_CSUP]
+    return 1 if k <= 1.0 else min(int(math.ceil(k)), 256)
+
+
+@nb.njit(cache=True)
 def deriv(xs, vs, pA, pB, x, v, u, p):
     """Right-hand side of one state (scalars in, tuple of six derivatives out): :func:`deriv_line` with the
     supply port at ``pP``."""
@@ -100,20 +138,7 @@ def deriv_line(xs, vs, pA, pB, x, v, u, p, sag):
     dxs = vs
     dvs = wn * wn * (p[I_KE] * p[I_KSP] * u - xs) - 2.0 * p[I_ZETA] * wn * vs
     # spool opening: null bias, stroke limit, overlap
-    o = xs + p[I_XSBIAS]
-    xm = p[I_XSMAX]
-    if o > xm:
-        o = xm
-    elif o < -xm:
-        o = -xm
-    db = p[I_XSDB]
-    if db > 0.0:
-        if o > db:
-            o = o - db
-        elif o < -db:
-            o = o + db
-        else:
-            o = 0.0
+    o = _opening(xs, p)
     g = p[I_CD] * p[I_B] * math.sqrt(2.0 / rho)
     pP = p[I_PP] - sag
     qPA = 0.0
@@ -243,23 +268,33 @@ def step(s, u, p, dt, nsub, out):
 
 @nb.njit(cache=True)
 def step_line(s, u, p, dt, nsub, out, line):
-    """:func:`step` with the supply line's dynamics: each substep integrates the rig with the port's sag
-    ``line[0]`` held, then the line (:func:`line_advance`) under the substep's mean draw (the RK4 weights of the
-    stages' draws); the line's frequency is far below the substep's."""
-    h = dt / nsub
+    """:func:`step` with the supply line's dynamics: each substep, cut into :func:`line_pieces`, integrates the rig
+    with the port's sag ``line[0]`` held, then the line (:func:`line_advance`) under the piece's mean draw (the RK4
+    weights of the stages' draws); the line's own frequency is far below the substep's."""
+    h0 = dt / nsub
     a0, a1, a2, a3, a4, a5 = s[0], s[1], s[2], s[3], s[4], s[5]
     for _ in range(nsub):
-        y = line[0]
-        k1 = deriv_line(a0, a1, a2, a3, a4, a5, u, p, y)
-        k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
-                        a3 + 0.5 * h * k1[3], a4 + 0.5 * h * k1[4], a5 + 0.5 * h * k1[5], u, p, y)
-        k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
-                        a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u, p, y)
-        k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
-                        a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p, y)
-        a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
-        line_advance(line, (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
+        m = line_pieces(a0, a2, a3, p, line[0], h0)
+        h = h0 / m
+        for _piece in range(m):
+            a0, a1, a2, a3, a4, a5 = _line_piece(a0, a1, a2, a3, a4, a5, u, p, line, h)
     store6(out, a0, a1, a2, a3, a4, a5)
+
+
+@nb.njit(cache=True)
+def _line_piece(a0, a1, a2, a3, a4, a5, u, p, line, h):
+    """One RK4 step of the rig with the port's sag held, then the line under the step's mean draw."""
+    y = line[0]
+    k1 = deriv_line(a0, a1, a2, a3, a4, a5, u, p, y)
+    k2 = deriv_line(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2],
+                    a3 + 0.5 * h * k1[3], a4 + 0.5 * h * k1[4], a5 + 0.5 * h * k1[5], u, p, y)
+    k3 = deriv_line(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2],
+                    a3 + 0.5 * h * k2[3], a4 + 0.5 * h * k2[4], a5 + 0.5 * h * k2[5], u, p, y)
+    k4 = deriv_line(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2],
+                    a3 + h * k3[3], a4 + h * k3[4], a5 + h * k3[5], u, p, y)
+    a0, a1, a2, a3, a4, a5 = rk4_combine(a0, a1, a2, a3, a4, a5, k1, k2, k3, k4, h)
+    line_advance(line, (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]) / 6.0, p, h)
+    return a0, a1, a2, a3, a4, a5
 
 
 @nb.njit(cache=True)
